@@ -1,0 +1,228 @@
+"""The HVAC box as a CasADi model that knows its states, inputs, disturbances and outputs by name.
+
+Air path (thesis fig. 7, design.md sec. 1): blower (flow, motor heating) -> valve a splits
+into bypass b(a) and core path -> cooler core (chilled water) -> PTC heater -> mixing ->
+thermocouple -> parallel valves m, f, w.
+
+The numeric parameters enter as a symbolic vector ``p`` (names: :meth:`Parameters.scalar_names`),
+so the same functions serve simulation, control and identification. Non-ideal effects are
+structural switches chosen when the model is built (:data:`MODEL_EFFECTS`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from types import SimpleNamespace
+from typing import Iterable, Mapping, Sequence
+
+import casadi as ca
+import numpy as np
+
+from . import air, blower, bypass, chiller, heater, sensors, valves
+from .parameters import Parameters
+
+STATES = ("motor_rise_c", "water_temp_c", "heater_temp_c", "supply_sensor_c")
+TRAP_STATE = "trap_air_temp_c"
+INPUTS = ("blower_power_w", "heater_cmd_w", "valve_a_pct", "valve_m_pct", "valve_f_pct", "valve_w_pct")
+DISTURBANCES = ("inlet_temp_c", "chiller_setpoint_c", "mix_offset_c", "flow_offset_m3s")
+OUTPUTS = ("supply_temp_c", "volume_flow_m3s", "flow_m_m3s", "flow_f_m3s", "flow_w_m3s",
+           "heater_temp_c", "supply_air_temp_c", "heater_outlet_temp_c", "heater_power_w",
+           "water_temp_c", "mass_flow_kgs")
+
+#: Continuous effects the model can include (each off in the thesis model).
+MODEL_EFFECTS = ("ptc_power_fall", "motor_asymmetry", "bypass_flow", "trapped_air", "fan_curve",
+                 "valve_leakage", "chiller_asymmetry")
+
+INPUT_LOWER = {"blower_power_w": 30.0, "heater_cmd_w": 0.0, "valve_a_pct": 0.0,
+               "valve_m_pct": 0.0, "valve_f_pct": 0.0, "valve_w_pct": 0.0}
+
+
+@dataclass(frozen=True)
+class Signals:
+    """Named vector helper: index of each name and conversion to and from dicts."""
+
+    names: tuple[str, ...]
+
+    def index(self, name: str) -> int:
+        try:
+            return self.names.index(name)
+        except ValueError:
+            raise KeyError(f"unknown signal {name!r}; known: {list(self.names)}") from None
+
+    def vector(self, values: Mapping[str, float], default: Mapping[str, float] | None = None) -> np.ndarray:
+        merged = dict(default or {})
+        merged.update(values)
+        missing = [n for n in self.names if n not in merged]
+        if missing:
+            raise KeyError(f"missing signal(s) {missing}")
+        return np.array([float(merged[n]) for n in self.names])
+
+    def dict(self, vector: Sequence[float]) -> dict[str, float]:
+        return {n: float(v) for n, v in zip(self.names, np.asarray(vector, float).ravel())}
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+
+def input_upper(p: Parameters) -> dict[str, float]:
+    """Actuator upper bounds (design.md sec. 2)."""
+    return {"blower_power_w": p.blower_power_max_w, "heater_cmd_w": p.heater_power_max_w,
+            "valve_a_pct": 100.0, "valve_m_pct": 100.0, "valve_f_pct": 100.0, "valve_w_pct": 100.0}
+
+
+def validate_effects(effects: Iterable[str], allowed: Sequence[str]) -> frozenset[str]:
+    effects = frozenset(effects)
+    unknown = sorted(effects - set(allowed))
+    if unknown:
+        raise ValueError(f"unknown effect(s) {unknown}; allowed: {list(allowed)}")
+    return effects
+
+
+class HvacModel:
+    """CasADi model of the box.
+
+    Attributes ``states``, ``inputs``, ``disturbances``, ``outputs`` are :class:`Signals`;
+    ``ode``, ``output`` and ``step`` are CasADi functions of ``(x, u, d, p)``.
+    """
+
+    def __init__(self, params: Parameters | None = None, effects: Iterable[str] = (), dt_s: float = 1.0,
+                 substeps: int = 2):
+        self.params = params or Parameters()
+        self.effects = validate_effects(effects, MODEL_EFFECTS)
+        self.dt_s = float(dt_s)
+        state_names = STATES + ((TRAP_STATE,) if "trapped_air" in self.effects else ())
+        self.states = Signals(state_names)
+        self.inputs = Signals(INPUTS)
+        self.disturbances = Signals(DISTURBANCES)
+        self.outputs = Signals(OUTPUTS)
+        self.param_names = Parameters.scalar_names()
+        self._curves = valves.curves(self.params)
+
+        x = ca.SX.sym("x", len(self.states))
+        u = ca.SX.sym("u", len(self.inputs))
+        d = ca.SX.sym("d", len(self.disturbances))
+        p = ca.SX.sym("p", len(self.param_names))
+        xdot, y = self._equations(x, u, d, p)
+        self.ode = ca.Function("ode", [x, u, d, p], [xdot], ["x", "u", "d", "p"], ["xdot"])
+        self.output = ca.Function("output", [x, u, d, p], [y], ["x", "u", "d", "p"], ["y"])
+        self.step = self.make_step(self.dt_s, substeps)
+        self.p_default = np.array(self.params.vector())
+
+    # ------------------------------------------------------------------ equations
+    def _symbolic_params(self, p: ca.SX) -> SimpleNamespace:
+        ns = {name: p[i] for i, name in enumerate(self.param_names)}
+        for name in ("valve_m_table", "valve_f_table", "valve_w_table"):
+            ns[name] = getattr(self.params, name)
+        return SimpleNamespace(**ns)
+
+    def algebraic(self, x, u, d, p) -> dict:
+        """All intermediate quantities of the box for states x, inputs u, disturbances d."""
+        e = self.effects
+        prm = self._symbolic_params(p) if isinstance(p, ca.SX) else p
+        sx = {n: x[i] for i, n in enumerate(self.states.names)}
+        su = {n: u[i] for i, n in enumerate(INPUTS)}
+        sd = {n: d[i] for i, n in enumerate(DISTURBANCES)}
+        t_in = sd["inlet_temp_c"]
+        p_b = su["blower_power_w"]
+        a = su["valve_a_pct"]
+
+        g = valves.branch_conductances([su["valve_m_pct"], su["valve_f_pct"], su["valve_w_pct"]], prm,
+                                       self._curves, leakage="valve_leakage" in e)
+        b0 = bypass.bypass_fraction(a, prm)
+        flow = blower.open_flow_m3s(p_b, prm) * blower.core_flow_factor(b0, prm)
+        if "fan_curve" in e:
+            g_open = valves.branch_conductances([100.0, 100.0, 100.0], prm, self._curves,
+                                                leakage="valve_leakage" in e)
+            flow = flow * blower.fan_curve_factor(valves.network_resistance(g),
+                                                  valves.network_resistance(g_open), prm)
+        flow = flow + sd["flow_offset_m3s"]
+        mass_flow = air.density_kgm3(t_in, prm) * flow
+        b = bypass.flow_dependent_bypass(b0, mass_flow, prm) if "bypass_flow" in e else b0
+
+        t_blower = t_in + sx["motor_rise_c"]
+        t_cooler = chiller.cooler_outlet_c(t_blower, sx["water_temp_c"], prm)
+        p_el = heater.electric_power_w(su["heater_cmd_w"], sx["heater_temp_c"], prm, ptc="ptc_power_fall" in e)
+        core_flow = (1.0 - b) * mass_flow
+        t_heater_out = heater.air_outlet_c(sx["heater_temp_c"], t_cooler, core_flow, prm)
+        t_mix = bypass.mix_c(b, t_blower, t_heater_out)
+        if "trapped_air" in e:
+            t_mix = t_mix + bypass.trap_release_c(sx[TRAP_STATE], t_mix, a, mass_flow, prm)
+        t_supply = t_mix + sd["mix_offset_c"]
+        outlet = valves.split_flows(flow, g)
+        return dict(prm=prm, sx=sx, su=su, sd=sd, flow=flow, mass_flow=mass_flow, bypass=b,
+                    t_blower=t_blower, t_cooler=t_cooler, p_el=p_el, t_heater_out=t_heater_out,
+                    t_mix=t_mix, t_supply=t_supply, outlet=outlet)
+
+    def _equations(self, x, u, d, p):
+        e = self.effects
+        q = self.algebraic(x, u, d, p)
+        prm, sx, su, sd = q["prm"], q["sx"], q["su"], q["sd"]
+        rates = {
+            "motor_rise_c": blower.motor_rise_rate_c_per_s(sx["motor_rise_c"], su["blower_power_w"], prm,
+                                                            asymmetric="motor_asymmetry" in e),
+            "water_temp_c": chiller.water_rate_c_per_s(sx["water_temp_c"], sd["chiller_setpoint_c"], prm,
+                                                       asymmetric="chiller_asymmetry" in e),
+            "heater_temp_c": heater.body_rate_c_per_s(sx["heater_temp_c"], q["t_heater_out"], q["p_el"], prm),
+            "supply_sensor_c": sensors.lag_rate(sx["supply_sensor_c"], q["t_supply"], prm.tau_tc_s),
+        }
+        if "trapped_air" in e:
+            t_mix_no_trap = bypass.mix_c(q["bypass"], q["t_blower"], q["t_heater_out"])
+            rates[TRAP_STATE] = bypass.trap_rate_c_per_s(sx[TRAP_STATE], sx["heater_temp_c"], t_mix_no_trap,
+                                                         su["valve_a_pct"], prm)
+        xdot = ca.vertcat(*[rates[n] for n in self.states.names])
+        y = ca.vertcat(sx["supply_sensor_c"], q["flow"], *q["outlet"], sx["heater_temp_c"], q["t_supply"],
+                       q["t_heater_out"], q["p_el"], sx["water_temp_c"], q["mass_flow"])
+        return xdot, y
+
+    # ------------------------------------------------------------------ discretisation
+    def make_step(self, dt_s: float, substeps: int = 2) -> ca.Function:
+        """Discrete step x+ = F(x, u, d, p) over ``dt_s`` by RK4 with ``substeps`` (inputs held)."""
+        x = ca.SX.sym("x", len(self.states))
+        u = ca.SX.sym("u", len(self.inputs))
+        d = ca.SX.sym("d", len(self.disturbances))
+        p = ca.SX.sym("p", len(self.param_names))
+        h = dt_s / substeps
+        xk = x
+        for _ in range(substeps):
+            k1 = self.ode(xk, u, d, p)
+            k2 = self.ode(xk + h / 2 * k1, u, d, p)
+            k3 = self.ode(xk + h / 2 * k2, u, d, p)
+            k4 = self.ode(xk + h * k3, u, d, p)
+            xk = xk + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        return ca.Function("step", [x, u, d, p], [xk], ["x", "u", "d", "p"], ["x_next"])
+
+    def step_jacobians(self, step: ca.Function | None = None) -> ca.Function:
+        """Function (x, u, d, p) -> (x_next, dF/dx, dF/du) for linearisation."""
+        step = step or self.step
+        x = ca.SX.sym("x", len(self.states))
+        u = ca.SX.sym("u", len(self.inputs))
+        d = ca.SX.sym("d", len(self.disturbances))
+        p = ca.SX.sym("p", len(self.param_names))
+        xn = step(x, u, d, p)
+        return ca.Function("step_jac", [x, u, d, p], [xn, ca.jacobian(xn, x), ca.jacobian(xn, u)],
+                           ["x", "u", "d", "p"], ["x_next", "A", "B"])
+
+    # ------------------------------------------------------------------ conveniences
+    def p_vector(self, params: Parameters | None = None) -> np.ndarray:
+        return np.array((params or self.params).vector())
+
+    def d_vector(self, inlet_temp_c: float, chiller_setpoint_c: float, mix_offset_c: float = 0.0,
+                 flow_offset_m3s: float = 0.0) -> np.ndarray:
+        return np.array([inlet_temp_c, chiller_setpoint_c, mix_offset_c, flow_offset_m3s], float)
+
+    def y(self, x, u, d, p=None) -> np.ndarray:
+        """Outputs as a numpy vector."""
+        return np.asarray(self.output(x, u, d, self.p_default if p is None else p)).ravel()
+
+    def steady_state(self, u, d, p=None) -> np.ndarray:
+        """States at rest for constant inputs and disturbances (Newton on the ODE)."""
+        p = self.p_default if p is None else p
+        x = ca.SX.sym("x", len(self.states))
+        g = ca.Function("g", [x], [self.ode(x, u, d, p)])
+        solver = ca.rootfinder("ss", "newton", g, {"abstol": 1e-10, "max_iter": 200})
+        t_in, t_set = float(d[0]), float(d[1])
+        x0 = np.full(len(self.states), t_in)
+        x0[self.states.index("motor_rise_c")] = 1.0
+        x0[self.states.index("water_temp_c")] = t_set
+        x0[self.states.index("heater_temp_c")] = t_in + 20.0
+        return np.asarray(solver(x0)).ravel()

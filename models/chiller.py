@@ -1,0 +1,48 @@
+"""External water chiller and cooler core (thesis section 4.2)."""
+
+from __future__ import annotations
+
+import casadi as ca
+
+
+def water_rate_c_per_s(water_c, target_c, p, asymmetric: bool = False):
+    """Water temperature ramp towards a target at the measured slope (thesis sec. 4.2, fig. 23).
+
+    Nominal: +-0.00692 C/s, smoothed over 0.05 C near the target. ``asymmetric`` uses the rising
+    and falling slopes 0.00702 / 0.00682 C/s.
+    """
+    direction = ca.tanh((target_c - water_c) / 0.05)
+    if not asymmetric:
+        return p.water_rate_c_per_s * direction
+    rising = 0.5 * (1.0 + direction)
+    return rising * p.water_rise_rate_c_per_s * direction + (1.0 - rising) * p.water_fall_rate_c_per_s * direction
+
+
+def hysteresis_target_c(water_c: float, setpoint_c: float, on: bool, p) -> tuple[float, bool]:
+    """Two-point chiller controller (effect 'chiller_hysteresis', thesis sec. 2.2; band ASSUMPTION).
+
+    Returns the ramp target and the new on/off state: on cools until set - band, off lets the
+    water warm until set + band. Pure function for the plant's discrete logic.
+    """
+    if on and water_c <= setpoint_c - p.chiller_band_c:
+        on = False
+    elif not on and water_c >= setpoint_c + p.chiller_band_c:
+        on = True
+    target = setpoint_c - p.chiller_band_c - 5.0 if on else setpoint_c + p.chiller_band_c + 5.0
+    return target, on
+
+
+def cooler_outlet_c(air_in_c, water_c, p):
+    """Air temperature after the cooler core (thesis sec. 4.2).
+
+    The thesis fit T_a = 0.7564 T_w + 6.312 was measured at one inlet temperature; it equals the
+    effectiveness form T_in + eps (T_w - T_in) with eps = 0.7564 at
+    T_in = 6.312 / (1 - 0.7564) = 25.9 C (design.md, 'traps'). The effectiveness form is used so
+    that the cooler responds to the inlet temperature.
+    """
+    return air_in_c + p.cooler_slope * (water_c - air_in_c)
+
+
+def cooler_fit_inlet_c(p) -> float:
+    """Inlet temperature at which the thesis cooler fit and the effectiveness form agree."""
+    return p.cooler_offset_c / (1.0 - p.cooler_slope)
