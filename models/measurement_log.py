@@ -1,0 +1,147 @@
+"""The measurement-log schema (design.md sec. 4): one row per sample, CSV with a header.
+
+Writers flush every row, so a crash loses at most the row in flight; opening an existing log
+appends. Readers accept CSV or Parquet (with pyarrow installed) and a column mapping for a
+lab's own column names.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+import numpy as np
+
+REQUIRED_COLUMNS = ("time_s", "blower_power_w", "heater_cmd_w", "valve_a_pct", "valve_m_pct", "valve_f_pct",
+                    "valve_w_pct", "hvac_inlet_temp_c", "volume_flow_m3s", "supply_temp_c")
+OPTIONAL_COLUMNS = ("heater_power_w", "water_temp_c", "chiller_setpoint_c", "hvac_inlet_rh_pct",
+                    "heater_outlet_temp_c", "cabin_temp_c", "cabin_rh_pct", "outlet_m_temp_c", "outlet_f_temp_c",
+                    "outlet_w_temp_c", "ref_supply_temp_c", "ref_volume_flow_m3s", "ref_flow_m_m3s",
+                    "ref_flow_f_m3s", "ref_flow_w_m3s", "mode", "controller")
+COLUMNS = REQUIRED_COLUMNS + OPTIONAL_COLUMNS
+TEXT_COLUMNS = ("mode", "controller")
+
+
+class LogFormatError(ValueError):
+    """The log does not follow the schema; the message names the column."""
+
+
+def _cell(value: Any) -> str:
+    if value is None:
+        return ""
+    if isinstance(value, str):
+        return value
+    value = float(value)
+    return "" if not math.isfinite(value) else repr(value)
+
+
+class LogWriter:
+    """Appends rows to a CSV log in the schema; each row is flushed and fsynced on write."""
+
+    def __init__(self, path: str | Path, columns: Iterable[str] = COLUMNS, fsync: bool = True):
+        self.path = Path(path)
+        self.columns = tuple(columns)
+        unknown = sorted(set(self.columns) - set(COLUMNS))
+        if unknown:
+            raise LogFormatError(f"unknown log column(s) {unknown}")
+        self.fsync = fsync
+        exists = self.path.exists() and self.path.stat().st_size > 0
+        if exists:
+            with self.path.open("r", newline="") as fh:
+                header = next(csv.reader(fh), [])
+            if tuple(header) != self.columns:
+                raise LogFormatError(f"{self.path}: existing header {header} differs from {list(self.columns)}")
+            _truncate_partial_last_line(self.path)
+        self._fh = self.path.open("a", newline="")
+        self._writer = csv.writer(self._fh)
+        if not exists:
+            self._writer.writerow(self.columns)
+            self._flush()
+
+    def write(self, row: Mapping[str, Any]) -> None:
+        """Write one sample; missing columns are left empty, unknown keys raise."""
+        unknown = sorted(set(row) - set(self.columns))
+        if unknown:
+            raise LogFormatError(f"unknown log column(s) {unknown}")
+        self._writer.writerow([_cell(row.get(c)) for c in self.columns])
+        self._flush()
+
+    def _flush(self) -> None:
+        self._fh.flush()
+        if self.fsync:
+            os.fsync(self._fh.fileno())
+
+    def close(self) -> None:
+        if not self._fh.closed:
+            self._fh.close()
+
+    def __enter__(self) -> "LogWriter":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _truncate_partial_last_line(path: Path) -> None:
+    """Drop a last line cut short by a crash (no trailing newline), so appends start clean."""
+    data = path.read_bytes()
+    if data and not data.endswith(b"\n"):
+        path.write_bytes(data[: data.rfind(b"\n") + 1])
+
+
+def read_log(path: str | Path, mapping: Mapping[str, str] | None = None) -> dict[str, np.ndarray]:
+    """Read a CSV or Parquet log into column arrays (floats; NaN for empty; text columns as str).
+
+    ``mapping`` maps the file's column names onto schema names (``{"T_sup": "supply_temp_c"}``).
+    Missing required columns raise :class:`LogFormatError` naming them.
+    """
+    path = Path(path)
+    mapping = dict(mapping or {})
+    if path.suffix.lower() in (".parquet", ".pq"):
+        try:
+            import pyarrow.parquet as pq
+        except ImportError as exc:  # pragma: no cover - depends on the optional extra
+            raise LogFormatError("reading Parquet needs pyarrow: pip install 'hvac-mpc[parquet]'") from exc
+        table = pq.read_table(path)
+        raw = {mapping.get(c, c): table.column(c).to_pylist() for c in table.column_names}
+    else:
+        with path.open("r", newline="") as fh:
+            reader = csv.reader(fh)
+            header = next(reader, None)
+            if header is None:
+                raise LogFormatError(f"{path}: empty file, expected a header with {list(REQUIRED_COLUMNS)}")
+            names = [mapping.get(h.strip(), h.strip()) for h in header]
+            rows = [r for r in reader if len(r) == len(names)]
+        raw = {n: [r[i] for r in rows] for i, n in enumerate(names)}
+    missing = [c for c in REQUIRED_COLUMNS if c not in raw]
+    if missing:
+        raise LogFormatError(f"{path}: missing required column(s) {missing}; map other names with a column mapping")
+    out: dict[str, np.ndarray] = {}
+    for name, values in raw.items():
+        if name in TEXT_COLUMNS:
+            out[name] = np.array(["" if v is None else str(v) for v in values], dtype=object)
+            continue
+        try:
+            out[name] = np.array([np.nan if v in ("", None) else float(v) for v in values], float)
+        except ValueError as exc:
+            raise LogFormatError(f"{path}: column {name!r} holds a non-numeric value ({exc})") from None
+    return out
+
+
+def write_log(path: str | Path, columns: Mapping[str, Iterable[Any]]) -> None:
+    """Write whole column arrays as a new CSV log (overwrites)."""
+    path = Path(path)
+    names = [c for c in COLUMNS if c in columns]
+    unknown = sorted(set(columns) - set(COLUMNS))
+    if unknown:
+        raise LogFormatError(f"unknown log column(s) {unknown}")
+    if path.exists():
+        path.unlink()
+    data = {c: list(columns[c]) for c in names}
+    n = len(next(iter(data.values()))) if data else 0
+    with LogWriter(path, names, fsync=False) as w:
+        for i in range(n):
+            w.write({c: data[c][i] for c in names})
