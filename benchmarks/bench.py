@@ -1,0 +1,277 @@
+"""``hvac-mpc bench``: the MPC against the thesis baseline on the same scenarios and the same plant.
+
+The plant is the simulated box with all its non-ideal effects, seeded noise, and a seeded
+perturbation of physical parameters (:mod:`.perturbation`); the controllers get the nominal
+parameters. Output in ``--out`` (default ``out/bench``): ``results.json``, ``report.md``, one PNG
+per scenario (matplotlib, extra ``plot``) and the sampled runs as measurement logs in ``logs/``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import platform
+import shlex
+import sys
+import time
+from pathlib import Path
+from typing import Callable, Mapping, Sequence
+
+import numpy as np
+
+from hvac_mpc.models import measurement_log
+from hvac_mpc.models.parameters import Parameters
+from hvac_mpc.models.plant import PLANT_EFFECTS, Command
+
+from . import criteria, metrics, report, scenarios as scenario_defs
+from .perturbation import MAGNITUDE_RANGE, perturb_parameters
+from .simulate import Trace, actuator_bounds, simulate
+
+DT_S = 1.0
+
+
+# ---------------------------------------------------------------------------- controllers
+def baseline_factory() -> Callable[[Command], object]:
+    """Factory of the thesis baseline (``hvac_mpc.mpc.baseline``) on the nominal parameters.
+
+    The baseline starts its loops from rest as in the thesis (its flow integrator is preset from
+    the first measurement); the initial command is not passed to it.
+    """
+    try:
+        from hvac_mpc.mpc.baseline import BaselineController
+    except ImportError as exc:
+        raise RuntimeError(f"the thesis baseline hvac_mpc.mpc.baseline.BaselineController is not available: {exc}")
+    return lambda initial_command: BaselineController(Parameters(), dt_s=DT_S)
+
+
+def mpc_factory() -> Callable[[Command], object]:
+    """Factory of the MPC (``hvac_mpc.mpc.mpc_controller``) on the nominal parameters and default settings.
+
+    Its only non-default setting is ``initial_command``, the command in force on the plant when
+    the scenario starts (the MPC rate-limits its first move from it).
+    """
+    try:
+        from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
+    except ImportError as exc:
+        raise RuntimeError(f"the MPC hvac_mpc.mpc.mpc_controller.MpcController is not available: {exc}")
+    return lambda initial_command: MpcController(Parameters(), MpcSettings(initial_command=initial_command))
+
+
+def describe_controller(ctrl) -> str:
+    """Short text of a controller's settings for the report (dataclass fields of ``settings`` if any)."""
+    settings = getattr(ctrl, "settings", None)
+    name = type(ctrl).__name__
+    if settings is not None and dataclasses.is_dataclass(settings):
+        fields = {f.name: getattr(settings, f.name) for f in dataclasses.fields(settings)}
+        simple = {k: v for k, v in fields.items() if isinstance(v, (int, float, str, bool)) or v is None}
+        return f"{name}(" + ", ".join(f"{k}={v}" for k, v in simple.items()) + ")"
+    return name
+
+
+# ---------------------------------------------------------------------------- progress
+class ProgressBar:
+    """Plain text progress bar on a stream (stderr by default), redrawn at most every 0.2 s."""
+
+    def __init__(self, total: int, stream=None, width: int = 30, enabled: bool = True):
+        self.total = max(int(total), 1)
+        self.done = 0
+        self.stream = stream if stream is not None else sys.stderr
+        self.width = width
+        self.enabled = enabled
+        self.label = ""
+        self._last = 0.0
+        self._t0 = time.perf_counter()
+        self._tty = bool(getattr(self.stream, "isatty", lambda: False)())
+
+    def advance(self, n: int = 1, label: str | None = None) -> None:
+        self.done = min(self.done + n, self.total)
+        if label is not None:
+            self.label = label
+        now = time.perf_counter()
+        if now - self._last >= (0.2 if self._tty else 5.0) or self.done == self.total:
+            self._last = now
+            self.draw()
+
+    def draw(self) -> None:
+        if not self.enabled:
+            return
+        frac = self.done / self.total
+        fill = int(round(frac * self.width))
+        text = (f"[{'#' * fill}{'.' * (self.width - fill)}] {frac:4.0%} {self.label} "
+                f"{time.perf_counter() - self._t0:.0f} s")
+        self.stream.write(("\r" + text.ljust(90)) if self._tty else text + "\n")
+        self.stream.flush()
+
+    def close(self) -> None:
+        if self.enabled and self._tty:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+# ---------------------------------------------------------------------------- benchmark
+def run_benchmark(chosen: Sequence[scenario_defs.Scenario], factories: Mapping[str, Callable[[], object]],
+                  seed: int, progress: ProgressBar | None = None) -> tuple[dict, dict[str, dict[str, Trace]]]:
+    """Run every controller on every scenario; figures, ratios and criteria from this one run.
+
+    ``factories`` must hold "baseline" and "mpc", each a callable taking the command in force on
+    the plant at the start and giving a fresh controller on the nominal parameters (a fresh one per
+    scenario, so a scenario's numbers do not depend on which scenarios ran before it).
+    Returns ``(results, traces)``.
+    """
+    missing = [c for c in report.CONTROLLERS if c not in factories]
+    if missing:
+        raise ValueError(f"factories: missing controller(s) {missing}; expected {list(report.CONTROLLERS)}")
+    nominal = Parameters()
+    plant_params, perturbation = perturb_parameters(nominal, seed)
+    lower, upper = actuator_bounds(nominal)
+    results: dict = {"scenarios": {}}
+    traces: dict[str, dict[str, Trace]] = {}
+    settings: dict[str, str] = {}
+    build_s: dict[str, list[float]] = {c: [] for c in report.CONTROLLERS}
+    for sc in chosen:
+        runs = {}
+        traces[sc.name] = {}
+        for cname in report.CONTROLLERS:
+            tic = time.perf_counter()
+            ctrl = factories[cname](sc.initial_command)
+            build_s[cname].append(time.perf_counter() - tic)
+            settings.setdefault(cname, describe_controller(ctrl))
+            cb = None
+            if progress is not None:
+                label = f"{sc.name} {report.LABELS[cname]}"
+                cb = lambda k, n, label=label: progress.advance(1, label)  # noqa: E731
+            tr = simulate(sc, ctrl, plant_params, seed, name=cname, progress=cb, dt_s=DT_S)
+            traces[sc.name][cname] = tr
+            runs[cname] = metrics.run_figures(tr, lower, upper, nominal.heater_temp_max_c,
+                                              nominal.trap_threshold_pct, plant_params.tau_tc_s)
+        b, m = runs["baseline"], runs["mpc"]
+        results["scenarios"][sc.name] = {
+            "description": sc.description, "kind": sc.kind, "seed": sc.seed, "duration_s": sc.duration_s,
+            "warmup_s": sc.metrics_start_s, "scored_s": sc.duration_s - sc.metrics_start_s,
+            "inlet_temp_c": sc.inlet_temp_c, "chiller_setpoint_c": sc.chiller_setpoint_c, "notes": list(sc.notes),
+            "step_times_s": sc.step_times_s(),
+            "references": [{"from_s": 0.0, **sc.warmup.reference.as_dict()}]
+            + [{"from_s": t, **seg.reference.as_dict()} for t, seg in zip(sc.step_times_s(), sc.segments)],
+            "baseline": b, "mpc": m,
+            "ratios": metrics.ratios(m["figures"], b["figures"]),
+            "criteria": criteria.judge(sc.kind, m["figures"], b["figures"], m["details"], b["details"]),
+        }
+    results["summary"] = report.summarise(results["scenarios"])
+    results["criteria_names"] = report.criteria_names(results["scenarios"])
+    results["meta"] = {
+        "seed": seed, "plant_effects": list(PLANT_EFFECTS),
+        "perturbation": [dataclasses.asdict(p) for p in perturbation],
+        "perturbation_rule": (f"Rule: each listed parameter is multiplied by 1 + s m, sign s random, magnitude m "
+                              f"uniform in [{MAGNITUDE_RANGE[0]:.0%}, {MAGNITUDE_RANGE[1]:.0%}], drawn from the "
+                              f"seed ({seed}) in the order listed (`benchmarks/perturbation.py`)."),
+        "heater_temp_max_c": nominal.heater_temp_max_c,
+        "controller_settings": settings,
+        "controller_build_s": {c: float(np.median(v)) if v else None for c, v in build_s.items()},
+        "sample_time_s": DT_S,
+    }
+    return results, traces
+
+
+def write_logs(traces: Mapping[str, Mapping[str, Trace]], folder: Path) -> None:
+    """Each run as a measurement log (design.md sec. 4): sensor readings, commands, references."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for sname, runs in traces.items():
+        for cname, tr in runs.items():
+            n = tr.time_s.size
+            cols = {"time_s": tr.time_s}
+            for i, a in enumerate(tr.actuators):
+                cols[a] = tr.applied[:, i]
+            cols.update({"hvac_inlet_temp_c": np.full(n, tr.environment["inlet_temp_c"]),
+                         "volume_flow_m3s": tr.measured["volume_flow_m3s"],
+                         "supply_temp_c": tr.measured["supply_temp_c"],
+                         "heater_power_w": tr.truth["heater_power_w"],
+                         "water_temp_c": tr.truth["water_temp_c"],
+                         "chiller_setpoint_c": np.full(n, tr.environment["chiller_setpoint_c"]),
+                         "heater_outlet_temp_c": tr.truth["heater_outlet_temp_c"]})
+            for f in ("supply_temp_c", "volume_flow_m3s", "flow_m_m3s", "flow_f_m3s", "flow_w_m3s"):
+                cols[f"ref_{f}"] = tr.reference[f]
+            cols["mode"] = ["" if v is None else str(v) for v in tr.mode]
+            cols["controller"] = [cname] * n
+            measurement_log.write_log(folder / f"{sname}__{cname}.csv", cols)
+
+
+def write_outputs(results: dict, traces: Mapping[str, Mapping[str, Trace]], out: Path, plots: bool) -> list[str]:
+    """results.json, report.md, PNG plots and logs in ``out``; returns notes for the terminal."""
+    out.mkdir(parents=True, exist_ok=True)
+    notes = []
+    plot_files: dict[str, str] = {}
+    plot_note = None
+    if plots:
+        plt = report.import_pyplot()
+        if plt is None:
+            plot_note = ("No plots: matplotlib is not installed (install the extra: pip install -e \".[plot]\").")
+            notes.append(plot_note)
+        else:
+            for name, runs in traces.items():
+                fname = f"{name}.png"
+                report.plot_scenario(plt, name, runs, results["scenarios"][name]["warmup_s"], out / fname)
+                plot_files[name] = fname
+    else:
+        plot_note = "Plots switched off (--no-plots)."
+    write_logs(traces, out / "logs")
+    report.write_json(results, out / "results.json")
+    (out / "report.md").write_text(report.markdown(results, plot_files, plot_note))
+    return notes
+
+
+# ---------------------------------------------------------------------------- CLI
+def configure(parser: argparse.ArgumentParser) -> None:
+    names = list(scenario_defs.all_scenarios())
+    parser.add_argument("--quick", action="store_true", help="short version of every scenario (what the tests run)")
+    parser.add_argument("--scenario", action="append", metavar="NAME", default=None,
+                        help=f"run only this scenario (repeatable); one of: {', '.join(names)}")
+    parser.add_argument("--out", default="out/bench", metavar="DIR", help="output folder (default: out/bench)")
+    parser.add_argument("--seed", type=int, default=0, metavar="N",
+                        help="seed of the plant perturbation and the sensor noise (default: 0)")
+    parser.add_argument("--no-plots", action="store_true", help="write the report without PNG plots")
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.seed < 0:
+        print(f"hvac-mpc bench: --seed must be an integer >= 0, got {args.seed}", file=sys.stderr)
+        return 2
+    try:
+        chosen = scenario_defs.select(args.scenario, quick=args.quick)
+        factories = {"baseline": baseline_factory(), "mpc": mpc_factory()}
+    except (ValueError, RuntimeError) as exc:
+        print(f"hvac-mpc bench: {exc}", file=sys.stderr)
+        return 2
+    command = "hvac-mpc bench" + "".join(f" {shlex.quote(a)}" for a in _argv_from(args))
+    t0 = time.perf_counter()
+    bar = ProgressBar(sum(int(round(s.duration_s / DT_S)) for s in chosen) * len(report.CONTROLLERS))
+    try:
+        results, traces = run_benchmark(chosen, factories, args.seed, progress=bar)
+    finally:
+        bar.close()
+    results["meta"].update({"command": command, "quick": bool(args.quick),
+                            "elapsed_s": time.perf_counter() - t0,
+                            "platform": f"{platform.system()} {platform.machine()}",
+                            "python": platform.python_version()})
+    out = Path(args.out)
+    notes = write_outputs(results, traces, out, plots=not args.no_plots)
+    print(report.terminal_table(results))
+    for n in notes:
+        print(n)
+    print(f"report: {out / 'report.md'}  results: {out / 'results.json'}")
+    return 0
+
+
+def _argv_from(args: argparse.Namespace) -> list[str]:
+    """The options as typed, rebuilt from the parsed arguments (for the report's command line)."""
+    argv = []
+    if args.quick:
+        argv.append("--quick")
+    for s in args.scenario or []:
+        argv += ["--scenario", s]
+    if args.out != "out/bench":
+        argv += ["--out", str(args.out)]
+    if args.seed != 0:
+        argv += ["--seed", str(args.seed)]
+    if args.no_plots:
+        argv.append("--no-plots")
+    return argv

@@ -1,0 +1,198 @@
+"""The library of candidate effects the identification scores against a residual.
+
+Each candidate nests the current model (its "null" is the model without it):
+
+- effects the model implements as switches (``HvacModel`` effects, design.md sec. 5);
+- generic effects: sensor lag mismatch (the thermocouple time constant), transport delay
+  (integer samples on one output), output offset and drift (on one output).
+
+Candidates whose excitation the log lacks, or whose signature lies on signals the log does not
+hold, are skipped with the reason. A "missing input dependence" on a logged signal the model
+does not use is not a model change; it is looked for by :mod:`.localise` when nothing here fits.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from hvac_mpc.models.box import INPUTS
+
+from .fitting import FreeParam
+from .log_data import LogData
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One candidate effect. ``kind``: ``model`` (switch an HvacModel effect on and fit its
+    parameters), ``parameter`` (free a fixed parameter), ``delay`` or ``bias`` (on ``output``).
+    ``signature``: the outputs where the effect shows, most direct first; the first one the
+    log holds is the candidate's primary output. ``regressor``: the diagnostic variable that
+    shows it best (for the report's plot). ``grid``: starting points (every entry sets all the
+    candidate's parameters; the first is its null where one exists)."""
+
+    name: str
+    kind: str
+    description: str
+    source: str
+    effects: tuple[str, ...] = ()
+    params: tuple[FreeParam, ...] = ()
+    grid: tuple[dict, ...] = ()
+    output: str | None = None
+    signature: tuple[str, ...] = ()
+    regressor: str = ""
+    requires: Callable[[LogData, frozenset], str | None] | None = field(default=None, compare=False)
+
+    def applicable(self, log: LogData, current_effects: frozenset) -> str | None:
+        """``None`` if the candidate can be scored on this log, else the reason it cannot."""
+        if set(self.effects) & set(current_effects):
+            return "already in the model"
+        if self.output is not None and self.output not in log.outputs:
+            return f"{self.output} not logged"
+        return self.requires(log, current_effects) if self.requires else None
+
+
+def _col(log: LogData, name: str) -> np.ndarray:
+    return log.u[:, INPUTS.index(name)]
+
+
+def _needs_heating(log: LogData, _effects) -> str | None:
+    if np.mean(_col(log, "heater_cmd_w") > 20.0) < 0.05:
+        return "heater hardly used in the log (less than 5 % of rows above 20 W)"
+    return None
+
+
+def _needs_blower_steps(log: LogData, _effects) -> str | None:
+    du = np.diff(_col(log, "blower_power_w"))
+    if (du >= 50).sum() < 2 or (du <= -50).sum() < 2:
+        return "fewer than two blower steps of 50 W up and down"
+    return None
+
+
+def _needs_bypass_and_flow(log: LogData, _effects) -> str | None:
+    a = _col(log, "valve_a_pct")
+    pb = _col(log, "blower_power_w")
+    if np.mean(a < 95.0) < 0.1 or np.ptp(pb) < 60.0:
+        return "valve a hardly below 95 % or blower power hardly varied"
+    return None
+
+
+def _needs_outlet_valves(log: LogData, _effects) -> str | None:
+    mfw = log.u[:, [INPUTS.index(f"valve_{v}_pct") for v in "mfw"]]
+    if np.ptp(mfw, axis=0).max() < 30.0:
+        return "outlet valves m, f, w hardly moved"
+    return None
+
+
+def _needs_fan_curve(log: LogData, effects) -> str | None:
+    if "fan_curve" not in effects:
+        return ("changes only the split between the outlets, which the log does not hold; observable in the "
+                "total flow only together with fan_curve")
+    return _needs_outlet_valves(log, effects)
+
+
+def _needs_trap(log: LogData, _effects) -> str | None:
+    a = _col(log, "valve_a_pct")
+    heat = _col(log, "heater_cmd_w") > 20.0
+    sat = (a >= 95.0) & heat
+    leaves = np.flatnonzero(sat[:-1] & ~sat[1:] & heat[1:])
+    if sat.sum() < 30 or len(leaves) == 0:
+        return "valve a never leaves saturation while heating"
+    return None
+
+
+def _needs_no_water_log(log: LogData, _effects) -> str | None:
+    if log.water_temp_c is not None:
+        return "water temperature logged and used as a measured disturbance"
+    return None
+
+
+MODEL_CANDIDATES = (
+    Candidate("ptc_power_fall", "model",
+              "PTC heater power falls with heater temperature (full below a knee, zero at 165 C)",
+              "thesis sec. 2.3 (fig. 12) and sec. 4.4 (fig. 30: peaks drifting off)",
+              effects=("ptc_power_fall",), params=(FreeParam("ptc_knee_c", "lin", 20.0, 20.0, 160.0),),
+              grid=tuple({"ptc_knee_c": float(k)} for k in range(30, 151, 10)),
+              signature=("heater_power_w", "heater_outlet_temp_c", "supply_temp_c"), regressor="heater_temp_c",
+              requires=_needs_heating),
+    Candidate("motor_asymmetry", "model",
+              "blower motor heats the air faster than it cools down (two time constants)",
+              "thesis sec. 4.1.1 (fig. 17: heating a lot faster than cooling)",
+              effects=("motor_asymmetry",),
+              params=(FreeParam("tau_motor_heating_s", "log", lo=20.0, hi=3000.0),
+                      FreeParam("tau_motor_cooling_s", "log", lo=20.0, hi=3000.0)),
+              grid=({"tau_motor_heating_s": 268.0, "tau_motor_cooling_s": 268.0},
+                    {"tau_motor_heating_s": 120.0, "tau_motor_cooling_s": 600.0},
+                    {"tau_motor_heating_s": 600.0, "tau_motor_cooling_s": 120.0}),
+              signature=("supply_temp_c", "heater_outlet_temp_c"), regressor="blower_step_sign",
+              requires=_needs_blower_steps),
+    Candidate("bypass_flow", "model",
+              "bypass split at valve a depends on the total mass flow",
+              "thesis sec. 4.5.1 (air distribution depends on the total mass flow as well)",
+              effects=("bypass_flow",), params=(FreeParam("bypass_flow_exponent", "lin", 0.3, -2.0, 2.0),),
+              grid=({"bypass_flow_exponent": -0.4}, {"bypass_flow_exponent": 0.0}, {"bypass_flow_exponent": 0.4}),
+              signature=("supply_temp_c", "heater_outlet_temp_c"), regressor="mass_flow_kgs",
+              requires=_needs_bypass_and_flow),
+    Candidate("fan_curve", "model",
+              "blower flow depends on the network resistance (fan curve dp = p0 - k V^2)",
+              "thesis sec. 3.2, tables 3-6 (flow falls as valves close at the same blower power)",
+              effects=("fan_curve",), params=(FreeParam("fan_k_kg_m7", "log", lo=1e3, hi=1e7),),
+              grid=({"fan_k_kg_m7": 1e4}, {"fan_k_kg_m7": 4e4}, {"fan_k_kg_m7": 1.5e5}, {"fan_k_kg_m7": 6e5},
+                    {"fan_k_kg_m7": 3e6}),
+              signature=("volume_flow_m3s",), regressor="network_resistance_kg_m7",
+              requires=_needs_outlet_valves),
+    Candidate("valve_leakage", "model",
+              "closed outlet valves leak; each table resistance holds the other valves' leaks",
+              "thesis tables 3-5 (measured with the other valves closed), design.md 'traps'",
+              effects=("valve_leakage",), params=(FreeParam("valve_closed_leak_share", "lin", 0.3, 0.0, 1.0),),
+              grid=({"valve_closed_leak_share": 0.3}, {"valve_closed_leak_share": 0.6},
+                    {"valve_closed_leak_share": 1.0}),
+              signature=("volume_flow_m3s",), regressor="network_resistance_kg_m7", requires=_needs_fan_curve),
+    Candidate("trapped_air", "model",
+              "hot air trapped at the heater while valve a is saturated, released when it leaves",
+              "thesis sec. 5.4.2 (fig. 47)",
+              effects=("trapped_air",),
+              params=(FreeParam("trap_air_mass_kg", "lin", 2e-3, 0.0, 0.05),
+                      FreeParam("tau_trap_heat_s", "log", lo=5.0, hi=2000.0)),
+              grid=({"trap_air_mass_kg": 1e-3, "tau_trap_heat_s": 30.0},
+                    {"trap_air_mass_kg": 3e-3, "tau_trap_heat_s": 120.0},
+                    {"trap_air_mass_kg": 1e-2, "tau_trap_heat_s": 30.0}),
+              signature=("supply_temp_c",), regressor="trap_release", requires=_needs_trap),
+    Candidate("chiller_asymmetry", "model",
+              "chilled water warms and cools at different rates",
+              "thesis sec. 4.2 (fig. 23: slopes 0.00702 and 0.00682 C/s)",
+              effects=("chiller_asymmetry",),
+              params=(FreeParam("water_rise_rate_c_per_s", "log"), FreeParam("water_fall_rate_c_per_s", "log")),
+              grid=({"water_rise_rate_c_per_s": 0.00692, "water_fall_rate_c_per_s": 0.00692},),
+              signature=("supply_temp_c",), regressor="water_temp_c", requires=_needs_no_water_log),
+)
+
+GENERIC_CANDIDATES = (
+    Candidate("sensor_lag", "parameter",
+              "supply thermocouple time constant differs from 5.73 s (sensor lag mismatch)",
+              "thesis sec. 5.4.1 (tau_TC = 5.73 s, fig. 44)",
+              params=(FreeParam("tau_tc_s", "log", lo=0.5, hi=300.0),),
+              grid=({"tau_tc_s": 2.0}, {"tau_tc_s": 12.0}, {"tau_tc_s": 25.0}, {"tau_tc_s": 60.0}),
+              output="supply_temp_c", signature=("supply_temp_c",), regressor="d_supply_temp_c"),
+)
+
+
+def delay_candidates(outputs) -> tuple[Candidate, ...]:
+    """Transport delay on each logged temperature or flow output (integer samples)."""
+    return tuple(Candidate(f"transport_delay:{o}", "delay", f"{o} reading late by a transport delay",
+                           "generic (research notes sec. 5.3)", output=o, signature=(o,), regressor=f"d_{o}")
+                 for o in outputs if o != "heater_power_w")
+
+
+def bias_candidates(outputs) -> tuple[Candidate, ...]:
+    """Offset and linear drift on each logged output."""
+    return tuple(Candidate(f"output_bias:{o}", "bias", f"{o} reading offset with a linear drift",
+                           "generic (research notes sec. 5.3)", output=o, signature=(o,), regressor="time_s")
+                 for o in outputs)
+
+
+def library(outputs) -> tuple[Candidate, ...]:
+    """All candidates for a log with these outputs."""
+    return MODEL_CANDIDATES + GENERIC_CANDIDATES + delay_candidates(outputs) + bias_candidates(outputs)

@@ -1,0 +1,248 @@
+"""Least-squares fitting of a model structure to the training part of a log.
+
+The cost is the free-run simulation error of the logged outputs, each scaled by its noise
+level, summed over the training rows. Parameters are fitted in scaled coordinates theta:
+``log`` parameters as p = p_start exp(theta), ``lin`` ones as p = p_start + scale theta;
+output offsets (bias and drift) in units of the output's noise level. Jacobians come from the
+model's forward sensitivities (Gauss-Newton, scipy ``least_squares`` with bounds).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Iterable, Sequence
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from hvac_mpc.models.parameters import Parameters
+
+from . import statistics as st
+from .log_data import LogData
+from .simulator import OutputPost, Simulator
+
+#: Noise floors per output (a noise-free logged signal would otherwise get an infinite weight).
+SIGMA_FLOOR = {"supply_temp_c": 0.01, "volume_flow_m3s": 2e-5, "heater_outlet_temp_c": 0.01,
+               "heater_power_w": 0.5}
+
+
+@dataclass(frozen=True)
+class FreeParam:
+    """A model parameter to fit: ``log`` (p = p0 e^theta) or ``lin`` (p = p0 + scale theta)."""
+
+    name: str
+    transform: str = "log"
+    scale: float = 1.0
+    lo: float | None = None
+    hi: float | None = None
+
+    def bounds(self) -> tuple[float, float]:
+        f = Parameters.__dataclass_fields__[self.name]
+        lo, hi = f.metadata["range"]
+        lo = lo if self.lo is None else max(lo, self.lo)
+        hi = hi if self.hi is None else min(hi, self.hi)
+        return lo, hi
+
+
+#: Free parameters of the nominal (thesis) model: the ones the thesis fitted or that stand in
+#: for missing figures (design.md sec. 1). Thesis-measured constants (masses, tau_TC, tau_m,
+#: slopes of the chiller) stay fixed. The first two set the flow equation only.
+NOMINAL_FREE = (
+    FreeParam("flow_per_watt_m3s_per_w", "log"),
+    FreeParam("core_flow_loss", "lin", 0.05, 0.0, 0.4),
+    FreeParam("motor_gain_max_c", "log", lo=0.05, hi=8.0),
+    FreeParam("bypass_exponent", "log", lo=0.3, hi=4.0),
+    FreeParam("cooler_slope", "lin", 0.05, 0.3, 0.98),
+    FreeParam("heater_kp", "log", lo=0.2, hi=1.0),
+)
+#: Nominal parameters of the flow equation (models/blower.py), fitted on the volume flow alone first.
+FLOW_PARAMS = ("flow_per_watt_m3s_per_w", "core_flow_loss")
+
+
+@dataclass
+class Fit:
+    """A fitted model structure: effects, full parameter vector, output corrections, costs."""
+
+    effects: frozenset
+    p: np.ndarray
+    post: OutputPost
+    free: tuple[str, ...]
+    y: np.ndarray                 # free-run prediction incl. output corrections (n x n_y)
+    states: np.ndarray
+    cost_train: float             # sum of squared scaled errors on the training rows
+    cost_holdout: float
+    n_train: int
+    n_holdout: int
+    nfev: int = 0
+    message: str = ""
+    extra: dict = field(default_factory=dict)
+
+    def residual(self, y_meas: np.ndarray) -> np.ndarray:
+        return y_meas - self.y
+
+
+class Fitter:
+    """Fits model structures to one log; caches one :class:`Simulator` per effect set."""
+
+    def __init__(self, log: LogData, base: Parameters, quick: bool = False):
+        self.log = log
+        self.base = base
+        self.quick = quick
+        self.outputs = log.output_names()
+        self.y_meas = np.column_stack([log.outputs[o] for o in self.outputs])
+        self.sigma = np.array([st.noise_sigma(log.outputs[o][log.train], SIGMA_FLOOR.get(o, 0.0))
+                               for o in self.outputs])
+        self.names = Parameters.scalar_names()
+        self._sims: dict[frozenset, Simulator] = {}
+
+    def simulator(self, effects: Iterable[str]) -> Simulator:
+        key = frozenset(effects)
+        if key not in self._sims:
+            self._sims[key] = Simulator(self.log, self.base, key, self.outputs)
+        return self._sims[key]
+
+    # ------------------------------------------------------------------ costs
+    def scaled(self, y: np.ndarray) -> np.ndarray:
+        r = (self.y_meas - y) / self.sigma
+        return np.where(np.isfinite(r), r, 0.0)
+
+    def costs(self, y: np.ndarray) -> tuple[float, float]:
+        r2 = self.scaled(y) ** 2
+        return float(r2[self.log.train].sum()), float(r2[self.log.holdout].sum())
+
+    def output_costs(self, y: np.ndarray, part: str = "holdout") -> tuple[np.ndarray, np.ndarray]:
+        """Per output: sum of squared scaled errors and number of samples on one part."""
+        mask = self.log.holdout if part == "holdout" else self.log.train
+        r2 = self.scaled(y) ** 2
+        ok = np.isfinite(self.y_meas)
+        return r2[mask].sum(axis=0), ok[mask].sum(axis=0)
+
+    def structure(self, y: np.ndarray, part: str = "holdout") -> float:
+        """Held-out cost beyond the noise expectation, summed over outputs: sum_o max(C_o - N_o, 0)."""
+        c, n = self.output_costs(y, part)
+        return float(np.sum(np.maximum(c - n, 0.0)))
+
+    def counts(self) -> tuple[int, int]:
+        ok = np.isfinite(self.y_meas)
+        return int(ok[self.log.train].sum()), int(ok[self.log.holdout].sum())
+
+    def evaluate(self, effects: Iterable[str], p: np.ndarray, post: OutputPost, free: Sequence[str] = (),
+                 nfev: int = 0, message: str = "") -> Fit:
+        sim = self.simulator(effects)
+        y, states = sim.simulate(p)
+        y = post.apply(y)
+        ct, ch = self.costs(y)
+        nt, nh = self.counts()
+        return Fit(frozenset(effects), p.copy(), post.copy(), tuple(free), y, states, ct, ch, nt, nh, nfev, message)
+
+    # ------------------------------------------------------------------ fitting
+    def identifiable(self, effects, p, post, free: Sequence[FreeParam]) -> list[FreeParam]:
+        """Drop free parameters the training data barely excite (theta column norm < 1)."""
+        if not free:
+            return []
+        sim = self.simulator(effects)
+        e = self._e_matrix(p, free)
+        _, dy = sim.simulate_with_sensitivity(p, e)
+        dy = post.apply(np.zeros(dy.shape[:2]), dy)[1]
+        scaled = dy / self.sigma[None, :, None]
+        ok = np.isfinite(self.y_meas) & self.log.train[:, None]
+        norms = np.sqrt(np.sum(np.where(ok[:, :, None], scaled, 0.0) ** 2, axis=(0, 1)))
+        return [fp for fp, nrm in zip(free, norms) if nrm >= 1.0]
+
+    def _e_matrix(self, p: np.ndarray, free: Sequence[FreeParam]) -> np.ndarray:
+        e = np.zeros((len(self.names), len(free)))
+        for j, fp in enumerate(free):
+            i = self.names.index(fp.name)
+            e[i, j] = p[i] if fp.transform == "log" else fp.scale
+        return e
+
+    def fit(self, effects: Iterable[str], p_start: np.ndarray, free: Sequence[FreeParam], post: OutputPost,
+            bias_outputs: Sequence[str] = (), max_nfev: int | None = None,
+            only_outputs: Sequence[str] | None = None) -> Fit:
+        """Fit ``free`` model parameters (and offset+drift of ``bias_outputs``) on the training rows
+        (of ``only_outputs`` when given, else of every logged output)."""
+        effects = frozenset(effects)
+        sim = self.simulator(effects)
+        free = list(free)
+        p0 = p_start.copy()
+        idx = [self.names.index(fp.name) for fp in free]
+        for fp, i in zip(free, idx):  # start inside the bounds
+            lo, hi = fp.bounds()
+            p0[i] = min(max(p0[i], lo if fp.transform == "lin" else max(lo, 1e-300)), hi)
+        bias_idx = [self.outputs.index(o) for o in bias_outputs]
+        post = post.copy()
+        for o in bias_outputs:
+            post.bias.pop(o, None)
+        n_model = len(free)
+        lo_b, hi_b = [], []
+        for fp, i in zip(free, idx):
+            lo, hi = fp.bounds()
+            if fp.transform == "log":
+                lo_b.append(math.log(max(lo, 1e-300) / p0[i]) if lo > 0 else -30.0)
+                hi_b.append(math.log(hi / p0[i]))
+            else:
+                lo_b.append((lo - p0[i]) / fp.scale)
+                hi_b.append((hi - p0[i]) / fp.scale)
+        lo_b += [-np.inf] * (2 * len(bias_idx))
+        hi_b += [np.inf] * (2 * len(bias_idx))
+        lo_b = np.array(lo_b)
+        hi_b = np.array(hi_b)
+        train = self.log.train
+        ok = np.isfinite(self.y_meas) & train[:, None]
+        if only_outputs is not None:
+            ok &= np.array([o in only_outputs for o in self.outputs])[None, :]
+        ramp = post.ramp
+
+        def params(theta):
+            p = p0.copy()
+            for j, (fp, i) in enumerate(zip(free, idx)):
+                p[i] = p0[i] * math.exp(theta[j]) if fp.transform == "log" else p0[i] + fp.scale * theta[j]
+            return p
+
+        def add_bias(y, theta):
+            y = y.copy()
+            for k, j in enumerate(bias_idx):
+                b0, b1 = theta[n_model + 2 * k] * self.sigma[j], theta[n_model + 2 * k + 1] * self.sigma[j]
+                y[:, j] += b0 + b1 * ramp
+            return y
+
+        def resid(theta):
+            y, _ = sim.simulate(params(theta))
+            y = add_bias(post.apply(y), theta)
+            r = np.where(ok, (y - self.y_meas) / self.sigma, 0.0)
+            return r[train].ravel()
+
+        def jac(theta):
+            p = params(theta)
+            cols = []
+            if n_model:
+                _, dy = sim.simulate_with_sensitivity(p, self._e_matrix(p, free))
+                dy = post.apply(np.zeros(dy.shape[:2]), dy)[1]
+                cols.append(dy)
+            for k, j in enumerate(bias_idx):
+                block = np.zeros((self.log.n, len(self.outputs), 2))
+                block[:, j, 0] = self.sigma[j]
+                block[:, j, 1] = self.sigma[j] * ramp
+                cols.append(block)
+            d = np.concatenate(cols, axis=2) if cols else np.zeros((self.log.n, len(self.outputs), 0))
+            d = np.where(ok[:, :, None], d / self.sigma[None, :, None], 0.0)
+            return d[train].reshape(-1, d.shape[2])
+
+        # start a little inside the bounds: trf's scaling freezes variables that sit on a bound
+        width = np.where(np.isfinite(hi_b - lo_b), np.minimum(hi_b - lo_b, 10.0), 10.0)
+        theta0 = np.zeros(n_model + 2 * len(bias_idx))
+        at_lo, at_hi = theta0 - lo_b < 1e-3 * width, hi_b - theta0 < 1e-3 * width
+        theta0 = np.where(at_lo, lo_b + 0.02 * width, np.where(at_hi, hi_b - 0.02 * width, theta0))
+        if len(theta0) == 0:
+            return self.evaluate(effects, p0, post)
+        max_nfev = max_nfev or (12 if self.quick else 40)
+        sol = least_squares(resid, theta0, jac=jac, bounds=(lo_b, hi_b), method="trf", x_scale="jac",
+                            max_nfev=max_nfev, ftol=1e-8, xtol=1e-8, gtol=1e-10)
+        p = params(sol.x)
+        for k, j in enumerate(bias_idx):
+            post.bias[self.outputs[j]] = (float(sol.x[n_model + 2 * k] * self.sigma[j]),
+                                          float(sol.x[n_model + 2 * k + 1] * self.sigma[j]))
+        fit = self.evaluate(effects, p, post, [fp.name for fp in free], sol.nfev, sol.message)
+        fit.extra["theta"] = sol.x.tolist()
+        return fit

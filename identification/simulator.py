@@ -1,0 +1,321 @@
+"""Whole-log simulation of one model structure: free run, output sensitivities, EKF innovations.
+
+Everything is built once per model structure as CasADi functions of the full parameter vector
+``p`` (order :meth:`Parameters.scalar_names`) and mapped over the log with ``mapaccum``:
+
+- free run ``Y = sim(p)`` from the steady state at the first row (the error for reporting and
+  for the fit);
+- forward sensitivities ``dY/dtheta`` for the parameters being fitted (Gauss-Newton Jacobian);
+- one-step innovations of an extended Kalman filter on the same model (for the statistics).
+
+When the log holds ``water_temp_c`` it replaces the chiller state at every step (a measured
+disturbance), so the chiller's hysteresis does not enter the residual.
+"""
+
+from __future__ import annotations
+
+from typing import Iterable, Sequence
+
+import casadi as ca
+import numpy as np
+
+from hvac_mpc.models import valves
+from hvac_mpc.models.box import INPUTS, HvacModel
+from hvac_mpc.models.parameters import Parameters
+
+from .log_data import LogData
+
+#: Quantities inside the model exported for the diagnostics (derived regressors).
+INTERNALS = ("heater_temp_c", "mass_flow_kgs", "bypass_fraction", "core_mass_flow_kgs", "motor_rise_c",
+             "blower_out_temp_c", "cooler_out_temp_c", "heater_out_temp_c", "heater_electric_w",
+             "cooler_drive_c", "heater_rise_c", "mix_temp_c")
+
+#: ASSUMPTION: EKF process-noise standard deviations per state and second (tuning, not physics).
+PROCESS_NOISE = {"motor_rise_c": 2e-3, "water_temp_c": 2e-3, "heater_temp_c": 0.05, "supply_sensor_c": 0.01,
+                 "trap_air_temp_c": 0.05}
+#: ASSUMPTION: initial EKF state standard deviations.
+INITIAL_STD = {"motor_rise_c": 0.3, "water_temp_c": 0.5, "heater_temp_c": 3.0, "supply_sensor_c": 0.3,
+               "trap_air_temp_c": 3.0}
+
+
+class Simulator:
+    """One model structure (effects) over one log; ``outputs`` are the logged outputs to predict."""
+
+    def __init__(self, log: LogData, params: Parameters, effects: Iterable[str], outputs: Sequence[str]):
+        self.log = log
+        self.params = params
+        self.effects = frozenset(effects)
+        self.model = HvacModel(params, self.effects, dt_s=log.dt_s, substeps=2)
+        self.outputs = tuple(outputs)
+        self.names = self.model.param_names
+        m = self.model
+        self.nx, self.nu, self.nd, self.np = len(m.states), len(m.inputs), len(m.disturbances), len(self.names)
+        self.ny = len(self.outputs)
+        self._y_idx = [m.outputs.index(o) for o in self.outputs]
+        self._iw = m.states.index("water_temp_c")
+        self._flag = 1.0 if log.water_temp_c is not None else 0.0
+        n = log.n
+        water = log.water_temp_c if log.water_temp_c is not None else np.zeros(n)
+        d = np.zeros((n, self.nd))
+        d[:, m.disturbances.index("inlet_temp_c")] = log.inlet_temp_c
+        d[:, m.disturbances.index("chiller_setpoint_c")] = log.chiller_setpoint_c
+        self._d = d
+        # z_k = [u_k, u_{k-1}, d_k, water_k, flag]
+        self.z = np.hstack([log.u, log.u_prev, d, water[:, None], np.full((n, 1), self._flag)]).T.copy()
+        self.nz = self.z.shape[0]
+        self._build()
+        self._aug_cache: dict[tuple, ca.Function] = {}
+        self._ekf_fn: ca.Function | None = None
+
+    # ------------------------------------------------------------------ building blocks
+    def _sym(self):
+        return (ca.SX.sym("x", self.nx), ca.SX.sym("z", self.nz), ca.SX.sym("p", self.np))
+
+    def _split_z(self, z):
+        nu, nd = self.nu, self.nd
+        return z[:nu], z[nu:2 * nu], z[2 * nu:2 * nu + nd], z[2 * nu + nd], z[2 * nu + nd + 1]
+
+    def _override(self, x, z):
+        _, _, _, w, flag = self._split_z(z)
+        e = np.zeros(self.nx)
+        e[self._iw] = 1.0
+        return x + ca.DM(e) * (flag * (w - x[self._iw]))
+
+    def _build(self) -> None:
+        m = self.model
+        x, z, p = self._sym()
+        u, up, d, _, _ = self._split_z(z)
+        xe = self._override(x, z)
+        x_next = m.step(xe, u, d, p)
+        y_all = m.output(xe, up, d, p)
+        y = ca.vertcat(*[y_all[i] for i in self._y_idx])
+        self.f_step = ca.Function("f_step", [x, z, p], [x_next])
+        self.f_y = ca.Function("f_y", [x, z, p], [y])
+        self.f_step_y = ca.Function("f_step_y", [x, z, p], [x_next, y])
+        self.f_sim = self.f_step_y.mapaccum("f_sim", self.log.n, [0], [0])
+        # steady state at the first row: ode = 0 (water state pinned to the logged value)
+        xdot = m.ode(xe, u, d, p)
+        e = np.zeros(self.nx)
+        e[self._iw] = 1.0
+        _, _, _, w, flag = self._split_z(z)
+        g = xdot + ca.DM(e) * (flag * (x[self._iw] - w) - flag * xdot[self._iw])
+        self.f_g = ca.Function("f_g", [x, z, p], [g, ca.jacobian(g, x), ca.jacobian(g, p)])
+        # internals for diagnostics
+        q = m.algebraic(xe, up, d, p)
+        b = q["bypass"]
+        internals = {
+            "heater_temp_c": q["sx"]["heater_temp_c"], "mass_flow_kgs": q["mass_flow"], "bypass_fraction": b,
+            "core_mass_flow_kgs": (1 - b) * q["mass_flow"], "motor_rise_c": q["sx"]["motor_rise_c"],
+            "blower_out_temp_c": q["t_blower"], "cooler_out_temp_c": q["t_cooler"],
+            "heater_out_temp_c": q["t_heater_out"], "heater_electric_w": q["p_el"],
+            "cooler_drive_c": (1 - b) * (q["t_blower"] - q["t_cooler"]),
+            "heater_rise_c": (1 - b) * (q["t_heater_out"] - q["t_cooler"]), "mix_temp_c": q["t_mix"]}
+        self.f_internals = ca.Function("f_int", [x, z, p], [ca.vertcat(*[internals[k] for k in INTERNALS])])
+
+    # ------------------------------------------------------------------ steady state
+    def initial_state(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Steady state at the first row and its Jacobian with respect to ``p`` (n_x x n_p)."""
+        z0 = self.z[:, 0]
+        log = self.log
+        x = np.zeros(self.nx)
+        x[self.model.states.index("motor_rise_c")] = 1.0
+        x[self._iw] = log.water_temp_c[0] if log.water_temp_c is not None else log.chiller_setpoint_c[0]
+        x[self.model.states.index("heater_temp_c")] = log.inlet_temp_c[0] + 20.0
+        x[self.model.states.index("supply_sensor_c")] = log.outputs["supply_temp_c"][np.isfinite(
+            log.outputs["supply_temp_c"])][0]
+        if "trap_air_temp_c" in self.model.states.names:
+            x[self.model.states.index("trap_air_temp_c")] = log.inlet_temp_c[0]
+        for _ in range(60):
+            g, gx, _ = (np.asarray(v) for v in self.f_g(x, z0, p))
+            dx = np.linalg.solve(gx, -g.ravel())
+            x = x + dx
+            if np.max(np.abs(dx)) < 1e-9:
+                break
+        g, gx, gp = (np.asarray(v) for v in self.f_g(x, z0, p))
+        if not np.all(np.isfinite(x)) or np.max(np.abs(g)) > 1e-6:
+            x = self._settle_by_simulation(p)
+            g, gx, gp = (np.asarray(v) for v in self.f_g(x, z0, p))
+        try:
+            dx_dp = -np.linalg.solve(gx, gp)
+        except np.linalg.LinAlgError:
+            dx_dp = np.zeros((self.nx, self.np))
+        return x, dx_dp
+
+    def _settle_by_simulation(self, p: np.ndarray) -> np.ndarray:
+        x = np.full(self.nx, float(self.log.inlet_temp_c[0]))
+        x[self.model.states.index("motor_rise_c")] = 0.0
+        z0 = self.z[:, 0]
+        for _ in range(4000):
+            x = np.asarray(self.f_step(x, z0, p)).ravel()
+        return x
+
+    # ------------------------------------------------------------------ free run
+    def simulate(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Free-run outputs (n x n_y) and states (n x n_x; state k is the state at row k)."""
+        x0, _ = self.initial_state(p)
+        xs, ys = self.f_sim(x0, self.z, p)
+        xs = np.asarray(xs).T
+        states = np.vstack([x0[None, :], xs[:-1]])
+        return np.asarray(ys).T, states
+
+    def _aug(self, idx: tuple[int, ...]) -> ca.Function:
+        if idx in self._aug_cache:
+            return self._aug_cache[idx]
+        n_theta = len(idx)
+        x, z, p = self._sym()
+        s = ca.SX.sym("s", self.nx, n_theta)
+        c = ca.SX.sym("c", n_theta)
+        x_next, y = self.f_step_y(x, z, p)
+        p_sel = ca.vertcat(*[p[i] for i in idx])
+        a, bp = ca.jacobian(x_next, x), ca.jacobian(x_next, p_sel)
+        cy, dp = ca.jacobian(y, x), ca.jacobian(y, p_sel)
+        s_next = ca.mtimes(a, s) + ca.mtimes(bp, ca.diag(c))
+        dy = ca.mtimes(cy, s) + ca.mtimes(dp, ca.diag(c))
+        f = ca.Function("f_aug", [ca.vertcat(x, ca.vec(s)), z, p, c],
+                        [ca.vertcat(x_next, ca.vec(s_next)), ca.vertcat(y, ca.vec(dy))])
+        fm = f.mapaccum("f_aug_map", self.log.n, [0], [0])
+        self._aug_cache[idx] = fm
+        return fm
+
+    def simulate_with_sensitivity(self, p: np.ndarray, e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Free run and dY/dtheta for p = p(theta) with dp/dtheta = ``e`` (n_p x n_theta).
+
+        Each column of ``e`` must have one non-zero entry (one parameter per theta).
+        Returns ``y`` (n x n_y) and ``dy`` (n x n_y x n_theta).
+        """
+        n_theta = e.shape[1]
+        idx = tuple(int(np.flatnonzero(e[:, j])[0]) if np.any(e[:, j]) else 0 for j in range(n_theta))
+        scale = np.array([e[i, j] for j, i in enumerate(idx)])
+        x0, dx0 = self.initial_state(p)
+        s0 = dx0 @ e
+        xa0 = np.concatenate([x0, s0.ravel(order="F")])
+        _, out = self._aug(idx)(xa0, self.z, p, scale)
+        out = np.asarray(out).T
+        y = out[:, :self.ny]
+        dy = out[:, self.ny:].reshape(self.log.n, self.ny, n_theta, order="F")
+        return y, dy
+
+    def internals(self, p: np.ndarray, states: np.ndarray) -> dict[str, np.ndarray]:
+        """Derived regressors along a free run (heater temperature, mass flow, bypass ...)."""
+        f = self.f_internals.map(self.log.n)
+        vals = np.asarray(f(states.T, self.z, p)).T
+        out = {k: vals[:, i] for i, k in enumerate(INTERNALS)}
+        out["network_resistance_kg_m7"] = network_resistance(self.params, self.log.u)
+        return out
+
+    # ------------------------------------------------------------------ one-step residuals
+    def _ekf(self) -> ca.Function:
+        if self._ekf_fn is not None:
+            return self._ekf_fn
+        nx, ny = self.nx, self.ny
+        x, z, p = self._sym()
+        pv = ca.SX.sym("P", nx * nx)
+        ym, mask, r, q = ca.SX.sym("ym", ny), ca.SX.sym("mask", ny), ca.SX.sym("r", ny), ca.SX.sym("q", nx)
+        xs = ca.SX.sym("xs", nx)
+        h_jac = ca.Function("h_jac", [xs, z, p], [self.f_y(xs, z, p), ca.jacobian(self.f_y(xs, z, p), xs)])
+        f_jac = ca.Function("f_jac", [xs, z, p], [self.f_step(xs, z, p), ca.jacobian(self.f_step(xs, z, p), xs)])
+        cov = ca.reshape(pv, nx, nx)
+        xk = x
+        nus, ss = [], []
+        for j in range(ny):
+            yh, hh = h_jac(xk, z, p)
+            hj = hh[j, :]
+            s = ca.mtimes(ca.mtimes(hj, cov), hj.T) + r[j]
+            gain = ca.mtimes(cov, hj.T) / s
+            nu = (ym[j] - yh[j]) * mask[j]
+            xk = xk + gain * nu
+            cov = cov - mask[j] * ca.mtimes(gain, ca.mtimes(hj, cov))
+            nus.append(nu)
+            ss.append(s)
+        x_next, a = f_jac(xk, z, p)
+        cov = ca.mtimes(ca.mtimes(a, cov), a.T) + ca.diag(q)
+        cov = 0.5 * (cov + cov.T)
+        f = ca.Function("ekf", [ca.vertcat(x, pv), z, p, ym, mask, r, q],
+                        [ca.vertcat(x_next, ca.vec(cov)), ca.vertcat(*nus, *ss)])
+        self._ekf_fn = f.mapaccum("ekf_map", self.log.n, [0], [0])
+        return self._ekf_fn
+
+    def innovations(self, p: np.ndarray, y_meas: np.ndarray, r_var: np.ndarray,
+                    post: "OutputPost | None" = None) -> tuple[np.ndarray, np.ndarray]:
+        """EKF one-step innovations ``nu`` and their variances ``s`` (both n x n_y).
+
+        ``y_meas`` (n x n_y, NaN = missing) is first mapped through ``post`` inverse (output
+        delays and offsets are taken off the measurement). ``r_var`` are the measurement-noise
+        variances per output.
+        """
+        names = self.model.states.names
+        q = np.array([PROCESS_NOISE[nm] ** 2 for nm in names]) * self.log.dt_s
+        if self._flag:
+            q[self._iw] = 0.0
+        x0, _ = self.initial_state(p)
+        p0 = np.diag([INITIAL_STD[nm] ** 2 for nm in names])
+        ym = y_meas if post is None else post.undo(y_meas)
+        mask = np.isfinite(ym).astype(float)
+        ym = np.where(mask > 0, ym, 0.0)
+        _, out = self._ekf()(np.concatenate([x0, p0.ravel()]), self.z, p, ym.T, mask.T,
+                             np.asarray(r_var, float), q)
+        out = np.asarray(out).T
+        nu = out[:, :self.ny]
+        s = out[:, self.ny:]
+        nu[mask == 0] = np.nan
+        return nu, s
+
+
+class OutputPost:
+    """Output-side corrections the state model does not hold: delays (samples) and offset+drift."""
+
+    def __init__(self, outputs: Sequence[str], time_s: np.ndarray, delays: dict[str, int] | None = None,
+                 bias: dict[str, tuple[float, float]] | None = None):
+        self.outputs = tuple(outputs)
+        self.time_s = time_s
+        self.delays = {k: int(v) for k, v in (delays or {}).items() if v}
+        self.bias = {k: tuple(v) for k, v in (bias or {}).items()}
+        span = max(float(time_s[-1] - time_s[0]), 1.0)
+        self.ramp = (time_s - time_s[0]) / span - 0.5
+
+    def copy(self) -> "OutputPost":
+        return OutputPost(self.outputs, self.time_s, dict(self.delays), dict(self.bias))
+
+    def apply(self, y: np.ndarray, dy: np.ndarray | None = None):
+        y = y.copy()
+        dy = None if dy is None else dy.copy()
+        for name, dl in self.delays.items():
+            j = self.outputs.index(name)
+            y[:, j] = shift(y[:, j], dl)
+            if dy is not None:
+                dy[:, j, :] = shift(dy[:, j, :], dl)
+        for name, (b0, b1) in self.bias.items():
+            j = self.outputs.index(name)
+            y[:, j] += b0 + b1 * self.ramp
+        return y if dy is None else (y, dy)
+
+    def undo(self, y_meas: np.ndarray) -> np.ndarray:
+        """Measurement mapped back to model time and offset (for one-step filtering)."""
+        y = y_meas.copy()
+        for name, (b0, b1) in self.bias.items():
+            j = self.outputs.index(name)
+            y[:, j] -= b0 + b1 * self.ramp
+        for name, dl in self.delays.items():
+            j = self.outputs.index(name)
+            y[:, j] = np.concatenate([y[dl:, j], np.full(dl, np.nan)])
+        return y
+
+    def describe(self) -> dict:
+        return {"delays_samples": dict(self.delays), "bias": {k: list(v) for k, v in self.bias.items()}}
+
+
+def shift(values: np.ndarray, lag: int) -> np.ndarray:
+    """Delay an array along axis 0 by ``lag`` samples, holding the first value."""
+    if lag <= 0:
+        return values
+    head = np.repeat(values[:1], lag, axis=0)
+    return np.concatenate([head, values[:-lag]], axis=0)
+
+
+def network_resistance(params: Parameters, u: np.ndarray) -> np.ndarray:
+    """Parallel network resistance of valves m, f, w (thesis sec. 5.2 formula) per row, kg/m^7."""
+    curves = valves.curves(params)
+    g = sum(1.0 / np.sqrt(valves.resistance(u[:, INPUTS.index(f"valve_{v}_pct")], curves[v])) for v in valves.VALVES)
+    return 1.0 / g ** 2
+
+

@@ -1,0 +1,824 @@
+"""Fault campaign: every fault the daemon must survive, tried and checked, with counts.
+
+Each scenario runs the daemon on the simulated plant (in accelerated time) with faults from a
+``[[faults]]`` configuration, or attacks it from outside (hostile API input, Modbus server
+stopped and restarted, the process killed with SIGKILL or stopped with SIGTERM). Every logged
+sample is then checked by :func:`check_log`, independently of the daemon's own safety code:
+
+* every actuator command finite and in range, heater in [0, 240] W;
+* heater 0 whenever the logged flow is missing, implausible or below the minimum, the logged
+  heater outlet temperature is missing or implausible, or the daemon is not controlling
+  (safe, disconnected, shutdown, stopped);
+* the shutdown: heater 0, blower at least the safe power, outlets open, valve a at its safe
+  position, and a final 'stopped' row;
+* sample times consecutive (no lost, repeated or corrupted row).
+
+:func:`run_campaign` returns the counts (scenarios, faults injected by kind, hostile requests,
+violations); ``python -m hvac_mpc.mpc.daemon.campaign`` prints them.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.error
+import urllib.request
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from hvac_mpc.models.measurement_log import read_log
+from hvac_mpc.models.plant import Command
+from hvac_mpc.mpc.controller import StepResult
+
+from .config import DEFAULT_SENSOR_RANGES, DaemonConfig, SafetyConfig, config_from_mapping
+from .loop import Daemon
+
+HEATING_REFERENCE = {"supply_temp_c": 32.0, "volume_flow_m3s": 0.02}
+SENSOR_SIGNALS = ("volume_flow_m3s", "supply_temp_c", "heater_outlet_temp_c", "hvac_inlet_temp_c")
+SENSOR_KINDS = ("nan", "stuck", "out_of_range", "missing")
+NOT_CONTROLLING = ("safe", "disconnected", "shutdown", "stopped")
+
+
+class GreedyHeater:
+    """A misbehaving controller for interlock tests: full heater, blower at its minimum and all
+    outlets closed, so the real flow falls below the heater's minimum."""
+
+    def __init__(self, params=None, dt_s: float = 1.0):
+        self.dt_s = dt_s
+
+    def reset(self) -> None:
+        pass
+
+    def step(self, measurement, reference) -> StepResult:
+        return StepResult(Command(30.0, 240.0, 100.0, 0.0, 0.0, 0.0),
+                          {"step_time_s": 0.0, "iterations": 0, "status": "ok", "fallback": None, "mode": "heating"})
+
+
+# ---------------------------------------------------------------------------------- checks
+def _invalid(value: float, name: str, ranges: dict) -> bool:
+    lo, hi = ranges.get(name, DEFAULT_SENSOR_RANGES[name])
+    return not (math.isfinite(value) and lo <= value <= hi)
+
+
+def check_log(path: str | Path, safety: SafetyConfig | None = None, dt_s: float = 1.0,
+              expect_stopped: bool = True) -> list[str]:
+    """Safety violations found in a daemon log (empty list: none). See the module docstring."""
+    s = safety or SafetyConfig()
+    log = read_log(path)
+    v: list[str] = []
+    t = log["time_s"]
+    if len(t) == 0:
+        return ["log is empty"]
+    raw_lines = Path(path).read_text().splitlines()
+    if len(raw_lines) - 1 != len(t):
+        v.append(f"{len(raw_lines) - 1 - len(t)} corrupted row(s)")
+    steps = np.diff(t)
+    if len(steps) and not np.allclose(steps, dt_s):
+        bad = np.flatnonzero(~np.isclose(steps, dt_s))
+        v.append(f"times not consecutive at rows {bad[:5].tolist()} (steps {steps[bad[:5]].tolist()})")
+    ranges = s.sensor_ranges
+    for i in range(len(t)):
+        heater = log["heater_cmd_w"][i]
+        cmd = {c: log[c][i] for c in ("blower_power_w", "heater_cmd_w", "valve_a_pct", "valve_m_pct",
+                                      "valve_f_pct", "valve_w_pct")}
+        if not all(math.isfinite(x) for x in cmd.values()):
+            v.append(f"t={t[i]}: non-finite command {cmd}")
+            continue
+        if not 0.0 <= heater <= 240.0 or not 30.0 <= cmd["blower_power_w"] <= 300.0 or not all(
+                0.0 <= cmd[c] <= 100.0 for c in ("valve_a_pct", "valve_m_pct", "valve_f_pct", "valve_w_pct")):
+            v.append(f"t={t[i]}: command out of range {cmd}")
+        if heater > 0.0:
+            flow = log["volume_flow_m3s"][i]
+            mode = str(log["mode"][i])
+            if _invalid(flow, "volume_flow_m3s", ranges) or flow < s.min_flow_m3s:
+                v.append(f"t={t[i]}: heater {heater:.1f} W with flow reading {flow}")
+            if _invalid(log["heater_outlet_temp_c"][i], "heater_outlet_temp_c", ranges):
+                v.append(f"t={t[i]}: heater {heater:.1f} W with heater outlet reading {log['heater_outlet_temp_c'][i]}")
+            elif log["heater_outlet_temp_c"][i] >= s.heater_outlet_max_c:
+                v.append(f"t={t[i]}: heater {heater:.1f} W with heater outlet at {log['heater_outlet_temp_c'][i]} C")
+            if mode in NOT_CONTROLLING:
+                v.append(f"t={t[i]}: heater {heater:.1f} W in mode {mode}")
+        if str(log["mode"][i]) in ("shutdown", "stopped"):
+            if any(log[c][i] != 100.0 for c in ("valve_m_pct", "valve_f_pct", "valve_w_pct")) or \
+                    log["valve_a_pct"][i] != s.safe_valve_a_pct:
+                v.append(f"t={t[i]}: valves not in the safe position during shutdown")
+            if str(log["mode"][i]) == "shutdown" and log["blower_power_w"][i] < s.safe_blower_w:
+                v.append(f"t={t[i]}: blower {log['blower_power_w'][i]} W below the cool-down power during shutdown")
+    if expect_stopped and str(log["mode"][-1]) != "stopped":
+        v.append(f"last row is {log['mode'][-1]!r}, not 'stopped'")
+    return v[:20]
+
+
+# ---------------------------------------------------------------------------------- results
+@dataclass
+class Outcome:
+    name: str
+    category: str
+    exit_code: int | None = None
+    detected: int = 0
+    rows: int = 0
+    violations: list[str] = field(default_factory=list)
+    injected: dict[str, int] = field(default_factory=dict)
+    notes: str = ""
+
+    @property
+    def ok(self) -> bool:
+        return not self.violations
+
+
+def _config(workdir: Path, name: str, controller: str, faults: list[dict], ticks: int,
+            reference: dict | None = None, extra: dict | None = None) -> DaemonConfig:
+    log = workdir / f"{name}.csv"
+    if log.exists():
+        log.unlink()
+    data: dict[str, Any] = {
+        "loop": {"speedup": "max", "max_ticks": ticks, "deadline_s": 0.25},
+        "log": {"path": str(log), "fsync": False},
+        "api": {"enabled": False},
+        "controller": {"name": controller, "fallback": ["baseline"]},
+        "safety": {"reconnect_initial_s": 2.0, "reconnect_max_s": 8.0},
+        "reference": reference or HEATING_REFERENCE,
+        "faults": faults,
+    }
+    for k, val in (extra or {}).items():
+        data[k] = {**data.get(k, {}), **val} if isinstance(val, dict) else val
+    return config_from_mapping(data)
+
+
+def _run_inprocess(cfg: DaemonConfig, hook: Callable | None = None) -> tuple[Daemon, int, list[dict]]:
+    samples: list[dict] = []
+
+    def keep(d, sample):
+        samples.append({k: sample.get(k) for k in ("time_s", "mode", "controller", "sensor_faults", "stale",
+                                                   "interlock", "events", "heater_cmd_w", "connected",
+                                                   "inner_fallback")})
+        if hook is not None:
+            hook(d, sample)
+
+    d = Daemon(cfg, tick_hook=keep)
+    code = d.run()
+    return d, code, samples
+
+
+def _recovered(samples: list[dict], after_s: float, within_s: float) -> bool:
+    return any(after_s <= s["time_s"] <= after_s + within_s and s["mode"] not in NOT_CONTROLLING
+               for s in samples)
+
+
+def sensor_scenarios(workdir: Path, controller: str = "baseline") -> list[Outcome]:
+    out = []
+    cases = [(sig, kind, 1e4) for sig in SENSOR_SIGNALS for kind in SENSOR_KINDS]
+    cases += [("supply_temp_c", "stale", 0.0), ("volume_flow_m3s", "value", 0.001),
+              ("heater_outlet_temp_c", "value", 120.0)]
+    for sig, kind, value in cases:
+        name = f"sensor_{kind}_{sig}"
+        fault = {"target": "sensor", "kind": kind, "signal": sig, "start_s": 40.0, "end_s": 100.0, "value": value}
+        cfg = _config(workdir, name, controller, [fault], ticks=170)
+        d, code, samples = _run_inprocess(cfg)
+        o = Outcome(name, "sensor", code, rows=len(samples), injected=d.status()["injected_faults"])
+        expect = {"stale": None, "value": None}.get(kind, kind)
+        if kind == "stale":
+            o.detected = sum(1 for s in samples if s["stale"])
+        elif kind == "value" and sig == "volume_flow_m3s":
+            o.detected = sum(1 for s in samples if "flow_low" in (s["interlock"] or []))
+        elif kind == "value":
+            o.detected = sum(1 for s in samples if "outlet_too_hot" in (s["interlock"] or []))
+        else:
+            o.detected = sum(1 for s in samples if (s["sensor_faults"] or {}).get(sig) == expect)
+        o.violations = check_log(cfg.log.path, cfg.safety)
+        if code != 0:
+            o.violations.append(f"exit code {code}")
+        if o.detected == 0:
+            o.violations.append("fault not detected")
+        in_fault = [s for s in samples if 40.0 + 31.0 <= s["time_s"] < 100.0]
+        if sig in ("volume_flow_m3s", "heater_outlet_temp_c") and any(s["heater_cmd_w"] > 0 for s in in_fault):
+            o.violations.append("heater on while an interlock sensor was faulty")
+        if not _recovered(samples, 100.0, 60.0):
+            o.violations.append("did not return to control within 60 s after the fault")
+        out.append(o)
+    return out
+
+
+def controller_scenarios(workdir: Path, controller: str = "mpc") -> list[Outcome]:
+    out = []
+    for kind, extra in (("fail", {}), ("nan", {}), ("delay", {"delay_s": 0.6}), ("solver", {})):
+        name = f"controller_{kind}"
+        if kind == "delay":
+            # a slow step takes wall time: run at 50x real time so the late step finishes while the
+            # daemon goes on (about 30 samples busy), and cool so the shutdown is short
+            end = 44.0
+            cfg = _config(workdir, name, controller, [{"target": "controller", "kind": kind, "start_s": 40.0,
+                                                       "end_s": end, **extra}], ticks=130,
+                          reference={"supply_temp_c": 18.0, "volume_flow_m3s": 0.03},
+                          extra={"loop": {"speedup": 50.0}})
+        else:
+            end = 100.0
+            cfg = _config(workdir, name, controller, [{"target": "controller", "kind": kind, "start_s": 40.0,
+                                                       "end_s": end, **extra}], ticks=170)
+        d, code, samples = _run_inprocess(cfg)
+        st = d.status()
+        o = Outcome(name, "controller", code, rows=len(samples), injected=st["injected_faults"])
+        c = st["counters"]
+        if kind == "solver":
+            inner = [s["inner_fallback"] for s in samples if 40 <= s["time_s"] < end and s["inner_fallback"]]
+            o.detected = len(inner)
+            o.notes = f"controller's own fallback chain: {sorted(set(inner))}"
+        else:
+            o.detected = c["deadline_misses"] + c["controller_busy"] + c["controller_errors"] + c["not_finite_commands"]
+            o.notes = f"fallback ticks {c['fallback_ticks']}, deadline misses {c['deadline_misses']}"
+        o.violations = check_log(cfg.log.path, cfg.safety)
+        if code != 0:
+            o.violations.append(f"exit code {code}")
+        if o.detected == 0:
+            o.violations.append("fault not detected")
+        if kind != "solver" and not c["fallback_ticks"]:
+            o.violations.append("fallback controller never used")
+        if not any(s["time_s"] > end + 5 and s["controller"] == controller for s in samples):
+            o.violations.append("primary controller did not return")
+        out.append(o)
+    return out
+
+
+def backend_scenarios(workdir: Path, controller: str = "baseline") -> list[Outcome]:
+    out = []
+    name = "backend_disconnect_injected"
+    cfg = _config(workdir, name, controller, [{"target": "backend", "kind": "disconnect", "start_s": 40.0,
+                                               "end_s": 100.0}], ticks=170)
+    d, code, samples = _run_inprocess(cfg)
+    st = d.status()
+    o = Outcome(name, "backend", code, rows=len(samples), injected=st["injected_faults"])
+    o.detected = st["counters"]["disconnected_ticks"]
+    o.violations = check_log(cfg.log.path, cfg.safety)
+    if st["counters"]["reconnects"] < 1:
+        o.violations.append("never reconnected")
+    if not _recovered(samples, 100.0, 20.0):
+        o.violations.append("did not return to control within 20 s after the link came back")
+    out.append(o)
+    out.append(modbus_outage(workdir, controller))
+    out.append(greedy_heater(workdir))
+    out.append(fatal_error(workdir, controller))
+    out.append(repeated_fatal_error(workdir, controller))
+    return out
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def modbus_outage(workdir: Path, controller: str = "baseline") -> Outcome:
+    """Daemon over Modbus TCP to the plant simulator; the server is stopped and restarted."""
+    from hvac_mpc.models.plant import SimulatedPlant
+
+    from .modbus_sim import PlantModbusServer
+
+    port = free_port()
+    server = PlantModbusServer(SimulatedPlant(seed=3), port=port).start()
+    events = {"stopped_at": None, "restarted_at": None}
+
+    def hook(d, sample):
+        if sample["time_s"] == 60.0:
+            server.stop()
+            events["stopped_at"] = 60.0
+        elif sample["time_s"] == 100.0:
+            server.start()
+            events["restarted_at"] = 100.0
+
+    cfg = _config(workdir, "modbus_outage", controller, [], ticks=200,
+                  extra={"backend": {"kind": "modbus", "modbus": {"port": port, "timeout_s": 0.2}}})
+    try:
+        d, code, samples = _run_inprocess(cfg, hook)
+    finally:
+        server.stop()
+    st = d.status()
+    o = Outcome("modbus_server_stop_restart", "backend", code, rows=len(samples))
+    o.injected = {"modbus:server_stopped": 1}
+    o.detected = st["counters"]["disconnected_ticks"]
+    o.violations = check_log(cfg.log.path, cfg.safety)
+    if st["counters"]["reconnects"] < 1:
+        o.violations.append("never reconnected")
+    if not _recovered(samples, 100.0, 20.0):
+        o.violations.append("did not return to control within 20 s of the server's restart")
+    held = [h for h in server.history if 60.0 + 6 < h[0] <= 100.0]
+    if any(h[1] > 0 for h in held):
+        o.violations.append("plant heater on during the outage after the I/O watchdog time")
+    o.notes = f"plant samples under the I/O watchdog {len(held)}, reconnects {st['counters']['reconnects']}"
+    return o
+
+
+def greedy_heater(workdir: Path) -> Outcome:
+    """A controller demanding full heat with the outlets closed: the real flow drops below the minimum."""
+    cfg = _config(workdir, "interlock_low_flow", "hvac_mpc.mpc.daemon.campaign:GreedyHeater", [], ticks=120,
+                  extra={"controller": {"fallback": []}})
+    truth: list[dict] = []
+
+    def watch(d, sample):
+        if sample["mode"] == "heating":
+            truth.append(d.backend.plant.truth())
+
+    d, code, samples = _run_inprocess(cfg, watch)
+    o = Outcome("interlock_real_low_flow", "interlock", code, rows=len(samples))
+    o.detected = sum(1 for s in samples if "flow_low" in (s["interlock"] or []))
+    o.violations = check_log(cfg.log.path, cfg.safety)
+    low = min(t["volume_flow_m3s"] for t in truth)
+    hottest = max(t["heater_temp_c"] for t in truth)
+    o.notes = f"true flow down to {low:.4f} m3/s, hottest heater body {hottest:.1f} C"
+    if o.detected == 0:
+        o.violations.append("interlock never cut the heater although the flow was low")
+    if low >= cfg.safety.min_flow_m3s:
+        o.violations.append("the scenario did not bring the flow below the minimum")
+    if hottest >= d.interlock.heater_temp_max_c:
+        o.violations.append(f"heater body reached {hottest:.1f} C")
+    return o
+
+
+def repeated_fatal_error(workdir: Path, controller: str = "baseline") -> Outcome:
+    """An error on every sample from t = 60 s (the loop itself is broken): the bare cool-down."""
+    cfg = _config(workdir, "fatal_repeated", controller, [{"target": "daemon", "kind": "fatal_repeated",
+                                                           "start_s": 60.0, "end_s": 1e6}], ticks=0)
+    d, code, samples = _run_inprocess(cfg)
+    plant = d.backend.plant
+    o = Outcome("fatal_error_repeated", "daemon", code, rows=len(samples), injected=d.status()["injected_faults"])
+    o.violations = check_log(cfg.log.path, cfg.safety, expect_stopped=False)
+    final, truth = plant.command, plant.truth()
+    o.notes = (f"bare cool-down {plant.time_s - 60.0:.0f} s; final command heater {final.heater_cmd_w} W, blower "
+               f"{final.blower_power_w} W; true heater body {truth['heater_temp_c']:.1f} C")
+    o.detected = int(code == 1)
+    if code != 1:
+        o.violations.append(f"exit code {code}, expected 1")
+    if final.heater_cmd_w != 0.0 or any(getattr(final, v) != 100.0 for v in ("valve_m_pct", "valve_f_pct",
+                                                                              "valve_w_pct")):
+        o.violations.append(f"final command not safe: {final}")
+    if truth["heater_temp_c"] > truth["supply_air_temp_c"] + 30.0 or plant.time_s - 60.0 < 30.0:
+        o.violations.append("the heater was not cooled before the exit")
+    return o
+
+
+def fatal_error(workdir: Path, controller: str = "baseline") -> Outcome:
+    cfg = _config(workdir, "fatal_error", controller, [{"target": "daemon", "kind": "fatal", "start_s": 60.0,
+                                                        "end_s": 61.0}], ticks=0)
+    d, code, samples = _run_inprocess(cfg)
+    o = Outcome("fatal_error", "daemon", code, rows=len(samples), injected=d.status()["injected_faults"])
+    o.detected = int(code == 1)
+    o.violations = check_log(cfg.log.path, cfg.safety)
+    if code != 1:
+        o.violations.append(f"exit code {code}, expected 1 after a fatal error")
+    if not any(s["mode"] == "shutdown" for s in samples):
+        o.violations.append("no shutdown sequence after the fatal error")
+    return o
+
+
+# ---------------------------------------------------------------------------------- API
+def _request(port: int, method: str, path: str, body: bytes | None = None, headers: dict | None = None,
+             timeout: float = 5.0) -> tuple[int, dict | None]:
+    req = urllib.request.Request(f"http://127.0.0.1:{port}{path}", data=body, method=method,
+                                 headers={"Content-Type": "application/json", **(headers or {})})
+    try:
+        with urllib.request.urlopen(req, timeout=timeout) as resp:
+            return resp.status, json.loads(resp.read() or b"null")
+    except urllib.error.HTTPError as exc:
+        try:
+            return exc.code, json.loads(exc.read() or b"null")
+        except ValueError:
+            return exc.code, None
+
+
+def _raw(port: int, data: bytes, timeout: float = 5.0) -> bytes:
+    with socket.create_connection(("127.0.0.1", port), timeout=timeout) as s:
+        s.sendall(data)
+        chunks = []
+        try:
+            while True:
+                c = s.recv(65536)
+                if not c:
+                    break
+                chunks.append(c)
+        except (socket.timeout, ConnectionResetError):
+            pass
+    return b"".join(chunks)
+
+
+def hostile_requests() -> list[tuple[str, str, str, bytes | None, dict, int, str]]:
+    """(name, method, path, body, headers, expected status, field the message must name)."""
+    ok = {"supply_temp_c": 20.0, "volume_flow_m3s": 0.03}
+    j = lambda o: json.dumps(o).encode()  # noqa: E731
+    return [
+        ("bad_json", "PUT", "/reference", b"{", {}, 400, "JSON"),
+        ("json_array", "PUT", "/reference", b"[]", {}, 400, "object"),
+        ("json_string", "PUT", "/reference", b'"hello"', {}, 400, "object"),
+        ("json_null", "POST", "/reference", b"null", {}, 400, "object"),
+        ("wrong_type_string", "PUT", "/reference", j({**ok, "supply_temp_c": "hot"}), {}, 400, "supply_temp_c"),
+        ("wrong_type_bool", "PUT", "/reference", j({**ok, "volume_flow_m3s": True}), {}, 400, "volume_flow_m3s"),
+        ("wrong_type_object", "PUT", "/reference", j({**ok, "supply_temp_c": {"a": 1}}), {}, 400, "supply_temp_c"),
+        ("wrong_type_list", "PUT", "/reference", j({**ok, "supply_temp_c": [20]}), {}, 400, "supply_temp_c"),
+        ("unknown_field", "PUT", "/reference", j({**ok, "heater_cmd_w": 240}), {}, 400, "heater_cmd_w"),
+        ("missing_field", "PUT", "/reference", j({"supply_temp_c": 20.0}), {}, 400, "volume_flow_m3s"),
+        ("temp_too_high", "PUT", "/reference", j({**ok, "supply_temp_c": 80.0}), {}, 400, "supply_temp_c"),
+        ("temp_too_low", "PUT", "/reference", j({**ok, "supply_temp_c": -5.0}), {}, 400, "supply_temp_c"),
+        ("flow_too_high", "PUT", "/reference", j({**ok, "volume_flow_m3s": 1.0}), {}, 400, "volume_flow_m3s"),
+        ("flow_negative", "PUT", "/reference", j({**ok, "volume_flow_m3s": -0.01}), {}, 400, "volume_flow_m3s"),
+        ("nan_literal", "PUT", "/reference", b'{"supply_temp_c": NaN, "volume_flow_m3s": 0.03}', {}, 400, "NaN"),
+        ("infinity_number", "PUT", "/reference", b'{"supply_temp_c": 1e999, "volume_flow_m3s": 0.03}', {}, 400,
+         "supply_temp_c"),
+        ("split_mismatch", "PUT", "/reference", j({**ok, "flow_m_m3s": 0.03, "flow_f_m3s": 0.03, "flow_w_m3s": 0.03}),
+         {}, 400, "flow_m_m3s"),
+        ("split_partial", "PUT", "/reference", j({**ok, "flow_m_m3s": 0.01}), {}, 400, "flow_m_m3s"),
+        ("deep_nesting", "PUT", "/reference", b"[" * 2000 + b"]" * 2000, {}, 400, ""),
+        ("invalid_utf8", "PUT", "/reference", b'{"supply_temp_c": "\xff\xfe"}', {}, 400, "JSON"),
+        ("large_body", "PUT", "/reference", b" " * 5000 + j(ok), {}, 413, "limit"),
+        ("wrong_content_type", "PUT", "/reference", j(ok), {"Content-Type": "text/plain"}, 415, "Content-Type"),
+        ("unknown_path", "GET", "/admin", None, {}, 404, "path"),
+        ("path_traversal", "GET", "/../../etc/passwd", None, {}, 404, "path"),
+        ("put_on_status", "PUT", "/status", j(ok), {}, 405, ""),
+        ("delete_reference", "DELETE", "/reference", None, {}, 405, ""),
+    ]
+
+
+def api_scenarios(workdir: Path, controller: str = "baseline") -> list[Outcome]:
+    """Hostile input against a running daemon (real HTTP), then the token checks."""
+    results: list[Outcome] = []
+    state: dict[str, Any] = {}
+
+    def attack(d, sample):
+        if sample["time_s"] != 20.0:
+            return
+        port = d.api.port
+        before = _request(port, "GET", "/reference")[1]
+        for name, method, path, body, headers, expect, must in hostile_requests():
+            code, payload = _request(port, method, path, body, headers)
+            after = _request(port, "GET", "/reference")[1]
+            o = Outcome(f"api_{name}", "api", code, detected=int(code == expect))
+            if code != expect:
+                o.violations.append(f"status {code}, expected {expect}")
+            msg = (payload or {}).get("error", "") if isinstance(payload, dict) else ""
+            if must and must.lower() not in msg.lower():
+                o.violations.append(f"message {msg!r} does not name {must!r}")
+            if after != before:
+                o.violations.append(f"reference changed to {after}")
+            o.notes = msg[:80]
+            results.append(o)
+        # header- and socket-level abuse
+        o = Outcome("api_bad_content_length", "api")
+        reply = _raw(port, b"PUT /reference HTTP/1.1\r\nHost: x\r\nContent-Length: abc\r\n\r\n")
+        o.detected = int(b" 411 " in reply.split(b"\r\n", 1)[0])
+        o.violations = [] if o.detected else [f"reply {reply[:60]!r}, expected 411"]
+        results.append(o)
+        o = Outcome("api_huge_body_announced", "api")  # 1 MB announced: refused before reading it
+        reply = _raw(port, b"PUT /reference HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+                           b"Content-Length: 1000000\r\n\r\n")
+        o.detected = int(b" 413 " in reply.split(b"\r\n", 1)[0])
+        o.violations = [] if o.detected else [f"reply {reply[:60]!r}, expected 413"]
+        results.append(o)
+        o = Outcome("api_huge_url", "api")
+        reply = _raw(port, b"GET /" + b"a" * 70000 + b" HTTP/1.1\r\nHost: x\r\n\r\n")
+        o.detected = int(b" 414 " in reply.split(b"\r\n", 1)[0])
+        o.violations = [] if o.detected else [f"reply {reply[:60]!r}, expected 414"]
+        results.append(o)
+        o = Outcome("api_slow_client", "api")
+        slow = socket.create_connection(("127.0.0.1", port))
+        slow.sendall(b"PUT /reference HTTP/1.1\r\nContent-Length: 50\r\n\r\n{\"supply")  # never finishes
+        code, _ = _request(port, "GET", "/health", timeout=3.0)
+        o.detected = int(code == 200)
+        o.violations = [] if code == 200 else [f"/health answered {code} while a slow client was connected"]
+        results.append(o)
+        state["slow"] = slow
+        good = {"supply_temp_c": 24.5, "volume_flow_m3s": 0.025}
+        code, payload = _request(port, "PUT", "/reference", json.dumps(good).encode())
+        state["good"] = (code, _request(port, "GET", "/reference")[1])
+
+    cfg = _config(workdir, "api_hostile", controller, [], ticks=60, extra={"api": {"enabled": True, "port": 0,
+                                                                                  "request_timeout_s": 1.0}})
+    d, code, samples = _run_inprocess(cfg, attack)
+    state["slow"].close()
+    o = Outcome("api_valid_reference_after_attacks", "api", code, rows=len(samples))
+    good_code, ref = state["good"]
+    o.detected = int(good_code == 200 and ref["supply_temp_c"] == 24.5)
+    o.violations = check_log(cfg.log.path, cfg.safety)
+    if not o.detected:
+        o.violations.append(f"valid reference not accepted ({good_code}, {ref})")
+    results.append(o)
+    results.append(api_flood(workdir, controller))
+    results += token_scenarios(workdir, controller)
+    return results
+
+
+def api_flood(workdir: Path, controller: str = "baseline") -> Outcome:
+    """60 idle connections held open for 3 s from another thread while the daemon runs at 20x:
+    the connection cap refuses the excess, the loop keeps its rate, the API answers afterwards."""
+    import threading
+
+    state: dict[str, Any] = {}
+
+    def flood(port: int) -> None:
+        socks = []
+        for _ in range(60):
+            try:
+                socks.append(socket.create_connection(("127.0.0.1", port), timeout=2.0))
+            except OSError:
+                state["connect_failed"] = state.get("connect_failed", 0) + 1
+        time.sleep(3.0)
+        for s in socks:
+            s.close()
+
+    def hook(d, sample):
+        if sample["time_s"] == 10.0:
+            state["thread"] = threading.Thread(target=flood, args=(d.api.port,), daemon=True)
+            state["thread"].start()
+            state["t_wall"] = time.monotonic()
+        elif "thread" in state and "during" not in state and not state["thread"].is_alive():
+            state["during"] = (sample["time_s"] - 10.0, time.monotonic() - state["t_wall"])
+            state["health"] = _request(d.api.port, "GET", "/health")[0]
+            state["refused"] = d.api.refused
+            d.request_stop("flood checked")
+
+    cfg = _config(workdir, "api_flood", controller, [], ticks=0, reference={"supply_temp_c": 20.0,
+                                                                          "volume_flow_m3s": 0.03},
+                  extra={"api": {"enabled": True, "port": 0, "request_timeout_s": 5.0}, "loop": {"speedup": 20.0}})
+    _, code, samples = _run_inprocess(cfg, hook)
+    o = Outcome("api_connection_flood", "api", code, rows=len(samples))
+    o.violations = check_log(cfg.log.path, cfg.safety)
+    if "during" not in state:
+        o.violations.append("flood did not finish within the run")
+        return o
+    plant_s, wall_s = state["during"]
+    o.notes = (f"{plant_s:.0f} samples in {wall_s:.1f} s during the flood, refused {state['refused']}, "
+               f"/health {state['health']}")
+    o.detected = int(state["refused"] > 0)
+    if state["health"] != 200:
+        o.violations.append(f"/health answered {state['health']} after the flood")
+    if plant_s < 0.8 * 20.0 * wall_s:
+        o.violations.append(f"loop slowed: {plant_s:.0f} samples in {wall_s:.1f} s at 20x")
+    if not o.detected:
+        o.violations.append("no connection refused beyond the cap")
+    return o
+
+
+def token_scenarios(workdir: Path, controller: str = "baseline") -> list[Outcome]:
+    from .api import ReferenceApi
+
+    results: list[Outcome] = []
+    token = "s3cret-token-for-tests"
+    cfg = _config(workdir, "api_token", controller, [], ticks=40,
+                  extra={"api": {"enabled": True, "port": 0, "token": token}})
+
+    def attack(d, sample):
+        if sample["time_s"] != 10.0:
+            return
+        port = d.api.port
+        for name, headers, expect in (("no_token", {}, 401), ("wrong_token", {"Authorization": "Bearer nope"}, 401),
+                                      ("basic_auth", {"Authorization": "Basic czNjcmV0"}, 401),
+                                      ("right_token", {"Authorization": f"Bearer {token}"}, 200)):
+            body = json.dumps({"supply_temp_c": 21.0, "volume_flow_m3s": 0.02}).encode()
+            code, _ = _request(port, "PUT", "/reference", body, headers)
+            o = Outcome(f"api_token_{name}", "api", code, detected=int(code == expect))
+            o.violations = [] if code == expect else [f"status {code}, expected {expect}"]
+            results.append(o)
+
+    _run_inprocess(cfg, attack)
+    o = Outcome("api_refuses_public_bind_without_token", "api")
+    try:
+        config_from_mapping({"api": {"host": "0.0.0.0"}})
+        o.violations.append("configuration accepted a public bind without a token")
+    except ValueError:
+        o.detected += 1
+    try:
+        ReferenceApi(None, host="0.0.0.0", port=0)  # type: ignore[arg-type]
+        o.violations.append("API server started on a public address without a token")
+    except ValueError:
+        o.detected += 1
+    results.append(o)
+    return results
+
+
+# ---------------------------------------------------------------------------------- processes
+def write_toml(path: Path, data: dict) -> None:
+    """A small TOML writer for daemon configurations (tables, arrays of tables, scalars, lists)."""
+    def val(x):
+        if isinstance(x, bool):
+            return "true" if x else "false"
+        if isinstance(x, str):
+            return json.dumps(x)
+        if isinstance(x, float) and math.isinf(x):
+            return "inf"
+        if isinstance(x, (list, tuple)):
+            return "[" + ", ".join(val(i) for i in x) + "]"
+        return repr(x)
+
+    lines: list[str] = []
+
+    def table(prefix: str, d: dict):
+        scalars = {k: x for k, x in d.items() if not isinstance(x, dict) and not (
+            isinstance(x, list) and x and isinstance(x[0], dict))}
+        if prefix:
+            lines.append(f"[{prefix}]")
+        lines.extend(f"{k} = {val(x)}" for k, x in scalars.items())
+        for k, x in d.items():
+            if isinstance(x, dict):
+                table(f"{prefix}.{k}" if prefix else k, x)
+            elif isinstance(x, list) and x and isinstance(x[0], dict):
+                for item in x:
+                    lines.append(f"[[{prefix + '.' if prefix else ''}{k}]]")
+                    lines.extend(f"{a} = {val(b)}" for a, b in item.items())
+
+    table("", data)
+    path.write_text("\n".join(lines) + "\n")
+
+
+def start_daemon(config_path: Path, extra_args: list[str] | None = None, env: dict | None = None
+                 ) -> subprocess.Popen:
+    """``python -m hvac_mpc daemon --config FILE`` as a child process."""
+    e = dict(os.environ)
+    e.setdefault("OMP_NUM_THREADS", "1")
+    e.setdefault("OPENBLAS_NUM_THREADS", "1")
+    e.update(env or {})
+    return subprocess.Popen([sys.executable, "-m", "hvac_mpc", "daemon", "--config", str(config_path),
+                             *(extra_args or [])], stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=e)
+
+
+def wait_for(predicate: Callable[[], bool], timeout_s: float, what: str, proc: subprocess.Popen | None = None
+             ) -> None:
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        if predicate():
+            return
+        if proc is not None and proc.poll() is not None:
+            raise RuntimeError(f"daemon exited ({proc.returncode}) while waiting for {what}: "
+                               f"{proc.stderr.read().decode()[-2000:]}")
+        time.sleep(0.05)
+    raise TimeoutError(f"timed out after {timeout_s} s waiting for {what}")
+
+
+def _rows(path: Path) -> int:
+    try:
+        return max(0, len(path.read_bytes().splitlines()) - 1)
+    except FileNotFoundError:
+        return 0
+
+
+def process_config(workdir: Path, name: str, controller: str = "baseline", speedup: float = 25.0,
+                   reference: dict | None = None, extra: dict | None = None) -> Path:
+    data: dict[str, Any] = {
+        "loop": {"speedup": speedup},
+        "log": {"path": str(workdir / f"{name}.csv")},
+        "api": {"port": 0, "port_file": str(workdir / f"{name}.port")},
+        "controller": {"name": controller},
+        "reference": reference or HEATING_REFERENCE,
+    }
+    for k, v in (extra or {}).items():
+        data[k] = {**data.get(k, {}), **v} if isinstance(v, dict) else v
+    path = workdir / f"{name}.toml"
+    write_toml(path, data)
+    return path
+
+
+def sigkill_restart(workdir: Path, controller: str = "baseline") -> list[Outcome]:
+    """SIGKILL mid-run, a torn last row added on top, restart: the log appends cleanly."""
+    cfg = process_config(workdir, "sigkill", controller, speedup=50.0)
+    log = workdir / "sigkill.csv"
+    for f in (log, workdir / "sigkill.port"):
+        if f.exists():
+            f.unlink()
+    p = start_daemon(cfg)
+    try:
+        wait_for(lambda: _rows(log) >= 60, 60, "60 logged rows", p)
+        p.send_signal(signal.SIGKILL)
+        p.wait(10)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    rows_before = _rows(log)
+    last_before = read_log(log)["time_s"][-1]
+    with log.open("a") as fh:  # a crash in the middle of a row
+        fh.write(f"{last_before + 1.0},120.0,0.0,10")
+    o1 = Outcome("process_sigkill", "process", p.returncode, rows=rows_before, detected=int(p.returncode == -9))
+    o1.injected = {"process:sigkill": 1, "log:torn_row": 1}
+    p2 = start_daemon(cfg, ["--max-ticks", "40", "--speedup", "max"])
+    out, err = p2.communicate(timeout=120)
+    o2 = Outcome("process_restart_appends", "process", p2.returncode)
+    data = read_log(log)
+    o2.rows = len(data["time_s"])
+    o2.violations = check_log(log, SafetyConfig())
+    if p2.returncode != 0:
+        o2.violations.append(f"restart exit code {p2.returncode}: {err.decode()[-500:]}")
+    if o2.rows < rows_before + 40:
+        o2.violations.append(f"log has {o2.rows} rows after restart, expected at least {rows_before + 40}")
+    if data["time_s"][0] != 0.0:
+        o2.violations.append("log does not start at its first row any more (overwritten?)")
+    o2.detected = int(not o2.violations)
+    o2.notes = f"rows before kill {rows_before}, after restart {o2.rows}; the torn row was dropped"
+    return [o1, o2]
+
+
+def sigterm_shutdown(workdir: Path, controller: str = "baseline") -> list[Outcome]:
+    """SIGTERM (and SIGINT) while heating: heater off first, blower running until cooled."""
+    results = []
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        name = f"sig_{sig.name.lower()}"
+        cfg = process_config(workdir, name, controller, speedup=40.0)
+        log = workdir / f"{name}.csv"
+        port_file = workdir / f"{name}.port"
+        for f in (log, port_file):
+            if f.exists():
+                f.unlink()
+        p = start_daemon(cfg)
+        try:
+            wait_for(lambda: port_file.exists(), 60, "the API port", p)
+            port = int(port_file.read_text())
+            def heated() -> bool:
+                sample = _request(port, "GET", "/sample")[1] or {}
+                return sample.get("time_s", 0) >= 150 and sample.get("heater_cmd_w", 0) > 100
+
+            wait_for(heated, 60, "150 s of heating", p)
+            p.send_signal(sig)
+            _, err = p.communicate(timeout=120)
+        finally:
+            if p.poll() is None:
+                p.kill()
+        data = read_log(log)
+        o = Outcome(f"process_{sig.name}", "process", p.returncode, rows=len(data["time_s"]))
+        o.injected = {f"process:{sig.name}": 1}
+        o.violations = check_log(log, SafetyConfig())
+        modes = list(data["mode"])
+        if "shutdown" not in modes:
+            o.violations.append("no shutdown rows")
+        else:
+            i = modes.index("shutdown")
+            if data["heater_cmd_w"][i - 1] <= 0:
+                o.violations.append("heater was not on before the signal")
+            cool = modes.count("shutdown")
+            o.notes = f"heater on until the signal, then {cool} s of cool-down with the blower running"
+            o.detected = int(data["heater_cmd_w"][i] == 0.0 and cool > 10)
+        if p.returncode != 0:
+            o.violations.append(f"exit code {p.returncode}: {err.decode()[-500:]}")
+        results.append(o)
+    return results
+
+
+# ---------------------------------------------------------------------------------- campaign
+def run_campaign(workdir: str | Path, include_processes: bool = True, controller: str = "baseline",
+                 mpc: str = "mpc") -> dict[str, Any]:
+    """Run every scenario; returns ``{"outcomes": [...], "counts": {...}}``."""
+    workdir = Path(workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    outcomes: list[Outcome] = []
+    outcomes += sensor_scenarios(workdir, controller)
+    outcomes += controller_scenarios(workdir, mpc)
+    outcomes += backend_scenarios(workdir, controller)
+    outcomes += api_scenarios(workdir, controller)
+    if include_processes:
+        outcomes += sigkill_restart(workdir, controller)
+        outcomes += sigterm_shutdown(workdir, controller)
+    counts: dict[str, Any] = {"scenarios": len(outcomes), "passed": sum(o.ok for o in outcomes),
+                              "violations": sum(len(o.violations) for o in outcomes), "by_category": {},
+                              "injected_fault_ticks": {}, "wall_s": 0.0}
+    for o in outcomes:
+        c = counts["by_category"].setdefault(o.category, {"tried": 0, "passed": 0})
+        c["tried"] += 1
+        c["passed"] += o.ok
+        for k, n in o.injected.items():
+            counts["injected_fault_ticks"][k] = counts["injected_fault_ticks"].get(k, 0) + n
+    counts["wall_s"] = time.perf_counter() - t0
+    return {"outcomes": outcomes, "counts": counts}
+
+
+def format_report(result: dict[str, Any]) -> str:
+    c = result["counts"]
+    lines = [f"fault campaign: {c['scenarios']} scenarios, {c['passed']} passed, {c['violations']} violations, "
+             f"{c['wall_s']:.1f} s"]
+    for cat, n in c["by_category"].items():
+        lines.append(f"  {cat:<11} tried {n['tried']:>3}  passed {n['passed']:>3}")
+    lines.append("  injected (fault-ticks): " + ", ".join(f"{k} {v}" for k, v in sorted(c["injected_fault_ticks"].items())))
+    for o in result["outcomes"]:
+        flag = "ok  " if o.ok else "FAIL"
+        lines.append(f"  {flag} {o.name:<40} exit={o.exit_code!s:<5} detected={o.detected:<4} {o.notes[:70]}"
+                     + ("" if o.ok else f"  <- {o.violations[:3]}"))
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    import argparse
+    import logging
+
+    ap = argparse.ArgumentParser(description="run the daemon's fault campaign")
+    ap.add_argument("--workdir", default="daemon_campaign")
+    ap.add_argument("--no-processes", action="store_true")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.ERROR)
+    result = run_campaign(args.workdir, include_processes=not args.no_processes)
+    print(format_report(result))
+    return 0 if result["counts"]["violations"] == 0 else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,230 @@
+"""Controllers for the daemon: loading by name, fault injection, and the deadline-guarded chain.
+
+The chain runs the primary controller in a worker thread with a wall-time deadline. When the
+step raises, returns a non-finite command, or misses its deadline (or is still busy with an
+earlier late step), the next controller of the chain takes this sample; the daemon's safe
+command is the last resort. A controller that was not in use is ``reset()`` before it takes
+over, so it starts from the current measurement (no stale integrator state).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import inspect
+import math
+import time
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import Any, Callable, Mapping, Sequence
+
+from hvac_mpc.models.parameters import Parameters
+from hvac_mpc.models.plant import Command, Measurement
+from hvac_mpc.mpc.controller import Controller, StepResult
+from hvac_mpc.mpc.reference import Reference
+
+from .config import FaultSpec
+
+BUILTIN = {
+    "mpc": ("hvac_mpc.mpc.mpc_controller", "MpcController"),
+    "baseline": ("hvac_mpc.mpc.baseline", "BaselineController"),
+}
+
+
+class ControllerLoadError(ValueError):
+    """The configured controller cannot be found or built; the message says which and why."""
+
+
+def load_controller(spec: str, params: Parameters, dt_s: float, settings: Mapping[str, Any] | None = None
+                    ) -> Controller:
+    """Build a controller by name: 'mpc', 'baseline' or 'package.module:Class'.
+
+    'mpc' gets ``MpcController(params, MpcSettings(**settings))``; 'baseline' gets
+    ``BaselineController(params, dt_s)``; a custom class gets ``Class(params=..., dt_s=..., **settings)``.
+    """
+    settings = dict(settings or {})
+    if spec in BUILTIN:
+        module_name, cls_name = BUILTIN[spec]
+    elif ":" in spec:
+        module_name, cls_name = spec.split(":", 1)
+    else:
+        raise ControllerLoadError(f"controller {spec!r}: use 'mpc', 'baseline' or 'package.module:Class'")
+    try:
+        module = importlib.import_module(module_name)
+        cls = getattr(module, cls_name)
+    except (ImportError, AttributeError) as exc:
+        raise ControllerLoadError(f"controller {spec!r}: cannot import {module_name}.{cls_name} ({exc})") from None
+    try:
+        if spec == "mpc":
+            settings_cls = getattr(module, "MpcSettings")
+            if "dt_s" in getattr(settings_cls, "__dataclass_fields__", {}) and "dt_s" not in settings:
+                settings["dt_s"] = dt_s
+            return cls(params, settings_cls(**_nested(settings_cls, settings)))
+        if spec == "baseline":
+            return cls(params, dt_s=dt_s, **settings)
+        return cls(params=params, dt_s=dt_s, **settings)
+    except (TypeError, ValueError) as exc:
+        raise ControllerLoadError(f"controller {spec!r}: bad settings {sorted(settings)} ({exc})") from None
+
+
+def _nested(settings_cls: type, settings: dict[str, Any]) -> dict[str, Any]:
+    """TOML sub-tables become the dataclasses the settings fields hold (e.g. MpcSettings.ocp)."""
+    out = dict(settings)
+    defaults = settings_cls()
+    for name, value in settings.items():
+        current = getattr(defaults, name, None)
+        if isinstance(value, Mapping) and dataclasses.is_dataclass(current):
+            out[name] = type(current)(**_nested(type(current), dict(value)))
+    return out
+
+
+def reset_controller(ctrl: Controller, command: Command | None) -> None:
+    """``reset()``, telling the controller the command in force when its reset accepts one."""
+    try:
+        accepts = "command" in inspect.signature(ctrl.reset).parameters
+    except (TypeError, ValueError):
+        accepts = False
+    if accepts and command is not None:
+        ctrl.reset(command=command)
+    else:
+        ctrl.reset()
+
+
+class InjectedFailure(RuntimeError):
+    """A solver failure injected by the fault configuration."""
+
+
+class FaultInjectingController:
+    """Wraps a controller; injects 'fail' (raises), 'nan' (NaN command) and 'delay' (slow step)
+    faults of the ``[[faults]]`` configuration by daemon time."""
+
+    def __init__(self, inner: Controller, faults: Sequence[FaultSpec], clock: Callable[[], float]):
+        self.inner = inner
+        self.faults = [f for f in faults if f.target == "controller"]
+        self.clock = clock
+        self.dt_s = getattr(inner, "dt_s", 1.0)
+        self.injected: dict[str, int] = {}
+
+    def step(self, measurement: Measurement, reference: Reference) -> StepResult:
+        t = self.clock()
+        for f in self.faults:
+            if not f.active(t):
+                continue
+            key = f"controller:{f.kind}"
+            self.injected[key] = self.injected.get(key, 0) + 1
+            if f.kind == "fail":
+                raise InjectedFailure(f"injected solver failure until t = {f.end_s} s")
+            if f.kind == "solver" and hasattr(self.inner, "force_solver_failure"):
+                self.inner.force_solver_failure(1)  # the controller's own fallback chain answers
+            if f.kind == "delay":
+                time.sleep(f.delay_s)
+            if f.kind == "nan":
+                result = self.inner.step(measurement, reference)
+                return StepResult(Command(blower_power_w=math.nan, heater_cmd_w=math.nan), dict(result.stats))
+        return self.inner.step(measurement, reference)
+
+    def reset(self, command: Command | None = None) -> None:
+        reset_controller(self.inner, command)
+
+
+def _finite(cmd: Any) -> bool:
+    return isinstance(cmd, Command) and all(
+        isinstance(v, (int, float)) and math.isfinite(v) for v in cmd.as_dict().values())
+
+
+@dataclass
+class ChainOutcome:
+    """Which controller produced the command and what went wrong before (if anything)."""
+
+    command: Command | None
+    used: str | None
+    stats: dict[str, Any] = field(default_factory=dict)
+    events: list[str] = field(default_factory=list)
+    step_time_s: float = 0.0
+
+
+class ControllerChain:
+    """Primary controller under a deadline, then fallbacks, then ``None`` (the safe command).
+
+    A fallback is reset when it takes over; the primary is reset when it returns after more than
+    ``primary_reset_after`` samples out (a short miss keeps its warm start).
+    """
+
+    def __init__(self, controllers: Sequence[tuple[str, Controller]], deadline_s: float, threaded: bool = True,
+                 primary_reset_after: int = 10):
+        if not controllers:
+            raise ValueError("the controller chain needs at least one controller")
+        self.controllers = list(controllers)
+        self.deadline_s = deadline_s
+        self.primary_reset_after = primary_reset_after
+        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="controller") if threaded else None
+        self._pending: Future | None = None
+        self._last_used: str | None = None
+        self._primary_out = 10**9  # samples since the primary last produced the command
+
+    def reset(self) -> None:
+        """Reset every controller before its next use (after an outage or safe mode)."""
+        self._last_used = None
+        self._primary_out = 10**9
+
+    def step(self, measurement: Measurement, reference: Reference, last_command: Command | None = None
+             ) -> ChainOutcome:
+        """The command of the first controller that delivers one in time (``last_command``: the
+        command in force, handed to a controller that is reset)."""
+        out = ChainOutcome(None, None)
+        name, primary = self.controllers[0]
+        reset_primary = self._primary_out > self.primary_reset_after
+        t0 = time.perf_counter()
+        result = None
+        if self._executor is None:
+            try:
+                result = _run(primary, reset_primary, measurement, reference, last_command)
+            except Exception as exc:  # noqa: BLE001 - any controller failure goes down the chain
+                out.events.append(f"error:{type(exc).__name__}")
+            if result is not None and time.perf_counter() - t0 > self.deadline_s:
+                out.events.append("deadline")
+                result = None
+        elif self._pending is not None and not self._pending.done():
+            out.events.append("busy")  # a late step of the primary is still running
+        else:
+            self._pending = None
+            fut = self._executor.submit(_run, primary, reset_primary, measurement, reference, last_command)
+            try:
+                result = fut.result(timeout=self.deadline_s)
+            except TimeoutError:
+                self._pending = fut
+                out.events.append("deadline")
+            except Exception as exc:  # noqa: BLE001
+                out.events.append(f"error:{type(exc).__name__}")
+        out.step_time_s = time.perf_counter() - t0
+        if result is not None:
+            if _finite(result.command):
+                out.command, out.used, out.stats = result.command, name, dict(result.stats)
+                self._primary_out = 0
+                self._last_used = name
+                return out
+            out.events.append("not_finite")
+        self._primary_out += 1
+        for fb_name, fb in self.controllers[1:]:
+            try:
+                r = _run(fb, self._last_used != fb_name, measurement, reference, last_command)
+            except Exception as exc:  # noqa: BLE001
+                out.events.append(f"fallback_error:{fb_name}:{type(exc).__name__}")
+                continue
+            if _finite(r.command):
+                out.command, out.used, out.stats = r.command, fb_name, dict(r.stats)
+                self._last_used = fb_name
+                return out
+            out.events.append(f"fallback_not_finite:{fb_name}")
+        self._last_used = None
+        return out
+
+    def close(self) -> None:
+        if self._executor is not None:
+            self._executor.shutdown(wait=False, cancel_futures=True)
+
+
+def _run(ctrl: Controller, reset: bool, m: Measurement, ref: Reference, last: Command | None) -> StepResult:
+    if reset:
+        reset_controller(ctrl, last)
+    return ctrl.step(m, ref)

@@ -1,0 +1,350 @@
+"""The MPC: one receding-horizon controller for blower, heater and valves a, m, f, w.
+
+Usage::
+
+    ctrl = MpcController(params, MpcSettings())
+    result = ctrl.step(measurement, reference)      # once per sample, never raises
+    plant.apply(result.command); result.stats["step_time_s"], result.stats["fallback"]
+
+Each step: EKF update with the measurement -> feedback (insert the estimate, solve the QP
+prepared during the previous step) -> command, projected onto the actuator bounds and rate
+limits -> EKF prediction with that command -> preparation of the next QP. With
+``solver="ipopt"`` the same problem is solved to convergence instead (reference, slow).
+
+Failures (QP status not solved, non-finite data, a missed ``deadline_s``, any exception) never
+leave ``step``: the controller applies the shifted previous plan for up to ``plan_fallback_s``,
+then the thesis baseline (``hvac_mpc.mpc.baseline.BaselineController``), and as a last resort
+holds the last command; ``stats["fallback"]`` names which. The warm start is reset after a failure.
+"""
+
+from __future__ import annotations
+
+import importlib
+import math
+import time
+from dataclasses import dataclass, field, fields
+from typing import Any, Mapping
+
+import numpy as np
+
+from hvac_mpc.models import chiller
+from hvac_mpc.models.box import INPUTS
+from hvac_mpc.models.parameters import Parameters
+from hvac_mpc.models.plant import Command, Measurement
+
+from .controller import StepResult
+from .estimator import DisturbanceEkf, EkfSettings
+from .ocp import InvalidSettings, OcpSpec, TrackingProblem, _check_number, trap_cap_pct
+from .reference import InvalidReference, Reference
+from .rti_osqp import RtiOsqpSolver, SolveResult
+
+SOLVERS = ("rti", "sqp", "ipopt")
+
+
+@dataclass(frozen=True)
+class MpcSettings:
+    """Settings of :class:`MpcController` (validated on construction; errors name the field).
+
+    Attributes:
+        dt_s: sample time (s).
+        ocp: the optimal control problem (horizon, weights, rates, soft limits), :class:`OcpSpec`.
+        solver: ``"rti"`` (one QP per step), ``"sqp"`` (Gauss-Newton SQP to ``sqp_tol``, at most
+            ``sqp_max_iter`` QPs) or ``"ipopt"`` (the full NLP to convergence; reference only).
+        osqp_eps: OSQP absolute/relative tolerance; osqp_max_iter: OSQP iteration cap;
+            osqp_check_termination: OSQP convergence-check interval (iterations).
+        sqp_max_iter, sqp_tol: SQP iteration cap and step tolerance (scaled variables).
+        ipopt_tol, ipopt_max_iter: IPOPT tolerance and iteration cap.
+        deadline_s: longest feedback time (measurement to command); beyond it the solution is
+            discarded and the fallback chain used.
+        plan_fallback_s: how long the shifted previous plan may stand in for a failed solver
+            before the thesis baseline takes over (s).
+        jit: compile the mapped stage function with the C compiler (about 1 s at construction;
+            falls back to the CasADi virtual machine if compiling fails).
+        water_prediction: ``"hold"`` or ``"setpoint"``, see :mod:`hvac_mpc.mpc.estimator`.
+        chiller_setpoint_c: chiller set point used when the measurement carries none (degC).
+        initial_command: the command in force before the first step (the first move is
+            rate-limited from it).
+        ekf: noise settings of the estimator, :class:`EkfSettings`.
+    """
+
+    dt_s: float = 1.0
+    ocp: OcpSpec = field(default_factory=OcpSpec)
+    solver: str = "rti"
+    osqp_eps: float = 1e-3
+    osqp_max_iter: int = 400
+    osqp_check_termination: int = 5
+    sqp_max_iter: int = 5
+    sqp_tol: float = 1e-3
+    ipopt_tol: float = 1e-6
+    ipopt_max_iter: int = 300
+    deadline_s: float = 0.5
+    plan_fallback_s: float = 30.0
+    jit: bool = False
+    water_prediction: str = "hold"
+    chiller_setpoint_c: float = 5.0
+    initial_command: Command = field(default_factory=Command)
+    ekf: EkfSettings = field(default_factory=EkfSettings)
+
+    def __post_init__(self) -> None:
+        p = "MpcSettings"
+        _check_number(f"{p}.dt_s", self.dt_s, 0.0, 60.0, lo_open=True)
+        if not isinstance(self.ocp, OcpSpec):
+            raise InvalidSettings(f"{p}.ocp must be an OcpSpec")
+        self.ocp.validate(self.dt_s, f"{p}.ocp")
+        if self.solver not in SOLVERS:
+            raise InvalidSettings(f"{p}.solver = {self.solver!r} must be one of {list(SOLVERS)}")
+        _check_number(f"{p}.osqp_eps", self.osqp_eps, 1e-8, 1e-1)
+        _check_number(f"{p}.osqp_max_iter", self.osqp_max_iter, 10, 100000, integer=True)
+        _check_number(f"{p}.osqp_check_termination", self.osqp_check_termination, 1, 1000, integer=True)
+        _check_number(f"{p}.sqp_max_iter", self.sqp_max_iter, 1, 100, integer=True)
+        _check_number(f"{p}.sqp_tol", self.sqp_tol, 1e-10, 1.0, lo_open=True)
+        _check_number(f"{p}.ipopt_tol", self.ipopt_tol, 1e-12, 1e-2, lo_open=True)
+        _check_number(f"{p}.ipopt_max_iter", self.ipopt_max_iter, 1, 100000, integer=True)
+        _check_number(f"{p}.deadline_s", self.deadline_s, 0.0, 3600.0, lo_open=True)
+        _check_number(f"{p}.plan_fallback_s", self.plan_fallback_s, 0.0, 3600.0)
+        if not isinstance(self.jit, bool):
+            raise InvalidSettings(f"{p}.jit must be True or False")
+        if self.water_prediction not in ("hold", "setpoint"):
+            raise InvalidSettings(f"{p}.water_prediction = {self.water_prediction!r} must be 'hold' or 'setpoint'")
+        _check_number(f"{p}.chiller_setpoint_c", self.chiller_setpoint_c, -10.0, 30.0)
+        if not isinstance(self.initial_command, Command):
+            raise InvalidSettings(f"{p}.initial_command must be a Command")
+        u = self.initial_command.vector()
+        for name, value in zip(INPUTS, u):
+            hi = 300.0 if name.endswith("_w") else 100.0
+            _check_number(f"{p}.initial_command.{name}", value, 0.0, hi)
+        if not isinstance(self.ekf, EkfSettings):
+            raise InvalidSettings(f"{p}.ekf must be an EkfSettings")
+        self.ekf.validate(f"{p}.ekf")
+
+
+class MpcController:
+    """Receding-horizon controller of all six actuators (Controller protocol).
+
+    Instances share nothing: each owns its CasADi functions, OSQP workspace, estimator and
+    fallback controller, so several can run side by side in one process.
+    """
+
+    def __init__(self, params: Parameters | None = None, settings: MpcSettings | None = None):
+        self.params = params or Parameters()
+        self.settings = settings or MpcSettings()
+        s = self.settings
+        self.dt_s = s.dt_s
+        self.problem = TrackingProblem(self.params, s.ocp, s.dt_s)
+        self.jit_active = False
+        if s.jit:
+            self.jit_active = _try_jit(self.problem)
+        self.solver = self._make_solver()
+        self.ekf = DisturbanceEkf(self.problem.model, s.ekf, s.dt_s, s.water_prediction)
+        self._baseline = None
+        self.reset()
+
+    def _make_solver(self):
+        s, pb = self.settings, self.problem
+        if s.solver == "ipopt":
+            from .ipopt_reference import IpoptReferenceSolver
+            return IpoptReferenceSolver(pb, tol=s.ipopt_tol, max_iter=s.ipopt_max_iter)
+        sqp_iter = 1 if s.solver == "rti" else s.sqp_max_iter
+        return RtiOsqpSolver(pb, eps=s.osqp_eps, max_iter=s.osqp_max_iter, sqp_max_iter=sqp_iter,
+                             sqp_tol=s.sqp_tol, check_termination=s.osqp_check_termination)
+
+    # ------------------------------------------------------------------ protocol
+    def reset(self, command: Command | None = None) -> None:
+        """Forget estimates, plans and warm starts; ``command`` is the command now in force."""
+        self.u_prev = (command or self.settings.initial_command).vector().copy()
+        self.ekf.reset()
+        self.solver.reset()
+        self._plan: tuple[np.ndarray, float] | None = None  # (U physical (N, nu), age s)
+        self._reference: Reference | None = None
+        self._prepared_for_next = False
+        self._in_baseline = False
+        self._last_solution: SolveResult | None = None
+
+    def force_solver_failure(self, steps: int) -> None:
+        """Make the next ``steps`` solves fail (tests of the fallback chain; this instance only)."""
+        self.solver.fail_next = int(steps)
+
+    def step(self, measurement: Measurement, reference: Reference | Mapping[str, Any]) -> StepResult:
+        """One control step; never raises. See the module docstring for the fallback chain."""
+        t0 = time.perf_counter()
+        try:
+            return self._step(measurement, reference, t0)
+        except Exception as exc:  # noqa: BLE001 - a control step must always return a command
+            self.solver.reset()
+            self._prepared_for_next = False
+            try:
+                cmd, fallback = self._fallback_command(measurement, self._reference)
+            except Exception:  # noqa: BLE001
+                cmd, fallback = self.u_prev.copy(), "hold_last_command"
+            self.u_prev = cmd
+            return StepResult(Command.from_vector(cmd), self._stats(t0, status=f"error: {exc!r}",
+                                                                    fallback=fallback))
+
+    # ------------------------------------------------------------------ internals
+    def _setpoint(self, measurement: Measurement) -> float:
+        sp = getattr(measurement, "chiller_setpoint_c", None)
+        try:
+            sp = float(sp)
+        except (TypeError, ValueError):
+            return self.settings.chiller_setpoint_c
+        return sp if math.isfinite(sp) else self.settings.chiller_setpoint_c
+
+    def _valid_reference(self, reference) -> Reference | None:
+        if isinstance(reference, Reference):
+            return reference
+        if isinstance(reference, Mapping):
+            try:
+                return Reference.from_mapping(reference)
+            except InvalidReference:
+                return None
+        return None
+
+    def _step(self, measurement: Measurement, reference, t0: float) -> StepResult:
+        s, pb = self.settings, self.problem
+        ref = self._valid_reference(reference)
+        ref_status = None
+        if ref is None:
+            ref_status = "invalid reference, keeping the last valid one"
+            ref = self._reference
+            if ref is None:
+                cmd = self.u_prev.copy()
+                return StepResult(Command.from_vector(cmd), self._stats(t0, status="invalid reference",
+                                                                        fallback="hold_last_command"))
+        self._reference = ref
+        setpoint = self._setpoint(measurement)
+        # --- estimation
+        if not self.ekf.healthy():
+            self.ekf.initialise(measurement, self.u_prev, setpoint)
+            self._prepared_for_next = False
+        else:
+            self.ekf.update(measurement, self.u_prev, setpoint)
+        if not self.ekf.healthy():
+            self.ekf.reset()
+            raise FloatingPointError("state estimate is not finite")
+        x0 = pb.scale_x(self.ekf.x)
+        d = self._disturbance(setpoint)
+        u_prev_s = pb.scale_u(self.u_prev)
+        cap = self._trap_cap()
+        u_lo, u_hi = pb.input_bounds(self.u_prev, cap)
+        y_ref = pb.reference_vector(ref)
+        w_y = pb.output_weights(ref)
+        # --- feedback
+        if not self._prepared_for_next:
+            self.solver.reset()
+        t_fb = time.perf_counter()
+        sol = self.solver.feedback(x0, u_prev_s, d, y_ref, w_y, u_lo, u_hi, time_limit_s=s.deadline_s)
+        feedback_elapsed = time.perf_counter() - t_fb
+        fallback = None
+        status = sol.status
+        if sol.ok and feedback_elapsed > s.deadline_s:
+            sol.ok = False
+            status = f"deadline missed ({feedback_elapsed:.3f} s > {s.deadline_s} s)"
+        if sol.ok:
+            u_cmd = pb.unscale_u(sol.U[0])
+            if not np.all(np.isfinite(u_cmd)):
+                sol.ok = False
+                status = "non-finite command"
+        if sol.ok:
+            self._plan = (pb.unscale_u(sol.U), 0.0)
+            self._in_baseline = False
+            self._last_solution = sol
+        else:
+            self.solver.reset()
+            u_cmd, fallback = self._fallback_command(measurement, ref)
+        # project onto bounds, rate limits and the trapped-air cap
+        u_cmd = np.clip(u_cmd, *pb.command_bounds(self.u_prev, cap))
+        self.u_prev = u_cmd
+        # --- prediction and preparation of the next step
+        self.ekf.predict(u_cmd, setpoint)
+        prep_time = sol.prep_time_s
+        self._prepared_for_next = False
+        if sol.ok:
+            prep_time += self.solver.prepare(pb.scale_x(self.ekf.x), pb.scale_u(u_cmd), self._disturbance(setpoint),
+                                             y_ref, w_y)
+            self._prepared_for_next = True
+        if ref_status:
+            status = f"{status}; {ref_status}"
+        stats = self._stats(t0, status=status, fallback=fallback, prep=prep_time,
+                            feedback=sol.feedback_time_s, iterations=sol.iterations, qp_solves=sol.qp_solves,
+                            cap=cap)
+        return StepResult(Command.from_vector(u_cmd), stats)
+
+    def _disturbance(self, setpoint: float) -> np.ndarray:
+        e = self.ekf
+        target = e.x[e.i_water] if self.settings.water_prediction == "hold" else setpoint
+        return np.array([e.inlet_temp_c, target, e.mix_offset_c, e.flow_offset_m3s])
+
+    def _trap_cap(self) -> float:
+        e, m = self.ekf, self.problem.model
+        x = e.x
+        t_blower = e.inlet_temp_c + x[m.states.index("motor_rise_c")]
+        heater_in = float(chiller.cooler_outlet_c(t_blower, x[e.i_water], self.params))
+        heater = float(x[m.states.index("heater_temp_c")])
+        return trap_cap_pct(heater, heater_in, float(self.u_prev[self.problem.i_heater_cmd]), self.params,
+                            self.settings.ocp)
+
+    def _fallback_command(self, measurement: Measurement, ref: Reference | None) -> tuple[np.ndarray, str]:
+        """Shifted previous plan while it lasts, then the thesis baseline, then the last command."""
+        s = self.settings
+        if self._plan is not None and not self._in_baseline:
+            U, age = self._plan
+            age += s.dt_s
+            horizon = float(self.problem.t_nodes[-1])
+            if age < min(s.plan_fallback_s, horizon):
+                j = int(np.searchsorted(self.problem.t_nodes, age, side="right") - 1)
+                self._plan = (U, age)
+                return U[min(j, len(U) - 1)].copy(), "shifted_plan"
+        self._plan = None
+        if ref is not None:
+            try:
+                baseline = self._get_baseline()
+                if not self._in_baseline:
+                    baseline.reset()
+                    self._in_baseline = True
+                cmd = baseline.step(measurement, ref).command.vector()
+                if np.all(np.isfinite(cmd)):
+                    return cmd, "baseline"
+            except Exception:  # noqa: BLE001 - the baseline must not take the controller down
+                pass
+        return self.u_prev.copy(), "hold_last_command"
+
+    def _get_baseline(self):
+        if self._baseline is None:
+            module = importlib.import_module("hvac_mpc.mpc.baseline")
+            self._baseline = module.BaselineController(self.params, dt_s=self.dt_s)
+        return self._baseline
+
+    def _stats(self, t0: float, status: str, fallback: str | None, prep: float = 0.0, feedback: float = 0.0,
+               iterations: int = 0, qp_solves: int = 0, cap: float | None = None) -> dict[str, Any]:
+        heating = self.u_prev[self.problem.i_heater_cmd] > 1.0
+        stats = {
+            "step_time_s": time.perf_counter() - t0,
+            "prep_time_s": prep,
+            "feedback_time_s": feedback,
+            "iterations": int(iterations),
+            "qp_solves": int(qp_solves),
+            "status": status,
+            "fallback": fallback,
+            "mode": "heating" if heating else "cooling",
+            "solver": self.settings.solver,
+        }
+        if cap is not None:
+            stats["valve_a_cap_pct"] = cap
+        if self.ekf.healthy():
+            stats["mix_offset_c"] = self.ekf.mix_offset_c
+            stats["flow_offset_m3s"] = self.ekf.flow_offset_m3s
+        return stats
+
+
+def _try_jit(problem: TrackingProblem) -> bool:
+    """Use JIT-compiled stage functions (one per substep count); False if compiling fails."""
+    import casadi as ca
+    try:
+        opts = {"jit": True, "compiler": "shell", "jit_options": {"flags": ["-O1"], "verbose": False},
+                "jit_temp_suffix": True}
+        compiled = {n: ca.Function(f"{f.name()}_jit", f.sx_in(), f.call(f.sx_in()), opts)
+                    for n, f in problem.stages.items()}
+        problem.set_stage_functions(compiled)
+        return True
+    except Exception:  # noqa: BLE001 - no compiler: the virtual machine works too
+        return False

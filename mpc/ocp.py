@@ -1,0 +1,515 @@
+"""The optimal control problem of the MPC, kept apart from any solver (acados style).
+
+:class:`OcpSpec` says *what* is optimised: the horizon as stage durations (move blocking: the
+inputs are held over each stage), weights, rate limits, the soft heater-temperature limit and
+the trapped-air guard. :class:`TrackingProblem` turns a spec and the plant parameters into the
+scaled discrete model every solver shares (``rti_osqp``, ``ipopt_reference``, do-mpc in the
+benchmark): one CasADi stage function returning ``(x_next, A, B, y, C, D)`` mapped over the
+horizon, the bounds, and the exact cost.
+
+The discrete problem (scaled variables ``x = (x_phys - x_off) / x_sc``, likewise ``u``)::
+
+    min  sum_k dt_k [ sum_i w_i ((y_i(x_k, u_k) - r_i) / s_i)^2 + w_e (P_blower + P_heater_el)(x_k, u_k) ]
+       + T_term sum_i w_i ((y_i(x_N, u_{N-1}) - r_i) / s_i)^2
+       + sum_k sum_j w_du_j (u_k,j - u_k-1,j)^2          (u_-1 = last applied command)
+       + sum_k dt_k-1 (w_l1 s_k + w_l2 s_k^2)
+    s.t. x_0 = estimate,  x_k+1 = F(x_k, u_k, d, dt_k)  (RK4)
+         u_lo <= u_k <= u_hi,  |u_k - u_k-1| <= rate * dt_k-1  (dt_-1 = one sample)
+         heater_temp(x_k) <= heater_temp_max + s_k,  s_k >= 0,  k = 1..N
+
+Tracked outputs ``y``: supply temperature, total volume flow, outlet flows m, f, w (outlet
+weights are zero when the reference leaves the split free); ``P_heater_el`` is the model's
+electric heater power (PTC fall included when the model has it).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+import casadi as ca
+import numpy as np
+
+from hvac_mpc.models.box import INPUT_LOWER, INPUTS, MODEL_EFFECTS, HvacModel, input_upper
+from hvac_mpc.models.parameters import Parameters
+
+from .reference import Reference
+from .valve_map import VALVE_NAMES, ValveMap
+
+#: Tracked outputs (model output names) in the order of the residual vector; the first is
+#: replaced by ``supply_temp_c`` when the sensor reading is tracked.
+TRACKED = ("supply_air_temp_c", "volume_flow_m3s", "flow_m_m3s", "flow_f_m3s", "flow_w_m3s")
+#: Stage-function outputs: the tracked ones plus the electric heater power for the energy term.
+STAGE_OUTPUTS = TRACKED + ("heater_power_w",)
+
+#: Default horizon: 25 stages covering 104 s, fine where the thermocouple (tau 5.73 s) and
+#: valve moves matter, coarse where only the heater body (tau ~90 s) and motor lag still move.
+DEFAULT_STAGES_S = (1.0,) * 8 + (2.0,) * 6 + (4.0,) * 5 + (8.0,) * 4 + (16.0,) * 2
+
+#: Offsets and scales of the states (degC): scaled value = (physical - offset) / scale.
+STATE_SCALING = {"motor_rise_c": (1.0, 1.0), "water_temp_c": (5.0, 5.0), "heater_temp_c": (40.0, 40.0),
+                 "supply_sensor_c": (20.0, 10.0), "trap_air_temp_c": (40.0, 40.0)}
+#: Offsets and scales of the inputs (W, %): scaled inputs lie in about [-1, 1].
+INPUT_SCALING = {"blower_power_w": (165.0, 135.0), "heater_cmd_w": (120.0, 120.0),
+                 "valve_a_pct": (50.0, 50.0), "valve_m_pct": (50.0, 50.0), "valve_f_pct": (50.0, 50.0),
+                 "valve_w_pct": (50.0, 50.0)}
+
+
+class InvalidSettings(ValueError):
+    """A setting is out of range or malformed; the message names the field and the allowed range."""
+
+
+def _check_number(name: str, value: Any, lo: float, hi: float, *, integer: bool = False,
+                  lo_open: bool = False) -> None:
+    kind = "an integer" if integer else "a finite number"
+    ok = (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+          and (not integer or float(value).is_integer()))
+    inside = ok and (lo < value if lo_open else lo <= value) and value <= hi
+    if not inside:
+        left = "(" if lo_open else "["
+        raise InvalidSettings(f"{name} = {value!r} must be {kind} in {left}{lo}, {hi}]")
+
+
+@dataclass(frozen=True)
+class Weights:
+    """Cost weights (per second of horizon unless said otherwise).
+
+    Residuals are divided by their scale first: temperature by 1 degC, flows by 1 L/s.
+    ``energy_per_w`` is linear in the electric power (W) of blower plus heater; ``move_*``
+    penalise the change of an input between consecutive stages (per unit squared, not per s).
+    """
+
+    supply_temp: float = 1.0
+    volume_flow: float = 0.5
+    outlet_flow: float = 0.5
+    energy_per_w: float = 2e-4
+    move_blower_per_w2: float = 2e-5
+    move_heater_per_w2: float = 1e-5
+    move_valve_per_pct2: float = 1e-4
+    terminal_s: float = 16.0
+    slack_l1_per_c: float = 5.0
+    slack_l2_per_c2: float = 1.0
+
+    def validate(self, prefix: str = "weights") -> None:
+        for f in fields(self):
+            _check_number(f"{prefix}.{f.name}", getattr(self, f.name), 0.0, 1e6)
+        if self.supply_temp <= 0 or self.volume_flow <= 0:
+            raise InvalidSettings(f"{prefix}.supply_temp and {prefix}.volume_flow must be > 0 (range (0, 1e6])")
+
+
+@dataclass(frozen=True)
+class OcpSpec:
+    """What the MPC optimises (no solver settings here).
+
+    Attributes:
+        stage_durations_s: duration of each stage (s); inputs are held over a stage (move
+            blocking). The first equals the sample time; the sum is the horizon (>= 60 s so the
+            one-minute requirement of design.md sec. 2 is inside it).
+        max_substep_s: longest RK4 substep (s); a stage uses ceil(its duration / this) substeps.
+        tracked_temperature: ``"air"`` tracks the true mixed supply air (model output
+            ``supply_air_temp_c``), ``"sensor"`` the thermocouple state ``supply_temp_c``.
+        rate_blower_w_per_s, rate_heater_w_per_s, rate_valve_pct_per_s: actuator rate limits
+            (ASSUMPTIONS: the thesis gives none; servo valves and power stages are taken to move
+            20 %/s and 60 W/s).
+        heater_temp_max_c: soft upper limit of the heater body (None: ``Parameters.heater_temp_max_c``).
+        trap_margin_pct: valve a is capped at ``trap_threshold_pct - trap_margin_pct`` while the heater
+            is warm (thesis sec. 5.4.2; see :func:`trap_cap_pct`).
+        trap_warm_c: the heater counts as warm when its estimated temperature exceeds the air
+            entering it by more than this (degC), or the heater is commanded on.
+        model_effects: structural effects of the prediction model (subset of ``MODEL_EFFECTS``).
+    """
+
+    stage_durations_s: tuple[float, ...] = DEFAULT_STAGES_S
+    max_substep_s: float = 4.0
+    tracked_temperature: str = "air"
+    weights: Weights = field(default_factory=Weights)
+    rate_blower_w_per_s: float = 60.0
+    rate_heater_w_per_s: float = 60.0
+    rate_valve_pct_per_s: float = 20.0
+    heater_temp_max_c: float | None = None
+    trap_margin_pct: float = 5.0
+    trap_warm_c: float = 5.0
+    model_effects: tuple[str, ...] = ("ptc_power_fall", "fan_curve", "valve_leakage")
+
+    def validate(self, dt_s: float = 1.0, prefix: str = "ocp") -> None:
+        """Raise :class:`InvalidSettings` naming the first bad field and its allowed range."""
+        durations = self.stage_durations_s
+        if not isinstance(durations, (tuple, list)) or not 2 <= len(durations) <= 200:
+            raise InvalidSettings(f"{prefix}.stage_durations_s must be a sequence of 2 to 200 durations (s)")
+        for i, d in enumerate(durations):
+            _check_number(f"{prefix}.stage_durations_s[{i}]", d, 0.0, 60.0, lo_open=True)
+        if abs(float(durations[0]) - dt_s) > 1e-9:
+            raise InvalidSettings(f"{prefix}.stage_durations_s[0] = {durations[0]} must equal the sample "
+                                  f"time dt_s = {dt_s} (range [{dt_s}, {dt_s}])")
+        if sum(durations) < 60.0:
+            raise InvalidSettings(f"{prefix}.stage_durations_s must sum to at least 60 s (range [60, 12000]), "
+                                  f"got {sum(durations)}")
+        _check_number(f"{prefix}.max_substep_s", self.max_substep_s, 0.05, 60.0)
+        if self.tracked_temperature not in ("air", "sensor"):
+            raise InvalidSettings(f"{prefix}.tracked_temperature = {self.tracked_temperature!r} must be "
+                                  f"'air' or 'sensor'")
+        if not isinstance(self.weights, Weights):
+            raise InvalidSettings(f"{prefix}.weights must be a Weights instance")
+        self.weights.validate(f"{prefix}.weights")
+        _check_number(f"{prefix}.rate_blower_w_per_s", self.rate_blower_w_per_s, 1.0, 1000.0)
+        _check_number(f"{prefix}.rate_heater_w_per_s", self.rate_heater_w_per_s, 1.0, 1000.0)
+        _check_number(f"{prefix}.rate_valve_pct_per_s", self.rate_valve_pct_per_s, 0.5, 100.0)
+        if self.heater_temp_max_c is not None:
+            _check_number(f"{prefix}.heater_temp_max_c", self.heater_temp_max_c, 20.0, 200.0)
+        _check_number(f"{prefix}.trap_margin_pct", self.trap_margin_pct, 0.0, 50.0)
+        _check_number(f"{prefix}.trap_warm_c", self.trap_warm_c, 0.0, 100.0)
+        unknown = sorted(set(self.model_effects) - set(MODEL_EFFECTS))
+        if unknown:
+            raise InvalidSettings(f"{prefix}.model_effects has unknown effect(s) {unknown}; allowed: "
+                                  f"{list(MODEL_EFFECTS)}")
+
+
+def trap_cap_pct(heater_temp_c: float, heater_in_c: float, heater_cmd_w: float, params: Parameters,
+                 spec: OcpSpec) -> float:
+    """Upper limit of valve a (%) against the trapped hot-air release (thesis sec. 5.4.2).
+
+    The pocket at valve a closes only when a sits in saturation (above ``trap_threshold_pct``)
+    and heats towards the heater temperature; the error appears when a leaves saturation with
+    a hot heater. The release cannot happen if a never saturates while the heater is warm, so
+    a is capped at ``trap_threshold_pct - trap_margin_pct`` whenever the heater body is more
+    than ``trap_warm_c`` above the air entering it or the heater is commanded on; with a cold
+    heater the pocket holds cold air and a may use its full travel (cooling needs it). This is
+    a constraint rather than a model of the pocket: its tanh switch would make the
+    linearisations of the real-time iteration unreliable. (The thesis capped a at 80 % in
+    heating mode for the same reason.)
+    """
+    warm = (heater_temp_c - heater_in_c > spec.trap_warm_c) or heater_cmd_w > 1.0
+    return params.trap_threshold_pct - spec.trap_margin_pct if warm else 100.0
+
+
+class TrackingProblem:
+    """The scaled discrete OCP data shared by all solvers (built once per controller).
+
+    Decision inputs ``u`` (scaled): blower power, heater command and valve a as they are, and
+    for valves m, f, w the opening ``v`` of :mod:`hvac_mpc.mpc.valve_map` (the angle is
+    ``theta(v)``). :meth:`scale_u` / :meth:`unscale_u` convert between actuator commands
+    (W, %) and scaled decisions.
+
+    Attributes: ``N`` stages of durations ``dt`` (s) and node times ``t_nodes``; sizes ``nx``,
+    ``nu``, ``nd``, ``ny``; scalings ``x_off``/``x_sc``/``u_off``/``u_sc``; decision bounds
+    ``u_lo``/``u_hi``; ``rate_phys`` (W/s, %/s); ``heater_row_coef``/``heater_row_bound`` (soft
+    heater row in degC); ``y_scale`` residual scales; ``w_du`` scaled move weights;
+    ``energy_grad_u`` (W per scaled decision). CasADi functions: ``stages`` (one stage function
+    per RK4 substep count, evaluated over the horizon by ``horizon`` in :meth:`linearise`),
+    ``F_by_substeps`` (x_next only), ``Y`` (outputs only), ``theta`` (valve angles of a decision).
+    """
+
+    VALVES = (3, 4, 5)  # decision indices of valves m, f, w (openings)
+
+    def __init__(self, params: Parameters | None, spec: OcpSpec, dt_s: float = 1.0):
+        spec.validate(dt_s)
+        self.params = params or Parameters()
+        self.spec = spec
+        self.dt_s = float(dt_s)
+        self.model = HvacModel(self.params, spec.model_effects, dt_s=dt_s)
+        self.valve_map = ValveMap(self.params)
+        m = self.model
+        self.state_names = m.states.names
+        self.nx, self.nu = len(m.states), len(m.inputs)
+        self.nd = len(m.disturbances)
+        self.dt = np.array(spec.stage_durations_s, float)
+        self.N = len(self.dt)
+        self.t_nodes = np.concatenate([[0.0], np.cumsum(self.dt)])
+        self.x_off = np.array([STATE_SCALING[n][0] for n in self.state_names])
+        self.x_sc = np.array([STATE_SCALING[n][1] for n in self.state_names])
+        self.u_off = np.array([INPUT_SCALING[n][0] for n in INPUTS])
+        self.u_sc = np.array([INPUT_SCALING[n][1] for n in INPUTS])
+        self.valve_mask = np.zeros(self.nu, bool)
+        self.valve_mask[list(self.VALVES)] = True
+        self.u_off[self.valve_mask] = 0.5  # openings v in [0, 1]
+        self.u_sc[self.valve_mask] = 0.5
+        self.u_lo_phys = np.array([INPUT_LOWER[n] for n in INPUTS])
+        self.u_hi_phys = np.array([input_upper(self.params)[n] for n in INPUTS])
+        self.u_lo, self.u_hi = self.scale_u(self.u_lo_phys), self.scale_u(self.u_hi_phys)
+        self.rate_phys = np.array([spec.rate_blower_w_per_s, spec.rate_heater_w_per_s]
+                                  + [spec.rate_valve_pct_per_s] * 4)
+        self.rate = self.rate_phys / self.u_sc  # meaningful for the non-valve decisions only
+        self.i_heater = self.state_names.index("heater_temp_c")
+        self.i_valve_a = INPUTS.index("valve_a_pct")
+        self.i_heater_cmd = INPUTS.index("heater_cmd_w")
+        hmax = spec.heater_temp_max_c if spec.heater_temp_max_c is not None else self.params.heater_temp_max_c
+        self.heater_max_phys = float(hmax)
+        # soft row in degC: x_sc * x_heater - s <= heater_max - x_off
+        self.heater_row_coef = float(self.x_sc[self.i_heater])
+        self.heater_row_bound = float(hmax - self.x_off[self.i_heater])
+        w = spec.weights
+        self.ny = len(STAGE_OUTPUTS)
+        self.y_scale = np.array([1.0, 1e-3, 1e-3, 1e-3, 1e-3, 1.0])
+        self.w_y_full = np.array([w.supply_temp, w.volume_flow, w.outlet_flow, w.outlet_flow, w.outlet_flow, 0.0])
+        # move weights per unit^2 of the command; for the valve openings per (1 % of opening)^2
+        move = np.array([w.move_blower_per_w2, w.move_heater_per_w2] + [w.move_valve_per_pct2] * 4)
+        unit = np.where(self.valve_mask, self.u_sc * 100.0, self.u_sc)
+        self.w_du = move * unit ** 2
+        self.energy_weight = w.energy_per_w
+        # d(P_blower)/d(u scaled): the blower term of the energy is linear in the input
+        self.energy_grad_u = np.zeros(self.nu)
+        self.energy_grad_u[INPUTS.index("blower_power_w")] = self.u_sc[INPUTS.index("blower_power_w")]
+        # slacks are in degC (not scaled): they stay O(1) beside the other variables
+        self.slack_l1 = w.slack_l1_per_c
+        self.slack_l2 = w.slack_l2_per_c2
+        self.terminal_s = w.terminal_s
+        self._build_functions()
+
+    # ------------------------------------------------------------------ scaling
+    def scale_x(self, x_phys):
+        return (np.asarray(x_phys, float) - self.x_off) / self.x_sc
+
+    def unscale_x(self, x):
+        return np.asarray(x, float) * self.x_sc + self.x_off
+
+    def scale_u(self, u_phys):
+        """Actuator commands (..., 6) in W and % -> scaled decisions (valve angles to openings)."""
+        u = np.array(u_phys, float)
+        for j, name in zip(self.VALVES, VALVE_NAMES):
+            u[..., j] = self.valve_map.opening(name, u[..., j])
+        return (u - self.u_off) / self.u_sc
+
+    def unscale_u(self, u):
+        """Scaled decisions (..., 6) -> actuator commands in W and % (openings to angles)."""
+        out = np.asarray(u, float) * self.u_sc + self.u_off
+        for j, name in zip(self.VALVES, VALVE_NAMES):
+            out[..., j] = self.valve_map.angle(name, out[..., j])
+        return out
+
+    def command_bounds(self, u_prev_phys: np.ndarray, cap_a_pct: float = 100.0) -> tuple[np.ndarray, np.ndarray]:
+        """Physical bounds of the next command: actuator ranges, rate limits over one sample, and
+        the valve a cap (never tighter than valve a can follow from ``u_prev_phys``)."""
+        lo = np.maximum(self.u_lo_phys, u_prev_phys - self.rate_phys * self.dt_s)
+        hi = np.minimum(self.u_hi_phys, u_prev_phys + self.rate_phys * self.dt_s)
+        ia = self.i_valve_a
+        hi[ia] = min(hi[ia], max(cap_a_pct, u_prev_phys[ia] - self.rate_phys[ia] * self.dt_s))
+        lo = np.minimum(lo, hi)
+        return lo, hi
+
+    def input_bounds(self, u_prev_phys: np.ndarray, cap_a_pct: float = 100.0) -> tuple[np.ndarray, np.ndarray]:
+        """Scaled decision bounds (N, nu): ranges everywhere, the first stage's rate limits folded in
+        exactly (the opening is monotone in the angle), and the valve a cap, which tightens stage
+        by stage no faster than valve a may move, so the bounds always hold a feasible point."""
+        lo = np.tile(self.u_lo, (self.N, 1))
+        hi = np.tile(self.u_hi, (self.N, 1))
+        ia = self.i_valve_a
+        cap = (min(cap_a_pct, 100.0) - self.u_off[ia]) / self.u_sc[ia]
+        reachable = (u_prev_phys[ia] - self.rate_phys[ia] * self.t_nodes[1:] - self.u_off[ia]) / self.u_sc[ia]
+        hi[:, ia] = np.minimum(hi[:, ia], np.maximum(cap, reachable))
+        lo0, hi0 = self.command_bounds(u_prev_phys, cap_a_pct)
+        lo[0] = np.maximum(lo[0], self.scale_u(lo0))
+        hi[0] = np.minimum(hi[0], self.scale_u(hi0))
+        lo[0] = np.minimum(lo[0], hi[0])
+        return lo, hi
+
+    def rate_bounds(self) -> np.ndarray:
+        """Largest change between stage k-1 and k, k = 1..N-1, shape (N-1, nu), scaled: rate * dt_{k-1}.
+
+        For valves m, f, w the plan limits the opening instead of the angle: rate / 100 per s of
+        opening, the angle's average speed (theta spans 100 % over v in [0, 1]). This keeps the
+        constraint linear and always feasible; the move actually applied (stage 0) is limited
+        exactly in angle by :meth:`input_bounds`.
+        """
+        rate = self.rate.copy()
+        rate[self.valve_mask] = self.rate_phys[self.valve_mask] / 100.0 / self.u_sc[self.valve_mask]
+        return rate[None, :] * self.dt[:-1, None]
+
+    # ------------------------------------------------------------------ references
+    def output_weights(self, reference: Reference) -> np.ndarray:
+        """Output weights for a reference: outlet flows weigh zero when the split is free."""
+        w = self.w_y_full.copy()
+        if reference.split is None:
+            w[2:5] = 0.0
+        return w
+
+    @staticmethod
+    def reference_vector(reference: Reference) -> np.ndarray:
+        """Reference of the stage outputs (physical units; 0 where not tracked)."""
+        split = reference.split or (0.0, 0.0, 0.0)
+        return np.array([reference.supply_temp_c, reference.volume_flow_m3s, *split, 0.0])
+
+    # ------------------------------------------------------------------ CasADi
+    def _stage_function(self, substeps: int) -> ca.Function:
+        """One stage (x, u, d, dt) -> stacked [x_next, vec A, vec B, y, vec C, vec D] with RK4 substeps."""
+        m, nx, nu = self.model, self.nx, self.nu
+        xs = ca.SX.sym("x", nx)
+        us = ca.SX.sym("u", nu)
+        d = ca.SX.sym("d", self.nd)
+        dt = ca.SX.sym("dt")
+        p = ca.DM(m.p_default)
+        x_off, x_sc = ca.DM(self.x_off), ca.DM(self.x_sc)
+        u_phys = self._command_expr(us)
+        x_phys = x_off + x_sc * xs
+        h = dt / substeps
+        xk = x_phys
+        for _ in range(substeps):
+            k1 = m.ode(xk, u_phys, d, p)
+            k2 = m.ode(xk + h / 2 * k1, u_phys, d, p)
+            k3 = m.ode(xk + h / 2 * k2, u_phys, d, p)
+            k4 = m.ode(xk + h * k3, u_phys, d, p)
+            xk = xk + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        xn = (xk - x_off) / x_sc
+        y_all = m.output(x_phys, u_phys, d, p)
+        names = list(STAGE_OUTPUTS)
+        if self.spec.tracked_temperature == "sensor":
+            names[0] = "supply_temp_c"
+        y = ca.vertcat(*[y_all[m.outputs.index(n)] for n in names])
+        out = ca.densify(ca.vertcat(xn, ca.vec(ca.jacobian(xn, xs)), ca.vec(ca.jacobian(xn, us)), y,
+                                    ca.vec(ca.jacobian(y, xs)), ca.vec(ca.jacobian(y, us))))
+        return ca.Function(f"stage{substeps}", [xs, us, d, dt], [out], ["x", "u", "d", "dt"], ["out"])
+
+    def _command_expr(self, us):
+        """Actuator commands (W, %) of scaled decisions, symbolically (valve openings -> angles)."""
+        parts = []
+        for j in range(self.nu):
+            value = self.u_off[j] + self.u_sc[j] * us[j]
+            if self.valve_mask[j]:
+                value = self.valve_map.theta_expr(VALVE_NAMES[self.VALVES.index(j)], value)
+            parts.append(value)
+        return ca.vertcat(*parts)
+
+    def theta(self, us):
+        """Valve angles m, f, w (%) of scaled decisions (CasADi)."""
+        return self._command_expr(us)[list(self.VALVES)]
+
+    def _build_functions(self) -> None:
+        nx, nu = self.nx, self.nu
+        # substeps per stage: the longest RK4 substep is max_substep_s; the terminal stage only
+        # needs outputs, so one substep
+        ns = [max(1, int(math.ceil(dt / self.spec.max_substep_s - 1e-9))) for dt in self.dt] + [1]
+        self.stage_substeps = np.array(ns)
+        self.stages = {n: self._stage_function(n) for n in sorted(set(ns))}
+        groups, start = [], 0
+        for k in range(1, len(ns) + 1):
+            if k == len(ns) or ns[k] != ns[start]:
+                groups.append((start, k, ns[start]))
+                start = k
+        self.groups = groups
+        xs = ca.SX.sym("x", nx)
+        us = ca.SX.sym("u", nu)
+        d = ca.SX.sym("d", self.nd)
+        dt = ca.SX.sym("dt")
+        max_ns = int(self.stage_substeps.max())
+        # F and Y for rollouts and NLP solvers: the stage's own substep count
+        self.F_by_substeps = {n: ca.Function(f"F{n}", [xs, us, d, dt], [f(xs, us, d, dt)[:nx]],
+                                             ["x", "u", "d", "dt"], ["x_next"]) for n, f in self.stages.items()}
+        f1 = self.stages[1] if 1 in self.stages else self.stages[max_ns]
+        o = nx + nx * nx + nx * nu
+        self.Y = ca.Function("Y", [xs, us, d], [f1(xs, us, d, 1.0)[o:o + self.ny]], ["x", "u", "d"], ["y"])
+        o, sl = 0, {}
+        for name, size in (("xn", nx), ("A", nx * nx), ("B", nx * nu), ("y", self.ny), ("C", self.ny * nx),
+                           ("D", self.ny * nu)):
+            sl[name] = slice(o, o + size)
+            o += size
+        self.out_slices = sl
+        self.n_out = o
+        self.set_stage_functions(self.stages)
+
+    def set_stage_functions(self, functions: dict) -> None:
+        """Use these stage functions (substeps -> Function), e.g. JIT-compiled ones.
+
+        All stages are evaluated by one MX function calling each group's mapped stage function,
+        so a linearisation is a single call from Python.
+        """
+        X = ca.MX.sym("X", self.nx, self.N + 1)
+        U = ca.MX.sym("U", self.nu, self.N + 1)
+        d = ca.MX.sym("d", self.nd)
+        dt = np.append(self.dt, self.dt[-1])
+        parts = [functions[n].map(b - a, "serial")(X[:, a:b], U[:, a:b], d, ca.DM(dt[None, a:b]))
+                 for a, b, n in self.groups]
+        self.horizon = ca.Function("horizon", [X, U, d], [ca.densify(ca.horzcat(*parts))], ["X", "U", "d"],
+                                   ["out"])
+        # evaluation into preallocated numpy memory (no DM conversions): CasADi is column-major,
+        # so row-major (N+1, n) arrays are the (n, N+1) matrices it expects
+        self._buf_X = np.zeros((self.N + 1, self.nx))
+        self._buf_U = np.zeros((self.N + 1, self.nu))
+        self._buf_d = np.zeros(self.nd)
+        self._buf_out = np.zeros((self.N + 1, self.n_out))
+        self._buf, self._eval = self.horizon.buffer()
+        for i, arr in enumerate((self._buf_X, self._buf_U, self._buf_d)):
+            self._buf.set_arg(i, memoryview(arr))
+        self._buf.set_res(0, memoryview(self._buf_out))
+
+    def F(self, x, u, d, k: int):
+        """x_next of stage k (its own substeps)."""
+        return self.F_by_substeps[int(self.stage_substeps[k])](x, u, d, self.dt[k])
+
+    def linearise(self, X: np.ndarray, U: np.ndarray, d: np.ndarray) -> dict[str, np.ndarray]:
+        """Evaluate all N+1 stages at states X (N+1, nx) and inputs U (N+1, nu).
+
+        Stage N is the terminal output evaluation (its x_next, A, B are unused). Returns arrays
+        with a leading stage axis: xn (N+1, nx), A (N+1, nx, nx), B (N+1, nx, nu), y (N+1, ny),
+        C (N+1, ny, nx), D (N+1, ny, nu).
+        """
+        self._buf_X[:] = X
+        self._buf_U[:] = U
+        self._buf_d[:] = d
+        self._eval()
+        out = self._buf_out.copy()  # (N+1, n_out)
+        s, K, nx, nu, ny = self.out_slices, self.N + 1, self.nx, self.nu, self.ny
+        # CasADi vec() is column-major: reshape to (stage, col, row) and swap
+        return {
+            "xn": out[:, s["xn"]],
+            "A": out[:, s["A"]].reshape(K, nx, nx).transpose(0, 2, 1),
+            "B": out[:, s["B"]].reshape(K, nu, nx).transpose(0, 2, 1),
+            "y": out[:, s["y"]],
+            "C": out[:, s["C"]].reshape(K, nx, ny).transpose(0, 2, 1),
+            "D": out[:, s["D"]].reshape(K, nu, ny).transpose(0, 2, 1),
+        }
+
+    def rollout(self, x0: np.ndarray, u: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """States (N+1, nx) from x0 holding the scaled input u over the whole horizon."""
+        X = np.empty((self.N + 1, self.nx))
+        X[0] = x0
+        for k in range(self.N):
+            X[k + 1] = np.asarray(self.F(X[k], u, d, k)).ravel()
+        return X
+
+    # ------------------------------------------------------------------ exact cost
+    def symbolic_cost(self, X, U, S, d, ref, w_y, u_prev):
+        """Exact cost (module docstring) for CasADi X (nx, N+1), U (nu, N), S (N, 1) and parameters."""
+        cost = 0
+        sw = w_y / ca.DM(self.y_scale ** 2)
+        for k in range(self.N + 1):
+            uk = U[:, min(k, self.N - 1)]
+            y = self.Y(X[:, k], uk, d)
+            e = y - ref
+            weight = self.dt[k] if k < self.N else self.terminal_s
+            cost += weight * ca.dot(sw, e * e)
+            if k < self.N:
+                blower_w = uk[0] * self.u_sc[0] + self.u_off[0]
+                cost += self.dt[k] * self.energy_weight * (blower_w + y[5])
+        prev = u_prev
+        for k in range(self.N):
+            du = U[:, k] - prev
+            cost += ca.dot(ca.DM(self.w_du), du * du)
+            prev = U[:, k]
+        cost += ca.dot(ca.DM(self.dt), self.slack_l1 * S + self.slack_l2 * S * S)
+        return cost
+
+    def cost_function(self) -> ca.Function:
+        """Exact cost as a function of (X (nx, N+1), U (nu, N), S (N), d, ref, w_y, u_prev), all scaled."""
+        X = ca.SX.sym("X", self.nx, self.N + 1)
+        U = ca.SX.sym("U", self.nu, self.N)
+        S = ca.SX.sym("S", self.N)
+        d, ref, w_y = ca.SX.sym("d", self.nd), ca.SX.sym("ref", self.ny), ca.SX.sym("w_y", self.ny)
+        u_prev = ca.SX.sym("u_prev", self.nu)
+        return ca.Function("cost", [X, U, S, d, ref, w_y, u_prev],
+                           [self.symbolic_cost(X, U, S, d, ref, w_y, u_prev)])
+
+
+def shift_maps(t_nodes: np.ndarray, shift_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Index and weight maps that move a trajectory on the stage grid forward by ``shift_s``.
+
+    Returns (i0, w1, j): new node k interpolates old nodes i0[k] and i0[k]+1 with weight w1[k]
+    (held at the end), and new stage k takes the input of old stage j[k] (the block containing
+    the new stage's start, last block beyond the horizon).
+    """
+    N = len(t_nodes) - 1
+    tau = np.minimum(t_nodes + shift_s, t_nodes[-1])
+    i0 = np.clip(np.searchsorted(t_nodes, tau, side="right") - 1, 0, N - 1)
+    w1 = (tau - t_nodes[i0]) / (t_nodes[i0 + 1] - t_nodes[i0])
+    j = np.clip(np.searchsorted(t_nodes, t_nodes[:-1] + shift_s, side="right") - 1, 0, N - 1)
+    return i0, np.clip(w1, 0.0, 1.0), j
+

@@ -1,0 +1,87 @@
+"""Decision variable of the outlet valves m, f, w: a conductance-like opening instead of the angle.
+
+The outlet flows depend on the valve angles through the measured resistance tables (thesis
+tables 3-5), whose curves are flat over long stretches (valve f above 60 %, m below 30 %) and
+steep over a few percent (f between 15 and 30 %). Linearised in the angle, a single
+Gauss-Newton step overshoots in the steep parts and barely moves in the flat ones, and the
+real-time iteration falls into a limit cycle. The MPC therefore decides an *opening*
+
+    v(theta) = alpha * theta / 100 + (1 - alpha) * (g(theta) - g(0)) / (g(100) - g(0)),
+    g = 1 / sqrt(R(theta))  (the branch conductance of the thesis's parallel network, sec. 5.2),
+
+in [0, 1], strictly increasing, so the split g_i / sum(g) is close to linear in v; the small
+``alpha`` share of the angle keeps the inverse theta(v) finite-sloped in the flat parts. The
+angle sent to the servo is theta(v): a monotone piecewise-cubic (PCHIP) interpolant of the
+exact inverse on a uniform grid, written as a plain CasADi expression (cheap to evaluate and
+differentiate inside the model, JIT-able); tables of it serve the numeric conversions both ways.
+"""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+from scipy.interpolate import PchipInterpolator
+
+from hvac_mpc.models import valves
+from hvac_mpc.models.parameters import Parameters
+
+VALVE_NAMES = ("m", "f", "w")
+
+
+class ValveMap:
+    """Opening v in [0, 1] <-> angle theta in [0, 100] % for valves m, f, w."""
+
+    def __init__(self, params: Parameters, alpha: float = 0.25, segments: int = 12, table_points: int = 4001):
+        self.alpha = float(alpha)
+        self.coeffs = valves.curves(params)
+        self.knots = np.linspace(0.0, 1.0, segments + 1)
+        self._pchip: dict[str, PchipInterpolator] = {}
+        self._v_tab: dict[str, np.ndarray] = {}
+        self._t_tab: dict[str, np.ndarray] = {}
+        v_fine = np.linspace(0.0, 1.0, table_points)
+        for name in VALVE_NAMES:
+            theta = self._inverse_exact(name, self.knots)
+            theta[0], theta[-1] = 0.0, 100.0
+            pchip = PchipInterpolator(self.knots, theta)
+            self._pchip[name] = pchip
+            self._v_tab[name] = v_fine
+            self._t_tab[name] = np.clip(np.maximum.accumulate(pchip(v_fine)), 0.0, 100.0)
+
+    def theta_expr(self, name: str, v):
+        """theta(v) in % as a CasADi expression of the opening v (clamped to [0, 1])."""
+        pchip = self._pchip[name]
+        v = ca.fmin(ca.fmax(v, 0.0), 1.0)
+        c, x = pchip.c, pchip.x  # c[:, i]: cubic coefficients of segment i around x[i]
+        out = 0
+        last = len(x) - 2
+        for i in range(last + 1):
+            t = v - x[i]
+            poly = ((c[0, i] * t + c[1, i]) * t + c[2, i]) * t + c[3, i]
+            inside = (v >= x[i]) * (v < x[i + 1]) if i < last else (v >= x[i])
+            out = out + inside * poly
+        return out
+
+    def opening_exact(self, name: str, theta_pct) -> np.ndarray:
+        """v(theta) from the fitted resistance curve (numpy)."""
+        c = self.coeffs[name]
+        g = 1.0 / np.sqrt(valves.resistance(np.asarray(theta_pct, float), c))
+        g0 = 1.0 / np.sqrt(valves.resistance(0.0, c))
+        g1 = 1.0 / np.sqrt(valves.resistance(100.0, c))
+        return self.alpha * np.asarray(theta_pct, float) / 100.0 + (1.0 - self.alpha) * (g - g0) / (g1 - g0)
+
+    def _inverse_exact(self, name: str, v: np.ndarray) -> np.ndarray:
+        lo, hi = np.zeros_like(v), np.full_like(v, 100.0)
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            below = self.opening_exact(name, mid) < v
+            lo = np.where(below, mid, lo)
+            hi = np.where(below, hi, mid)
+        return 0.5 * (lo + hi)
+
+    def angle(self, name: str, v) -> np.ndarray:
+        """theta(v) in % (the B-spline, tabulated)."""
+        return np.interp(np.clip(v, 0.0, 1.0), self._v_tab[name], self._t_tab[name])
+
+    def opening(self, name: str, theta_pct) -> np.ndarray:
+        """v(theta), the inverse of :meth:`angle` (tabulated)."""
+        return np.interp(np.clip(theta_pct, 0.0, 100.0), self._t_tab[name], self._v_tab[name])
