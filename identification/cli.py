@@ -27,7 +27,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="starting model file (parameters and [model] effects); default: thesis model")
     parser.add_argument("--holdout-fraction", type=float, default=1 / 3,
                         help="share of the log, at its end, held out from fitting (default 1/3, allowed 0.1-0.6)")
-    parser.add_argument("--max-effects", type=int, default=3, help="most effects added (default 3, allowed 0-6)")
+    parser.add_argument("--max-effects", type=int, default=4, help="most effects added (default 4, allowed 0-6)")
     parser.add_argument("--quick", action="store_true", help="fewer solver iterations (for tests and previews)")
     parser.add_argument("--no-plots", action="store_true", help="write the report without plots")
     parser.add_argument("--thesis-tables", action="store_true",

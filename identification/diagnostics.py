@@ -135,7 +135,7 @@ def diagnose(fitter: Fitter, fit: Fit, top: int = 8) -> dict:
         steps = []
         for name, min_step in STEP_SIGNALS.items():
             u = log.u[:, INPUTS.index(name)][train]
-            sa = st.step_asymmetry(e, u, name, min_step)
+            sa = st.step_asymmetry(e, u, name, min_step, window=max(10, int(round(150.0 / log.dt_s))))
             if sa.n_up + sa.n_down == 0:
                 continue
             steps.append({"signal": name, "n_up": sa.n_up, "n_down": sa.n_down, "mean_up": sa.mean_up,

@@ -200,7 +200,7 @@ def _new_params(fitter: Fitter, fit: Fit, current: Fit) -> dict:
 
 
 def identify(log: LogData, base: Parameters | None = None, base_effects: Iterable[str] = (), quick: bool = False,
-             max_effects: int = 3, progress: Callable[[str], None] | None = None) -> IdentificationResult:
+             max_effects: int = 4, progress: Callable[[str], None] | None = None) -> IdentificationResult:
     """Run the whole procedure of the module docstring on a prepared log."""
     say = progress or (lambda _msg: None)
     t_start = time.perf_counter()

@@ -308,7 +308,10 @@ def _markdown(res: IdentificationResult, data: dict, model_name: str) -> list[st
            f"removes >= {100 * EXPLAIN_MIN:.0f} % of that structure overall and on its primary output, and its "
            f"EKF likelihood ratio on the training rows is significant (alpha = {ALPHA}, Bonferroni over the round). "
            "The best such candidate is added; the loop repeats.",
-           "5. Whatever structure remains is located (equation and signals) instead of being named.", ""]
+           "5. Whatever structure remains is located instead of being named: the residual is regressed on each "
+           "model equation's drive, on every logged signal (a missing input dependence, e.g. on a column the model "
+           "does not use) and on their products; the terms that also hold on the held-out rows name the equation "
+           "and the signals.", ""]
     md += ["## Nominal fit", ""]
     md += _table(["parameter", "default", "fitted", "source"],
                  [[k, a, b, Parameters.source(k)] for k, (a, b) in _changed_params(res, res.nominal).items()])
