@@ -28,7 +28,8 @@ import numpy as np
 from hvac_mpc.models.box import HvacModel
 from hvac_mpc.models.plant import Measurement
 
-from .ocp import InvalidSettings, _check_number
+from .casadi_eval import BufferedFunction
+from .ocp import InvalidSettings, check_number
 
 #: Measurement names in the order of the filter's measurement vector.
 MEASURED = ("supply_temp_c", "volume_flow_m3s", "water_temp_c", "hvac_inlet_temp_c", "heater_outlet_temp_c")
@@ -64,7 +65,7 @@ class EkfSettings:
                 if not isinstance(value, bool):
                     raise InvalidSettings(f"{prefix}.use_heater_outlet must be True or False")
                 continue
-            _check_number(f"{prefix}.{f.name}", value, 0.0, 100.0, lo_open=True)
+            check_number(f"{prefix}.{f.name}", value, 0.0, 100.0, lo_open=True)
 
 
 class DisturbanceEkf:
@@ -116,8 +117,8 @@ class DisturbanceEkf:
         y = m.output(x, u, d, p)
         meas = ca.vertcat(x[self.i_sensor], y[m.outputs.index("volume_flow_m3s")], x[self.i_water], z[nx + 2],
                           y[m.outputs.index("heater_outlet_temp_c")])
-        self.f = ca.Function("ekf_f", [z, u, sp], [zn, ca.jacobian(zn, z)])
-        self.h = ca.Function("ekf_h", [z, u, sp], [meas, ca.jacobian(meas, z)])
+        self.f = BufferedFunction(ca.Function("ekf_f", [z, u, sp], [zn, ca.jacobian(zn, z)]))
+        self.h = BufferedFunction(ca.Function("ekf_h", [z, u, sp], [meas, ca.jacobian(meas, z)]))
 
     # ------------------------------------------------------------------ interface
     @property
@@ -156,9 +157,9 @@ class DisturbanceEkf:
 
     def predict(self, u: np.ndarray, setpoint_c: float) -> None:
         """Time update over one sample with the command that was applied."""
-        zn, F = self.f(self.z, u, setpoint_c)
-        F = np.asarray(F)
-        self.z = np.asarray(zn).ravel()
+        zn, Ft = self.f(self.z, u, setpoint_c)
+        F = Ft.T  # buffers are column-major
+        self.z = zn
         self.P = F @ self.P @ F.T + self.Q
 
     def update(self, measurement: Measurement, u: np.ndarray, setpoint_c: float) -> int:
@@ -167,9 +168,9 @@ class DisturbanceEkf:
         ok = np.isfinite(values) & self.use
         if not ok.any():
             return 0
-        hz, H = self.h(self.z, u, setpoint_c)
-        hz = np.asarray(hz).ravel()[ok]
-        H = np.asarray(H)[ok]
+        hz, Ht = self.h(self.z, u, setpoint_c)
+        hz = hz[ok]
+        H = Ht.T[ok]
         innov = values[ok] - hz
         S = H @ self.P @ H.T + np.diag(self.R_diag[ok])
         K = np.linalg.solve(S, H @ self.P).T

@@ -4,7 +4,8 @@ A reference for comparison (solve time, closed-loop cost), not for real-time use
 built once with CasADi (SX, exact Hessian) from :class:`TrackingProblem`: identical variables
 ``[x_0..x_N, u_0..u_N-1, s_1..s_N]`` (scaled), stage functions, cost, bounds, rate limits and
 soft heater limit. Per-step data enter as NLP parameters; every solve is warm-started from the
-shifted previous solution (primal and multipliers).
+shifted previous primal solution and the previous multipliers. ``obj_scaling`` only scales the
+objective inside IPOPT (an option, the problem is unchanged).
 """
 
 from __future__ import annotations
@@ -20,6 +21,8 @@ from .rti_osqp import SolveResult
 
 class IpoptReferenceSolver:
     """Full-NLP reference with the solver interface of :class:`RtiOsqpSolver`."""
+
+    name = "ipopt"
 
     def __init__(self, problem: TrackingProblem, *, tol: float = 1e-6, max_iter: int = 300,
                  warm_start_init_point: bool = True, obj_scaling: float = 1e-3):
@@ -74,7 +77,7 @@ class IpoptReferenceSolver:
         return self.w is not None
 
     def prepare(self, x_pred, u_prev, d, ref, w_y) -> float:
-        """Shift the previous primal-dual solution one sample (the warm start)."""
+        """Shift the previous primal solution one sample (the warm start; multipliers kept)."""
         t0 = time.perf_counter()
         if self.w is not None:
             pb, N, nx, nu = self.pb, self.pb.N, self.pb.nx, self.pb.nu

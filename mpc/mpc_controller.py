@@ -13,8 +13,17 @@ limits -> EKF prediction with that command -> preparation of the next QP. With
 
 Failures (QP status not solved, non-finite data, a missed ``deadline_s``, any exception) never
 leave ``step``: the controller applies the shifted previous plan for up to ``plan_fallback_s``,
-then the thesis baseline (``hvac_mpc.mpc.baseline.BaselineController``), and as a last resort
-holds the last command; ``stats["fallback"]`` names which. The warm start is reset after a failure.
+then the thesis baseline (``hvac_mpc.mpc.baseline.BaselineController``, imported when first
+needed, handed the command in force), and as a last resort holds the last command;
+``stats["fallback"]`` names which. The warm start is reset after a failure; a valid reference
+replaces an invalid one (the last valid one is kept); missing readings are skipped by the
+estimator. Every command, fallbacks included, is projected onto the actuator ranges, the rate
+limits and the trapped-air cap before it leaves.
+
+Stats of a step: ``step_time_s`` (the whole step), ``feedback_time_s`` (measurement to command),
+``prep_time_s`` (preparation of the next QP), ``iterations`` (OSQP iterations, or IPOPT's),
+``qp_solves``, ``cold_start``, ``status``, ``fallback``, ``mode`` ("heating" while the heater is commanded,
+else "cooling"), ``solver``, ``valve_a_cap_pct``, ``mix_offset_c``, ``flow_offset_m3s``.
 """
 
 from __future__ import annotations
@@ -22,8 +31,8 @@ from __future__ import annotations
 import importlib
 import math
 import time
-from dataclasses import dataclass, field, fields
-from typing import Any, Mapping
+from dataclasses import dataclass, field
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
@@ -34,7 +43,7 @@ from hvac_mpc.models.plant import Command, Measurement
 
 from .controller import StepResult
 from .estimator import DisturbanceEkf, EkfSettings
-from .ocp import InvalidSettings, OcpSpec, TrackingProblem, _check_number, trap_cap_pct
+from .ocp import InvalidSettings, OcpSpec, TrackingProblem, check_number, trap_cap_pct
 from .reference import InvalidReference, Reference
 from .rti_osqp import RtiOsqpSolver, SolveResult
 
@@ -53,6 +62,12 @@ class MpcSettings:
         osqp_eps: OSQP absolute/relative tolerance; osqp_max_iter: OSQP iteration cap;
             osqp_check_termination: OSQP convergence-check interval (iterations).
         sqp_max_iter, sqp_tol: SQP iteration cap and step tolerance (scaled variables).
+        levenberg_marquardt: weight of lm * |u_k - u_k_lin|^2 (scaled inputs, every stage) added to
+            each QP: damps Gauss-Newton steps along the flat directions the redundant actuators
+            leave; it vanishes at a converged solution, so it changes the iterates, not the optimum.
+        cold_start_qps: on a cold start (first step, after a reset or a failure) there is no
+            previous solution to start from, so up to this many QPs are solved (Gauss-Newton SQP
+            to ``sqp_tol``); every other step of ``solver="rti"`` solves exactly one.
         ipopt_tol, ipopt_max_iter: IPOPT tolerance and iteration cap.
         deadline_s: longest feedback time (measurement to command); beyond it the solution is
             discarded and the fallback chain used.
@@ -70,11 +85,13 @@ class MpcSettings:
     dt_s: float = 1.0
     ocp: OcpSpec = field(default_factory=OcpSpec)
     solver: str = "rti"
-    osqp_eps: float = 1e-3
+    osqp_eps: float = 1e-4
     osqp_max_iter: int = 400
     osqp_check_termination: int = 5
     sqp_max_iter: int = 5
-    sqp_tol: float = 1e-3
+    levenberg_marquardt: float = 0.3
+    cold_start_qps: int = 10
+    sqp_tol: float = 2e-2
     ipopt_tol: float = 1e-6
     ipopt_max_iter: int = 300
     deadline_s: float = 0.5
@@ -87,32 +104,34 @@ class MpcSettings:
 
     def __post_init__(self) -> None:
         p = "MpcSettings"
-        _check_number(f"{p}.dt_s", self.dt_s, 0.0, 60.0, lo_open=True)
+        check_number(f"{p}.dt_s", self.dt_s, 0.0, 60.0, lo_open=True)
         if not isinstance(self.ocp, OcpSpec):
             raise InvalidSettings(f"{p}.ocp must be an OcpSpec")
         self.ocp.validate(self.dt_s, f"{p}.ocp")
         if self.solver not in SOLVERS:
             raise InvalidSettings(f"{p}.solver = {self.solver!r} must be one of {list(SOLVERS)}")
-        _check_number(f"{p}.osqp_eps", self.osqp_eps, 1e-8, 1e-1)
-        _check_number(f"{p}.osqp_max_iter", self.osqp_max_iter, 10, 100000, integer=True)
-        _check_number(f"{p}.osqp_check_termination", self.osqp_check_termination, 1, 1000, integer=True)
-        _check_number(f"{p}.sqp_max_iter", self.sqp_max_iter, 1, 100, integer=True)
-        _check_number(f"{p}.sqp_tol", self.sqp_tol, 1e-10, 1.0, lo_open=True)
-        _check_number(f"{p}.ipopt_tol", self.ipopt_tol, 1e-12, 1e-2, lo_open=True)
-        _check_number(f"{p}.ipopt_max_iter", self.ipopt_max_iter, 1, 100000, integer=True)
-        _check_number(f"{p}.deadline_s", self.deadline_s, 0.0, 3600.0, lo_open=True)
-        _check_number(f"{p}.plan_fallback_s", self.plan_fallback_s, 0.0, 3600.0)
+        check_number(f"{p}.osqp_eps", self.osqp_eps, 1e-8, 1e-1)
+        check_number(f"{p}.osqp_max_iter", self.osqp_max_iter, 10, 100000, integer=True)
+        check_number(f"{p}.osqp_check_termination", self.osqp_check_termination, 1, 1000, integer=True)
+        check_number(f"{p}.sqp_max_iter", self.sqp_max_iter, 1, 100, integer=True)
+        check_number(f"{p}.sqp_tol", self.sqp_tol, 1e-10, 1.0, lo_open=True)
+        check_number(f"{p}.levenberg_marquardt", self.levenberg_marquardt, 0.0, 1e4)
+        check_number(f"{p}.cold_start_qps", self.cold_start_qps, 1, 100, integer=True)
+        check_number(f"{p}.ipopt_tol", self.ipopt_tol, 1e-12, 1e-2, lo_open=True)
+        check_number(f"{p}.ipopt_max_iter", self.ipopt_max_iter, 1, 100000, integer=True)
+        check_number(f"{p}.deadline_s", self.deadline_s, 0.0, 3600.0, lo_open=True)
+        check_number(f"{p}.plan_fallback_s", self.plan_fallback_s, 0.0, 3600.0)
         if not isinstance(self.jit, bool):
             raise InvalidSettings(f"{p}.jit must be True or False")
         if self.water_prediction not in ("hold", "setpoint"):
             raise InvalidSettings(f"{p}.water_prediction = {self.water_prediction!r} must be 'hold' or 'setpoint'")
-        _check_number(f"{p}.chiller_setpoint_c", self.chiller_setpoint_c, -10.0, 30.0)
+        check_number(f"{p}.chiller_setpoint_c", self.chiller_setpoint_c, -10.0, 30.0)
         if not isinstance(self.initial_command, Command):
             raise InvalidSettings(f"{p}.initial_command must be a Command")
         u = self.initial_command.vector()
         for name, value in zip(INPUTS, u):
             hi = 300.0 if name.endswith("_w") else 100.0
-            _check_number(f"{p}.initial_command.{name}", value, 0.0, hi)
+            check_number(f"{p}.initial_command.{name}", value, 0.0, hi)
         if not isinstance(self.ekf, EkfSettings):
             raise InvalidSettings(f"{p}.ekf must be an EkfSettings")
         self.ekf.validate(f"{p}.ekf")
@@ -125,7 +144,11 @@ class MpcController:
     fallback controller, so several can run side by side in one process.
     """
 
-    def __init__(self, params: Parameters | None = None, settings: MpcSettings | None = None):
+    def __init__(self, params: Parameters | None = None, settings: MpcSettings | None = None, *,
+                 solver_factory: Callable[[TrackingProblem], Any] | None = None):
+        """``solver_factory(problem)`` may supply another solver with the interface of
+        :class:`RtiOsqpSolver` (``reset``, ``prepare``, ``feedback``, ``fail_next``), e.g. the
+        do-mpc reference of the solve-time benchmark; by default ``settings.solver`` decides."""
         self.params = params or Parameters()
         self.settings = settings or MpcSettings()
         s = self.settings
@@ -134,7 +157,7 @@ class MpcController:
         self.jit_active = False
         if s.jit:
             self.jit_active = _try_jit(self.problem)
-        self.solver = self._make_solver()
+        self.solver = solver_factory(self.problem) if solver_factory is not None else self._make_solver()
         self.ekf = DisturbanceEkf(self.problem.model, s.ekf, s.dt_s, s.water_prediction)
         self._baseline = None
         self.reset()
@@ -146,7 +169,8 @@ class MpcController:
             return IpoptReferenceSolver(pb, tol=s.ipopt_tol, max_iter=s.ipopt_max_iter)
         sqp_iter = 1 if s.solver == "rti" else s.sqp_max_iter
         return RtiOsqpSolver(pb, eps=s.osqp_eps, max_iter=s.osqp_max_iter, sqp_max_iter=sqp_iter,
-                             sqp_tol=s.sqp_tol, check_termination=s.osqp_check_termination)
+                             sqp_tol=s.sqp_tol, check_termination=s.osqp_check_termination,
+                             lm_inputs=s.levenberg_marquardt, cold_start_qps=s.cold_start_qps)
 
     # ------------------------------------------------------------------ protocol
     def reset(self, command: Command | None = None) -> None:
@@ -170,15 +194,26 @@ class MpcController:
         try:
             return self._step(measurement, reference, t0)
         except Exception as exc:  # noqa: BLE001 - a control step must always return a command
-            self.solver.reset()
-            self._prepared_for_next = False
-            try:
-                cmd, fallback = self._fallback_command(measurement, self._reference)
-            except Exception:  # noqa: BLE001
-                cmd, fallback = self.u_prev.copy(), "hold_last_command"
-            self.u_prev = cmd
-            return StepResult(Command.from_vector(cmd), self._stats(t0, status=f"error: {exc!r}",
-                                                                    fallback=fallback))
+            return self._recover(measurement, t0, exc)
+
+    def _recover(self, measurement: Measurement, t0: float, exc: Exception) -> StepResult:
+        """After an unexpected error: fallback command, projected, and a fresh start next step."""
+        self.solver.reset()
+        self._prepared_for_next = False
+        try:
+            cmd, fallback = self._fallback_command(measurement, self._reference)
+        except Exception:  # noqa: BLE001 - nothing may escape a control step
+            cmd, fallback = self.u_prev.copy(), "hold_last_command"
+        if not np.all(np.isfinite(cmd)):
+            cmd, fallback = self.u_prev.copy(), "hold_last_command"
+        cmd = np.clip(cmd, *self.problem.command_bounds(self.u_prev))
+        self.u_prev = cmd
+        try:
+            if self.ekf.healthy():
+                self.ekf.predict(cmd, self._setpoint(measurement))
+        except Exception:  # noqa: BLE001
+            self.ekf.reset()
+        return StepResult(Command.from_vector(cmd), self._stats(t0, status=f"error: {exc!r}", fallback=fallback))
 
     # ------------------------------------------------------------------ internals
     def _setpoint(self, measurement: Measurement) -> float:
@@ -216,8 +251,9 @@ class MpcController:
         if not self.ekf.healthy():
             self.ekf.initialise(measurement, self.u_prev, setpoint)
             self._prepared_for_next = False
+            used = 5
         else:
-            self.ekf.update(measurement, self.u_prev, setpoint)
+            used = self.ekf.update(measurement, self.u_prev, setpoint)
         if not self.ekf.healthy():
             self.ekf.reset()
             raise FloatingPointError("state estimate is not finite")
@@ -264,9 +300,12 @@ class MpcController:
             self._prepared_for_next = True
         if ref_status:
             status = f"{status}; {ref_status}"
+        if used == 0:
+            status = f"{status}; no finite measurement, state predicted open loop"
         stats = self._stats(t0, status=status, fallback=fallback, prep=prep_time,
                             feedback=sol.feedback_time_s, iterations=sol.iterations, qp_solves=sol.qp_solves,
                             cap=cap)
+        stats["cold_start"] = bool(sol.extra.get("cold_start", False))
         return StepResult(Command.from_vector(u_cmd), stats)
 
     def _disturbance(self, setpoint: float) -> np.ndarray:
@@ -299,7 +338,10 @@ class MpcController:
             try:
                 baseline = self._get_baseline()
                 if not self._in_baseline:
+                    # bumpless hand-over: the thesis loops continue from the command in force
                     baseline.reset()
+                    if hasattr(baseline, "track"):
+                        baseline.track(Command.from_vector(self.u_prev))
                     self._in_baseline = True
                 cmd = baseline.step(measurement, ref).command.vector()
                 if np.all(np.isfinite(cmd)):
@@ -326,7 +368,7 @@ class MpcController:
             "status": status,
             "fallback": fallback,
             "mode": "heating" if heating else "cooling",
-            "solver": self.settings.solver,
+            "solver": getattr(self.solver, "name", self.settings.solver),
         }
         if cap is not None:
             stats["valve_a_cap_pct"] = cap

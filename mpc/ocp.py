@@ -9,7 +9,7 @@ horizon, the bounds, and the exact cost.
 
 The discrete problem (scaled variables ``x = (x_phys - x_off) / x_sc``, likewise ``u``)::
 
-    min  sum_k dt_k [ sum_i w_i ((y_i(x_k, u_k) - r_i) / s_i)^2 + w_e (P_blower + P_heater_el)(x_k, u_k) ]
+    min  sum_k dt_k [ sum_i w_i ((y_i(x_k, u_k) - r_i) / s_i)^2 + w_e ((P_blower + P_heater_el)(x_k, u_k) / 100 W)^2 ]
        + T_term sum_i w_i ((y_i(x_N, u_{N-1}) - r_i) / s_i)^2
        + sum_k sum_j w_du_j (u_k,j - u_k-1,j)^2          (u_-1 = last applied command)
        + sum_k dt_k-1 (w_l1 s_k + w_l2 s_k^2)
@@ -19,7 +19,16 @@ The discrete problem (scaled variables ``x = (x_phys - x_off) / x_sc``, likewise
 
 Tracked outputs ``y``: supply temperature, total volume flow, outlet flows m, f, w (outlet
 weights are zero when the reference leaves the split free); ``P_heater_el`` is the model's
-electric heater power (PTC fall included when the model has it).
+electric heater power (PTC fall included when the model has it). The valves m, f, w are
+decided as openings (:mod:`hvac_mpc.mpc.valve_map`); their plan-stage rate limit is on the
+opening (:meth:`TrackingProblem.rate_bounds`), the applied move's on the angle.
+
+Which supply temperature is tracked (``OcpSpec.tracked_temperature``, default ``"air"``): the
+true mixed air the cabin receives (model output ``supply_air_temp_c``, mixed-air offset
+included), not the thermocouple reading. The thermocouple (tau 5.73 s, thesis sec. 5.4.1) is a
+measuring device: tracking its reading would make the controller overshoot the air to hurry
+the sensor along. The estimator reconstructs the air temperature from the lagged reading, and
+at rest both agree, so offset-free tracking of the air is offset-free in the reading as well.
 """
 
 from __future__ import annotations
@@ -34,6 +43,7 @@ import numpy as np
 from hvac_mpc.models.box import INPUT_LOWER, INPUTS, MODEL_EFFECTS, HvacModel, input_upper
 from hvac_mpc.models.parameters import Parameters
 
+from .casadi_eval import BufferedFunction
 from .reference import Reference
 from .valve_map import VALVE_NAMES, ValveMap
 
@@ -60,8 +70,9 @@ class InvalidSettings(ValueError):
     """A setting is out of range or malformed; the message names the field and the allowed range."""
 
 
-def _check_number(name: str, value: Any, lo: float, hi: float, *, integer: bool = False,
-                  lo_open: bool = False) -> None:
+def check_number(name: str, value: Any, lo: float, hi: float, *, integer: bool = False,
+                 lo_open: bool = False) -> None:
+    """Raise :class:`InvalidSettings` unless ``value`` is a finite number (integer) in the range."""
     kind = "an integer" if integer else "a finite number"
     ok = (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
           and (not integer or float(value).is_integer()))
@@ -73,17 +84,21 @@ def _check_number(name: str, value: Any, lo: float, hi: float, *, integer: bool 
 
 @dataclass(frozen=True)
 class Weights:
-    """Cost weights (per second of horizon unless said otherwise).
+    """Cost weights (per second of horizon unless said otherwise); tuning choices on the simulated
+    plant (ASSUMPTIONS, nothing here comes from the thesis).
 
-    Residuals are divided by their scale first: temperature by 1 degC, flows by 1 L/s.
-    ``energy_per_w`` is linear in the electric power (W) of blower plus heater; ``move_*``
-    penalise the change of an input between consecutive stages (per unit squared, not per s).
+    Residuals are divided by their scale first: temperature by 1 degC, flows by 1 L/s, electric
+    power (blower plus heater) by 100 W. The energy term is a least-squares residual too: it
+    prefers the least power among the actuator settings that track equally well (the redundant
+    blower/outlet-valve and valve a/heater directions) and, unlike a linear term, gives the
+    Gauss-Newton Hessian curvature along those directions. ``move_*`` penalise the change of an
+    input between consecutive stages (per unit squared, not per s).
     """
 
     supply_temp: float = 1.0
     volume_flow: float = 0.5
     outlet_flow: float = 0.5
-    energy_per_w: float = 2e-4
+    energy_per_100w2: float = 5e-3
     move_blower_per_w2: float = 2e-5
     move_heater_per_w2: float = 1e-5
     move_valve_per_pct2: float = 1e-4
@@ -93,7 +108,7 @@ class Weights:
 
     def validate(self, prefix: str = "weights") -> None:
         for f in fields(self):
-            _check_number(f"{prefix}.{f.name}", getattr(self, f.name), 0.0, 1e6)
+            check_number(f"{prefix}.{f.name}", getattr(self, f.name), 0.0, 1e6)
         if self.supply_temp <= 0 or self.volume_flow <= 0:
             raise InvalidSettings(f"{prefix}.supply_temp and {prefix}.volume_flow must be > 0 (range (0, 1e6])")
 
@@ -110,14 +125,19 @@ class OcpSpec:
         tracked_temperature: ``"air"`` tracks the true mixed supply air (model output
             ``supply_air_temp_c``), ``"sensor"`` the thermocouple state ``supply_temp_c``.
         rate_blower_w_per_s, rate_heater_w_per_s, rate_valve_pct_per_s: actuator rate limits
-            (ASSUMPTIONS: the thesis gives none; servo valves and power stages are taken to move
-            20 %/s and 60 W/s).
+            (ASSUMPTIONS: the thesis gives none; the servo valves are taken to cross their range in
+            5 s, 20 %/s, and the power stages to ramp 60 W/s, a full blower range in under 5 s).
         heater_temp_max_c: soft upper limit of the heater body (None: ``Parameters.heater_temp_max_c``).
         trap_margin_pct: valve a is capped at ``trap_threshold_pct - trap_margin_pct`` while the heater
             is warm (thesis sec. 5.4.2; see :func:`trap_cap_pct`).
         trap_warm_c: the heater counts as warm when its estimated temperature exceeds the air
             entering it by more than this (degC), or the heater is commanded on.
         model_effects: structural effects of the prediction model (subset of ``MODEL_EFFECTS``).
+            Default: the PTC power fall (thesis sec. 2.3, fig. 12), the fan curve and the closed-valve
+            leakage (both fitted to thesis tables 3-5): steady physics the outlet split cannot be
+            tracked without, because the outlet flows are not measured. The dynamic effects
+            (motor asymmetry, flow-dependent bypass, chiller hysteresis, trapped air) are left to
+            the estimator's disturbance states and the trapped-air guard.
     """
 
     stage_durations_s: tuple[float, ...] = DEFAULT_STAGES_S
@@ -138,27 +158,27 @@ class OcpSpec:
         if not isinstance(durations, (tuple, list)) or not 2 <= len(durations) <= 200:
             raise InvalidSettings(f"{prefix}.stage_durations_s must be a sequence of 2 to 200 durations (s)")
         for i, d in enumerate(durations):
-            _check_number(f"{prefix}.stage_durations_s[{i}]", d, 0.0, 60.0, lo_open=True)
+            check_number(f"{prefix}.stage_durations_s[{i}]", d, 0.0, 60.0, lo_open=True)
         if abs(float(durations[0]) - dt_s) > 1e-9:
             raise InvalidSettings(f"{prefix}.stage_durations_s[0] = {durations[0]} must equal the sample "
                                   f"time dt_s = {dt_s} (range [{dt_s}, {dt_s}])")
         if sum(durations) < 60.0:
             raise InvalidSettings(f"{prefix}.stage_durations_s must sum to at least 60 s (range [60, 12000]), "
                                   f"got {sum(durations)}")
-        _check_number(f"{prefix}.max_substep_s", self.max_substep_s, 0.05, 60.0)
+        check_number(f"{prefix}.max_substep_s", self.max_substep_s, 0.05, 60.0)
         if self.tracked_temperature not in ("air", "sensor"):
             raise InvalidSettings(f"{prefix}.tracked_temperature = {self.tracked_temperature!r} must be "
                                   f"'air' or 'sensor'")
         if not isinstance(self.weights, Weights):
             raise InvalidSettings(f"{prefix}.weights must be a Weights instance")
         self.weights.validate(f"{prefix}.weights")
-        _check_number(f"{prefix}.rate_blower_w_per_s", self.rate_blower_w_per_s, 1.0, 1000.0)
-        _check_number(f"{prefix}.rate_heater_w_per_s", self.rate_heater_w_per_s, 1.0, 1000.0)
-        _check_number(f"{prefix}.rate_valve_pct_per_s", self.rate_valve_pct_per_s, 0.5, 100.0)
+        check_number(f"{prefix}.rate_blower_w_per_s", self.rate_blower_w_per_s, 1.0, 1000.0)
+        check_number(f"{prefix}.rate_heater_w_per_s", self.rate_heater_w_per_s, 1.0, 1000.0)
+        check_number(f"{prefix}.rate_valve_pct_per_s", self.rate_valve_pct_per_s, 0.5, 100.0)
         if self.heater_temp_max_c is not None:
-            _check_number(f"{prefix}.heater_temp_max_c", self.heater_temp_max_c, 20.0, 200.0)
-        _check_number(f"{prefix}.trap_margin_pct", self.trap_margin_pct, 0.0, 50.0)
-        _check_number(f"{prefix}.trap_warm_c", self.trap_warm_c, 0.0, 100.0)
+            check_number(f"{prefix}.heater_temp_max_c", self.heater_temp_max_c, 20.0, 200.0)
+        check_number(f"{prefix}.trap_margin_pct", self.trap_margin_pct, 0.0, 50.0)
+        check_number(f"{prefix}.trap_warm_c", self.trap_warm_c, 0.0, 100.0)
         unknown = sorted(set(self.model_effects) - set(MODEL_EFFECTS))
         if unknown:
             raise InvalidSettings(f"{prefix}.model_effects has unknown effect(s) {unknown}; allowed: "
@@ -246,7 +266,8 @@ class TrackingProblem:
         move = np.array([w.move_blower_per_w2, w.move_heater_per_w2] + [w.move_valve_per_pct2] * 4)
         unit = np.where(self.valve_mask, self.u_sc * 100.0, self.u_sc)
         self.w_du = move * unit ** 2
-        self.energy_weight = w.energy_per_w
+        self.energy_weight = w.energy_per_100w2
+        self.energy_scale_w = 100.0
         # d(P_blower)/d(u scaled): the blower term of the energy is linear in the input
         self.energy_grad_u = np.zeros(self.nu)
         self.energy_grad_u[INPUTS.index("blower_power_w")] = self.u_sc[INPUTS.index("blower_power_w")]
@@ -418,18 +439,8 @@ class TrackingProblem:
         dt = np.append(self.dt, self.dt[-1])
         parts = [functions[n].map(b - a, "serial")(X[:, a:b], U[:, a:b], d, ca.DM(dt[None, a:b]))
                  for a, b, n in self.groups]
-        self.horizon = ca.Function("horizon", [X, U, d], [ca.densify(ca.horzcat(*parts))], ["X", "U", "d"],
-                                   ["out"])
-        # evaluation into preallocated numpy memory (no DM conversions): CasADi is column-major,
-        # so row-major (N+1, n) arrays are the (n, N+1) matrices it expects
-        self._buf_X = np.zeros((self.N + 1, self.nx))
-        self._buf_U = np.zeros((self.N + 1, self.nu))
-        self._buf_d = np.zeros(self.nd)
-        self._buf_out = np.zeros((self.N + 1, self.n_out))
-        self._buf, self._eval = self.horizon.buffer()
-        for i, arr in enumerate((self._buf_X, self._buf_U, self._buf_d)):
-            self._buf.set_arg(i, memoryview(arr))
-        self._buf.set_res(0, memoryview(self._buf_out))
+        self.horizon = ca.Function("horizon", [X, U, d], [ca.horzcat(*parts)], ["X", "U", "d"], ["out"])
+        self._horizon = BufferedFunction(self.horizon)
 
     def F(self, x, u, d, k: int):
         """x_next of stage k (its own substeps)."""
@@ -442,11 +453,7 @@ class TrackingProblem:
         with a leading stage axis: xn (N+1, nx), A (N+1, nx, nx), B (N+1, nx, nu), y (N+1, ny),
         C (N+1, ny, nx), D (N+1, ny, nu).
         """
-        self._buf_X[:] = X
-        self._buf_U[:] = U
-        self._buf_d[:] = d
-        self._eval()
-        out = self._buf_out.copy()  # (N+1, n_out)
+        out = self._horizon(X, U, d)[0]  # (N+1, n_out): CasADi's column-major (n_out, N+1)
         s, K, nx, nu, ny = self.out_slices, self.N + 1, self.nx, self.nu, self.ny
         # CasADi vec() is column-major: reshape to (stage, col, row) and swap
         return {
@@ -479,7 +486,7 @@ class TrackingProblem:
             cost += weight * ca.dot(sw, e * e)
             if k < self.N:
                 blower_w = uk[0] * self.u_sc[0] + self.u_off[0]
-                cost += self.dt[k] * self.energy_weight * (blower_w + y[5])
+                cost += self.dt[k] * self.energy_weight * ((blower_w + y[5]) / self.energy_scale_w) ** 2
         prev = u_prev
         for k in range(self.N):
             du = U[:, k] - prev

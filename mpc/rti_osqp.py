@@ -47,8 +47,9 @@ class SolveResult:
 class SparsePattern:
     """Collects (row, col) entries, fixes a CSC pattern, and assembles values into it.
 
-    Entries may repeat (their values add). ``add`` returns slot ids; ``csc(values)`` is built
-    once; ``assemble`` sums values per slot with one ``bincount``.
+    Entries may repeat (their values add). ``add`` returns entry ids; ``finalise`` fixes the
+    pattern (CSC order); ``assemble`` sums values per CSC slot with one ``bincount``; ``matrix``
+    builds the CSC matrix once (placeholder values keep explicit zeros in the pattern).
     """
 
     def __init__(self, shape: tuple[int, int]):
@@ -94,19 +95,23 @@ class RtiOsqpSolver:
         sqp_max_iter: QPs per step (1 = real-time iteration).
         sqp_tol: SQP stops when the largest change of a scaled variable is below this.
         check_termination: OSQP checks convergence every this many iterations.
+        lm_inputs: Levenberg-Marquardt weight on the inputs' step from the linearisation point.
+        cold_start_qps: QPs allowed (Gauss-Newton SQP to ``sqp_tol``) on a cold start, when there
+            is no previous solution to start from (first step, after a reset or a failure).
     """
 
     def __init__(self, problem: TrackingProblem, *, eps: float = 1e-4, max_iter: int = 400,
                  sqp_max_iter: int = 1, sqp_tol: float = 1e-3, check_termination: int = 5,
-                 lm_inputs: np.ndarray | float = 0.0):
+                 lm_inputs: np.ndarray | float = 0.0, cold_start_qps: int = 1):
         self.pb = pb = problem
+        self.name = "rti" if sqp_max_iter == 1 else "sqp"
         self.lm = np.broadcast_to(np.asarray(lm_inputs, float), (pb.nu,)).copy()
         self.sqp_max_iter = int(sqp_max_iter)
+        self.cold_start_qps = int(cold_start_qps)
         self.sqp_tol = float(sqp_tol)
         N, nx, nu = pb.N, pb.nx, pb.nu
         self.nz_stage = nx + nu
         self.n = (N + 1) * nx + N * nu + N
-        self.ix = lambda k: k * nx  # noqa: E731
         self.iu0 = (N + 1) * nx
         self.is0 = self.iu0 + N * nu
         self._lm_all = np.tile(self.lm, N)
@@ -228,8 +233,16 @@ class RtiOsqpSolver:
         Ue = np.vstack([U, U[-1:]])
         lin = pb.linearise(X, Ue, d)
         G = np.concatenate([lin["C"], lin["D"]], axis=2)  # (N+1, ny, nz)
+        # energy residual (P_blower + P_heater_el) / 100 W as one more least-squares row
+        g_e = G[:, 5, :].copy()
+        g_e[:, pb.nx:] += pb.energy_grad_u
+        y_e = lin["y"][:, 5] + Ue[:, 0] * pb.u_sc[0] + pb.u_off[0]
+        G = np.concatenate([G, g_e[:, None, :]], axis=1)  # (N+1, ny+1, nz)
+        y = np.concatenate([lin["y"], y_e[:, None]], axis=1)
         stage_w = np.append(pb.dt, pb.terminal_s)
-        sw = stage_w[:, None] * (w_y / pb.y_scale ** 2)[None, :]  # (N+1, ny)
+        sw = np.empty((N + 1, pb.ny + 1))
+        sw[:, :pb.ny] = stage_w[:, None] * (w_y / pb.y_scale ** 2)[None, :]
+        sw[:, pb.ny] = np.append(pb.dt, 0.0) * pb.energy_weight / pb.energy_scale_w ** 2
         Gw2 = 2.0 * G * sw[:, :, None]
         H = np.einsum("kiy,kiz->kyz", G, Gw2)
         Px = self._P_const + self.P.assemble(self._P_var, H[:, self._triu[0], self._triu[1]])
@@ -238,11 +251,8 @@ class RtiOsqpSolver:
         Ax[self._A_var_slots] = -AB.ravel()
         Z = np.concatenate([X, Ue], axis=1)  # stage linearisation points (N+1, nz)
         e_dyn = lin["xn"][:N] - np.einsum("kij,kj->ki", AB, Z[:N])
-        c_base = lin["y"] - np.einsum("kiz,kz->ki", G, Z)
-        # energy gradient: blower input (linear) and the heater electric power output
-        g_energy = pb.energy_weight * pb.dt[:, None] * G[:N, 5, :]
-        g_energy[:, pb.nx:] += pb.energy_weight * pb.dt[:, None] * pb.energy_grad_u
-        data = dict(Gw2=Gw2, c_base=c_base, e_dyn=e_dyn, g_energy=g_energy, y=lin["y"])
+        c_base = y - np.einsum("kiz,kz->ki", G, Z)
+        data = dict(Gw2=Gw2, c_base=c_base, e_dyn=e_dyn, y=lin["y"])
         return Px, Ax, data
 
     def _scatter_q(self, blocks: np.ndarray) -> np.ndarray:
@@ -258,7 +268,8 @@ class RtiOsqpSolver:
         return self.X is not None
 
     def _shifted(self, x_first: np.ndarray):
-        X = self.X[self._i0] * (1.0 - self._w1[:, None]) + self.X[np.minimum(self._i0 + 1, self.pb.N)] * self._w1[:, None]
+        w1 = self._w1[:, None]
+        X = self.X[self._i0] * (1.0 - w1) + self.X[np.minimum(self._i0 + 1, self.pb.N)] * w1
         X[0] = x_first
         U = self.U[self._j]
         S = self.S[np.minimum(self._j, self.pb.N - 1)]
@@ -266,26 +277,28 @@ class RtiOsqpSolver:
 
     def _load(self, X, U, S, d, ref, w_y, u_prev) -> None:
         """Write the linearisation at (X, U) into OSQP (values only)."""
-        pb, N, nu = self.pb, self.pb.N, self.pb.nu
         Px, Ax, data = self._matrices(X, U, d, w_y)
         self.solver.update(Px=Px, Ax=Ax)
         self.l[self.r_dyn] = data["e_dyn"]
         self.u[self.r_dyn] = data["e_dyn"]
         q_lin = self._q_const.copy()
-        blocks_energy = np.zeros((N + 1, self.nz_stage))
-        blocks_energy[:N] = data["g_energy"]
-        q_lin += self._scatter_q(blocks_energy)
         self._prepared = dict(data=data, d=d.copy(), w_y=w_y.copy(), q_lin=q_lin)
         self._z_lin = np.concatenate([X.ravel(), U.ravel(), S])
 
     def prepare(self, x_pred: np.ndarray, u_prev: np.ndarray, d: np.ndarray, ref: np.ndarray,
                 w_y: np.ndarray) -> float:
-        """Preparation phase: shift, linearise, refactorise. Returns its wall time (s)."""
+        """Preparation phase: shift, linearise, refactorise. Returns its wall time (s).
+
+        ``x_pred`` is the estimator's prediction of the next state and ``u_prev`` the command just
+        applied: the first stage is linearised at the actuators' actual position (the shifted plan
+        may have planned other values there), the later stages at the shifted plan.
+        """
         t0 = time.perf_counter()
         if self.X is None:
             self._initialise(x_pred, u_prev, d)
         else:
             self.X, self.U, self.S = self._shifted(x_pred)
+            self.U[0] = u_prev
         self._load(self.X, self.U, self.S, d, ref, w_y, u_prev)
         return time.perf_counter() - t0
 
@@ -300,13 +313,15 @@ class RtiOsqpSolver:
         """Feedback phase: insert the estimate and bounds, solve (and iterate in SQP mode)."""
         t0 = time.perf_counter()
         prep = 0.0
+        cold = self.X is None
+        max_qps = max(self.sqp_max_iter, self.cold_start_qps) if cold else self.sqp_max_iter
         if self._prepared is None or not np.array_equal(self._prepared["w_y"], w_y):
             prep = self.prepare(x0, u_prev, d, ref, w_y)
         if self.fail_next > 0:
             self.fail_next -= 1
             return SolveResult(False, "forced failure", prep_time_s=prep,
                                feedback_time_s=time.perf_counter() - t0 - prep)
-        pb, N, nx, nu = self.pb, self.pb.N, self.pb.nx, self.pb.nu
+        N, nx, nu = self.pb.N, self.pb.nx, self.pb.nu
         self.l[self.r_x0] = x0
         self.u[self.r_x0] = x0
         self.l[self.r_u] = u_lo
@@ -315,7 +330,7 @@ class RtiOsqpSolver:
         solves = 0
         status = "unsolved"
         z = None
-        for it in range(self.sqp_max_iter):
+        for it in range(max_qps):
             if it > 0:
                 prep += self._relinearise(z, x0, d, ref, w_y, u_prev)
             q = self._q(ref, d, u_prev)
@@ -345,18 +360,18 @@ class RtiOsqpSolver:
         feedback = time.perf_counter() - t0 - prep
         if z is None:
             return SolveResult(False, status, iterations=iterations, qp_solves=solves, prep_time_s=prep,
-                               feedback_time_s=feedback)
+                               feedback_time_s=feedback, extra={"cold_start": cold})
         X = z[:(N + 1) * nx].reshape(N + 1, nx)
         U = z[self.iu0:self.is0].reshape(N, nu)
         S = z[self.is0:]
         self.X, self.U, self.S = X, U, S
-        self._prepared_valid = True
         return SolveResult(True, status, X=X.copy(), U=U.copy(), S=S.copy(), iterations=iterations,
-                           qp_solves=solves, prep_time_s=prep, feedback_time_s=feedback)
+                           qp_solves=solves, prep_time_s=prep, feedback_time_s=feedback,
+                           extra={"cold_start": cold})
 
     def _relinearise(self, z, x0, d, ref, w_y, u_prev) -> float:
         t0 = time.perf_counter()
-        pb, N, nx, nu = self.pb, self.pb.N, self.pb.nx, self.pb.nu
+        N, nx, nu = self.pb.N, self.pb.nx, self.pb.nu
         X = z[:(N + 1) * nx].reshape(N + 1, nx).copy()
         X[0] = x0
         U = z[self.iu0:self.is0].reshape(N, nu)
@@ -368,14 +383,14 @@ class RtiOsqpSolver:
         """Gradient for the current reference, disturbance estimates and last input."""
         pr = self._prepared
         data = pr["data"]
-        c = data["c_base"] - ref[None, :]
+        c = data["c_base"].copy()
+        c[:, :self.pb.ny] -= ref[None, :]
         # disturbance estimates that moved since preparation enter the outputs additively:
         # the mixed-air offset adds to the supply temperature, the flow offset to the total
         # flow and, in proportion, to each outlet
         d_mix = d[2] - pr["d"][2]
         d_flow = d[3] - pr["d"][3]
         if d_mix or d_flow:
-            c = c.copy()
             if self.pb.spec.tracked_temperature == "air":
                 c[:, 0] += d_mix
             y = data["y"]

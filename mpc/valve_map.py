@@ -47,10 +47,15 @@ class ValveMap:
             self._v_tab[name] = v_fine
             self._t_tab[name] = np.clip(np.maximum.accumulate(pchip(v_fine)), 0.0, 100.0)
 
-    def theta_expr(self, name: str, v):
-        """theta(v) in % as a CasADi expression of the opening v (clamped to [0, 1])."""
+    def theta_expr(self, name: str, v, margin: float = 0.05):
+        """theta(v) in % as a CasADi expression of the opening v.
+
+        The end segments extend ``margin`` beyond [0, 1] (clamped further out), so the derivative
+        at the bounds is the curve's own slope: clamping right at 0 or 1 would give a zero
+        derivative there and the Gauss-Newton step could not move a valve off a bound.
+        """
         pchip = self._pchip[name]
-        v = ca.fmin(ca.fmax(v, 0.0), 1.0)
+        v = ca.fmin(ca.fmax(v, -margin), 1.0 + margin)
         c, x = pchip.c, pchip.x  # c[:, i]: cubic coefficients of segment i around x[i]
         out = 0
         last = len(x) - 2

@@ -1,0 +1,164 @@
+"""do-mpc given the MPC's discrete problem, as a solver for :class:`MpcController` (benchmark only).
+
+do-mpc (optional extra ``compare``) is the controller a user would otherwise pick. It gets the
+same scaled discrete model (the stage functions of :class:`TrackingProblem`), horizon, weights,
+bounds and rate limits, and solves the full NLP with IPOPT at do-mpc's defaults (output
+suppressed, iteration cap as the IPOPT reference; no extra objective scaling, as a user would
+run it). Differences forced by do-mpc's API:
+
+* one right-hand side for all stages: the non-uniform stages (move blocking) enter as
+  time-varying parameters (stage duration and a one-hot choice of the RK4 substep count), so
+  every stage evaluates each substep variant and keeps one;
+* rate limits need the last input as extra states (do-mpc cannot constrain u_k - u_k-1,
+  do-mpc/do-mpc#352) and per-stage bounds are nonlinear constraints fed by parameters;
+* its soft constraints are linear-penalty only: the heater limit's slack costs
+  ``slack_l1 * mean stage duration`` per degC (the quadratic part is left out);
+* the terminal cost sees the last input through the extra states.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+
+import casadi as ca
+import numpy as np
+
+from hvac_mpc.mpc.ocp import TrackingProblem
+from hvac_mpc.mpc.rti_osqp import SolveResult
+
+
+def _import_do_mpc():
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            import do_mpc  # noqa: F401
+            import do_mpc.controller  # noqa: F401
+            import do_mpc.model  # noqa: F401
+    except ImportError as exc:  # pragma: no cover - depends on the environment
+        raise ImportError("do-mpc is not installed; install the optional extra: pip install 'hvac-mpc[compare]'") \
+            from exc
+    return do_mpc
+
+
+class DoMpcSolver:
+    """The tracking problem in do-mpc, with the solver interface of :class:`RtiOsqpSolver`."""
+
+    name = "do-mpc"
+
+    def __init__(self, problem: TrackingProblem, *, max_iter: int = 300):
+        do_mpc = _import_do_mpc()
+        self.pb = pb = problem
+        N, nx, nu, nd, ny = pb.N, pb.nx, pb.nu, pb.nd, pb.ny
+        substeps = sorted(pb.F_by_substeps)
+        self._substeps = substeps
+        model = do_mpc.model.Model("discrete", "SX")
+        x = model.set_variable("_x", "x", (nx, 1))
+        ul = model.set_variable("_x", "ul", (nu, 1))
+        u = model.set_variable("_u", "u", (nu, 1))
+        dt = model.set_variable("_tvp", "dt", (1, 1))
+        sel = model.set_variable("_tvp", "sel", (len(substeps), 1))
+        d = model.set_variable("_tvp", "d", (nd, 1))
+        ref = model.set_variable("_tvp", "ref", (ny, 1))
+        wy = model.set_variable("_tvp", "wy", (ny, 1))
+        lo = model.set_variable("_tvp", "lo", (nu, 1))
+        hi = model.set_variable("_tvp", "hi", (nu, 1))
+        rb = model.set_variable("_tvp", "rb", (nu, 1))
+        x_next = 0
+        for i, n in enumerate(substeps):
+            x_next = x_next + sel[i] * pb.F_by_substeps[n](x, u, d, dt)
+        model.set_rhs("x", x_next)
+        model.set_rhs("ul", u)
+        sw = wy / ca.DM(pb.y_scale ** 2)
+        y = pb.Y(x, u, d)
+        e = y - ref
+        blower_w = u[0] * pb.u_sc[0] + pb.u_off[0]
+        energy = pb.energy_weight * ((blower_w + y[5]) / pb.energy_scale_w) ** 2
+        model.set_expression("lterm", dt * (ca.dot(sw, e * e) + energy))
+        e_term = pb.Y(x, ul, d) - ref
+        model.set_expression("mterm", pb.terminal_s * ca.dot(sw, e_term * e_term))
+        model.setup()
+
+        mpc = do_mpc.controller.MPC(model)
+        mpc.settings.n_horizon = N
+        mpc.settings.t_step = pb.dt_s
+        mpc.settings.state_discretization = "discrete"
+        mpc.settings.store_full_solution = False
+        mpc.settings.store_solver_stats = []
+        mpc.settings.supress_ipopt_output()
+        mpc.settings.nlpsol_opts.update({"ipopt.max_iter": int(max_iter)})
+        mpc.set_objective(lterm=model.aux["lterm"], mterm=model.aux["mterm"])
+        mpc.set_rterm(u=np.asarray(pb.w_du, float))
+        mpc.bounds["lower", "_u", "u"] = pb.u_lo
+        mpc.bounds["upper", "_u", "u"] = pb.u_hi
+        mpc.set_nl_cons("u_hi", u - hi, ub=0.0)
+        mpc.set_nl_cons("u_lo", lo - u, ub=0.0)
+        mpc.set_nl_cons("rate_hi", (u - ul) - rb, ub=0.0)
+        mpc.set_nl_cons("rate_lo", -rb - (u - ul), ub=0.0)
+        mpc.set_nl_cons("heater", pb.heater_row_coef * x[pb.i_heater] - pb.heater_row_bound, ub=0.0,
+                        soft_constraint=True, penalty_term_cons=float(pb.slack_l1 * pb.dt.mean()))
+        self._tvp_template = mpc.get_tvp_template()
+        self._dt = np.append(pb.dt, pb.dt[-1])
+        self._sel = np.zeros((N + 1, len(substeps)))
+        for k, n in enumerate(pb.stage_substeps):
+            self._sel[k, substeps.index(int(n))] = 1.0
+        rate = pb.rate_bounds()
+        self._rb = np.vstack([np.full((1, nu), 1e3), rate, rate[-1:]])  # stage 0: folded into lo/hi
+        self._data = dict(d=np.zeros(nd), ref=np.zeros(ny), w_y=np.zeros(ny), u_lo=np.tile(pb.u_lo, (N, 1)),
+                          u_hi=np.tile(pb.u_hi, (N, 1)))
+        mpc.set_tvp_fun(self._tvp_fun)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            mpc.setup()
+        self.mpc = mpc
+        self.fail_next = 0
+        self._initialised = False
+
+    def _tvp_fun(self, t_now):
+        tpl, dd = self._tvp_template, self._data
+        for k in range(self.pb.N + 1):
+            kk = min(k, self.pb.N - 1)
+            tpl["_tvp", k, "dt"] = self._dt[k]
+            tpl["_tvp", k, "sel"] = self._sel[k]
+            tpl["_tvp", k, "d"] = dd["d"]
+            tpl["_tvp", k, "ref"] = dd["ref"]
+            tpl["_tvp", k, "wy"] = dd["w_y"]
+            tpl["_tvp", k, "lo"] = dd["u_lo"][kk]
+            tpl["_tvp", k, "hi"] = dd["u_hi"][kk]
+            tpl["_tvp", k, "rb"] = self._rb[k]
+        return tpl
+
+    def reset(self) -> None:
+        self._initialised = False
+
+    def prepare(self, x_pred, u_prev, d, ref, w_y) -> float:
+        return 0.0  # do-mpc warm-starts from its previous solution itself
+
+    def feedback(self, x0, u_prev, d, ref, w_y, u_lo, u_hi, time_limit_s: float = 0.0) -> SolveResult:
+        t0 = time.perf_counter()
+        if self.fail_next > 0:
+            self.fail_next -= 1
+            return SolveResult(False, "forced failure")
+        pb, mpc = self.pb, self.mpc
+        self._data = dict(d=np.asarray(d, float), ref=np.asarray(ref, float), w_y=np.asarray(w_y, float),
+                          u_lo=u_lo, u_hi=u_hi)
+        xa = np.concatenate([x0, u_prev]).reshape(-1, 1)
+        mpc.u0 = np.asarray(u_prev, float).reshape(-1, 1)
+        if not self._initialised:
+            mpc.x0 = xa
+            mpc.set_initial_guess()
+            self._initialised = True
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                mpc.make_step(xa)
+        except Exception as exc:  # noqa: BLE001 - reported as a failed solve
+            return SolveResult(False, f"do-mpc error: {exc}", feedback_time_s=time.perf_counter() - t0)
+        st = mpc.solver_stats
+        status = str(st.get("return_status", "unknown"))
+        iters = int(st.get("iter_count", 0))
+        U = np.array([np.asarray(mpc.opt_x_num["_u", k, 0]).ravel() for k in range(pb.N)])
+        X = np.array([np.asarray(mpc.opt_x_num["_x", k, 0, -1]).ravel()[:pb.nx] for k in range(pb.N + 1)])
+        ok = bool(st.get("success", False)) and np.all(np.isfinite(U))
+        return SolveResult(ok, status, X=X, U=U, S=np.zeros(pb.N), iterations=iters, qp_solves=0,
+                           feedback_time_s=time.perf_counter() - t0)

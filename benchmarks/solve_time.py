@@ -1,0 +1,190 @@
+"""Solve-time benchmark (``hvac-mpc solve-time``): the RTI controller against IPOPT and do-mpc.
+
+All controllers run the same closed loop on the simulated plant (all effects on, same seed,
+same reference scenario, same estimator and fallback chain), each solving the same discrete
+problem (:class:`~hvac_mpc.mpc.ocp.TrackingProblem` at the default horizon):
+
+* ``rti``: the real-time iteration with OSQP (:mod:`hvac_mpc.mpc.rti_osqp`);
+* ``ipopt``: the full NLP solved to convergence by CasADi + IPOPT (:mod:`hvac_mpc.mpc.ipopt_reference`);
+* ``do-mpc``: do-mpc given the same discrete model, horizon and weights (optional extra
+  ``compare``; :mod:`hvac_mpc.benchmarks.dompc_reference`).
+
+Step time is the wall time of ``MpcController.step`` (estimator, solver, Python overhead), the
+first (cold) step excluded from the statistics. Closed-loop cost is the MPC's stage cost
+evaluated on the plant's noise-free outputs, summed over the run. Math libraries are limited
+to two threads and the process to at most two cores. Prints a table and writes JSON.
+"""
+
+from __future__ import annotations
+
+import os
+
+# limit BLAS/OpenMP pools before numpy, scipy or casadi start them (two threads at most)
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    if not os.environ.get(_var, "").isdigit() or int(os.environ[_var]) > 2:
+        os.environ[_var] = "2"
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import platform  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import Any, Callable  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+from hvac_mpc.models.plant import Command, Environment, SimulatedPlant  # noqa: E402
+from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings  # noqa: E402
+from hvac_mpc.mpc.ocp import TrackingProblem  # noqa: E402
+from hvac_mpc.mpc.reference import Reference  # noqa: E402
+
+#: Reference scenario (start time s, reference): proband conditions of thesis sec. 6 (room at
+#: 32 C), references changing every 30 s instead of every 5 min so the run stays short.
+SCENARIO: tuple[tuple[float, Reference], ...] = (
+    (0.0, Reference.from_split(16.0, 0.035, (0.4, 0.35, 0.25))),
+    (30.0, Reference.from_split(13.0, 0.035, (0.4, 0.35, 0.25))),
+    (60.0, Reference.from_split(20.0, 0.025, (0.2, 0.5, 0.3))),
+    (90.0, Reference(18.0, 0.045)),
+    (120.0, Reference.from_split(24.0, 0.03, (0.5, 0.2, 0.3))),
+    (150.0, Reference.from_split(15.0, 0.05, (0.34, 0.33, 0.33))),
+    (180.0, Reference.from_split(22.0, 0.02, (0.3, 0.3, 0.4))),
+    (210.0, Reference.from_split(17.0, 0.04, (0.45, 0.3, 0.25))),
+)
+INLET_C = 32.0
+INITIAL = Command(150.0, 0.0, 70.0, 100.0, 100.0, 100.0)
+FULL_STEPS = 240
+QUICK_STEPS = 30
+
+
+def reference_at(t_s: float, scenario=SCENARIO) -> Reference:
+    """The scenario's reference in force at time ``t_s``."""
+    return [r for t0, r in scenario if t_s >= t0][-1]
+
+
+def stage_cost(problem: TrackingProblem, truth: dict[str, float], reference: Reference, command: np.ndarray,
+               previous: np.ndarray) -> dict[str, float]:
+    """The MPC's stage cost for one second of closed loop, on noise-free plant outputs, by term."""
+    name = "supply_air_temp_c" if problem.spec.tracked_temperature == "air" else "supply_temp_c"
+    y = np.array([truth[name], truth["volume_flow_m3s"], truth["flow_m_m3s"], truth["flow_f_m3s"],
+                  truth["flow_w_m3s"], truth["heater_power_w"]])
+    e = (y - problem.reference_vector(reference)) / problem.y_scale
+    c = problem.output_weights(reference) * e * e
+    du = problem.scale_u(command) - problem.scale_u(previous)
+    return {"temperature": float(c[0]), "flow": float(c[1]), "outlets": float(c[2:5].sum()),
+            "energy": float(problem.energy_weight * ((command[0] + truth["heater_power_w"])
+                                                      / problem.energy_scale_w) ** 2),
+            "moves": float(np.sum(problem.w_du * du * du))}
+
+
+def closed_loop(name: str, make: Callable[[], MpcController], steps: int, seed: int, scenario=SCENARIO,
+                inlet_c: float = INLET_C) -> dict[str, Any]:
+    """Run one controller on a fresh plant; per-step times and the closed-loop cost."""
+    t_setup = time.perf_counter()
+    ctrl = make()
+    setup_s = time.perf_counter() - t_setup
+    plant = SimulatedPlant(seed=seed, environment=Environment(inlet_c, 5.0))
+    plant.settle(INITIAL)
+    ctrl.reset(plant.command)
+    previous = plant.command.vector()
+    cost = {"temperature": 0.0, "flow": 0.0, "outlets": 0.0, "energy": 0.0, "moves": 0.0}
+    times, iters, solves, fallbacks, statuses = [], [], [], 0, {}
+    for k in range(steps):
+        ref = reference_at(k * plant.dt_s, scenario)
+        res = ctrl.step(plant.read(), ref)
+        command = plant.apply(res.command)
+        plant.advance()
+        for term, value in stage_cost(ctrl.problem, plant.truth(), ref, command, previous).items():
+            cost[term] += value
+        previous = command
+        st = res.stats
+        times.append(st["step_time_s"])
+        iters.append(st["iterations"])
+        solves.append(st["qp_solves"])
+        fallbacks += st["fallback"] is not None
+        key = str(st["status"]).split(";")[0]
+        statuses[key] = statuses.get(key, 0) + 1
+    t = np.array(times[1:]) * 1e3  # first (cold) step excluded
+    return {
+        "controller": name, "steps": steps, "setup_s": setup_s, "jit": bool(getattr(ctrl, "jit_active", False)),
+        "median_ms": float(np.median(t)), "p99_ms": float(np.percentile(t, 99)), "max_ms": float(t.max()),
+        "median_iterations": float(np.median(iters[1:])), "max_iterations": int(max(iters)),
+        "max_qp_solves": int(max(solves)), "fallback_steps": int(fallbacks), "statuses": statuses,
+        "cost": {**cost, "total": float(sum(cost.values()))},
+    }
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--quick", action="store_true", help=f"{QUICK_STEPS} steps per controller (under a minute)")
+    parser.add_argument("--steps", type=int, default=None,
+                        help=f"closed-loop steps per controller (default {FULL_STEPS})")
+    parser.add_argument("--seed", type=int, default=1, help="plant noise seed (default 1)")
+    parser.add_argument("--threads", type=int, default=2, choices=(1, 2), help="cores to use (default 2)")
+    parser.add_argument("--json", type=Path, default=Path("solve_time.json"), help="where to write the results")
+    parser.add_argument("--no-ipopt", action="store_true", help="skip the IPOPT reference")
+    parser.add_argument("--no-dompc", action="store_true", help="skip do-mpc")
+    parser.add_argument("--jit", action="store_true",
+                        help="JIT-compile the RTI's stage functions (needs a C compiler; ~2 s more setup)")
+
+
+def run(args: argparse.Namespace) -> int:
+    steps = args.steps if args.steps is not None else (QUICK_STEPS if args.quick else FULL_STEPS)
+    if steps < 3:
+        print(f"--steps must be at least 3, got {steps}")
+        return 2
+    saved = os.sched_getaffinity(0) if hasattr(os, "sched_setaffinity") else None
+    if saved is not None:
+        os.sched_setaffinity(0, sorted(saved)[:args.threads])
+    try:
+        return _run(args, steps)
+    finally:
+        if saved is not None:
+            os.sched_setaffinity(0, saved)
+
+
+def _run(args: argparse.Namespace, steps: int) -> int:
+    rti_settings = MpcSettings(jit=bool(getattr(args, "jit", False)))
+    contenders: list[tuple[str, Callable[[], MpcController]]] = [("rti", lambda: MpcController(settings=rti_settings))]
+    notes = []
+    if not args.no_ipopt:
+        # the reference must not be cut short by the real-time deadline
+        contenders.append(("ipopt", lambda: MpcController(settings=MpcSettings(solver="ipopt", deadline_s=600.0))))
+    if not args.no_dompc:
+        try:
+            from .dompc_reference import DoMpcSolver, _import_do_mpc
+            _import_do_mpc()
+            contenders.append(("do-mpc", lambda: MpcController(settings=MpcSettings(deadline_s=600.0),
+                                                               solver_factory=lambda pb: DoMpcSolver(pb))))
+        except ImportError as exc:
+            notes.append(f"do-mpc skipped: {exc}")
+    results = []
+    for name, make in contenders:
+        print(f"running {name} for {steps} steps ...", flush=True)
+        results.append(closed_loop(name, make, steps, args.seed))
+    rti = results[0]
+    by_name = {r["controller"]: r for r in results}
+    for r in results:
+        r["median_ratio_vs_rti"] = r["median_ms"] / rti["median_ms"]
+        r["p99_ratio_vs_rti"] = r["p99_ms"] / rti["p99_ms"]
+        if "ipopt" in by_name:
+            r["cost_vs_ipopt_pct"] = 100.0 * (r["cost"]["total"] / by_name["ipopt"]["cost"]["total"] - 1.0)
+    print_table(results)
+    for note in notes:
+        print(note)
+    out = {"steps": steps, "seed": args.seed, "threads": args.threads, "scenario_inlet_c": INLET_C,
+           "python": platform.python_version(), "machine": platform.machine(), "notes": notes, "results": results}
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps(out, indent=2))
+    print(f"wrote {args.json}")
+    return 0
+
+
+def print_table(results: list[dict[str, Any]]) -> None:
+    head = (f"{'controller':<10} {'median ms':>10} {'p99 ms':>9} {'max ms':>9} {'x rti med':>9} {'x rti p99':>9} "
+            f"{'iters':>6} {'fallback':>8} {'cost':>9} {'vs ipopt':>9}")
+    print(head)
+    print("-" * len(head))
+    for r in results:
+        vs = f"{r['cost_vs_ipopt_pct']:+.1f} %" if "cost_vs_ipopt_pct" in r else "-"
+        print(f"{r['controller']:<10} {r['median_ms']:>10.2f} {r['p99_ms']:>9.2f} {r['max_ms']:>9.2f} "
+              f"{r['median_ratio_vs_rti']:>9.1f} {r['p99_ratio_vs_rti']:>9.1f} {r['median_iterations']:>6.0f} "
+              f"{r['fallback_steps']:>8d} {r['cost']['total']:>9.1f} {vs:>9}")

@@ -1,0 +1,46 @@
+"""Calling a CasADi function on numpy arrays without per-call conversions.
+
+``Function.__call__`` converts every argument to a DM and every result back (tens of
+microseconds per call); :class:`BufferedFunction` evaluates into preallocated numpy memory
+through CasADi's buffer interface instead. Results are dense, column-major as CasADi stores
+them: a result of shape (rows, cols) comes back as a numpy array of shape (cols, rows).
+"""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+
+
+class BufferedFunction:
+    """Evaluate ``fn`` (dense inputs; outputs densified) into numpy buffers.
+
+    ``f(*args)`` copies the arguments in, evaluates, and returns copies of the results,
+    each of shape (cols, rows) (a column vector comes back flat).
+    """
+
+    def __init__(self, fn: ca.Function):
+        dense = all(fn.sparsity_in(i).is_dense() for i in range(fn.n_in())) and \
+            all(fn.sparsity_out(i).is_dense() for i in range(fn.n_out()))
+        if dense:
+            self.fn = fn
+        else:
+            sym = fn.sx_in() if fn.is_a("SXFunction") else fn.mx_in()
+            self.fn = ca.Function(f"{fn.name()}_dense", sym, [ca.densify(o) for o in fn.call(sym)])
+        self._args = [np.zeros(self._shape(fn.size1_in(i), fn.size2_in(i))) for i in range(fn.n_in())]
+        self._res = [np.zeros(self._shape(fn.size1_out(i), fn.size2_out(i))) for i in range(fn.n_out())]
+        self._buf, self._eval = self.fn.buffer()
+        for i, arr in enumerate(self._args):
+            self._buf.set_arg(i, memoryview(arr))
+        for i, arr in enumerate(self._res):
+            self._buf.set_res(i, memoryview(arr))
+
+    @staticmethod
+    def _shape(rows: int, cols: int) -> tuple[int, ...]:
+        return (rows,) if cols == 1 else (cols, rows)
+
+    def __call__(self, *args) -> list[np.ndarray]:
+        for buf, value in zip(self._args, args):
+            buf[...] = value
+        self._eval()
+        return [r.copy() for r in self._res]
