@@ -78,6 +78,18 @@ def validate_effects(effects: Iterable[str], allowed: Sequence[str]) -> frozense
     return effects
 
 
+def rk4(ode, x, u, d, p, dt_s, substeps: int):
+    """``substeps`` classical Runge-Kutta steps of ``ode(x, u, d, p)`` over ``dt_s`` (inputs held)."""
+    h = dt_s / substeps
+    for _ in range(substeps):
+        k1 = ode(x, u, d, p)
+        k2 = ode(x + h / 2 * k1, u, d, p)
+        k3 = ode(x + h / 2 * k2, u, d, p)
+        k4 = ode(x + h * k3, u, d, p)
+        x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    return x
+
+
 class HvacModel:
     """CasADi model of the box.
 
@@ -181,14 +193,7 @@ class HvacModel:
         u = ca.SX.sym("u", len(self.inputs))
         d = ca.SX.sym("d", len(self.disturbances))
         p = ca.SX.sym("p", len(self.param_names))
-        h = dt_s / substeps
-        xk = x
-        for _ in range(substeps):
-            k1 = self.ode(xk, u, d, p)
-            k2 = self.ode(xk + h / 2 * k1, u, d, p)
-            k3 = self.ode(xk + h / 2 * k2, u, d, p)
-            k4 = self.ode(xk + h * k3, u, d, p)
-            xk = xk + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        xk = rk4(self.ode, x, u, d, p, dt_s, substeps)
         return ca.Function("step", [x, u, d, p], [xk], ["x", "u", "d", "p"], ["x_next"])
 
     def step_jacobians(self, step: ca.Function | None = None) -> ca.Function:

@@ -40,7 +40,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from hvac_mpc.models.box import INPUT_LOWER, INPUTS, MODEL_EFFECTS, HvacModel, input_upper
+from hvac_mpc.models.box import INPUT_LOWER, INPUTS, MODEL_EFFECTS, HvacModel, input_upper, rk4
 from hvac_mpc.models.parameters import Parameters
 
 from .casadi_eval import BufferedFunction
@@ -362,14 +362,7 @@ class TrackingProblem:
         x_off, x_sc = ca.DM(self.x_off), ca.DM(self.x_sc)
         u_phys = self._command_expr(us)
         x_phys = x_off + x_sc * xs
-        h = dt / substeps
-        xk = x_phys
-        for _ in range(substeps):
-            k1 = m.ode(xk, u_phys, d, p)
-            k2 = m.ode(xk + h / 2 * k1, u_phys, d, p)
-            k3 = m.ode(xk + h / 2 * k2, u_phys, d, p)
-            k4 = m.ode(xk + h * k3, u_phys, d, p)
-            xk = xk + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        xk = rk4(m.ode, x_phys, u_phys, d, p, dt, substeps)
         xn = (xk - x_off) / x_sc
         y_all = m.output(x_phys, u_phys, d, p)
         names = list(STAGE_OUTPUTS)
