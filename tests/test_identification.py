@@ -6,7 +6,6 @@ is identified once per session). The two-hour performance run is opt-in (HVAC_SL
 """
 
 import json
-import os
 import time
 
 import numpy as np
@@ -248,8 +247,6 @@ def test_residual_statistics_behave_on_known_series():
     assert st.noise_sigma(smooth + 0.05 * white) == pytest.approx(0.05, rel=0.1)
 
 
-@pytest.mark.skipif(not os.environ.get("HVAC_SLOW"), reason="two-hour performance run takes a minute or more; "
-                    "set HVAC_SLOW=1 to run it")
 def test_two_hour_log_identifies_in_under_five_minutes(tmp_path):
     cols = simulate_log(("ptc_power_fall", "chiller_hysteresis"), seed=21, duration_s=7200)
     path = tmp_path / "log2h.csv"
