@@ -25,7 +25,7 @@ from dataclasses import dataclass, fields
 import casadi as ca
 import numpy as np
 
-from hvac_mpc.models.box import HvacModel
+from hvac_mpc.models.box import HvacModel, rk4
 from hvac_mpc.models.plant import Measurement
 
 from .casadi_eval import BufferedFunction
@@ -105,14 +105,7 @@ class DisturbanceEkf:
         p = ca.DM(m.p_default)
         d = self._d(z, sp)
         x = z[:nx]
-        h = self.dt_s / 2
-        xk = x
-        for _ in range(2):
-            k1 = m.ode(xk, u, d, p)
-            k2 = m.ode(xk + h / 2 * k1, u, d, p)
-            k3 = m.ode(xk + h / 2 * k2, u, d, p)
-            k4 = m.ode(xk + h * k3, u, d, p)
-            xk = xk + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        xk = rk4(m.ode, x, u, d, p, self.dt_s, 2)
         zn = ca.vertcat(xk, z[nx:])
         y = m.output(x, u, d, p)
         meas = ca.vertcat(x[self.i_sensor], y[m.outputs.index("volume_flow_m3s")], x[self.i_water], z[nx + 2],
