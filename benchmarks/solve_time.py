@@ -64,8 +64,9 @@ def reference_at(t_s: float, scenario=SCENARIO) -> Reference:
 def stage_cost(problem: TrackingProblem, truth: dict[str, float], reference: Reference, command: np.ndarray,
                previous: np.ndarray) -> dict[str, float]:
     """The MPC's stage cost for one second of closed loop, on noise-free plant outputs, by term."""
-    name = "supply_air_temp_c" if problem.spec.tracked_temperature == "air" else "supply_temp_c"
-    y = np.array([truth[name], truth["volume_flow_m3s"], truth["flow_m_m3s"], truth["flow_f_m3s"],
+    share = problem.spec.temperature_sensor_share
+    temp = (1.0 - share) * truth["supply_air_temp_c"] + share * truth["supply_temp_c"]
+    y = np.array([temp, truth["volume_flow_m3s"], truth["flow_m_m3s"], truth["flow_f_m3s"],
                   truth["flow_w_m3s"], truth["heater_power_w"]])
     e = (y - problem.reference_vector(reference)) / problem.y_scale
     c = problem.output_weights(reference) * e * e

@@ -391,8 +391,7 @@ class RtiOsqpSolver:
         d_mix = d[2] - pr["d"][2]
         d_flow = d[3] - pr["d"][3]
         if d_mix or d_flow:
-            if self.pb.spec.tracked_temperature == "air":
-                c[:, 0] += d_mix
+            c[:, 0] += (1.0 - self.pb.spec.temperature_sensor_share) * d_mix
             y = data["y"]
             c[:, 1] += d_flow
             c[:, 2:5] += d_flow * y[:, 2:5] / np.maximum(y[:, 1:2], 1e-6)

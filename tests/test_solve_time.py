@@ -76,5 +76,9 @@ def test_stage_cost_is_zero_on_target_and_grows_with_error():
     on_target = solve_time.stage_cost(ctrl.problem, truth, ref, u, u)
     assert on_target["temperature"] == on_target["flow"] == on_target["outlets"] == on_target["moves"] == 0.0
     assert on_target["energy"] == pytest.approx(ctrl.problem.energy_weight * (100.0 / 100.0) ** 2)
-    off = solve_time.stage_cost(ctrl.problem, {**truth, "supply_air_temp_c": ref.supply_temp_c + 1.0}, ref, u, u)
+    hot = {**truth, "supply_air_temp_c": ref.supply_temp_c + 1.0, "supply_temp_c": ref.supply_temp_c + 1.0}
+    off = solve_time.stage_cost(ctrl.problem, hot, ref, u, u)
     assert off["temperature"] == pytest.approx(MpcSettings().ocp.weights.supply_temp)
+    # the default tracks the mean of air and thermocouple: air alone 1 C off is half the error
+    air_only = solve_time.stage_cost(ctrl.problem, {**truth, "supply_air_temp_c": ref.supply_temp_c + 1.0}, ref, u, u)
+    assert air_only["temperature"] == pytest.approx(0.25 * MpcSettings().ocp.weights.supply_temp)
