@@ -34,6 +34,9 @@ from hvac_mpc.models import Command, Environment, Parameters, SimulatedPlant
 from hvac_mpc.mpc.baseline import BaselineController, BaselineGains
 from hvac_mpc.mpc.reference import Reference
 
+from .metrics import overshoot as step_overshoot
+from .metrics import time_in_band_s
+
 TEMP_BAND_C = 0.5
 FLOW_BAND = 0.05
 SPLIT_SHARES = (0.5, 0.25, 0.25)  # middle, feet, windshield: summer-like split (thesis fig. 53)
@@ -62,12 +65,10 @@ class Trace:
 def time_to_stay_within(time_s: Sequence[float], y: Sequence[float], ref: float, band: float) -> float | None:
     """First time (s, from the step at t = 0) after which |y - ref| <= band to the end; None if never."""
     t = np.asarray(time_s, float)
-    outside = np.abs(np.asarray(y, float) - ref) > band
     after = t >= 0
-    if outside[after][-1]:
-        return None
-    idx = np.nonzero(outside & after)[0]
-    return float(t[after][0]) if idx.size == 0 else float(t[idx[-1] + 1])
+    dt_s = float(t[1] - t[0])
+    settle = time_in_band_s(np.asarray(y, float)[after], ref, band, dt_s)
+    return None if settle is None else float(t[after][0] + settle)
 
 
 def first_time_within(time_s: Sequence[float], y: Sequence[float], ref: float, band: float) -> float | None:
@@ -80,9 +81,7 @@ def first_time_within(time_s: Sequence[float], y: Sequence[float], ref: float, b
 def overshoot(time_s: Sequence[float], y: Sequence[float], before: float, after: float) -> float:
     """Largest excursion beyond the new reference in the step's direction (units of y, >= 0)."""
     t = np.asarray(time_s, float)
-    y = np.asarray(y, float)[t >= 0]
-    sign = 1.0 if after >= before else -1.0
-    return float(max(0.0, np.max(sign * (y - after))))
+    return step_overshoot(np.asarray(y, float)[t >= 0], before, after)
 
 
 def peak_after(time_s: Sequence[float], y: Sequence[float], ref: float, start_s: float | None) -> float | None:

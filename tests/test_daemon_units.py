@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import math
-import socket
 import time
 import urllib.error
 import urllib.request
@@ -17,6 +16,7 @@ from hvac_mpc.models.parameters import Parameters
 from hvac_mpc.models.plant import Command, Environment, Measurement, SimulatedPlant
 from hvac_mpc.mpc.controller import StepResult
 from hvac_mpc.mpc.daemon.backends import BackendError
+from hvac_mpc.mpc.daemon.campaign import free_port
 from hvac_mpc.mpc.daemon.config import ConfigError, SafetyConfig, config_from_mapping, load_config
 from hvac_mpc.mpc.daemon.controllers import ControllerChain
 from hvac_mpc.mpc.daemon.loop import Daemon, last_logged_time
@@ -31,12 +31,6 @@ def meas(t=0.0, **kw):
                 chiller_setpoint_c=5.0, heater_power_w=0.0, heater_outlet_temp_c=15.0)
     base.update(kw)
     return Measurement(**base)
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 # ------------------------------------------------------------------------------ configuration

@@ -169,6 +169,16 @@ def _run_inprocess(cfg: DaemonConfig, hook: Callable | None = None) -> tuple[Dae
     return d, code, samples
 
 
+def _link_recovery_violations(status: dict, samples: list[dict], when: str) -> list[str]:
+    """A backend outage ending at 100 s: the daemon must reconnect and control again within 20 s."""
+    found = []
+    if status["counters"]["reconnects"] < 1:
+        found.append("never reconnected")
+    if not _recovered(samples, 100.0, 20.0):
+        found.append(f"did not return to control within 20 s {when}")
+    return found
+
+
 def _recovered(samples: list[dict], after_s: float, within_s: float) -> bool:
     return any(after_s <= s["time_s"] <= after_s + within_s and s["mode"] not in NOT_CONTROLLING
                for s in samples)
@@ -258,10 +268,7 @@ def backend_scenarios(workdir: Path, controller: str = "baseline") -> list[Outco
     o = Outcome(name, "backend", code, rows=len(samples), injected=st["injected_faults"])
     o.detected = st["counters"]["disconnected_ticks"]
     o.violations = check_log(cfg.log.path, cfg.safety)
-    if st["counters"]["reconnects"] < 1:
-        o.violations.append("never reconnected")
-    if not _recovered(samples, 100.0, 20.0):
-        o.violations.append("did not return to control within 20 s after the link came back")
+    o.violations += _link_recovery_violations(st, samples, "after the link came back")
     out.append(o)
     out.append(modbus_outage(workdir, controller))
     out.append(greedy_heater(workdir))
@@ -305,10 +312,7 @@ def modbus_outage(workdir: Path, controller: str = "baseline") -> Outcome:
     o.injected = {"modbus:server_stopped": 1}
     o.detected = st["counters"]["disconnected_ticks"]
     o.violations = check_log(cfg.log.path, cfg.safety)
-    if st["counters"]["reconnects"] < 1:
-        o.violations.append("never reconnected")
-    if not _recovered(samples, 100.0, 20.0):
-        o.violations.append("did not return to control within 20 s of the server's restart")
+    o.violations += _link_recovery_violations(st, samples, "of the server's restart")
     held = [h for h in server.history if 60.0 + 6 < h[0] <= 100.0]
     if any(h[1] > 0 for h in held):
         o.violations.append("plant heater on during the outage after the I/O watchdog time")
