@@ -97,6 +97,10 @@ class DoMpcSolver:
         mpc.set_nl_cons("rate_lo", -rb - (u - ul), ub=0.0)
         mpc.set_nl_cons("heater", pb.heater_row_coef * x[pb.i_heater] - pb.heater_row_bound, ub=0.0,
                         soft_constraint=True, penalty_term_cons=float(pb.slack_l1 * pb.dt.mean()))
+        if pb.ptc_limit:
+            mpc.set_nl_cons("ptc", pb.heater_row_coef * x[pb.i_heater] + pb.ptc_row_coef_u * u[pb.i_heater_cmd]
+                            - pb.ptc_row_bound, ub=0.0, soft_constraint=True,
+                            penalty_term_cons=float(pb.slack_l1 * pb.dt.mean()))
         self._tvp_template = mpc.get_tvp_template()
         self._dt = np.append(pb.dt, pb.dt[-1])
         self._sel = np.zeros((N + 1, len(substeps)))

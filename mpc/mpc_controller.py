@@ -37,7 +37,7 @@ from typing import Any, Callable, Mapping
 import numpy as np
 
 from hvac_mpc.models import chiller
-from hvac_mpc.models.box import INPUTS
+from hvac_mpc.models.box import INPUTS, HvacModel
 from hvac_mpc.models.parameters import Parameters
 from hvac_mpc.models.plant import Command, Measurement
 
@@ -158,7 +158,12 @@ class MpcController:
         if s.jit:
             self.jit_active = _try_jit(self.problem)
         self.solver = solver_factory(self.problem) if solver_factory is not None else self._make_solver()
-        self.ekf = DisturbanceEkf(self.problem.model, s.ekf, s.dt_s, s.water_prediction)
+        # the estimator sees the commands really applied (fallbacks included), so it keeps the PTC
+        # power fall in its model even where the OCP carries it as a constraint (OcpSpec.ptc_limit)
+        ekf_model = self.problem.model
+        if s.ocp.ptc_limit and "ptc_power_fall" not in s.ocp.model_effects:
+            ekf_model = HvacModel(self.params, tuple(s.ocp.model_effects) + ("ptc_power_fall",), dt_s=s.dt_s)
+        self.ekf = DisturbanceEkf(ekf_model, s.ekf, s.dt_s, s.water_prediction)
         self._baseline = None
         self.reset()
 
@@ -261,7 +266,8 @@ class MpcController:
         d = self._disturbance(setpoint)
         u_prev_s = pb.scale_u(self.u_prev)
         cap = self._trap_cap()
-        u_lo, u_hi = pb.input_bounds(self.u_prev, cap)
+        heater_c = float(self.ekf.x[pb.i_heater])
+        u_lo, u_hi = pb.input_bounds(self.u_prev, cap, heater_c)
         y_ref = pb.reference_vector(ref)
         w_y = pb.output_weights(ref)
         # --- feedback
@@ -288,7 +294,7 @@ class MpcController:
             self.solver.reset()
             u_cmd, fallback = self._fallback_command(measurement, ref)
         # project onto bounds, rate limits and the trapped-air cap
-        u_cmd = np.clip(u_cmd, *pb.command_bounds(self.u_prev, cap))
+        u_cmd = np.clip(u_cmd, *pb.command_bounds(self.u_prev, cap, heater_c))
         self.u_prev = u_cmd
         # --- prediction and preparation of the next step
         self.ekf.predict(u_cmd, setpoint)

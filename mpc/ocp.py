@@ -16,6 +16,7 @@ The discrete problem (scaled variables ``x = (x_phys - x_off) / x_sc``, likewise
     s.t. x_0 = estimate,  x_k+1 = F(x_k, u_k, d, dt_k)  (RK4)
          u_lo <= u_k <= u_hi,  |u_k - u_k-1| <= rate * dt_k-1  (dt_-1 = one sample)
          heater_temp(x_k) <= heater_temp_max + s_k,  s_k >= 0,  k = 1..N
+         heater_cmd_k / c + heater_temp(x_k) <= T_zero + s_k,  k = 1..N-1   (PTC limit, ptc_limit)
 
 Tracked outputs ``y``: supply temperature, total volume flow, outlet flows m, f, w (outlet
 weights are zero when the reference leaves the split free); ``P_heater_el`` is the model's
@@ -97,7 +98,7 @@ class Weights:
     """
 
     supply_temp: float = 1.0
-    volume_flow: float = 0.5
+    volume_flow: float = 2.0
     outlet_flow: float = 0.5
     energy_per_100w2: float = 5e-3
     move_blower_per_w2: float = 2e-5
@@ -136,11 +137,20 @@ class OcpSpec:
         trap_warm_c: the heater counts as warm when its estimated temperature exceeds the air
             entering it by more than this (degC), or the heater is commanded on.
         model_effects: structural effects of the prediction model (subset of ``MODEL_EFFECTS``).
-            Default: the PTC power fall (thesis sec. 2.3, fig. 12), the fan curve and the closed-valve
-            leakage (both fitted to thesis tables 3-5): steady physics the outlet split cannot be
-            tracked without, because the outlet flows are not measured. The dynamic effects
-            (motor asymmetry, flow-dependent bypass, chiller hysteresis, trapped air) are left to
-            the estimator's disturbance states and the trapped-air guard.
+            Default: the fan curve and the closed-valve leakage (both fitted to thesis tables 3-5),
+            steady physics the outlet split cannot be tracked without, because the outlet flows are
+            not measured; and the bypass split's dependence on the mass flow (thesis sec. 4.5.1
+            names it; the identification finds it in a log, ``hvac-mpc identify``): it changes the
+            gain of valve a on the supply temperature, which the estimator's additive offsets
+            cannot represent; without it heating at low flow drifts valve a to the wrong end.
+            The dynamic effects (motor asymmetry, chiller hysteresis, trapped air) are left to the
+            estimator's disturbance states and the trapped-air guard.
+        ptc_limit: the PTC power fall (thesis sec. 2.3, fig. 12) enters as a linear constraint
+            ``heater_cmd <= P_max (T_zero - T_h) / (T_zero - T_knee)`` (soft, the heater slack)
+            instead of ``min(cmd, available)`` in the dynamics: a command above the available power
+            changes nothing in the plant, so the min has a zero gradient there and a Gauss-Newton
+            iteration can sit at full command while the supply air is too warm (measured on the
+            simulated plant). The estimator keeps the min (it sees what was really applied).
     """
 
     stage_durations_s: tuple[float, ...] = DEFAULT_STAGES_S
@@ -154,7 +164,8 @@ class OcpSpec:
     heater_temp_max_c: float | None = None
     trap_margin_pct: float = 5.0
     trap_warm_c: float = 5.0
-    model_effects: tuple[str, ...] = ("ptc_power_fall", "fan_curve", "valve_leakage")
+    model_effects: tuple[str, ...] = ("fan_curve", "valve_leakage", "bypass_flow")
+    ptc_limit: bool = True
 
     @property
     def temperature_sensor_share(self) -> float:
@@ -190,6 +201,8 @@ class OcpSpec:
             check_number(f"{prefix}.heater_temp_max_c", self.heater_temp_max_c, 20.0, 200.0)
         check_number(f"{prefix}.trap_margin_pct", self.trap_margin_pct, 0.0, 50.0)
         check_number(f"{prefix}.trap_warm_c", self.trap_warm_c, 0.0, 100.0)
+        if not isinstance(self.ptc_limit, bool):
+            raise InvalidSettings(f"{prefix}.ptc_limit = {self.ptc_limit!r} must be True or False")
         unknown = sorted(set(self.model_effects) - set(MODEL_EFFECTS))
         if unknown:
             raise InvalidSettings(f"{prefix}.model_effects has unknown effect(s) {unknown}; allowed: "
@@ -269,6 +282,16 @@ class TrackingProblem:
         # soft row in degC: x_sc * x_heater - s <= heater_max - x_off
         self.heater_row_coef = float(self.x_sc[self.i_heater])
         self.heater_row_bound = float(hmax - self.x_off[self.i_heater])
+        # PTC row in degC, stages k = 1..N-1 (x_k with u_k, slack s_k):
+        # cmd / c + T_h - s <= T_zero with c = P_max / (T_zero - T_knee) (W/K)
+        prm = self.params
+        self.ptc_limit = bool(spec.ptc_limit)
+        self.ptc_slope_w_per_k = prm.heater_power_max_w / (prm.ptc_zero_c - prm.ptc_knee_c)
+        ih = self.i_heater_cmd
+        self.ptc_row_coef_u = float(INPUT_SCALING["heater_cmd_w"][1] / self.ptc_slope_w_per_k)
+        self.ptc_row_bound = float(prm.ptc_zero_c - INPUT_SCALING["heater_cmd_w"][0] / self.ptc_slope_w_per_k
+                                   - self.x_off[self.i_heater])
+        assert INPUTS[ih] == "heater_cmd_w"
         w = spec.weights
         self.ny = len(STAGE_OUTPUTS)
         self.y_scale = np.array([1.0, 1e-3, 1e-3, 1e-3, 1e-3, 1.0])
@@ -309,27 +332,40 @@ class TrackingProblem:
             out[..., j] = self.valve_map.angle(name, out[..., j])
         return out
 
-    def command_bounds(self, u_prev_phys: np.ndarray, cap_a_pct: float = 100.0) -> tuple[np.ndarray, np.ndarray]:
-        """Physical bounds of the next command: actuator ranges, rate limits over one sample, and
-        the valve a cap (never tighter than valve a can follow from ``u_prev_phys``)."""
+    def ptc_available_w(self, heater_temp_c: float) -> float:
+        """Heater power available at ``heater_temp_c`` (W) on the PTC line of :attr:`OcpSpec.ptc_limit`."""
+        prm = self.params
+        return float(min(prm.heater_power_max_w, max(0.0, self.ptc_slope_w_per_k * (prm.ptc_zero_c - heater_temp_c))))
+
+    def command_bounds(self, u_prev_phys: np.ndarray, cap_a_pct: float = 100.0,
+                       heater_temp_c: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Physical bounds of the next command: actuator ranges, rate limits over one sample, the
+        valve a cap (never tighter than valve a can follow from ``u_prev_phys``) and, with
+        ``ptc_limit`` and a heater temperature, the PTC's available power (never tighter than the
+        heater command can follow)."""
         lo = np.maximum(self.u_lo_phys, u_prev_phys - self.rate_phys * self.dt_s)
         hi = np.minimum(self.u_hi_phys, u_prev_phys + self.rate_phys * self.dt_s)
         ia = self.i_valve_a
         hi[ia] = min(hi[ia], max(cap_a_pct, u_prev_phys[ia] - self.rate_phys[ia] * self.dt_s))
+        if self.ptc_limit and heater_temp_c is not None and np.isfinite(heater_temp_c):
+            ih = self.i_heater_cmd
+            hi[ih] = min(hi[ih], max(self.ptc_available_w(heater_temp_c), lo[ih]))
         lo = np.minimum(lo, hi)
         return lo, hi
 
-    def input_bounds(self, u_prev_phys: np.ndarray, cap_a_pct: float = 100.0) -> tuple[np.ndarray, np.ndarray]:
+    def input_bounds(self, u_prev_phys: np.ndarray, cap_a_pct: float = 100.0,
+                     heater_temp_c: float | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Scaled decision bounds (N, nu): ranges everywhere, the first stage's rate limits folded in
-        exactly (the opening is monotone in the angle), and the valve a cap, which tightens stage
-        by stage no faster than valve a may move, so the bounds always hold a feasible point."""
+        exactly (the opening is monotone in the angle), the first stage's PTC limit (later stages
+        carry it as a row of the problem), and the valve a cap, which tightens stage by stage no
+        faster than valve a may move, so the bounds always hold a feasible point."""
         lo = np.tile(self.u_lo, (self.N, 1))
         hi = np.tile(self.u_hi, (self.N, 1))
         ia = self.i_valve_a
         cap = (min(cap_a_pct, 100.0) - self.u_off[ia]) / self.u_sc[ia]
         reachable = (u_prev_phys[ia] - self.rate_phys[ia] * self.t_nodes[1:] - self.u_off[ia]) / self.u_sc[ia]
         hi[:, ia] = np.minimum(hi[:, ia], np.maximum(cap, reachable))
-        lo0, hi0 = self.command_bounds(u_prev_phys, cap_a_pct)
+        lo0, hi0 = self.command_bounds(u_prev_phys, cap_a_pct, heater_temp_c)
         lo[0] = np.maximum(lo[0], self.scale_u(lo0))
         hi[0] = np.minimum(hi[0], self.scale_u(hi0))
         lo[0] = np.minimum(lo[0], hi[0])

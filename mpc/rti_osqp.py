@@ -186,6 +186,14 @@ class RtiOsqpSolver:
         self.r_slack = rows + np.arange(N)
         rows += N
         entries_const.append((self.r_slack, self.is0 + np.arange(N), np.ones(N)))
+        # PTC limit, stages 1..N-1: coef_u u_k + x_sc T_h,k - s_k <= bound (degC, shares the heater slack)
+        self.r_ptc = rows + np.arange(N - 1 if pb.ptc_limit else 0)
+        if pb.ptc_limit:
+            rows += N - 1
+            k = np.arange(1, N)
+            entries_const.append((self.r_ptc, k * nx + pb.i_heater, np.full(N - 1, pb.heater_row_coef)))
+            entries_const.append((self.r_ptc, self.iu0 + k * nu + pb.i_heater_cmd, np.full(N - 1, pb.ptc_row_coef_u)))
+            entries_const.append((self.r_ptc, self.is0 + k - 1, -np.ones(N - 1)))
         self.m = rows
         A.shape = (rows, n)
         self._A_var = A.add(dyn_r, dyn_c)  # values -[A_k B_k]
@@ -206,6 +214,8 @@ class RtiOsqpSolver:
         self.u[self.r_soft] = pb.heater_row_bound
         self.l[self.r_slack] = 0.0
         self.u[self.r_slack] = np.inf
+        self.l[self.r_ptc] = -np.inf
+        self.u[self.r_ptc] = pb.ptc_row_bound
         self.l[self.r_u] = pb.u_lo
         self.u[self.r_u] = pb.u_hi
         # q scatter for the per-stage gradient blocks
