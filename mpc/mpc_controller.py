@@ -91,6 +91,7 @@ class MpcSettings:
     sqp_max_iter: int = 5
     levenberg_marquardt: float = 0.3
     cold_start_qps: int = 10
+    reference_change_qps: int = 1
     sqp_tol: float = 2e-2
     ipopt_tol: float = 1e-6
     ipopt_max_iter: int = 300
@@ -117,6 +118,7 @@ class MpcSettings:
         check_number(f"{p}.sqp_tol", self.sqp_tol, 1e-10, 1.0, lo_open=True)
         check_number(f"{p}.levenberg_marquardt", self.levenberg_marquardt, 0.0, 1e4)
         check_number(f"{p}.cold_start_qps", self.cold_start_qps, 1, 100, integer=True)
+        check_number(f"{p}.reference_change_qps", self.reference_change_qps, 1, 100, integer=True)
         check_number(f"{p}.ipopt_tol", self.ipopt_tol, 1e-12, 1e-2, lo_open=True)
         check_number(f"{p}.ipopt_max_iter", self.ipopt_max_iter, 1, 100000, integer=True)
         check_number(f"{p}.deadline_s", self.deadline_s, 0.0, 3600.0, lo_open=True)
@@ -175,7 +177,8 @@ class MpcController:
         sqp_iter = 1 if s.solver == "rti" else s.sqp_max_iter
         return RtiOsqpSolver(pb, eps=s.osqp_eps, max_iter=s.osqp_max_iter, sqp_max_iter=sqp_iter,
                              sqp_tol=s.sqp_tol, check_termination=s.osqp_check_termination,
-                             lm_inputs=s.levenberg_marquardt, cold_start_qps=s.cold_start_qps)
+                             lm_inputs=s.levenberg_marquardt, cold_start_qps=s.cold_start_qps,
+                             reference_change_qps=s.reference_change_qps)
 
     # ------------------------------------------------------------------ protocol
     def reset(self, command: Command | None = None) -> None:

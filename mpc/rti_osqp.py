@@ -98,16 +98,20 @@ class RtiOsqpSolver:
         lm_inputs: Levenberg-Marquardt weight on the inputs' step from the linearisation point.
         cold_start_qps: QPs allowed (Gauss-Newton SQP to ``sqp_tol``) on a cold start, when there
             is no previous solution to start from (first step, after a reset or a failure).
+        reference_change_qps: QPs allowed on a step whose reference differs from the one the
+            preparation used: the shifted plan was made for the old reference, so one damped
+            Gauss-Newton step from it is far from the new optimum.
     """
 
     def __init__(self, problem: TrackingProblem, *, eps: float = 1e-4, max_iter: int = 400,
                  sqp_max_iter: int = 1, sqp_tol: float = 1e-3, check_termination: int = 5,
-                 lm_inputs: np.ndarray | float = 0.0, cold_start_qps: int = 1):
+                 lm_inputs: np.ndarray | float = 0.0, cold_start_qps: int = 1, reference_change_qps: int = 1):
         self.pb = pb = problem
         self.name = "rti" if sqp_max_iter == 1 else "sqp"
         self.lm = np.broadcast_to(np.asarray(lm_inputs, float), (pb.nu,)).copy()
         self.sqp_max_iter = int(sqp_max_iter)
         self.cold_start_qps = int(cold_start_qps)
+        self.reference_change_qps = int(reference_change_qps)
         self.sqp_tol = float(sqp_tol)
         N, nx, nu = pb.N, pb.nx, pb.nu
         self.nz_stage = nx + nu
@@ -292,7 +296,7 @@ class RtiOsqpSolver:
         self.l[self.r_dyn] = data["e_dyn"]
         self.u[self.r_dyn] = data["e_dyn"]
         q_lin = self._q_const.copy()
-        self._prepared = dict(data=data, d=d.copy(), w_y=w_y.copy(), q_lin=q_lin)
+        self._prepared = dict(data=data, d=d.copy(), w_y=w_y.copy(), q_lin=q_lin, ref=np.array(ref, float))
         self._z_lin = np.concatenate([X.ravel(), U.ravel(), S])
 
     def prepare(self, x_pred: np.ndarray, u_prev: np.ndarray, d: np.ndarray, ref: np.ndarray,
@@ -325,6 +329,8 @@ class RtiOsqpSolver:
         prep = 0.0
         cold = self.X is None
         max_qps = max(self.sqp_max_iter, self.cold_start_qps) if cold else self.sqp_max_iter
+        if self._prepared is not None and not np.array_equal(self._prepared["ref"], ref):
+            max_qps = max(max_qps, self.reference_change_qps)
         if self._prepared is None or not np.array_equal(self._prepared["w_y"], w_y):
             prep = self.prepare(x0, u_prev, d, ref, w_y)
         if self.fail_next > 0:

@@ -288,3 +288,17 @@ def test_cli_unknown_scenario_fails_cleanly(tmp_path, capsys):
     assert cli.main(["bench", "--quick", "--seed", "-1", "--out", str(tmp_path / "x")]) == 2
     assert "--seed" in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.parametrize("name", ["summer_cooling_steps", "winter_heating_steps"])
+def test_mpc_settles_every_temperature_step_faster_than_the_baseline(name):
+    # issue: temperature steps reach +-0.5 C faster than the baseline, on the perturbed plant with
+    # every effect on; the full scenarios, seed 0, as `hvac-mpc bench` runs them
+    results, _ = bench.run_benchmark([S.all_scenarios()[name]],
+                                     {"baseline": bench.baseline_factory(), "mpc": bench.mpc_factory()}, seed=0)
+    sc = results["scenarios"][name]
+    b, m = sc["baseline"]["figures"], sc["mpc"]["figures"]
+    assert m["temp_steps"] >= 3 and m["temp_unsettled"] == 0
+    assert m["temp_time_to_band_max_s"] < b["temp_time_to_band_max_s"]
+    assert m["temp_iae_cs"] < b["temp_iae_cs"]
+    assert m["violations_total"] == 0
