@@ -11,8 +11,11 @@ problem (:class:`~hvac_mpc.mpc.ocp.TrackingProblem` at the default horizon):
 
 Step time is the wall time of ``MpcController.step`` (estimator, solver, Python overhead), the
 first (cold) step excluded from the statistics. Closed-loop cost is the MPC's stage cost
-evaluated on the plant's noise-free outputs, summed over the run. Math libraries are limited
-to two threads and the process to at most two cores. Prints a table and writes JSON.
+evaluated on the plant's noise-free outputs, summed over the run. The problem is not convex
+(redundant actuators, valve curves) and one run can settle on another actuator mix than another
+after a reference change, so the cost comparison with IPOPT is repeated over ``--cost-seeds``
+plant noise seeds (RTI and IPOPT only) and reported per seed. Math libraries are limited to two
+threads and the process to at most two cores. Prints a table and writes JSON.
 """
 
 from __future__ import annotations
@@ -119,6 +122,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--steps", type=int, default=None,
                         help=f"closed-loop steps per controller (default {FULL_STEPS})")
     parser.add_argument("--seed", type=int, default=1, help="plant noise seed (default 1)")
+    parser.add_argument("--cost-seeds", type=int, default=None,
+                        help="seeds (from --seed on) of the RTI-against-IPOPT cost comparison "
+                             "(default 3, 1 with --quick)")
     parser.add_argument("--threads", type=int, default=2, choices=(1, 2), help="cores to use (default 2)")
     parser.add_argument("--json", type=Path, default=Path("solve_time.json"), help="where to write the results")
     parser.add_argument("--no-ipopt", action="store_true", help="skip the IPOPT reference")
@@ -132,6 +138,11 @@ def run(args: argparse.Namespace) -> int:
     if steps < 3:
         print(f"--steps must be at least 3, got {steps}")
         return 2
+    cost_seeds = args.cost_seeds if args.cost_seeds is not None else (1 if args.quick else 3)
+    if not 1 <= cost_seeds <= 20:
+        print(f"--cost-seeds must be in [1, 20], got {cost_seeds}")
+        return 2
+    args.cost_seeds = cost_seeds
     saved = os.sched_getaffinity(0) if hasattr(os, "sched_setaffinity") else None
     if saved is not None:
         os.sched_setaffinity(0, sorted(saved)[:args.threads])
@@ -144,11 +155,13 @@ def run(args: argparse.Namespace) -> int:
 
 def _run(args: argparse.Namespace, steps: int) -> int:
     rti_settings = MpcSettings(jit=bool(getattr(args, "jit", False)))
-    contenders: list[tuple[str, Callable[[], MpcController]]] = [("rti", lambda: MpcController(settings=rti_settings))]
+    make_rti = lambda: MpcController(settings=rti_settings)  # noqa: E731
+    # the reference must not be cut short by the real-time deadline
+    make_ipopt = lambda: MpcController(settings=MpcSettings(solver="ipopt", deadline_s=600.0))  # noqa: E731
+    contenders: list[tuple[str, Callable[[], MpcController]]] = [("rti", make_rti)]
     notes = []
     if not args.no_ipopt:
-        # the reference must not be cut short by the real-time deadline
-        contenders.append(("ipopt", lambda: MpcController(settings=MpcSettings(solver="ipopt", deadline_s=600.0))))
+        contenders.append(("ipopt", make_ipopt))
     if not args.no_dompc:
         try:
             from .dompc_reference import DoMpcSolver, _import_do_mpc
@@ -168,11 +181,25 @@ def _run(args: argparse.Namespace, steps: int) -> int:
         r["p99_ratio_vs_rti"] = r["p99_ms"] / rti["p99_ms"]
         if "ipopt" in by_name:
             r["cost_vs_ipopt_pct"] = 100.0 * (r["cost"]["total"] / by_name["ipopt"]["cost"]["total"] - 1.0)
+    seeds_cost = []
+    if "ipopt" in by_name:
+        seeds_cost.append({"seed": args.seed, "rti": rti["cost"]["total"], "ipopt": by_name["ipopt"]["cost"]["total"]})
+        for seed in range(args.seed + 1, args.seed + args.cost_seeds):
+            print(f"cost comparison, seed {seed}: rti and ipopt for {steps} steps ...", flush=True)
+            seeds_cost.append({"seed": seed, "rti": closed_loop("rti", make_rti, steps, seed)["cost"]["total"],
+                               "ipopt": closed_loop("ipopt", make_ipopt, steps, seed)["cost"]["total"]})
+        for c in seeds_cost:
+            c["rti_vs_ipopt_pct"] = 100.0 * (c["rti"] / c["ipopt"] - 1.0)
     print_table(results)
+    if seeds_cost:
+        print("closed-loop cost, RTI against IPOPT, per plant noise seed: "
+              + ", ".join(f"seed {c['seed']} {c['rti_vs_ipopt_pct']:+.2f} %" for c in seeds_cost)
+              + f"; largest RTI excess {max(c['rti_vs_ipopt_pct'] for c in seeds_cost):+.2f} %")
     for note in notes:
         print(note)
     out = {"steps": steps, "seed": args.seed, "threads": args.threads, "scenario_inlet_c": INLET_C,
-           "python": platform.python_version(), "machine": platform.machine(), "notes": notes, "results": results}
+           "python": platform.python_version(), "machine": platform.machine(), "notes": notes, "results": results,
+           "cost_by_seed": seeds_cost}
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(out, indent=2))
     print(f"wrote {args.json}")

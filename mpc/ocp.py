@@ -100,7 +100,7 @@ class Weights:
     supply_temp: float = 1.0
     volume_flow: float = 2.0
     outlet_flow: float = 0.5
-    energy_per_100w2: float = 5e-3
+    energy_per_100w2: float = 5e-2
     move_blower_per_w2: float = 2e-5
     move_heater_per_w2: float = 1e-5
     move_valve_per_pct2: float = 1e-4
