@@ -189,6 +189,55 @@ def heating_case(seed: int = 0, valve_a_max_pct: float = 80.0) -> tuple[Trace, d
     }
 
 
+def cooling_grid(seed: int = 0, inlets_c=(25.0, 28.0, 32.0), waters_c=(5.0, 8.0, 12.0),
+                 starts_c=(22.0, 24.0, 26.0), steps_c=(3.0, 5.0, 7.0)) -> list[dict]:
+    """Cooling steps over operating points: time to stay within +-0.5 C with the thermocouple and
+    the thesis PID, and with the slow sensor and its PI (thesis sec. 5.4.1: ~60 s and ~400 s).
+
+    A point is kept when the start lies below the inlet and the target at least 1 C above what
+    the cooler core delivers (thesis sec. 4.2 fit, at that inlet and water temperature).
+    """
+    params = Parameters()
+    slow = params.replace(tau_tc_s=params.tau_slow_sensor_s)
+    rows = []
+    for tin in inlets_c:
+        for tw in waters_c:
+            core_c = tin + params.cooler_slope * (tw - tin)
+            for r0 in starts_c:
+                for dr in steps_c:
+                    r1 = r0 - dr
+                    if r0 >= tin - 0.5 or r1 <= core_c + 1.0:
+                        continue
+                    env, before, after = Environment(tin, tw), Reference(r0, 0.03), Reference(r1, 0.03)
+                    fast = simulate_step(env, before, after, 300, 600, seed=seed, params=params)
+                    sl = simulate_step(env, before, after, 1500, 2500, seed=seed, gains=BaselineGains.slow_sensor(),
+                                       params=slow)
+                    rows.append({"inlet_temp_c": tin, "water_setpoint_c": tw, "ref_before_c": r0, "ref_after_c": r1,
+                                 "thermocouple_pid_s": time_to_stay_within(fast.time_s, fast.supply_temp_c, r1,
+                                                                            TEMP_BAND_C),
+                                 "slow_sensor_pi_s": time_to_stay_within(sl.time_s, sl.supply_temp_c, r1, TEMP_BAND_C)})
+    return rows
+
+
+def _seconds(v: float | None) -> str:
+    return "never" if v is None else f"{v:.0f}"
+
+
+def grid_table(rows: list[dict]) -> str:
+    """The printed cooling grid and its range."""
+    lines = [f"{'inlet C':>7} {'water C':>7} {'step C':>13} {'thermocouple+PID s':>19} {'slow sensor+PI s':>17}"]
+    for r in rows:
+        lines.append(f"{r['inlet_temp_c']:>7.0f} {r['water_setpoint_c']:>7.0f} "
+                     f"{r['ref_before_c']:>6.0f} -> {r['ref_after_c']:<3.0f} {_seconds(r['thermocouple_pid_s']):>19} "
+                     f"{_seconds(r['slow_sensor_pi_s']):>17}")
+    fast = [r["thermocouple_pid_s"] for r in rows if r["thermocouple_pid_s"] is not None]
+    slow = [r["slow_sensor_pi_s"] for r in rows if r["slow_sensor_pi_s"] is not None]
+    if fast and slow:
+        lines.append(f"{len(rows)} points: thermocouple + PID {min(fast):.0f}-{max(fast):.0f} s (thesis ~60 s), "
+                     f"slow sensor + PI {min(slow):.0f}-{max(slow):.0f} s (thesis ~400 s)")
+    return "\n".join(lines)
+
+
 # ---------------------------------------------------------------------- output
 def _fmt(v, unit: str = "") -> str:
     if v is None:
@@ -291,10 +340,20 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", default="out/baseline", help="output directory (default: out/baseline)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the plant's sensor noise (default: 0)")
     parser.add_argument("--no-plots", action="store_true", help="write no PNG files (no matplotlib needed)")
+    parser.add_argument("--cooling-grid", action="store_true",
+                        help="only the cooling step over 67 operating points, thermocouple + PID against slow "
+                             "sensor + PI (about 1 min); writes cooling_grid.json")
 
 
 def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
+    if getattr(args, "cooling_grid", False):
+        out.mkdir(parents=True, exist_ok=True)
+        rows = cooling_grid(args.seed)
+        (out / "cooling_grid.json").write_text(json.dumps(_clean(rows), indent=2))
+        print(grid_table(rows))
+        print(f"wrote {out / 'cooling_grid.json'}")
+        return 0
     if not args.no_plots:
         _pyplot()  # fail early with the install hint
     out.mkdir(parents=True, exist_ok=True)

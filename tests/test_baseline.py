@@ -229,3 +229,13 @@ def test_missing_matplotlib_names_the_plot_extra(monkeypatch, tmp_path):
     with pytest.raises(SystemExit, match=r"'plot' extra"):
         demo.run(SimpleNamespace(out=str(tmp_path / "x"), seed=0, no_plots=False))
     assert not (tmp_path / "x").exists()  # failed before running or writing anything
+
+
+def test_cooling_grid_runs_both_loops_and_reports_their_range(tmp_path, capsys):
+    rows = demo.cooling_grid(inlets_c=(32.0,), waters_c=(5.0, 30.0), starts_c=(24.0,), steps_c=(6.0,))
+    # water at 30 C cannot cool 32 C air to 18 C: that point is left out
+    assert len(rows) == 1 and rows[0]["ref_after_c"] == 18.0
+    # the same step as the cooling case: the thermocouple loop is much faster than the slow one
+    assert rows[0]["thermocouple_pid_s"] < 60.0 < 200.0 < rows[0]["slow_sensor_pi_s"]
+    text = demo.grid_table(rows)
+    assert "1 points" in text and "thesis ~60 s" in text
