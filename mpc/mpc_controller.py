@@ -93,7 +93,7 @@ class MpcSettings:
     osqp_max_iter: int = 400
     osqp_check_termination: int = 5
     sqp_max_iter: int = 5
-    levenberg_marquardt: float = 0.3
+    levenberg_marquardt: float = 0.1
     cold_start_qps: int = 10
     reference_change_qps: int = 2
     sqp_tol: float = 2e-2
