@@ -49,7 +49,7 @@ class EkfSettings:
     q_sensor_c: float = 0.02
     q_trap_c: float = 0.1
     q_mix_offset_c: float = 0.03
-    q_flow_offset_m3s: float = 3e-4
+    q_flow_offset_m3s: float = 3e-5
     q_inlet_c: float = 0.01
     r_supply_c: float = 0.05
     r_flow_m3s: float = 4e-4
