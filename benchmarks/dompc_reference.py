@@ -98,8 +98,7 @@ class DoMpcSolver:
         mpc.set_nl_cons("heater", pb.heater_row_coef * x[pb.i_heater] - pb.heater_row_bound, ub=0.0,
                         soft_constraint=True, penalty_term_cons=float(pb.slack_l1 * pb.dt.mean()))
         if pb.ptc_limit:
-            mpc.set_nl_cons("ptc", pb.heater_row_coef * x[pb.i_heater] + pb.ptc_row_coef_u * u[pb.i_heater_cmd]
-                            - pb.ptc_row_bound, ub=0.0, soft_constraint=True,
+            mpc.set_nl_cons("ptc", pb.ptc_row(x[pb.i_heater], u[pb.i_heater_cmd]), ub=0.0, soft_constraint=True,
                             penalty_term_cons=float(pb.slack_l1 * pb.dt.mean()))
         self._tvp_template = mpc.get_tvp_template()
         self._dt = np.append(pb.dt, pb.dt[-1])

@@ -142,18 +142,17 @@ def run(args: argparse.Namespace) -> int:
     if not 1 <= cost_seeds <= 20:
         print(f"--cost-seeds must be in [1, 20], got {cost_seeds}")
         return 2
-    args.cost_seeds = cost_seeds
     saved = os.sched_getaffinity(0) if hasattr(os, "sched_setaffinity") else None
     if saved is not None:
         os.sched_setaffinity(0, sorted(saved)[:args.threads])
     try:
-        return _run(args, steps)
+        return _run(args, steps, cost_seeds)
     finally:
         if saved is not None:
             os.sched_setaffinity(0, saved)
 
 
-def _run(args: argparse.Namespace, steps: int) -> int:
+def _run(args: argparse.Namespace, steps: int, cost_seeds: int) -> int:
     rti_settings = MpcSettings(jit=bool(getattr(args, "jit", False)))
     make_rti = lambda: MpcController(settings=rti_settings)  # noqa: E731
     # the reference must not be cut short by the real-time deadline
@@ -184,7 +183,7 @@ def _run(args: argparse.Namespace, steps: int) -> int:
     seeds_cost = []
     if "ipopt" in by_name:
         seeds_cost.append({"seed": args.seed, "rti": rti["cost"]["total"], "ipopt": by_name["ipopt"]["cost"]["total"]})
-        for seed in range(args.seed + 1, args.seed + args.cost_seeds):
+        for seed in range(args.seed + 1, args.seed + cost_seeds):
             print(f"cost comparison, seed {seed}: rti and ipopt for {steps} steps ...", flush=True)
             seeds_cost.append({"seed": seed, "rti": closed_loop("rti", make_rti, steps, seed)["cost"]["total"],
                                "ipopt": closed_loop("ipopt", make_ipopt, steps, seed)["cost"]["total"]})

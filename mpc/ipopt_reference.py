@@ -49,8 +49,7 @@ class IpoptReferenceSolver:
         g.append(pb.heater_row_coef * X[pb.i_heater, 1:].T - S)
         n_ptc = N - 1 if pb.ptc_limit else 0
         if n_ptc:
-            g.append(pb.heater_row_coef * X[pb.i_heater, 1:N].T + pb.ptc_row_coef_u * U[pb.i_heater_cmd, 1:N].T
-                     - S[:N - 1])
+            g.append(pb.ptc_row(X[pb.i_heater, 1:N], U[pb.i_heater_cmd, 1:N]).T - S[:N - 1])
         g = ca.vertcat(*g)
         # the cost sums tracking errors over ~100 s of horizon (values of 1e2..1e4); without the extra
         # objective scaling IPOPT cycles near the optimum on the flat directions left by the
@@ -65,7 +64,7 @@ class IpoptReferenceSolver:
         rb = pb.rate_bounds()
         self.lbg = np.concatenate([np.zeros(self.n_eq), -rb.ravel(), np.full(N + n_ptc, -np.inf)])
         self.ubg = np.concatenate([np.zeros(self.n_eq), rb.ravel(), np.full(N, pb.heater_row_bound),
-                                   np.full(n_ptc, pb.ptc_row_bound)])
+                                   np.zeros(n_ptc)])
         self.iu0 = (N + 1) * nx
         self.is0 = self.iu0 + N * nu
         self._i0, self._w1, self._j = shift_maps(pb.t_nodes, pb.dt_s)

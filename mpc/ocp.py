@@ -42,6 +42,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
+from hvac_mpc.models import heater
 from hvac_mpc.models.box import INPUT_LOWER, INPUTS, MODEL_EFFECTS, HvacModel, input_upper, rk4
 from hvac_mpc.models.parameters import Parameters
 
@@ -283,15 +284,14 @@ class TrackingProblem:
         self.heater_row_coef = float(self.x_sc[self.i_heater])
         self.heater_row_bound = float(hmax - self.x_off[self.i_heater])
         # PTC row in degC, stages k = 1..N-1 (x_k with u_k, slack s_k):
-        # cmd / c + T_h - s <= T_zero with c = P_max / (T_zero - T_knee) (W/K)
+        # cmd / c + T_h - s <= T_zero with c = P_max / (T_zero - T_knee) (W/K), the falling part of
+        # heater.available_power_w
         prm = self.params
         self.ptc_limit = bool(spec.ptc_limit)
-        self.ptc_slope_w_per_k = prm.heater_power_max_w / (prm.ptc_zero_c - prm.ptc_knee_c)
+        slope_w_per_k = prm.heater_power_max_w / (prm.ptc_zero_c - prm.ptc_knee_c)
         ih = self.i_heater_cmd
-        self.ptc_row_coef_u = float(INPUT_SCALING["heater_cmd_w"][1] / self.ptc_slope_w_per_k)
-        self.ptc_row_bound = float(prm.ptc_zero_c - INPUT_SCALING["heater_cmd_w"][0] / self.ptc_slope_w_per_k
-                                   - self.x_off[self.i_heater])
-        assert INPUTS[ih] == "heater_cmd_w"
+        self.ptc_row_coef_u = float(self.u_sc[ih] / slope_w_per_k)
+        self.ptc_row_bound = float(prm.ptc_zero_c - self.u_off[ih] / slope_w_per_k - self.x_off[self.i_heater])
         w = spec.weights
         self.ny = len(STAGE_OUTPUTS)
         self.y_scale = np.array([1.0, 1e-3, 1e-3, 1e-3, 1e-3, 1.0])
@@ -333,9 +333,14 @@ class TrackingProblem:
         return out
 
     def ptc_available_w(self, heater_temp_c: float) -> float:
-        """Heater power available at ``heater_temp_c`` (W) on the PTC line of :attr:`OcpSpec.ptc_limit`."""
-        prm = self.params
-        return float(min(prm.heater_power_max_w, max(0.0, self.ptc_slope_w_per_k * (prm.ptc_zero_c - heater_temp_c))))
+        """Heater power available at ``heater_temp_c`` (W), the line of :attr:`OcpSpec.ptc_limit`."""
+        return float(heater.available_power_w(heater_temp_c, self.params))
+
+    def ptc_row(self, heater_x, heater_u):
+        """PTC row, ``<= 0`` when kept (degC, before its slack), of the scaled heater temperature
+        ``heater_x`` and scaled heater command ``heater_u`` of the same stage (CasADi or numpy; the
+        QP of ``rti_osqp`` holds the same coefficients)."""
+        return self.heater_row_coef * heater_x + self.ptc_row_coef_u * heater_u - self.ptc_row_bound
 
     def command_bounds(self, u_prev_phys: np.ndarray, cap_a_pct: float = 100.0,
                        heater_temp_c: float | None = None) -> tuple[np.ndarray, np.ndarray]:
