@@ -30,9 +30,11 @@ from typing import Sequence
 
 import numpy as np
 
-from hvac_mpc.models import Command, Environment, Parameters, SimulatedPlant, chiller
+from hvac_mpc.models import Environment, Parameters, SimulatedPlant, chiller
+
+from hvac_mpc.contract import Command
 from hvac_mpc.mpc.baseline import BaselineController, BaselineGains
-from hvac_mpc.mpc.reference import Reference
+from hvac_mpc.contract import Reference
 
 from .metrics import overshoot as step_overshoot
 from .metrics import time_in_band_s

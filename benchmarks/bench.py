@@ -21,7 +21,8 @@ import numpy as np
 
 from hvac_mpc.models import measurement_log
 from hvac_mpc.models.parameters import Parameters
-from hvac_mpc.models.plant import PLANT_EFFECTS, Command
+from hvac_mpc.models.plant import PLANT_EFFECTS
+from hvac_mpc.contract import Command
 
 from . import criteria, metrics, report, scenarios as scenario_defs
 from .perturbation import MAGNITUDE_RANGE, perturb_parameters
@@ -173,7 +174,7 @@ def run_benchmark(chosen: Sequence[scenario_defs.Scenario], factories: Mapping[s
 
 
 def write_logs(traces: Mapping[str, Mapping[str, Trace]], folder: Path) -> None:
-    """Each run as a measurement log (design.md sec. 4): sensor readings, commands, references."""
+    """Each run as a measurement log (docs/model.md sec. 4): sensor readings, commands, references."""
     folder.mkdir(parents=True, exist_ok=True)
     for sname, runs in traces.items():
         for cname, tr in runs.items():

@@ -23,7 +23,7 @@ import numpy as np
 #: Heater counted as "on" above this electric power (W). ASSUMPTION: a threshold above numerical zero.
 HEATER_ON_W = 1.0
 #: Minimum volume flow with the heater on (m3/s). ASSUMPTION, the same value as the controller
-#: daemon's heater interlock (``mpc/daemon/config.py`` ``SafetyConfig.min_flow_m3s``).
+#: daemon's heater interlock (``daemon/config.py`` ``SafetyConfig.min_flow_m3s``).
 HEATER_MIN_FLOW_M3S = 0.004
 #: Band around the temperature reference for the time to band (degC), issue 4.
 TEMP_BAND_C = 0.5

@@ -17,10 +17,10 @@ from hvac_mpc.models.parameters import Parameters
 #: Parameters that differ between plant and model, with why each matters.
 PERTURBED = {
     "heater_ka_w_per_k": "heater heat transfer kA_h (thesis sec. 4.4): heater outlet temperature and lag",
-    "flow_per_watt_m3s_per_w": "blower flow per watt (design.md blower curve): volume-flow gain",
+    "flow_per_watt_m3s_per_w": "blower flow per watt (docs/model.md blower curve): volume-flow gain",
     "cooler_slope": "cooler core effectiveness (thesis sec. 4.2 fit): cooling capacity",
     "tau_tc_s": "thermocouple time constant tau_TC (thesis sec. 5.4.1): measured temperature lag",
-    "bypass_exponent": "bypass curve b(a) exponent (design.md bypass curve): valve-a gain",
+    "bypass_exponent": "bypass curve b(a) exponent (docs/model.md bypass curve): valve-a gain",
 }
 #: Range of the relative change, fraction (ASSUMPTION, see module docstring).
 MAGNITUDE_RANGE = (0.05, 0.10)

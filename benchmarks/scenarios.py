@@ -14,8 +14,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from hvac_mpc.models.parameters import Parameters
-from hvac_mpc.models.plant import Command
-from hvac_mpc.mpc.reference import Reference
+from hvac_mpc.contract import Command
+from hvac_mpc.contract import Reference
 
 M3H = 1.0 / 3600.0  # m3/s per m3/h
 
@@ -114,7 +114,7 @@ class Scenario:
 
 # ---------------------------------------------------------------------------- definitions
 SUMMER_INLET_C = 32.0  # thesis sec. 6: room at about 32 C in the proband tests
-SUMMER_CHILLER_C = 5.0  # thesis sec. 4.2 / design.md sec. 1: chiller set point 5 C when cooling
+SUMMER_CHILLER_C = 5.0  # thesis sec. 4.2 / docs/model.md sec. 1: chiller set point 5 C when cooling
 SPLIT_SUMMER = (0.6, 0.15, 0.25)  # mostly middle outlet in summer (thesis sec. 6.2, fig. 53)
 SPLIT_WINTER = (0.3, 0.5, 0.2)  # ASSUMPTION: feet and windshield favoured when heating
 
@@ -124,7 +124,7 @@ def _ref(temp_c: float, flow_m3h: float, shares=SPLIT_SUMMER) -> Reference:
 
 
 def _blower_for(flow_m3h: float) -> float:
-    """Blower power giving roughly a flow with the nominal blower curve (design.md sec. 1), W."""
+    """Blower power giving roughly a flow with the nominal blower curve (docs/model.md sec. 1), W."""
     return float(np.clip(flow_m3h * M3H / Parameters().flow_per_watt_m3s_per_w, 30.0, 300.0))
 
 

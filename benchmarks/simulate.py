@@ -60,7 +60,7 @@ def plant_seed(seed: int, scenario_seed: int) -> int:
 
 
 def actuator_bounds(params: Parameters | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Lower and upper actuator bounds in ``INPUTS`` order (design.md sec. 2)."""
+    """Lower and upper actuator bounds in ``INPUTS`` order (docs/model.md sec. 2)."""
     params = params or Parameters()
     up = input_upper(params)
     return np.array([INPUT_LOWER[n] for n in INPUTS]), np.array([up[n] for n in INPUTS])

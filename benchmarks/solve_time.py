@@ -36,10 +36,12 @@ from typing import Any, Callable  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from hvac_mpc.models.plant import Command, Environment, SimulatedPlant  # noqa: E402
+from hvac_mpc.models.plant import Environment, SimulatedPlant  # noqa: E402
+
+from hvac_mpc.contract import Command
 from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings  # noqa: E402
 from hvac_mpc.mpc.ocp import TrackingProblem  # noqa: E402
-from hvac_mpc.mpc.reference import Reference  # noqa: E402
+from hvac_mpc.contract import Reference  # noqa: E402
 
 #: Reference scenario (start time s, reference): proband conditions of thesis sec. 6 (room at
 #: 32 C), references changing every 30 s instead of every 5 min so the run stays short.

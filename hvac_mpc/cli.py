@@ -15,7 +15,7 @@ SUBCOMMANDS = {
     "baseline": ("hvac_mpc.benchmarks.baseline_demo", "thesis baseline checks on the simulated plant, with plots"),
     "solve-time": ("hvac_mpc.benchmarks.solve_time", "MPC step time against IPOPT and do-mpc"),
     "identify": ("hvac_mpc.identification.cli", "refine the model from a measurement log"),
-    "daemon": ("hvac_mpc.mpc.daemon.main", "run the controller daemon"),
+    "daemon": ("hvac_mpc.daemon.main", "run the controller daemon"),
 }
 
 

@@ -7,6 +7,7 @@
 - :mod:`~hvac_mpc.identification.thesis_tables` runs the loop on the thesis's tables 3-6.
 """
 
+from .api import identify
 from .model_file import load_identification_extras, load_model_file, write_model_file
 
-__all__ = ["load_model_file", "load_identification_extras", "write_model_file"]
+__all__ = ["identify", "load_model_file", "load_identification_extras", "write_model_file"]

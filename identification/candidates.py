@@ -2,7 +2,7 @@
 
 Each candidate nests the current model (its "null" is the model without it):
 
-- effects the model implements as switches (``HvacModel`` effects, design.md sec. 5);
+- effects the model implements as switches (``HvacModel`` effects, docs/model.md sec. 5);
 - generic effects: sensor lag mismatch (the thermocouple time constant), transport delay
   (integer samples on one output), output offset and drift (on one output).
 
@@ -145,7 +145,7 @@ MODEL_CANDIDATES = (
               requires=_needs_outlet_valves),
     Candidate("valve_leakage", "model",
               "closed outlet valves leak; each table resistance holds the other valves' leaks",
-              "thesis tables 3-5 (measured with the other valves closed), design.md 'traps'",
+              "thesis tables 3-5 (measured with the other valves closed), docs/model.md 'traps'",
               effects=("valve_leakage",), params=(FreeParam("valve_closed_leak_share", "lin", 0.3, 0.0, 1.0),),
               grid=({"valve_closed_leak_share": 0.3}, {"valve_closed_leak_share": 0.6},
                     {"valve_closed_leak_share": 1.0}),

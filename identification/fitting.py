@@ -46,7 +46,7 @@ class FreeParam:
 
 
 #: Free parameters of the nominal (thesis) model: the ones the thesis fitted or that stand in
-#: for missing figures (design.md sec. 1). Thesis-measured constants (masses, tau_TC, tau_m,
+#: for missing figures (docs/model.md sec. 1). Thesis-measured constants (masses, tau_TC, tau_m,
 #: slopes of the chiller) stay fixed. The first two set the flow equation only.
 NOMINAL_FREE = (
     FreeParam("flow_per_watt_m3s_per_w", "log"),

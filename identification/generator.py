@@ -2,7 +2,7 @@
 
 :func:`simulate_log` runs :class:`~hvac_mpc.models.plant.SimulatedPlant` open loop under an
 exciting input sequence (:func:`excitation`) and returns the columns of the measurement-log
-schema (design.md sec. 4). Besides the plant's own effects it can switch on effects the plant
+schema (docs/model.md sec. 4). Besides the plant's own effects it can switch on effects the plant
 does not have, so that the identification meets effects it must find and one it cannot know:
 
 - ``sensor_lag``: the supply thermocouple is slower than the thesis's 5.73 s (generic library
@@ -26,9 +26,10 @@ import numpy as np
 
 from hvac_mpc.models.box import INPUTS
 from hvac_mpc.models.parameters import Parameters
-from hvac_mpc.models.plant import PLANT_EFFECTS, Command, Environment, SimulatedPlant
+from hvac_mpc.models.plant import PLANT_EFFECTS, Environment, SimulatedPlant
 
 #: Effects the generator adds on top of the plant (see the module docstring).
+from hvac_mpc.contract import Command
 EXTRA_EFFECTS = ("sensor_lag", "transport_delay", "output_bias", "latent_cooling")
 #: Every effect name :func:`simulate_log` accepts (``sensor_noise`` is the ``noise`` flag).
 GENERATOR_EFFECTS = tuple(e for e in PLANT_EFFECTS if e != "sensor_noise") + EXTRA_EFFECTS
@@ -151,7 +152,7 @@ class _LatentPlant(SimulatedPlant):
 def simulate_log(effects: Iterable[str] = (), seed: int = 0, duration_s: float = 1800.0, dt_s: float = 1.0,
                  noise: bool = True, params: Parameters | None = None, log_water: bool = True,
                  log_heater: bool = True, chiller_setpoint_c: float = 5.0) -> dict[str, np.ndarray]:
-    """Simulate the plant open loop and return measurement-log columns (design.md sec. 4).
+    """Simulate the plant open loop and return measurement-log columns (docs/model.md sec. 4).
 
     ``effects``: names from :data:`GENERATOR_EFFECTS` switched on (none: the thesis model's
     behaviour). ``noise`` switches the plant's sensor noise. ``log_water`` / ``log_heater``

@@ -1,6 +1,6 @@
 """A measurement log prepared for identification: arrays, checks, the time split.
 
-Conventions (design.md sec. 4): row k holds the sensor readings at time t_k and the command
+Conventions (docs/model.md sec. 4): row k holds the sensor readings at time t_k and the command
 applied from t_k on. The model's output at row k therefore depends on the state at t_k and
 the command of row k-1 (the thesis's unit delay, sec. 4.1.2).
 """
@@ -18,10 +18,10 @@ from hvac_mpc.models.measurement_log import read_log
 
 #: Logged outputs the model predicts (log column = model output name).
 MODEL_OUTPUTS = ("supply_temp_c", "volume_flow_m3s", "heater_outlet_temp_c", "heater_power_w")
-#: Allowed ranges of the logged commands (design.md sec. 2; blower 0 W allowed for 'off').
+#: Allowed ranges of the logged commands (docs/model.md sec. 2; blower 0 W allowed for 'off').
 INPUT_RANGES = {"blower_power_w": (0.0, 300.0), "heater_cmd_w": (0.0, 240.0), "valve_a_pct": (0.0, 100.0),
                 "valve_m_pct": (0.0, 100.0), "valve_f_pct": (0.0, 100.0), "valve_w_pct": (0.0, 100.0)}
-#: ASSUMPTION: chiller set point when the log has none (design.md sec. 1: 5 C in cooling).
+#: ASSUMPTION: chiller set point when the log has none (docs/model.md sec. 1: 5 C in cooling).
 DEFAULT_CHILLER_SETPOINT_C = 5.0
 #: Minimum log length, samples (a training and a held-out part of a few minutes each).
 MIN_SAMPLES = 600
@@ -127,7 +127,7 @@ def prepare(columns: Mapping[str, np.ndarray], holdout_fraction: float = 1 / 3, 
     sp = np.asarray(columns.get("chiller_setpoint_c", np.full(n, np.nan)), float)
     if np.mean(np.isfinite(sp)) < 0.5:
         sp = np.full(n, DEFAULT_CHILLER_SETPOINT_C)
-        notes.append(f"chiller_setpoint_c not logged: {DEFAULT_CHILLER_SETPOINT_C} C assumed (design.md sec. 1)")
+        notes.append(f"chiller_setpoint_c not logged: {DEFAULT_CHILLER_SETPOINT_C} C assumed (docs/model.md sec. 1)")
     else:
         sp = _interp_nans(sp)
     water = None

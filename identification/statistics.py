@@ -1,7 +1,7 @@
 """Residual statistics: noise level, whiteness, cross-correlation with confidence bounds, binning,
 step asymmetry. Pure numpy/scipy functions.
 
-Sources (see ../shared/research/residual-analysis.md sec. 1): Ljung-Box Q = N(N+2) sum r_k^2/(N-k)
+Sources (see docs/identification.md, statistics): Ljung-Box Q = N(N+2) sum r_k^2/(N-k)
 ~ chi2(M); the cross-correlation band of Ljung's ``resid`` (99 %, z = 2.58) with the variance
 P = sum_k R_e(k) R_u(k), estimated with a Bartlett window so it stays valid for coloured
 residuals and inputs; the joint statistic N R' P^-1 R ~ chi2(M+1) over lags 0..M.

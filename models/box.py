@@ -1,6 +1,6 @@
 """The HVAC box as a CasADi model that knows its states, inputs, disturbances and outputs by name.
 
-Air path (thesis fig. 7, design.md sec. 1): blower (flow, motor heating) -> valve a splits
+Air path (thesis fig. 7, docs/model.md sec. 1): blower (flow, motor heating) -> valve a splits
 into bypass b(a) and core path -> cooler core (chilled water) -> PTC heater -> mixing ->
 thermocouple -> parallel valves m, f, w.
 
@@ -18,12 +18,13 @@ from typing import Iterable, Mapping, Sequence
 import casadi as ca
 import numpy as np
 
+from hvac_mpc.contract import INPUTS
+
 from . import air, blower, bypass, chiller, heater, sensors, valves
 from .parameters import Parameters
 
 STATES = ("motor_rise_c", "water_temp_c", "heater_temp_c", "supply_sensor_c")
 TRAP_STATE = "trap_air_temp_c"
-INPUTS = ("blower_power_w", "heater_cmd_w", "valve_a_pct", "valve_m_pct", "valve_f_pct", "valve_w_pct")
 DISTURBANCES = ("inlet_temp_c", "chiller_setpoint_c", "mix_offset_c", "flow_offset_m3s")
 OUTPUTS = ("supply_temp_c", "volume_flow_m3s", "flow_m_m3s", "flow_f_m3s", "flow_w_m3s",
            "heater_temp_c", "supply_air_temp_c", "heater_outlet_temp_c", "heater_power_w",
@@ -65,7 +66,7 @@ class Signals:
 
 
 def input_upper(p: Parameters) -> dict[str, float]:
-    """Actuator upper bounds (design.md sec. 2)."""
+    """Actuator upper bounds (docs/model.md sec. 2)."""
     return {"blower_power_w": p.blower_power_max_w, "heater_cmd_w": p.heater_power_max_w,
             "valve_a_pct": 100.0, "valve_m_pct": 100.0, "valve_f_pct": 100.0, "valve_w_pct": 100.0}
 

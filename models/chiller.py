@@ -37,7 +37,7 @@ def cooler_outlet_c(air_in_c, water_c, p):
 
     The thesis fit T_a = 0.7564 T_w + 6.312 was measured at one inlet temperature; it equals the
     effectiveness form T_in + eps (T_w - T_in) with eps = 0.7564 at
-    T_in = 6.312 / (1 - 0.7564) = 25.9 C (design.md, 'traps'). The effectiveness form is used so
+    T_in = 6.312 / (1 - 0.7564) = 25.9 C (docs/model.md, 'traps'). The effectiveness form is used so
     that the cooler responds to the inlet temperature.
     """
     return air_in_c + p.cooler_slope * (water_c - air_in_c)

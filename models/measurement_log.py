@@ -1,4 +1,4 @@
-"""The measurement-log schema (design.md sec. 4): one row per sample, CSV with a header.
+"""The measurement-log schema (docs/model.md sec. 4): one row per sample, CSV with a header.
 
 Writers flush every row, so a crash loses at most the row in flight; opening an existing log
 appends. Readers accept CSV or Parquet (with pyarrow installed) and a column mapping for a

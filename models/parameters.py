@@ -1,8 +1,8 @@
 """All numeric parameters of the HVAC box in one place.
 
 Every field names its source: a thesis table, equation or section
-(``../shared/thesis.md``), or ``ASSUMPTION`` where a figure's data is missing
-from the text and a stand-in curve is used (``../shared/design.md`` section 1).
+(docs/model.md lists them), or ``ASSUMPTION`` where a figure's data is missing
+from the text and a stand-in curve is used (docs/model.md sec. 1).
 Assumptions can be replaced from a TOML or JSON file without touching code::
 
     params = Parameters.from_file("my_box.toml")     # keys are field names
@@ -37,22 +37,22 @@ class Parameters:
     cp_air_j_per_kgk: float = _p(1007.0, "thesis sec. 4.4 (c_pa at 26.85 C, ref. [3])", 900, 1100)
 
     # --- blower ---------------------------------------------------------------
-    blower_power_min_w: float = _p(30.0, "design.md sec. 2 (actuator range)", 0, 300)
+    blower_power_min_w: float = _p(30.0, "docs/model.md sec. 2 (actuator range)", 0, 300)
     blower_power_max_w: float = _p(300.0, "thesis sec. 2.1 (15 V x 20 A)", 30, 1000)
     flow_per_watt_m3s_per_w: float = _p(
-        1.9e-4, "ASSUMPTION design.md sec. 1 (fig. 20 stand-in; 0.057 m3/s at 300 W, table 6)", 1e-6, 1e-2)
+        1.9e-4, "ASSUMPTION docs/model.md sec. 1 (fig. 20 stand-in; 0.057 m3/s at 300 W, table 6)", 1e-6, 1e-2)
     core_flow_loss: float = _p(
         0.1, "thesis sec. 4.5.1 (fig. 33: ~10 % less flow when all air crosses the core)", 0.0, 0.5)
     motor_gain_max_c: float = _p(
-        2.4, "ASSUMPTION design.md sec. 1 (fig. 18 stand-in; thesis sec. 4.1.1: >2 C at full power)", 0, 10)
-    motor_gain_exponent: float = _p(1.5, "ASSUMPTION design.md sec. 1 (fig. 18 stand-in)", 0.5, 3)
+        2.4, "ASSUMPTION docs/model.md sec. 1 (fig. 18 stand-in; thesis sec. 4.1.1: >2 C at full power)", 0, 10)
+    motor_gain_exponent: float = _p(1.5, "ASSUMPTION docs/model.md sec. 1 (fig. 18 stand-in)", 0.5, 3)
     tau_motor_s: float = _p(268.0, "thesis sec. 4.1.1 (tau_m)", 1, 5000)
 
     # --- chiller and cooler core ----------------------------------------------
     water_rate_c_per_s: float = _p(0.00692, "thesis sec. 4.2 (mean slope, fig. 23)", 1e-5, 1)
     water_rise_rate_c_per_s: float = _p(0.00702, "thesis sec. 4.2 (rising slope, fig. 23)", 1e-5, 1)
     water_fall_rate_c_per_s: float = _p(0.00682, "thesis sec. 4.2 (falling slope, fig. 23)", 1e-5, 1)
-    chiller_band_c: float = _p(1.0, "ASSUMPTION design.md sec. 1 (two-point band +-1 C)", 0, 10)
+    chiller_band_c: float = _p(1.0, "ASSUMPTION docs/model.md sec. 1 (two-point band +-1 C)", 0, 10)
     cooler_slope: float = _p(0.7564, "thesis sec. 4.2 eq. T_a = 0.7564 T_w + 6.312", 0, 1)
     cooler_offset_c: float = _p(6.312, "thesis sec. 4.2 eq. T_a = 0.7564 T_w + 6.312", -50, 50)
 
@@ -63,19 +63,22 @@ class Parameters:
     heater_air_mass_kg: float = _p(14.21e-6, "thesis sec. 4.4 (m_ah = 14.21 mg)", 1e-8, 1e-2)
     heater_ka_w_per_k: float = _p(2.49, "thesis sec. 4.4 (kA_h = 2.49 W/K)", 0.01, 100)
     heater_kp: float = _p(0.669, "thesis sec. 4.4 eq. (5), table 2", 0.05, 1.0)
-    ptc_knee_c: float = _p(60.0, "ASSUMPTION design.md sec. 1 (fig. 12 stand-in: full power below ~60 C)", 0, 300)
+    ptc_knee_c: float = _p(60.0, "ASSUMPTION docs/model.md sec. 1 (fig. 12 stand-in: full power below ~60 C)", 0, 300)
     ptc_zero_c: float = _p(165.0, "thesis sec. 2.3 (temperature limited at ~165 C)", 1, 400)
     heater_temp_max_c: float = _p(
         140.0, "ASSUMPTION operating limit below the 165 C PTC self-limit (thesis sec. 2.3)", 20, 200)
 
     # --- bypass valve a ----------------------------------------------------------
     bypass_max: float = _p(0.9, "thesis sec. 4.5.1 (fig. 36: at least 10 % crosses the core)", 0, 1)
-    bypass_exponent: float = _p(1.3, "ASSUMPTION design.md sec. 1 (fig. 36 stand-in)", 0.2, 5)
+    bypass_exponent: float = _p(1.3, "ASSUMPTION docs/model.md sec. 1 (fig. 36 stand-in)", 0.2, 5)
 
     # --- sensors ---------------------------------------------------------------------
     tau_tc_s: float = _p(5.73, "thesis sec. 5.4.1 (thermocouple tau_TC, fig. 44)", 0.1, 500)
     tau_slow_sensor_s: float = _p(100.4, "thesis sec. 2.4 (old sensor tau_s, fig. 14)", 1, 1000)
     flow_sensor_c_m3s: float = _p(0.0097, "thesis sec. 2.4 (pipe constant C)", 1e-4, 1)
+    transport_delay_s: float = _p(
+        0.0, "ASSUMPTION dead time from the mixing point to the supply sensor; 0 in the thesis model, "
+        "set from a parameter file or by identification", 0.0, 10.0)
 
     # --- fan curve (plant effect 'fan_curve') ----------------------------------------
     fan_k_kg_m7: float = _p(
@@ -86,7 +89,7 @@ class Parameters:
         1.0, "ASSUMPTION closed valves leak equally: tables 3-5 closed rows are the network of 3 leaks",
         0, 1)
 
-    # --- non-ideal effects of the simulated plant (all ASSUMPTIONS, design.md sec. 5) --
+    # --- non-ideal effects of the simulated plant (all ASSUMPTIONS, docs/model.md sec. 5) --
     tau_motor_heating_s: float = _p(150.0, "ASSUMPTION thesis sec. 4.1.1 (heating faster than cooling)", 1, 5000)
     tau_motor_cooling_s: float = _p(420.0, "ASSUMPTION thesis sec. 4.1.1 (cooling slower)", 1, 5000)
     bypass_flow_exponent: float = _p(

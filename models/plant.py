@@ -11,57 +11,20 @@ controller and seeded sensor noise. Interface as the hardware will have it::
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass
 from typing import Iterable, Mapping
 
 import numpy as np
 
 from . import chiller
+from hvac_mpc.contract import Command, Measurement
+
 from .box import INPUT_LOWER, INPUTS, MODEL_EFFECTS, HvacModel, input_upper, validate_effects
 from .parameters import Parameters
 
 #: All non-ideal effects of the plant, each switchable by name (issue: the simulated plant).
 PLANT_EFFECTS = ("ptc_power_fall", "chiller_hysteresis", "motor_asymmetry", "bypass_flow",
                  "trapped_air", "sensor_noise", "fan_curve", "valve_leakage")
-
-
-@dataclass
-class Command:
-    """Actuator command: blower and heater electric power (W), valve angles (% of servo travel)."""
-
-    blower_power_w: float = 100.0
-    heater_cmd_w: float = 0.0
-    valve_a_pct: float = 50.0
-    valve_m_pct: float = 100.0
-    valve_f_pct: float = 100.0
-    valve_w_pct: float = 100.0
-
-    def vector(self) -> np.ndarray:
-        return np.array([getattr(self, n) for n in INPUTS], float)
-
-    @classmethod
-    def from_vector(cls, v) -> "Command":
-        return cls(**{n: float(x) for n, x in zip(INPUTS, np.asarray(v, float).ravel())})
-
-    def as_dict(self) -> dict[str, float]:
-        return asdict(self)
-
-
-@dataclass
-class Measurement:
-    """One sample of the box's sensors (names and units of the measurement log, design.md sec. 4)."""
-
-    time_s: float
-    supply_temp_c: float
-    volume_flow_m3s: float
-    hvac_inlet_temp_c: float
-    water_temp_c: float | None = None
-    chiller_setpoint_c: float | None = None
-    heater_power_w: float | None = None
-    heater_outlet_temp_c: float | None = None
-
-    def as_dict(self) -> dict[str, float | None]:
-        return asdict(self)
 
 
 @dataclass

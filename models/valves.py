@@ -106,7 +106,7 @@ def branch_conductances(angles_pct, p, coeffs=None, leakage: bool = False):
 
     Thesis model (sec. 5.2): R_i is the table resistance at that angle, though each table row
     was measured with the other valves closed. With ``leakage`` each branch's own conductance
-    is the table's minus the two closed valves' leaks measured with it (design.md, 'traps').
+    is the table's minus the two closed valves' leaks measured with it (docs/model.md, 'traps').
     """
     coeffs = coeffs or curves(p)
     g = [1.0 / ca.sqrt(resistance(angles_pct[i], coeffs[v])) for i, v in enumerate(VALVES)]

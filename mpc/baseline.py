@@ -1,10 +1,10 @@
 """The thesis baseline (thesis section 5): PI/PID loops, mode switching and the outlet-split feed-forward.
 
-Loops, with the gains of thesis section 5 (design.md sec. 3), discrete at the 1 s sample:
+Loops, with the gains of thesis section 5 (docs/model.md sec. 3), discrete at the 1 s sample:
 
 - total volume flow: PI on the blower, error in m3/h, output the power controller's 0-5 V
   input spanning 0-300 W (thesis sec. 5.1; the units are the ones under which the thesis gains
-  make sense, design.md 'traps').
+  make sense, docs/model.md 'traps').
 - cooling (thesis sec. 5.4.1, thermocouple): PID with anti-windup on valve a (0-100 %),
   error = measured - reference, so more valve a = more air through the cooler = colder.
 - heating (thesis sec. 5.4.2): PI with anti-windup on valve a, capped at 80 % (trapped hot air,
@@ -40,11 +40,11 @@ from dataclasses import dataclass, field, replace
 
 from hvac_mpc.models import valves
 from hvac_mpc.models.parameters import Parameters
-from hvac_mpc.models.plant import Command, Measurement
+from hvac_mpc.contract import Command, Measurement
 
-from .controller import StepResult
+from hvac_mpc.contract import StepResult
 from .outlet_split import outlet_split
-from .reference import Reference
+from hvac_mpc.contract import Reference
 
 COOLING = "cooling"
 HEATING = "heating"
@@ -59,9 +59,9 @@ def _g(default, source: str):
 class BaselineGains:
     """Gains and limits of the thesis baseline; every field says where it comes from."""
 
-    flow_kp_v_per_m3h: float = _g(0.006, "thesis sec. 5.1 (k_p,v, error in m3/h: design.md 'traps')")
+    flow_kp_v_per_m3h: float = _g(0.006, "thesis sec. 5.1 (k_p,v, error in m3/h: docs/model.md 'traps')")
     flow_ki_v_per_m3h: float = _g(0.005, "thesis sec. 5.1 (k_i,v per 1 s sample)")
-    blower_w_per_v: float = _g(60.0, "thesis sec. 2.1 and 5.1: 0-5 V input spans 0-300 W (design.md 'traps')")
+    blower_w_per_v: float = _g(60.0, "thesis sec. 2.1 and 5.1: 0-5 V input spans 0-300 W (docs/model.md 'traps')")
     cool_kp_pct_per_c: float = _g(7.0, "thesis sec. 5.4.1 (thermocouple PID)")
     cool_ki_pct_per_c: float = _g(1.0, "thesis sec. 5.4.1 (per 1 s sample)")
     cool_kd_pct_per_c: float = _g(2.0, "thesis sec. 5.4.1 (per 1 s sample)")
@@ -73,7 +73,7 @@ class BaselineGains:
     heater_kp_v_per_c: float = _g(1.5, "thesis sec. 5.4.2 (k_p,h)")
     heater_ki_v_per_c: float = _g(0.05, "thesis sec. 5.4.2 (k_i,h per 1 s sample)")
     heater_kaw: float = _g(0.5, "thesis sec. 5.4.2")
-    heater_w_per_v: float = _g(48.0, "thesis sec. 2.3 and 5.4.2: 0-5 V input spans 0-240 W (design.md 'traps')")
+    heater_w_per_v: float = _g(48.0, "thesis sec. 2.3 and 5.4.2: 0-5 V input spans 0-240 W (docs/model.md 'traps')")
     control_v_max: float = _g(5.0, "thesis sec. 5.1 and 5.4.2 (0-5 V analogue input of the power controllers)")
     mode_hysteresis_c: float = _g(0.5, "ASSUMPTION half-width of the mode switching band (thesis silent)")
     max_temp_error_c: float = _g(
@@ -310,7 +310,7 @@ class BaselineController:
 
     def _start(self, m: Measurement, flow_ok: bool) -> None:
         """First sample: preset the flow integrator to the power the nominal blower curve gives for
-        the measured flow (bumpless start; ASSUMPTION, design.md blower curve)."""
+        the measured flow (bumpless start; ASSUMPTION, docs/model.md blower curve)."""
         if flow_ok and m.volume_flow_m3s > 0:
             power_w = m.volume_flow_m3s / self.params.flow_per_watt_m3s_per_w
             self._flow.reset(power_w / self.gains.blower_w_per_v)

@@ -26,7 +26,7 @@ import casadi as ca
 import numpy as np
 
 from hvac_mpc.models.box import HvacModel, rk4
-from hvac_mpc.models.plant import Measurement
+from hvac_mpc.contract import Measurement
 
 from .casadi_eval import BufferedFunction
 from .ocp import InvalidSettings, check_number

@@ -39,12 +39,12 @@ import numpy as np
 from hvac_mpc.models import chiller
 from hvac_mpc.models.box import INPUTS, HvacModel
 from hvac_mpc.models.parameters import Parameters
-from hvac_mpc.models.plant import Command, Measurement
+from hvac_mpc.contract import Command, Measurement
 
-from .controller import StepResult
+from hvac_mpc.contract import StepResult
 from .estimator import DisturbanceEkf, EkfSettings
 from .ocp import InvalidSettings, OcpSpec, TrackingProblem, check_number, trap_cap_pct
-from .reference import InvalidReference, Reference
+from hvac_mpc.contract import InvalidReference, Reference
 from .rti_osqp import RtiOsqpSolver, SolveResult
 
 SOLVERS = ("rti", "sqp", "ipopt")

@@ -47,7 +47,7 @@ from hvac_mpc.models.box import INPUT_LOWER, INPUTS, MODEL_EFFECTS, HvacModel, i
 from hvac_mpc.models.parameters import Parameters
 
 from .casadi_eval import BufferedFunction
-from .reference import Reference
+from hvac_mpc.contract import Reference
 from .valve_map import VALVE_NAMES, ValveMap
 
 #: Tracked outputs (model output names) in the order of the residual vector; the first is
@@ -123,7 +123,7 @@ class OcpSpec:
     Attributes:
         stage_durations_s: duration of each stage (s); inputs are held over a stage (move
             blocking). The first equals the sample time; the sum is the horizon (>= 60 s so the
-            one-minute requirement of design.md sec. 2 is inside it).
+            one-minute requirement of docs/model.md sec. 2 is inside it).
         max_substep_s: longest RK4 substep (s); a stage uses ceil(its duration / this) substeps.
         tracked_temperature: ``"air"`` tracks the true mixed supply air (model output
             ``supply_air_temp_c``), ``"sensor"`` the thermocouple state ``supply_temp_c``,

@@ -6,12 +6,12 @@ own behaviour can be tested independently of the MPC and the thesis baseline.
 
 from __future__ import annotations
 
-from hvac_mpc.models.plant import Command
-from hvac_mpc.mpc.controller import StepResult
+from hvac_mpc.contract import Command
+from hvac_mpc.contract import StepResult
 
 
 class SimplePi:
-    """Blower: flow feed-forward (design.md sec. 1: V = 1.9e-4 P) plus PI. Temperature: PI on
+    """Blower: flow feed-forward (docs/model.md sec. 1: V = 1.9e-4 P) plus PI. Temperature: PI on
     valve a (less a = more warm air bypassing the cooler core), the heater as a second stage
     once valve a is fully open to the bypass."""
 

@@ -11,11 +11,12 @@ import numpy as np
 import pytest
 
 from hvac_mpc.benchmarks import baseline_demo as demo
-from hvac_mpc.models import Command, Measurement, Parameters, SimulatedPlant, valves
+from hvac_mpc.models import Parameters, SimulatedPlant, valves
+from hvac_mpc.contract import Command, Measurement
 from hvac_mpc.mpc import outlet_split as osplit
 from hvac_mpc.mpc.baseline import COOLING, HEATING, BaselineController, BaselineGains, choose_mode
-from hvac_mpc.mpc.controller import StepResult
-from hvac_mpc.mpc.reference import Reference
+from hvac_mpc.contract import StepResult
+from hvac_mpc.contract import Reference
 
 
 @pytest.fixture(scope="module")

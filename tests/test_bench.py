@@ -17,9 +17,10 @@ from hvac_mpc.benchmarks.perturbation import MAGNITUDE_RANGE, PERTURBED, perturb
 from hvac_mpc.benchmarks.simulate import simulate
 from hvac_mpc.models import measurement_log
 from hvac_mpc.models.parameters import Parameters
-from hvac_mpc.models.plant import Command, Environment, SimulatedPlant
-from hvac_mpc.mpc.controller import StepResult
-from hvac_mpc.mpc.reference import Reference
+from hvac_mpc.models.plant import Environment, SimulatedPlant
+from hvac_mpc.contract import Command
+from hvac_mpc.contract import StepResult
+from hvac_mpc.contract import Reference
 
 M3H = 1 / 3600
 

@@ -1,4 +1,4 @@
-"""The daemon's fault campaign (hvac_mpc.mpc.daemon.campaign): sensor NaN/stuck/out of range/
+"""The daemon's fault campaign (hvac_mpc.benchmarks.daemon_campaign): sensor NaN/stuck/out of range/
 missing/stale/wrong value, controller failure/NaN/missed deadline/solver failure, backend
 disconnect (injected and a real Modbus server stopped and restarted), a controller driving the
 flow below the heater minimum, a fatal error, hostile API input and tokens, SIGKILL with a
@@ -11,7 +11,9 @@ import logging
 
 import pytest
 
-from hvac_mpc.mpc.daemon.campaign import format_report, run_campaign
+from hvac_mpc.benchmarks.daemon_campaign import format_report, run_campaign
+
+pytestmark = pytest.mark.slow
 
 pytest.importorskip("pymodbus", reason="the Modbus outage scenario needs the 'fieldbus' extra (pymodbus)")
 

@@ -13,8 +13,10 @@ import pytest
 
 from hvac_mpc.models.measurement_log import read_log
 from hvac_mpc.models.plant import SimulatedPlant
-from hvac_mpc.mpc.daemon.campaign import (NOT_CONTROLLING, _request, check_log, free_port, process_config,
+from hvac_mpc.benchmarks.daemon_campaign import (NOT_CONTROLLING, _request, check_log, free_port, process_config,
                                           start_daemon, wait_for)
+
+pytestmark = pytest.mark.slow
 
 REFERENCES = [
     {"supply_temp_c": 16.0, "volume_flow_m3s": 0.025},
@@ -106,7 +108,7 @@ def test_daemon_process_tracks_references_from_the_api(tmp_path, capsys):
 
 def test_daemon_process_over_modbus_survives_server_stop_and_restart(tmp_path, capsys):
     pytest.importorskip("pymodbus", reason="the Modbus backend needs the 'fieldbus' extra (pymodbus)")
-    from hvac_mpc.mpc.daemon.modbus_sim import PlantModbusServer
+    from hvac_mpc.daemon.modbus_sim import PlantModbusServer
 
     _fresh(tmp_path, "modbus")
     mport = free_port()

@@ -6,9 +6,13 @@ About 20 s."""
 
 from __future__ import annotations
 
+import pytest
+
 import logging
 
-from hvac_mpc.mpc.daemon.soak import RSS_GROWTH_LIMIT_MB, print_report, run_soak
+from hvac_mpc.daemon.soak import RSS_GROWTH_LIMIT_MB, print_report, run_soak
+
+pytestmark = pytest.mark.slow
 
 
 def test_short_soak_no_missed_sample_no_memory_growth(tmp_path, capsys):

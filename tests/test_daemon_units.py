@@ -13,17 +13,18 @@ import numpy as np
 import pytest
 
 from hvac_mpc.models.parameters import Parameters
-from hvac_mpc.models.plant import Command, Environment, Measurement, SimulatedPlant
-from hvac_mpc.mpc.controller import StepResult
-from hvac_mpc.mpc.daemon.backends import BackendError
-from hvac_mpc.mpc.daemon.campaign import free_port
-from hvac_mpc.mpc.daemon.config import ConfigError, SafetyConfig, config_from_mapping, load_config
-from hvac_mpc.mpc.daemon.controllers import ControllerChain
-from hvac_mpc.mpc.daemon.loop import Daemon, last_logged_time
-from hvac_mpc.mpc.daemon.modbus import (NO_VALUE, ModbusBackend, decode_command, decode_measurement,
+from hvac_mpc.models.plant import Environment, SimulatedPlant
+from hvac_mpc.contract import Command, Measurement
+from hvac_mpc.contract import StepResult
+from hvac_mpc.daemon.backends import BackendError
+from hvac_mpc.benchmarks.daemon_campaign import free_port
+from hvac_mpc.daemon.config import ConfigError, SafetyConfig, config_from_mapping, load_config
+from hvac_mpc.daemon.controllers import ControllerChain
+from hvac_mpc.daemon.loop import Daemon, last_logged_time
+from hvac_mpc.daemon.modbus import (NO_VALUE, ModbusBackend, decode_command, decode_measurement,
                                         encode_command, encode_measurement)
-from hvac_mpc.mpc.daemon.safety import HeaterEstimator, HeaterInterlock, SensorMonitor, SensorStatus
-from hvac_mpc.mpc.reference import Reference
+from hvac_mpc.daemon.safety import HeaterEstimator, HeaterInterlock, SensorMonitor, SensorStatus
+from hvac_mpc.contract import Reference
 
 
 def meas(t=0.0, **kw):
@@ -164,7 +165,7 @@ def test_modbus_register_codec_round_trip_and_sentinels():
 
 def test_modbus_backend_against_the_plant_server_outage_and_watchdog():
     pytest.importorskip("pymodbus", reason="the Modbus backend needs the 'fieldbus' extra (pymodbus)")
-    from hvac_mpc.mpc.daemon.modbus_sim import PlantModbusServer
+    from hvac_mpc.daemon.modbus_sim import PlantModbusServer
 
     port = free_port()
     server = PlantModbusServer(SimulatedPlant(seed=1), port=port, watchdog_samples=3).start()

@@ -147,7 +147,7 @@ def test_refined_model_file_runs_in_the_model_and_predicts_the_log_better():
 def test_thesis_tables_loop_reduces_table_6_errors_on_held_out_rows(tmp_path):
     res = thesis_tables.run()
     t6 = td.table6()
-    # the thesis model's total flow is the constant V(300 W) = 1.9e-4 * 300 m3/s (design.md sec. 1)
+    # the thesis model's total flow is the constant V(300 W) = 1.9e-4 * 300 m3/s (docs/model.md sec. 1)
     thesis_total_rms = np.sqrt(np.mean((1.9e-4 * 300 - t6["flow_m3s"]) ** 2))
     assert res.before["total_rms_m3s"] == pytest.approx(thesis_total_rms, rel=1e-6)
     assert res.after["total_rms_m3s"] < 0.6 * res.before["total_rms_m3s"]
@@ -247,6 +247,7 @@ def test_residual_statistics_behave_on_known_series():
     assert st.noise_sigma(smooth + 0.05 * white) == pytest.approx(0.05, rel=0.1)
 
 
+@pytest.mark.slow
 def test_two_hour_log_identifies_in_under_five_minutes(tmp_path):
     cols = simulate_log(("ptc_power_fall", "chiller_hysteresis"), seed=21, duration_s=7200)
     path = tmp_path / "log2h.csv"

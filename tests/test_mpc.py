@@ -10,12 +10,14 @@ import re
 import numpy as np
 import pytest
 
-from hvac_mpc.models import Command, Environment, Measurement, Parameters, SimulatedPlant
-from hvac_mpc.mpc.controller import StepResult
+from hvac_mpc.models import Environment, Parameters, SimulatedPlant
+
+from hvac_mpc.contract import Command, Measurement
+from hvac_mpc.contract import StepResult
 from hvac_mpc.mpc.estimator import EkfSettings
 from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
 from hvac_mpc.mpc.ocp import InvalidSettings, OcpSpec, TrackingProblem, Weights
-from hvac_mpc.mpc.reference import Reference
+from hvac_mpc.contract import Reference
 
 PARAMS = Parameters()
 REF_WARM = Reference.from_split(20.0, 0.03, (0.4, 0.3, 0.3))

@@ -5,7 +5,9 @@ import time
 import numpy as np
 import pytest
 
-from hvac_mpc.models import PLANT_EFFECTS, Command, Environment, Parameters, SimulatedPlant
+from hvac_mpc.models import PLANT_EFFECTS, Environment, Parameters, SimulatedPlant
+
+from hvac_mpc.contract import Command
 
 
 def run(plant, command, seconds):

@@ -1,6 +1,6 @@
 import pytest
 
-from hvac_mpc.mpc.reference import InvalidReference, Reference
+from hvac_mpc.contract import InvalidReference, Reference
 
 
 def test_valid_reference_and_split():

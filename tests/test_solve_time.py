@@ -10,7 +10,8 @@ import pytest
 
 from hvac_mpc.benchmarks import solve_time
 from hvac_mpc.cli import main
-from hvac_mpc.models import Command, Environment, SimulatedPlant
+from hvac_mpc.models import Environment, SimulatedPlant
+from hvac_mpc.contract import Command
 from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
 
 
@@ -44,6 +45,7 @@ def test_rti_step_time_p99_under_100_ms_with_one_qp_per_step_between_reference_c
     assert np.percentile(np.array(times[1:]), 99) < 0.100
 
 
+@pytest.mark.slow
 def test_benchmark_runs_all_contenders_side_by_side_and_writes_json(tmp_path, capsys):
     out = tmp_path / "solve_time.json"
     assert main(["solve-time", "--steps", "4", "--json", str(out)]) == 0

@@ -33,8 +33,8 @@ from typing import Any, Callable
 
 from hvac_mpc.models.measurement_log import COLUMNS, LogWriter
 from hvac_mpc.models.parameters import Parameters
-from hvac_mpc.models.plant import Command, Measurement
-from hvac_mpc.mpc.reference import Reference
+from hvac_mpc.contract import Command, Measurement
+from hvac_mpc.contract import Reference
 
 from .backends import BackendError, IoBackend, make_backend
 from .config import SENSOR_FIELDS, DaemonConfig, resolve

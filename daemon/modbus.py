@@ -40,9 +40,9 @@ import logging
 import math
 from typing import Callable
 
-from hvac_mpc.models.plant import Command, Measurement
+from hvac_mpc.contract import Command, Measurement
 
-from .backends import BackendError
+from .io import BackendError
 
 NO_VALUE = -32768
 #: (field, scale) of input registers 2..8 (int16).

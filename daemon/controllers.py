@@ -19,9 +19,9 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Sequence
 
 from hvac_mpc.models.parameters import Parameters
-from hvac_mpc.models.plant import Command, Measurement
-from hvac_mpc.mpc.controller import Controller, StepResult
-from hvac_mpc.mpc.reference import Reference
+from hvac_mpc.contract import Command, Measurement
+from hvac_mpc.contract import Controller, StepResult
+from hvac_mpc.contract import Reference
 
 from .config import FaultSpec
 

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Mapping
 
-from hvac_mpc.mpc.reference import InvalidReference, Reference
+from hvac_mpc.contract import InvalidReference, Reference
 
 
 #: A complete, commented configuration (``hvac-mpc daemon --example-config``).
@@ -40,7 +40,7 @@ deadline_s = 0.0        # wall-time budget of a controller step; 0 = half the pe
 max_ticks = 0           # stop after N samples (0 = until SIGTERM/SIGINT)
 
 [log]
-path = "hvac_daemon_log.csv"   # measurement log (design.md sec. 4); a restart appends
+path = "hvac_daemon_log.csv"   # measurement log (docs/model.md sec. 4); a restart appends
 fsync = true
 
 [api]
@@ -142,7 +142,7 @@ class LoopConfig:
 
 @dataclass(frozen=True)
 class LogConfig:
-    path: str = _f("hvac_daemon_log.csv", "measurement log (CSV, design.md sec. 4); appended on restart")
+    path: str = _f("hvac_daemon_log.csv", "measurement log (CSV, docs/model.md sec. 4); appended on restart")
     fsync: bool = _f(True, "fsync every row (a crash loses at most the row in flight)")
 
 
@@ -172,7 +172,7 @@ class SimulatedBackendConfig:
     seed: int = _f(0, "noise seed", 0, 2**31)
     effects: list = _f(["all"], "plant effects (hvac_mpc.models.plant.PLANT_EFFECTS) or ['all']")
     inlet_temp_c: float = _f(25.0, "inlet air temperature", -20.0, 50.0)
-    chiller_setpoint_c: float = _f(5.0, "chiller set point (design.md sec. 1: 5 C cooling)", -5.0, 30.0)
+    chiller_setpoint_c: float = _f(5.0, "chiller set point (docs/model.md sec. 1: 5 C cooling)", -5.0, 30.0)
 
 
 @dataclass(frozen=True)
@@ -195,7 +195,7 @@ class SafetyConfig:
     heater_max_w: float = _f(240.0, "heater command limit (thesis sec. 2.3: ~240 W maximum)", 0.0, 240.0)
     min_flow_m3s: float = _f(
         0.004, "ASSUMPTION heater off below this volume flow: under the 0.0057 m3/s of the blower at 30 W "
-               "with all valves open (design.md sec. 1); at 0.004 m3/s and 240 W the heater body settles "
+               "with all valves open (docs/model.md sec. 1); at 0.004 m3/s and 240 W the heater body settles "
                "near 95 C above inlet, below heater_temp_max_c", 0.0, 0.05)
     flow_hysteresis_m3s: float = _f(0.001, "flow above min_flow + this re-enables the heater", 0.0, 0.02)
     heater_outlet_max_c: float = _f(85.0, "ASSUMPTION heater outlet air trip temperature", 30.0, 165.0)

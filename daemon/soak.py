@@ -6,7 +6,7 @@ the process's resident set size and, optionally, the bytes traced by ``tracemall
 check: no growth from the first hour to the last, and a log with one row per sample at
 consecutive times. ::
 
-    python -m hvac_mpc.mpc.daemon.soak --hours 24 --controller mpc --log soak.csv
+    python -m hvac_mpc.daemon.soak --hours 24 --controller mpc --log soak.csv
     hvac-mpc daemon --soak 24 --soak-controller mpc --soak-log soak.csv
 """
 

@@ -21,7 +21,7 @@ from .config import ConfigError, load_config
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--config", metavar="FILE", help="daemon configuration (TOML); see hvac_mpc.mpc.daemon.config")
+    parser.add_argument("--config", metavar="FILE", help="daemon configuration (TOML); see hvac_mpc.daemon.config")
     parser.add_argument("--speedup", help="override loop.speedup (a factor, or 'max' for as fast as possible)")
     parser.add_argument("--max-ticks", type=int, help="override loop.max_ticks (stop after N samples)")
     parser.add_argument("--log", metavar="CSV", help="override log.path")

@@ -2,7 +2,7 @@
 
 Nothing here depends on the optimiser. The interlock follows OEM practice for PTC heaters
 (heater only with the blower running and its temperature in bounds, fail-safe on lost signals;
-``../shared/research/hvac-benchmarks-and-daemons.md`` sec. 3.2):
+docs/real-box.md, safety):
 
 * heater command in [0, ``heater_max_w``] (240 W, thesis sec. 2.3), never NaN;
 * heater 0 when the measured volume flow is below ``min_flow_m3s`` (with hysteresis), when an
@@ -18,7 +18,7 @@ from dataclasses import dataclass, field, replace
 
 from hvac_mpc.models import bypass
 from hvac_mpc.models.parameters import Parameters
-from hvac_mpc.models.plant import Command, Measurement
+from hvac_mpc.contract import Command, Measurement
 
 from .config import SENSOR_FIELDS, SafetyConfig
 
@@ -41,7 +41,7 @@ def is_finite_command(cmd: Command) -> bool:
 
 
 def clip_command(cmd: Command, heater_max_w: float) -> Command:
-    """Clip every actuator to its range (design.md sec. 2); the heater to ``heater_max_w``."""
+    """Clip every actuator to its range (docs/model.md sec. 2); the heater to ``heater_max_w``."""
     out = {}
     for name, value in cmd.as_dict().items():
         lo, hi = ACTUATOR_RANGES[name]

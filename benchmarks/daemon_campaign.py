@@ -14,7 +14,7 @@ sample is then checked by :func:`check_log`, independently of the daemon's own s
 * sample times consecutive (no lost, repeated or corrupted row).
 
 :func:`run_campaign` returns the counts (scenarios, faults injected by kind, hostile requests,
-violations); ``python -m hvac_mpc.mpc.daemon.campaign`` prints them.
+violations); ``python -m hvac_mpc.benchmarks.daemon_campaign`` prints them.
 """
 
 from __future__ import annotations
@@ -36,11 +36,11 @@ from typing import Any, Callable
 import numpy as np
 
 from hvac_mpc.models.measurement_log import read_log
-from hvac_mpc.models.plant import Command
-from hvac_mpc.mpc.controller import StepResult
+from hvac_mpc.contract import Command
+from hvac_mpc.contract import StepResult
 
-from .config import DEFAULT_SENSOR_RANGES, DaemonConfig, SafetyConfig, config_from_mapping
-from .loop import Daemon
+from hvac_mpc.daemon.config import DEFAULT_SENSOR_RANGES, DaemonConfig, SafetyConfig, config_from_mapping
+from hvac_mpc.daemon.loop import Daemon
 
 HEATING_REFERENCE = {"supply_temp_c": 32.0, "volume_flow_m3s": 0.02}
 SENSOR_SIGNALS = ("volume_flow_m3s", "supply_temp_c", "heater_outlet_temp_c", "hvac_inlet_temp_c")
@@ -287,7 +287,7 @@ def modbus_outage(workdir: Path, controller: str = "baseline") -> Outcome:
     """Daemon over Modbus TCP to the plant simulator; the server is stopped and restarted."""
     from hvac_mpc.models.plant import SimulatedPlant
 
-    from .modbus_sim import PlantModbusServer
+    from hvac_mpc.daemon.modbus_sim import PlantModbusServer
 
     port = free_port()
     server = PlantModbusServer(SimulatedPlant(seed=3), port=port).start()
@@ -322,7 +322,7 @@ def modbus_outage(workdir: Path, controller: str = "baseline") -> Outcome:
 
 def greedy_heater(workdir: Path) -> Outcome:
     """A controller demanding full heat with the outlets closed: the real flow drops below the minimum."""
-    cfg = _config(workdir, "interlock_low_flow", "hvac_mpc.mpc.daemon.campaign:GreedyHeater", [], ticks=120,
+    cfg = _config(workdir, "interlock_low_flow", "hvac_mpc.benchmarks.daemon_campaign:GreedyHeater", [], ticks=120,
                   extra={"controller": {"fallback": []}})
     truth: list[dict] = []
 
@@ -568,7 +568,7 @@ def api_flood(workdir: Path, controller: str = "baseline") -> Outcome:
 
 
 def token_scenarios(workdir: Path, controller: str = "baseline") -> list[Outcome]:
-    from .api import ReferenceApi
+    from hvac_mpc.daemon.api import ReferenceApi
 
     results: list[Outcome] = []
     token = "s3cret-token-for-tests"

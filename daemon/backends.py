@@ -6,8 +6,8 @@ the daemon then writes safe outputs and reconnects with backoff.
 
 * :class:`SimulatedBackend`: the built-in simulated plant (hvac_mpc.models.plant), advanced in
   lockstep with the daemon clock (one sample per tick, however fast the loop runs).
-* :class:`hvac_mpc.mpc.daemon.modbus.ModbusBackend`: Modbus TCP to a PLC, an I/O coupler or the
-  plant simulator server (:mod:`hvac_mpc.mpc.daemon.modbus_sim`).
+* :class:`hvac_mpc.daemon.modbus.ModbusBackend`: Modbus TCP to a PLC, an I/O coupler or the
+  plant simulator server (:mod:`hvac_mpc.daemon.modbus_sim`).
 * :class:`FaultInjectingBackend`: wraps any backend and injects the ``[[faults]]`` of the
   configuration (sensor NaN, stuck, out of range, missing, stale, a wrong value; backend disconnect).
 """
@@ -16,30 +16,18 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
-from typing import Callable, Protocol, Sequence
+from typing import Callable, Sequence
 
 from hvac_mpc.models.parameters import Parameters
-from hvac_mpc.models.plant import PLANT_EFFECTS, Command, Environment, Measurement, SimulatedPlant
+from hvac_mpc.models.plant import PLANT_EFFECTS, Environment, SimulatedPlant
+from hvac_mpc.contract import Command, Measurement
 
 from .config import DaemonConfig, FaultSpec, SimulatedBackendConfig
+from .io import BackendError, IoBackend
 
 #: Largest gap (samples) the simulated plant integrates to catch up; beyond it the plant is
 #: settled at the new time instead (a restart after a long pause).
 MAX_CATCHUP_SAMPLES = 3600
-
-
-class BackendError(RuntimeError):
-    """The plant could not be read or written (disconnected, timeout, protocol error)."""
-
-
-class IoBackend(Protocol):
-    def connect(self) -> None: ...
-
-    def read(self) -> Measurement: ...
-
-    def write(self, command: Command) -> None: ...
-
-    def close(self) -> None: ...
 
 
 class SimulatedBackend:

@@ -25,7 +25,7 @@ from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any, Callable, Protocol
 
-from hvac_mpc.mpc.reference import InvalidReference, Reference
+from hvac_mpc.contract import InvalidReference, Reference
 
 
 class ApiBackend(Protocol):

@@ -11,6 +11,7 @@ configuration). Modules, one job each:
 * :mod:`.modbus`      the Modbus TCP register map and client backend; :mod:`.modbus_sim` the
   simulated plant behind a real Modbus TCP server;
 * :mod:`.api`         the HTTP/JSON reference API;
-* :mod:`.campaign`    the fault campaign; :mod:`.soak` the soak run;
+* :mod:`.io`          the backend interface (:class:`.io.IoBackend`, :class:`.io.BackendError`);
+* :mod:`.soak`        the soak run (the fault campaign is :mod:`hvac_mpc.benchmarks.daemon_campaign`);
 * :mod:`.main`        the ``daemon`` subcommand.
 """

@@ -12,7 +12,7 @@ Both have the I/O side's watchdog: when no new heartbeat arrives for ``watchdog_
 samples the heater is switched off and the status register's bit 0 is set (a PLC's
 communication-loss reaction). Run standalone::
 
-    python -m hvac_mpc.mpc.daemon.modbus_sim --port 5020 --mode realtime
+    python -m hvac_mpc.daemon.modbus_sim --port 5020 --mode realtime
 """
 
 from __future__ import annotations
@@ -23,7 +23,9 @@ import threading
 import time
 from dataclasses import replace
 
-from hvac_mpc.models.plant import Command, SimulatedPlant
+from hvac_mpc.models.plant import SimulatedPlant
+
+from hvac_mpc.contract import Command
 
 from .modbus import (HOLDING_COUNT, INPUT_COUNT, STATUS_WATCHDOG, decode_command, encode_command,
                      encode_measurement)

@@ -1,0 +1,29 @@
+"""The data loop's entry point for library users: a log in, an identification result out."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable, Iterable, Mapping
+
+from hvac_mpc.models.parameters import Parameters
+
+from . import log_data
+from .log_data import LogData
+from .pipeline import IdentificationResult
+from .pipeline import identify as _identify
+
+
+def identify(log: str | Path | LogData, params: Parameters | None = None, effects: Iterable[str] = (), *,
+             mapping: Mapping[str, str] | None = None, holdout_fraction: float = 1 / 3, quick: bool = False,
+             max_effects: int = 4, progress: Callable[[str], None] | None = None) -> IdentificationResult:
+    """Refine the model from a measurement log (a CSV/Parquet path or a prepared :class:`LogData`).
+
+    ``params``/``effects``: the starting model (default: the thesis model); ``mapping``: log column ->
+    schema column; the last ``holdout_fraction`` of the log is held out from fitting. The result
+    holds the effects added, the refit parameters and the held-out errors before and after
+    (``result.holdout_errors()``); ``hvac_mpc.identification.report.write_report`` writes the report
+    and the model file.
+    """
+    data = log if isinstance(log, LogData) else log_data.load(log, mapping, holdout_fraction)
+    return _identify(data, params or Parameters(), tuple(effects), quick=quick, max_effects=max_effects,
+                     progress=progress)
