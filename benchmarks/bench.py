@@ -24,9 +24,9 @@ from hvac_mpc.models.parameters import Parameters
 from hvac_mpc.models.plant import PLANT_EFFECTS
 from hvac_mpc.contract import Command
 
-from . import criteria, metrics, report, scenarios as scenario_defs
+from . import criteria, metrics, plant_seam, report, scenarios as scenario_defs
 from .perturbation import MAGNITUDE_RANGE, perturb_parameters
-from .simulate import Trace, actuator_bounds, simulate
+from .simulate import Trace, actuator_bounds, plant_seed, simulate
 
 DT_S = 1.0
 
@@ -111,19 +111,24 @@ class ProgressBar:
 
 # ---------------------------------------------------------------------------- benchmark
 def run_benchmark(chosen: Sequence[scenario_defs.Scenario], factories: Mapping[str, Callable[[], object]],
-                  seed: int, progress: ProgressBar | None = None) -> tuple[dict, dict[str, dict[str, Trace]]]:
+                  seed: int, progress: ProgressBar | None = None,
+                  plant_factory: Callable[..., object] | None = None,
+                  plant_name: str = "SimulatedPlant") -> tuple[dict, dict[str, dict[str, Trace]]]:
     """Run every controller on every scenario; figures, ratios and criteria from this one run.
 
     ``factories`` must hold "baseline" and "mpc", each a callable taking the command in force on
     the plant at the start and giving a fresh controller on the nominal parameters (a fresh one per
     scenario, so a scenario's numbers do not depend on which scenarios ran before it).
-    Returns ``(results, traces)``.
+    ``plant_factory`` (keywords ``seed``, ``dt_s``; :mod:`.plant_seam`) builds a fresh plant per run
+    instead of the perturbed built-in one. Returns ``(results, traces)``.
     """
     missing = [c for c in report.CONTROLLERS if c not in factories]
     if missing:
         raise ValueError(f"factories: missing controller(s) {missing}; expected {list(report.CONTROLLERS)}")
     nominal = Parameters()
     plant_params, perturbation = perturb_parameters(nominal, seed)
+    if plant_factory is not None:
+        plant_params, perturbation = nominal, []
     lower, upper = actuator_bounds(nominal)
     results: dict = {"scenarios": {}}
     traces: dict[str, dict[str, Trace]] = {}
@@ -141,7 +146,10 @@ def run_benchmark(chosen: Sequence[scenario_defs.Scenario], factories: Mapping[s
             if progress is not None:
                 label = f"{sc.name} {report.LABELS[cname]}"
                 cb = lambda k, n, label=label: progress.advance(1, label)  # noqa: E731
-            tr = simulate(sc, ctrl, plant_params, seed, name=cname, progress=cb, dt_s=DT_S)
+            plant = None
+            if plant_factory is not None:
+                plant = plant_seam.build_plant(plant_factory, plant_seed(seed, sc.seed), DT_S, name=plant_name)
+            tr = simulate(sc, ctrl, plant_params, seed, name=cname, progress=cb, dt_s=DT_S, plant=plant)
             traces[sc.name][cname] = tr
             runs[cname] = metrics.run_figures(tr, lower, upper, nominal.heater_temp_max_c,
                                               nominal.trap_threshold_pct, plant_params.tau_tc_s)
@@ -160,7 +168,8 @@ def run_benchmark(chosen: Sequence[scenario_defs.Scenario], factories: Mapping[s
     results["summary"] = report.summarise(results["scenarios"])
     results["criteria_names"] = report.criteria_names(results["scenarios"])
     results["meta"] = {
-        "seed": seed, "plant_effects": list(PLANT_EFFECTS),
+        "seed": seed, "plant": plant_name,
+        "plant_effects": list(PLANT_EFFECTS) if plant_factory is None else [],
         "perturbation": [dataclasses.asdict(p) for p in perturbation],
         "perturbation_rule": (f"Rule: each listed parameter is multiplied by 1 + s m, sign s random, magnitude m "
                               f"uniform in [{MAGNITUDE_RANGE[0]:.0%}, {MAGNITUDE_RANGE[1]:.0%}], drawn from the "
@@ -230,13 +239,30 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, metavar="N",
                         help="seed of the plant perturbation and the sensor noise (default: 0)")
     parser.add_argument("--no-plots", action="store_true", help="write the report without PNG plots")
+    parser.add_argument("--plant", metavar="MODULE:FACTORY", default=None,
+                        help="run on the plant this function builds (keywords seed, dt_s; an object with "
+                             "apply/advance/read, optionally set_environment/settle/truth) instead of the "
+                             "built-in simulated plant")
+    parser.add_argument("--suite", choices=("mismatch",), default=None,
+                        help="mismatch: both controllers on every variant of the independent simulator "
+                             "(hvac_mpc.mismatch) on the cooling, heating and proband scenarios; a matrix of "
+                             "MPC/baseline ratios")
 
 
 def run(args: argparse.Namespace) -> int:
     if args.seed < 0:
         print(f"hvac-mpc bench: --seed must be an integer >= 0, got {args.seed}", file=sys.stderr)
         return 2
+    if getattr(args, "suite", None) == "mismatch":
+        if args.plant:
+            print("hvac-mpc bench: --suite mismatch brings its own plants; drop --plant", file=sys.stderr)
+            return 2
+        from . import mismatch_suite
+        return mismatch_suite.run(args)
+    plant_factory = None
     try:
+        if getattr(args, "plant", None):
+            plant_factory = plant_seam.load_factory(args.plant)
         chosen = scenario_defs.select(args.scenario, quick=args.quick)
         factories = {"baseline": baseline_factory(), "mpc": mpc_factory()}
     except (ValueError, RuntimeError) as exc:
@@ -246,7 +272,11 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     bar = ProgressBar(sum(int(round(s.duration_s / DT_S)) for s in chosen) * len(report.CONTROLLERS))
     try:
-        results, traces = run_benchmark(chosen, factories, args.seed, progress=bar)
+        results, traces = run_benchmark(chosen, factories, args.seed, progress=bar, plant_factory=plant_factory,
+                                        plant_name=args.plant or "SimulatedPlant")
+    except plant_seam.InvalidPlant as exc:
+        print(f"hvac-mpc bench: {exc}", file=sys.stderr)
+        return 2
     finally:
         bar.close()
     results["meta"].update({"command": command, "quick": bool(args.quick),
@@ -275,4 +305,8 @@ def _argv_from(args: argparse.Namespace) -> list[str]:
         argv += ["--seed", str(args.seed)]
     if args.no_plots:
         argv.append("--no-plots")
+    if getattr(args, "plant", None):
+        argv += ["--plant", args.plant]
+    if getattr(args, "suite", None):
+        argv += ["--suite", args.suite]
     return argv

@@ -131,6 +131,29 @@ def step_responses(output, reference, dt_s: float, band: float, relative_band: b
     return out
 
 
+def in_band_after_settling(output, reference, dt_s: float, band: float) -> dict:
+    """The thesis's yardstick beside the IAE: per reference step, the settle time (first sample inside
+    +-``band`` of the new reference, s from the step, ``None`` if never) and, from there to the next
+    step, the share of samples inside the band; pooled over all steps as ``share`` (``None`` if no
+    step settled). The first stretch (before any step) counts as settled from its start."""
+    _check_dt(dt_s)
+    y, r = _arr(output), _arr(reference)
+    if y.shape != r.shape:
+        raise ValueError(f"output and reference must have the same length, got {y.size} and {r.size}")
+    starts = [0] + [k for k in step_indices(r) if k > 0]
+    inside_total, counted, settle = 0, 0, []
+    for i, k in enumerate(starts):
+        end = starts[i + 1] if i + 1 < len(starts) else r.size
+        inside = np.abs(y[k:end] - r[k:end]) <= band
+        first = int(np.argmax(inside)) if inside.any() else None
+        if i > 0:
+            settle.append(None if first is None else first * dt_s)
+        if first is not None:
+            inside_total += int(inside[first:].sum())
+            counted += inside.size - first
+    return {"share": inside_total / counted if counted else None, "settle_times_s": settle}
+
+
 def lagged_reference(reference, tau_s: float, dt_s: float) -> np.ndarray:
     """The reading of a first-order sensor (time constant ``tau_s``) whose input equals the reference.
 
@@ -295,6 +318,9 @@ def run_figures(trace, lower: Sequence[float], upper: Sequence[float], heater_te
     ideal_steps = summarise_steps([s for s in step_responses(ideal, ref["supply_temp_c"], dt, TEMP_BAND_C)
                                    if s["time_s"] >= trace.metrics_start_s])
     e_temp = tru["supply_temp_c"][sl] - ref["supply_temp_c"][sl]
+    band = in_band_after_settling(tru["supply_temp_c"][sl], ref["supply_temp_c"][sl], dt, TEMP_BAND_C)
+    settled_times = [x for x in band["settle_times_s"] if x is not None]
+    reach = out_of_reach_summary(getattr(trace, "out_of_reach", None) or [None] * t.size, k0, dt)
     steady = _steady_mask(t[sl], [s["time_s"] for s in temp_steps], trace.metrics_start_s)
     blower_i, heater_i, a_i = (list(trace.actuators).index(n) for n in ("blower_power_w", "heater_cmd_w",
                                                                           "valve_a_pct"))
@@ -308,6 +334,9 @@ def run_figures(trace, lower: Sequence[float], upper: Sequence[float], heater_te
         "temp_time_to_band_median_s": ts["median_time_to_band_s"],
         "temp_time_to_band_max_s": ts["max_time_to_band_s"],
         "temp_overshoot_max_c": ts["max_overshoot"],
+        "temp_in_band_share": band["share"],
+        "temp_settle_median_s": float(np.median(settled_times)) if settled_times else None,
+        "out_of_reach_s": reach["time_s"],
         "flow_iae_m3": iae(tru["volume_flow_m3s"][sl], ref["volume_flow_m3s"][sl], dt),
         "flow_steps": fs["steps"],
         "flow_unsettled": fs["unsettled"],
@@ -349,8 +378,28 @@ def run_figures(trace, lower: Sequence[float], upper: Sequence[float], heater_te
         "mean_heater_cmd_w": float(np.mean(applied[:, heater_i])),
         "valve_a_saturated_s": float(np.sum(applied[:, a_i] >= trap_threshold_pct) * dt),
         "max_heater_temp_c": float(np.max(tru["heater_temp_c"][sl])),
+        "temp_band_c": TEMP_BAND_C,
+        "temp_settle_times_s": band["settle_times_s"],
+        "out_of_reach": reach["by_reference"],
     }
     return {"figures": figures, "details": details}
+
+
+def out_of_reach_summary(records: Sequence, start: int, dt_s: float) -> dict:
+    """Seconds with any reference reported out of reach and, per reference name, the samples, the mean
+    and the largest shortfall (unit of the reference) from sample ``start`` on; records are per
+    sample ``None`` or a mapping name -> shortfall (a controller's ``stats["out_of_reach"]``)."""
+    per: dict[str, list[float]] = {}
+    n = 0
+    for rec in list(records)[start:]:
+        if rec:
+            n += 1
+            for name, short in rec.items():
+                per.setdefault(str(name), []).append(float(short))
+    return {"time_s": n * dt_s,
+            "by_reference": {k: {"samples": len(v), "mean_shortfall": float(np.mean(v)),
+                                 "max_shortfall": float(np.max(v)), "last_shortfall": v[-1]}
+                             for k, v in per.items()}}
 
 
 #: Figures compared as MPC / baseline (all lower-is-better).

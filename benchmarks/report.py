@@ -25,6 +25,8 @@ ROWS = (
     ("temp_time_to_band_max_s", f"time to +-{TEMP_BAND_C} C, max [s]", 1.0, "{:.0f}"),
     ("temp_unsettled", "temperature steps not settled", 1.0, "{:.0f}"),
     ("temp_overshoot_max_c", "temperature overshoot, max [C]", 1.0, "{:.2f}"),
+    ("temp_settle_median_s", f"settle time (first inside +-{TEMP_BAND_C} C), median [s]", 1.0, "{:.0f}"),
+    ("temp_in_band_share", f"time inside +-{TEMP_BAND_C} C once settled [%]", 100.0, "{:.1f}"),
     ("flow_iae_m3", "volume-flow IAE [m3]", 1.0, "{:.3f}"),
     ("flow_time_to_band_max_s", f"time to +-{FLOW_BAND_FRACTION:.0%} flow, max [s]", 1.0, "{:.0f}"),
     ("outlet_rms_m3s", "outlet-flow RMS error [m3/h]", M3H, "{:.2f}"),
@@ -39,6 +41,7 @@ ROWS = (
     ("step_p99_ms", "step time, 99th percentile [ms]", 1.0, "{:.2f}"),
     ("time_ratio", "time ratio (step / sample)", 1.0, "{:.4f}"),
     ("fallbacks", "fallback steps", 1.0, "{:.0f}"),
+    ("out_of_reach_s", "time with a reference reported out of reach [s]", 1.0, "{:.0f}"),
 )
 
 
@@ -62,6 +65,22 @@ def figure_rows(scenario: Mapping) -> list[tuple[str, str, str, str]]:
             for k, label, s, f in ROWS]
 
 
+#: Display scale and unit of a reference's shortfall, by reference name.
+SHORTFALL_UNITS = {"volume_flow_m3s": (M3H, "m3/h"), "supply_temp_c": (1.0, "C")}
+
+
+def reach_lines(scenario: Mapping) -> list[str]:
+    """One line per controller and reference it reported out of reach: how long and by how much."""
+    lines = []
+    for c in CONTROLLERS:
+        for name, r in (scenario[c]["details"].get("out_of_reach") or {}).items():
+            scale, unit = SHORTFALL_UNITS.get(name, (1.0, ""))
+            lines.append(f"{LABELS[c]}: reference {name} out of reach for {r['samples']} samples, shortfall "
+                         f"mean {r['mean_shortfall'] * scale:.3g} {unit}, max {r['max_shortfall'] * scale:.3g} {unit}, "
+                         f"last {r['last_shortfall'] * scale:.3g} {unit}")
+    return lines
+
+
 def terminal_table(results: Mapping) -> str:
     """Plain-text tables, one block per scenario, then the criteria summary."""
     lines = []
@@ -70,6 +89,7 @@ def terminal_table(results: Mapping) -> str:
         lines.append(f"  {'':44s}{'baseline':>11s}{'MPC':>11s}{'MPC/base':>10s}")
         for label, b, m, r in figure_rows(sc):
             lines.append(f"  {label:44s}{b:>11s}{m:>11s}{r:>10s}")
+        lines += [f"  {x}" for x in reach_lines(sc)]
         for c in sc["criteria"]:
             lines.append(f"  [{c['status']:^7s}] {c['criterion']}: {c['value']}"
                          + (f" (ratio {_fmt_ratio(c['ratio'])})" if c["ratio"] is not None else ""))
@@ -104,15 +124,19 @@ def markdown(results: Mapping, plots: Mapping[str, str], plot_note: str | None) 
     out = ["# Benchmark: MPC against the thesis baseline", "",
            f"Command: `{meta['command']}`  ", f"Seed {meta['seed']}, {'quick' if meta['quick'] else 'full'} run, "
            f"{meta['elapsed_s']:.0f} s wall time on {meta['platform']} (Python {meta['python']}).", ""]
-    out += ["## Set-up", "",
-            "Both controllers run on the same simulated plant (`SimulatedPlant`, all non-ideal effects on: "
-            + ", ".join(meta["plant_effects"]) + "), with seeded sensor noise (the same noise sequence for both "
-            "controllers in a scenario). The plant's parameters are perturbed from the controllers' model; the "
-            "controllers get the nominal `Parameters()`:", "",
-            "| parameter | nominal (controllers) | plant | change | meaning |", "|---|---|---|---|---|"]
-    for p in meta["perturbation"]:
-        out.append(f"| `{p['name']}` | {p['nominal']:.6g} | {p['plant']:.6g} | {p['relative']:+.1%} | {p['meaning']} |")
-    out += ["", meta["perturbation_rule"], ""]
+    out += ["## Set-up", ""]
+    if meta.get("plant", "SimulatedPlant") != "SimulatedPlant":
+        out += [f"Both controllers run on the plant built by `{meta['plant']}` (a fresh one per run, seeded); "
+                "the controllers get the nominal `Parameters()`.", ""]
+    else:
+        out += ["Both controllers run on the same simulated plant (`SimulatedPlant`, all non-ideal effects on: "
+                + ", ".join(meta["plant_effects"]) + "), with seeded sensor noise (the same noise sequence for both "
+                "controllers in a scenario). The plant's parameters are perturbed from the controllers' model; the "
+                "controllers get the nominal `Parameters()`:", "",
+                "| parameter | nominal (controllers) | plant | change | meaning |", "|---|---|---|---|---|"]
+        for p in meta["perturbation"]:
+            out.append(f"| `{p['name']}` | {p['nominal']:.6g} | {p['plant']:.6g} | {p['relative']:+.1%} | {p['meaning']} |")
+        out += ["", meta["perturbation_rule"], ""]
     out += ["Figures (scored after each scenario's warm-up; sample time 1 s, rectangle sums):", "",
             "- supply-temperature IAE from the noise-free thermocouple reading (`plant.truth()['supply_temp_c']`, "
             "the sensor the controllers see, without its noise); the IAE of the true mixed air temperature "
@@ -165,6 +189,7 @@ def markdown(results: Mapping, plots: Mapping[str, str], plot_note: str | None) 
         for label, b, m, r in figure_rows(sc):
             out.append(f"| {label} | {b} | {m} | {r} |")
         out.append("")
+        out += [f"- {x}" for x in reach_lines(sc)] + ([""] if reach_lines(sc) else [])
         steps = zip(sc["baseline"]["details"]["temperature_steps"], sc["mpc"]["details"]["temperature_steps"])
         rows = [f"| {b['time_s']:.0f} | {b['from']:.2f} -> {b['to']:.2f} | {_t(b['time_to_band_s'])} | "
                 f"{b['overshoot']:.2f} | {_t(m['time_to_band_s'])} | {m['overshoot']:.2f} |" for b, m in steps]

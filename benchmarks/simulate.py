@@ -4,6 +4,12 @@ Per sample k (time k dt): read the sensors, record the noise-free truth, ask the
 command (wall time measured around ``step``, BOPTEST's tic/tac view), apply it, advance the plant.
 The plant's noise comes from its own seeded generator, one draw per reading, so two controllers on
 the same scenario and seed see the same noise sequence.
+
+The plant is the built-in :class:`SimulatedPlant` unless the caller hands one in (the seam of
+``hvac-mpc bench --plant MODULE:FACTORY`` and of the mismatch suite, :mod:`.plant_seam`): any object
+with ``apply``/``advance``/``read`` (the ``Plant`` protocol of ``hvac_mpc.contract``). Its
+``set_environment`` and ``settle`` are used when it has them; without ``truth()`` the figures fall
+back to the sensor readings.
 """
 
 from __future__ import annotations
@@ -48,6 +54,8 @@ class Trace:
     status: list
     metrics_start_s: float
     environment: dict = field(default_factory=dict)
+    #: per sample: the controller's ``stats["out_of_reach"]`` (reference name -> shortfall) or None
+    out_of_reach: list = field(default_factory=list)
 
     @property
     def actuators(self) -> tuple[str, ...]:
@@ -66,18 +74,50 @@ def actuator_bounds(params: Parameters | None = None) -> tuple[np.ndarray, np.nd
     return np.array([INPUT_LOWER[n] for n in INPUTS]), np.array([up[n] for n in INPUTS])
 
 
+def prepare_plant(plant, scenario: Scenario) -> None:
+    """Put an external plant into the scenario's conditions: environment and rest for the initial
+    command when it can (``set_environment``, ``settle``), else just apply the initial command."""
+    if callable(getattr(plant, "set_environment", None)):
+        plant.set_environment(scenario.inlet_temp_c, scenario.chiller_setpoint_c)
+    if callable(getattr(plant, "settle", None)):
+        plant.settle(scenario.initial_command)
+    else:
+        plant.apply(scenario.initial_command)
+
+
+def plant_outputs(plant, measurement) -> dict[str, float]:
+    """Noise-free outputs for the figures: ``truth()`` where the plant has it, each missing name from
+    the sensor reading of the same quantity (the mixed air from the supply reading), else NaN."""
+    truth_fn = getattr(plant, "truth", None)
+    y = dict(truth_fn()) if callable(truth_fn) else {}
+    read = {f: getattr(measurement, f, None) for f in TRUTH_FIELDS}
+    read["supply_air_temp_c"] = measurement.supply_temp_c
+    out = {}
+    for f in TRUTH_FIELDS:
+        v = y.get(f, read.get(f))
+        out[f] = np.nan if v is None else float(v)
+    return out
+
+
 def simulate(scenario: Scenario, controller, plant_params: Parameters, seed: int, name: str = "controller",
-             progress: Callable[[int, int], None] | None = None, dt_s: float = 1.0) -> Trace:
+             progress: Callable[[int, int], None] | None = None, dt_s: float = 1.0, plant=None) -> Trace:
     """Run ``controller`` (Controller protocol) through ``scenario`` on a plant with ``plant_params``.
 
-    All plant effects are on (``PLANT_EFFECTS``). A command with a non-finite value is recorded as
-    requested and the previous command is held. ``progress(k, n)`` is called every sample.
+    All plant effects are on (``PLANT_EFFECTS``). ``plant``: a fresh external plant (``Plant``
+    protocol) to run on instead; it is put into the scenario's conditions (:func:`prepare_plant`)
+    and ``plant_params`` is not used. A command with a non-finite value is recorded as requested
+    and the previous command is held. ``progress(k, n)`` is called every sample.
     """
     if abs(getattr(controller, "dt_s", dt_s) - dt_s) > 1e-9:
         raise ValueError(f"controller {name}: sample time {controller.dt_s} s differs from the plant's {dt_s} s")
-    plant = SimulatedPlant(plant_params, effects=PLANT_EFFECTS, seed=plant_seed(seed, scenario.seed), dt_s=dt_s,
-                           environment=Environment(scenario.inlet_temp_c, scenario.chiller_setpoint_c),
-                           initial_command=scenario.initial_command)
+    if plant is None:
+        plant = SimulatedPlant(plant_params, effects=PLANT_EFFECTS, seed=plant_seed(seed, scenario.seed),
+                               dt_s=dt_s, environment=Environment(scenario.inlet_temp_c, scenario.chiller_setpoint_c),
+                               initial_command=scenario.initial_command)
+    else:
+        if abs(float(getattr(plant, "dt_s", dt_s)) - dt_s) > 1e-9:
+            raise ValueError(f"plant: sample time {plant.dt_s} s differs from the benchmark's {dt_s} s")
+        prepare_plant(plant, scenario)
     controller.reset()
     n = int(round(scenario.duration_s / dt_s))
     ref = {f: np.full(n, np.nan) for f in REFERENCE_FIELDS}
@@ -89,6 +129,7 @@ def simulate(scenario: Scenario, controller, plant_params: Parameters, seed: int
     fallback: list = [None] * n
     mode: list = [None] * n
     status: list = [None] * n
+    out_of_reach: list = [None] * n
     for k in range(n):
         t = k * dt_s
         r = scenario.reference_at(t)
@@ -96,7 +137,7 @@ def simulate(scenario: Scenario, controller, plant_params: Parameters, seed: int
             v = getattr(r, f)
             ref[f][k] = np.nan if v is None else v
         m = plant.read()
-        y = plant.truth()
+        y = plant_outputs(plant, m)
         for f in TRUTH_FIELDS:
             truth[f][k] = y[f]
         for f in MEASURED_FIELDS:
@@ -113,6 +154,7 @@ def simulate(scenario: Scenario, controller, plant_params: Parameters, seed: int
         fallback[k] = stats.get("fallback")
         mode[k] = stats.get("mode")
         status[k] = stats.get("status")
+        out_of_reach[k] = stats.get("out_of_reach") or None
         if np.all(np.isfinite(u)):
             applied[k] = plant.apply(u)
         else:
@@ -122,7 +164,8 @@ def simulate(scenario: Scenario, controller, plant_params: Parameters, seed: int
             progress(k + 1, n)
     return Trace(scenario=scenario.name, controller=name, dt_s=dt_s, time_s=np.arange(n) * dt_s, reference=ref,
                  truth=truth, measured=meas, requested=requested, applied=applied, step_time_s=step_time,
-                 fallback=fallback, mode=mode, status=status, metrics_start_s=scenario.metrics_start_s,
+                 fallback=fallback, mode=mode, status=status, out_of_reach=out_of_reach,
+                 metrics_start_s=scenario.metrics_start_s,
                  environment={"inlet_temp_c": scenario.inlet_temp_c,
                               "chiller_setpoint_c": scenario.chiller_setpoint_c})
 

@@ -25,10 +25,13 @@ from .parameters import Parameters
 
 STATES = ("motor_rise_c", "water_temp_c", "heater_temp_c", "supply_sensor_c")
 TRAP_STATE = "trap_air_temp_c"
+#: Longest time constant of one lag of the transport-delay chain (s): a delay of D seconds becomes
+#: ceil(D / this) first-order lags of D / n each (docs/robustness.md sec. 2).
+DELAY_LAG_MAX_S = 2.0
 DISTURBANCES = ("inlet_temp_c", "chiller_setpoint_c", "mix_offset_c", "flow_offset_m3s")
 OUTPUTS = ("supply_temp_c", "volume_flow_m3s", "flow_m_m3s", "flow_f_m3s", "flow_w_m3s",
            "heater_temp_c", "supply_air_temp_c", "heater_outlet_temp_c", "heater_power_w",
-           "water_temp_c", "mass_flow_kgs")
+           "water_temp_c", "mass_flow_kgs", "duct_air_temp_c")
 
 #: Continuous effects the model can include (each off in the thesis model).
 MODEL_EFFECTS = ("ptc_power_fall", "motor_asymmetry", "bypass_flow", "trapped_air", "fan_curve",
@@ -79,6 +82,17 @@ def validate_effects(effects: Iterable[str], allowed: Sequence[str]) -> frozense
     return effects
 
 
+def delay_lag_count(transport_delay_s: float) -> int:
+    """Number of first-order lags standing in for a transport delay (0 for no delay)."""
+    d = float(transport_delay_s)
+    return 0 if d <= 0.0 else int(np.ceil(d / DELAY_LAG_MAX_S - 1e-9))
+
+
+def delay_state_names(transport_delay_s: float) -> tuple[str, ...]:
+    """States of the transport-delay chain between the mixing point and the thermocouple."""
+    return tuple(f"duct_air_{i + 1}_c" for i in range(delay_lag_count(transport_delay_s)))
+
+
 def rk4(ode, x, u, d, p, dt_s, substeps: int):
     """``substeps`` classical Runge-Kutta steps of ``ode(x, u, d, p)`` over ``dt_s`` (inputs held)."""
     h = dt_s / substeps
@@ -103,7 +117,10 @@ class HvacModel:
         self.params = params or Parameters()
         self.effects = validate_effects(effects, MODEL_EFFECTS)
         self.dt_s = float(dt_s)
-        state_names = STATES + ((TRAP_STATE,) if "trapped_air" in self.effects else ())
+        # the transport delay (Parameters.transport_delay_s) is a chain of equal lags from the mixed air to
+        # the thermocouple; its length is structure (fixed here), its time constant a parameter
+        self.delay_states = delay_state_names(self.params.transport_delay_s)
+        state_names = STATES + self.delay_states + ((TRAP_STATE,) if "trapped_air" in self.effects else ())
         self.states = Signals(state_names)
         self.inputs = Signals(INPUTS)
         self.disturbances = Signals(DISTURBANCES)
@@ -161,10 +178,11 @@ class HvacModel:
         if "trapped_air" in e:
             t_mix = t_mix + bypass.trap_release_c(sx[TRAP_STATE], t_mix, a, mass_flow, prm)
         t_supply = t_mix + sd["mix_offset_c"]
+        t_duct = sx[self.delay_states[-1]] if self.delay_states else t_supply
         outlet = valves.split_flows(flow, g)
         return dict(prm=prm, sx=sx, su=su, sd=sd, flow=flow, mass_flow=mass_flow, bypass=b,
                     t_blower=t_blower, t_cooler=t_cooler, p_el=p_el, t_heater_out=t_heater_out,
-                    t_mix=t_mix, t_supply=t_supply, outlet=outlet)
+                    t_mix=t_mix, t_supply=t_supply, t_duct=t_duct, outlet=outlet)
 
     def _equations(self, x, u, d, p):
         e = self.effects
@@ -176,15 +194,21 @@ class HvacModel:
             "water_temp_c": chiller.water_rate_c_per_s(sx["water_temp_c"], sd["chiller_setpoint_c"], prm,
                                                        asymmetric="chiller_asymmetry" in e),
             "heater_temp_c": heater.body_rate_c_per_s(sx["heater_temp_c"], q["t_heater_out"], q["p_el"], prm),
-            "supply_sensor_c": sensors.lag_rate(sx["supply_sensor_c"], q["t_supply"], prm.tau_tc_s),
+            "supply_sensor_c": sensors.lag_rate(sx["supply_sensor_c"], q["t_duct"], prm.tau_tc_s),
         }
+        if self.delay_states:
+            tau = ca.fmax(prm.transport_delay_s, 1e-3) / len(self.delay_states)
+            upstream = q["t_supply"]
+            for name in self.delay_states:
+                rates[name] = sensors.lag_rate(sx[name], upstream, tau)
+                upstream = sx[name]
         if "trapped_air" in e:
             t_mix_no_trap = bypass.mix_c(q["bypass"], q["t_blower"], q["t_heater_out"])
             rates[TRAP_STATE] = bypass.trap_rate_c_per_s(sx[TRAP_STATE], sx["heater_temp_c"], t_mix_no_trap,
                                                          su["valve_a_pct"], prm)
         xdot = ca.vertcat(*[rates[n] for n in self.states.names])
         y = ca.vertcat(sx["supply_sensor_c"], q["flow"], *q["outlet"], sx["heater_temp_c"], q["t_supply"],
-                       q["t_heater_out"], q["p_el"], sx["water_temp_c"], q["mass_flow"])
+                       q["t_heater_out"], q["p_el"], sx["water_temp_c"], q["mass_flow"], q["t_duct"])
         return xdot, y
 
     # ------------------------------------------------------------------ discretisation

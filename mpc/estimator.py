@@ -84,6 +84,7 @@ class DisturbanceEkf:
         self.i_sensor = names.index("supply_sensor_c")
         q_state = {"motor_rise_c": s.q_motor_c, "water_temp_c": s.q_water_c, "heater_temp_c": s.q_heater_c,
                    "supply_sensor_c": s.q_sensor_c, "trap_air_temp_c": s.q_trap_c}
+        q_state.update({n: s.q_sensor_c for n in model.delay_states})
         q = [q_state[n] for n in names] + [s.q_mix_offset_c, s.q_flow_offset_m3s, s.q_inlet_c]
         self.Q = np.diag(np.square(q))
         self.R_diag = np.square([s.r_supply_c, s.r_flow_m3s, s.r_water_c, s.r_inlet_c, s.r_heater_outlet_c])
@@ -142,9 +143,12 @@ class DisturbanceEkf:
         flow = _finite(measurement.volume_flow_m3s, y["volume_flow_m3s"])
         mix = supply - y["supply_air_temp_c"]
         x[self.i_sensor] = supply
+        for n in m.delay_states:
+            x[m.states.index(n)] = supply
         self.z = np.concatenate([x, [mix, flow - y["volume_flow_m3s"], inlet]])
         p0 = {"motor_rise_c": 0.5, "water_temp_c": 0.2, "heater_temp_c": 5.0, "supply_sensor_c": 0.1,
               "trap_air_temp_c": 5.0}
+        p0.update({n: 0.1 for n in m.delay_states})
         sd = [p0[n] for n in m.states.names] + [0.5, 2e-3, 0.1]
         self.P = np.diag(np.square(sd))
 

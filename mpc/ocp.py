@@ -261,8 +261,15 @@ class TrackingProblem:
         self.dt = np.array(spec.stage_durations_s, float)
         self.N = len(self.dt)
         self.t_nodes = np.concatenate([[0.0], np.cumsum(self.dt)])
-        self.x_off = np.array([STATE_SCALING[n][0] for n in self.state_names])
-        self.x_sc = np.array([STATE_SCALING[n][1] for n in self.state_names])
+        # the transport-delay lags carry air temperatures: scaled like the thermocouple
+        scaling = {n: STATE_SCALING.get(n, STATE_SCALING["supply_sensor_c"]) for n in self.state_names}
+        self.x_off = np.array([scaling[n][0] for n in self.state_names])
+        self.x_sc = np.array([scaling[n][1] for n in self.state_names])
+        # RK4 stays stable and accurate on the delay lags with substeps of at most two lag time constants
+        self.max_substep_s = float(spec.max_substep_s)
+        if m.delay_states:
+            lag_s = self.params.transport_delay_s / len(m.delay_states)
+            self.max_substep_s = min(self.max_substep_s, 2.0 * lag_s)
         self.u_off = np.array([INPUT_SCALING[n][0] for n in INPUTS])
         self.u_sc = np.array([INPUT_SCALING[n][1] for n in INPUTS])
         self.valve_mask = np.zeros(self.nu, bool)
@@ -331,6 +338,11 @@ class TrackingProblem:
         for j, name in zip(self.VALVES, VALVE_NAMES):
             out[..., j] = self.valve_map.angle(name, out[..., j])
         return out
+
+    def placeholder_state(self) -> np.ndarray:
+        """A plausible physical state (degC) for solver set-up: motor rise 1, water 5, the rest 15."""
+        guess = {"motor_rise_c": 1.0, "water_temp_c": 5.0}
+        return np.array([guess.get(n, 15.0) for n in self.state_names])
 
     def ptc_available_w(self, heater_temp_c: float) -> float:
         """Heater power available at ``heater_temp_c`` (W), the line of :attr:`OcpSpec.ptc_limit`."""
@@ -418,7 +430,9 @@ class TrackingProblem:
         xn = (xk - x_off) / x_sc
         y_all = m.output(x_phys, u_phys, d, p)
         share = self.spec.temperature_sensor_share
-        temp = ((1.0 - share) * y_all[m.outputs.index("supply_air_temp_c")]
+        # the air where the thermocouple sits: the mixed air after the transport delay (the same
+        # with no delay)
+        temp = ((1.0 - share) * y_all[m.outputs.index("duct_air_temp_c")]
                 + share * y_all[m.outputs.index("supply_temp_c")])
         y = ca.vertcat(temp, *[y_all[m.outputs.index(n)] for n in STAGE_OUTPUTS[1:]])
         out = ca.densify(ca.vertcat(xn, ca.vec(ca.jacobian(xn, xs)), ca.vec(ca.jacobian(xn, us)), y,
@@ -443,7 +457,7 @@ class TrackingProblem:
         nx, nu = self.nx, self.nu
         # substeps per stage: the longest RK4 substep is max_substep_s; the terminal stage only
         # needs outputs, so one substep
-        ns = [max(1, int(math.ceil(dt / self.spec.max_substep_s - 1e-9))) for dt in self.dt] + [1]
+        ns = [max(1, int(math.ceil(dt / self.max_substep_s - 1e-9))) for dt in self.dt] + [1]
         self.stage_substeps = np.array(ns)
         self.stages = {n: self._stage_function(n) for n in sorted(set(ns))}
         groups, start = [], 0

@@ -229,7 +229,7 @@ class RtiOsqpSolver:
     def _setup_osqp(self) -> None:
         pb = self.pb
         # a plausible trajectory so that the placeholder values are representative for scaling
-        x0 = pb.scale_x(np.array([1.0, 5.0, 15.0, 15.0, 15.0][:pb.nx]))
+        x0 = pb.scale_x(pb.placeholder_state())
         u0 = pb.scale_u(np.array([150.0, 0.0, 60.0, 100.0, 100.0, 100.0]))
         d = np.array([25.0, 5.0, 0.0, 0.0])
         X = np.tile(x0, (pb.N + 1, 1))
