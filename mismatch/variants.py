@@ -1,0 +1,100 @@
+"""Plant variants: named differences from the nominal independent box, each a field of :class:`Variant`."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields
+
+#: ASSUMPTION: duct-to-cabin conductance of the "duct_loss" variant (W/K). At 0.05 m3/s (~60 W/K of
+#: capacity flow) it moves the supply air ~5 % of the way to the cabin temperature, ~20 % at 0.012 m3/s.
+DUCT_LOSS_UA_W_PER_K = 3.0
+
+
+@dataclass(frozen=True)
+class Variant:
+    """Differences from the nominal box; every default means "nominal".
+
+    transport_delay_s       dead time (s) from the mixing point to the supply sensor and supply air
+                            (rounded to whole sub-steps of the box, 0.25 s at dt_s = 1 s)
+    duct_loss_ua_w_per_k    duct-to-cabin heat conductance (W/K); cabin at ``cabin_temp_c`` (degC)
+    cooler_literal_fit      cooler outlet = 0.7564 T_w + 6.312 whatever the inlet air (thesis 4.2 as written)
+    thermocouple_tau_scale  thermocouple time constant times this (nominal 5.73 s, thesis 5.4.1)
+    blower_gain_scale       blower volume flow per watt times this
+    valve_shift_pct         every valve curve moved this many % of travel to the right (acts less open)
+    heater_power_scale      electric power the heater draws (and its PTC curve) times this
+    chiller_rate_scale      chiller water ramps times this (0.5 = twice as slow)
+    ptc_power_fall          PTC power falling from 240 W at ~60 C to 0 at 165 C (off: constant 240 W)
+    outlet_density_correction  outlet volume flows at the supply air's density instead of the inlet's
+    log_shift_samples       logs only: output columns this many samples late (negative: early)
+    """
+
+    transport_delay_s: float = 0.0
+    duct_loss_ua_w_per_k: float = 0.0
+    cabin_temp_c: float = 24.0
+    cooler_literal_fit: bool = False
+    thermocouple_tau_scale: float = 1.0
+    blower_gain_scale: float = 1.0
+    valve_shift_pct: float = 0.0
+    heater_power_scale: float = 1.0
+    chiller_rate_scale: float = 1.0
+    ptc_power_fall: bool = True
+    outlet_density_correction: bool = False
+    log_shift_samples: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("transport_delay_s", "duct_loss_ua_w_per_k", "cabin_temp_c", "valve_shift_pct"):
+            if not math.isfinite(getattr(self, name)):
+                raise ValueError(f"Variant.{name} must be finite, got {getattr(self, name)!r}")
+        for name in ("thermocouple_tau_scale", "blower_gain_scale", "heater_power_scale", "chiller_rate_scale"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0.0):
+                raise ValueError(f"Variant.{name} must be a positive number, got {value!r}")
+        if self.transport_delay_s < 0.0 or self.duct_loss_ua_w_per_k < 0.0:
+            raise ValueError("Variant.transport_delay_s and duct_loss_ua_w_per_k must be >= 0")
+        if not -100.0 <= self.valve_shift_pct <= 100.0:
+            raise ValueError(f"Variant.valve_shift_pct must be within [-100, 100], got {self.valve_shift_pct}")
+        if int(self.log_shift_samples) != self.log_shift_samples:
+            raise ValueError(f"Variant.log_shift_samples must be an integer, got {self.log_shift_samples!r}")
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+    def differences(self) -> dict:
+        """The fields that differ from nominal, with their values."""
+        nominal = Variant()
+        return {f.name: getattr(self, f.name) for f in fields(self) if getattr(self, f.name) != getattr(nominal, f.name)}
+
+
+_LOSS = DUCT_LOSS_UA_W_PER_K
+
+#: Named variants for the robustness suite, the identification tests and the sweeps.
+VARIANTS: dict[str, Variant] = {
+    "nominal": Variant(),
+    "delay_1s": Variant(transport_delay_s=1.0),
+    "delay_3s": Variant(transport_delay_s=3.0),
+    "delay_5s": Variant(transport_delay_s=5.0),
+    "duct_loss": Variant(duct_loss_ua_w_per_k=_LOSS),
+    "cooler_literal": Variant(cooler_literal_fit=True),
+    "tc_fast": Variant(thermocouple_tau_scale=0.5),
+    "tc_slow": Variant(thermocouple_tau_scale=1.5),
+    "blower_weak": Variant(blower_gain_scale=0.8),
+    "blower_strong": Variant(blower_gain_scale=1.2),
+    "valve_shift": Variant(valve_shift_pct=10.0),
+    "heater_weak": Variant(heater_power_scale=0.85),
+    "chiller_slow": Variant(chiller_rate_scale=0.5),
+    "combo_delay_loss_cooler": Variant(transport_delay_s=3.0, duct_loss_ua_w_per_k=_LOSS, cooler_literal_fit=True),
+    "combo_tc_blower_valve": Variant(thermocouple_tau_scale=1.5, blower_gain_scale=0.8, valve_shift_pct=10.0),
+    "combo_heater_chiller_delay": Variant(heater_power_scale=0.85, chiller_rate_scale=0.5, transport_delay_s=3.0),
+}
+
+
+def get_variant(variant: "str | Variant | None") -> tuple[str, Variant]:
+    """(name, Variant) for a registry name, a :class:`Variant` (name "custom" unless registered) or None."""
+    if variant is None:
+        return "nominal", VARIANTS["nominal"]
+    if isinstance(variant, Variant):
+        name = next((n for n, v in VARIANTS.items() if v == variant), "custom")
+        return name, variant
+    if isinstance(variant, str) and variant in VARIANTS:
+        return variant, VARIANTS[variant]
+    raise ValueError(f"unknown plant variant {variant!r}; allowed: {', '.join(VARIANTS)}")
