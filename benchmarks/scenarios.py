@@ -260,3 +260,29 @@ def select(names: list[str] | None, quick: bool = False) -> list[Scenario]:
     else:
         chosen = list(known.values())
     return [s.quick() for s in chosen] if quick else chosen
+
+
+#: A total volume flow the blower cannot deliver at summer conditions (200 m3/h; the box gives about
+#: 0.057 m3/s = 205 m3/h at 300 W with every valve open and full bypass, less through the core, thesis table 6).
+UNREACHABLE_FLOW_M3H = 200.0
+
+
+def flow_out_of_reach() -> Scenario:
+    segs = (Segment(240.0, _ref(18.0, UNREACHABLE_FLOW_M3H)), Segment(180.0, _ref(16.0, UNREACHABLE_FLOW_M3H)),
+            Segment(120.0, _ref(18.0, 90.0)))
+    return Scenario(
+        name="flow_out_of_reach", seed=17, kind="cooling",
+        description=f"A total-flow reference out of reach: {UNREACHABLE_FLOW_M3H:.0f} m3/h at 18 and 16 C with a "
+                    "32 C inlet (summer conditions), then back to 90 m3/h. The supply temperature comes first: it "
+                    "should hold its reference and the flow fall short, reported as out of reach.",
+        inlet_temp_c=SUMMER_INLET_C, chiller_setpoint_c=SUMMER_CHILLER_C,
+        initial_command=Command(_blower_for(90.0), 0.0, 55.0, 100.0, 100.0, 100.0),
+        warmup=Segment(60.0, _ref(18.0, 90.0)), segments=segs, quick_warmup_s=30.0, quick_segment_s=150.0,
+        quick_segments=1)
+
+
+def mismatch_scenarios() -> dict[str, Scenario]:
+    """The scenarios of the mismatch suite: cooling steps, heating steps, the proband sequence and a
+    total-flow reference out of reach."""
+    items = (summer_cooling_steps(), winter_heating_steps(), proband_sequence(), flow_out_of_reach())
+    return {s.name: s for s in items}

@@ -23,7 +23,9 @@ limits and the trapped-air cap before it leaves.
 Stats of a step: ``step_time_s`` (the whole step), ``feedback_time_s`` (measurement to command),
 ``prep_time_s`` (preparation of the next QP), ``iterations`` (OSQP iterations, or IPOPT's),
 ``qp_solves``, ``cold_start``, ``status``, ``fallback``, ``mode`` ("heating" while the heater is commanded,
-else "cooling"), ``solver``, ``valve_a_cap_pct``, ``mix_offset_c``, ``flow_offset_m3s``.
+else "cooling"), ``solver``, ``valve_a_cap_pct``, ``mix_offset_c``, ``flow_offset_m3s``, ``out_of_reach``
+(reference name -> shortfall in its unit, e.g. ``{"volume_flow_m3s": 0.004}``; empty when every
+reference is within reach, :mod:`hvac_mpc.mpc.priorities`).
 """
 
 from __future__ import annotations
@@ -43,11 +45,16 @@ from hvac_mpc.contract import Command, Measurement
 
 from hvac_mpc.contract import StepResult
 from .estimator import DisturbanceEkf, EkfSettings
+from .priorities import ReachableFlow
 from .ocp import InvalidSettings, OcpSpec, TrackingProblem, check_number, trap_cap_pct
 from hvac_mpc.contract import InvalidReference, Reference
 from .rti_osqp import RtiOsqpSolver, SolveResult
 
 SOLVERS = ("rti", "sqp", "ipopt")
+#: Factor on the flow weights while the flow reference is out of reach: the reachable flow is a
+#: model estimate; the lower weight keeps a model error in it from being paid in supply temperature,
+#: while flow still outweighs energy (docs/robustness.md sec. 1).
+OUT_OF_REACH_FLOW_WEIGHT = 0.1
 
 
 @dataclass(frozen=True)
@@ -84,6 +91,10 @@ class MpcSettings:
         initial_command: the command in force before the first step (the first move is
             rate-limited from it).
         ekf: noise settings of the estimator, :class:`EkfSettings`.
+        priorities: supply temperature before total flow (:mod:`hvac_mpc.mpc.priorities`): when the
+            model says the flow reference cannot be held at the temperature reference, track the
+            reachable flow instead and report the shortfall in ``stats["out_of_reach"]``.
+        reach_every_s: how often the reachable flow is recomputed while the flow reference is in doubt (s).
     """
 
     dt_s: float = 1.0
@@ -106,6 +117,8 @@ class MpcSettings:
     chiller_setpoint_c: float = 5.0
     initial_command: Command = field(default_factory=Command)
     ekf: EkfSettings = field(default_factory=EkfSettings)
+    priorities: bool = True
+    reach_every_s: float = 10.0
 
     def __post_init__(self) -> None:
         p = "MpcSettings"
@@ -141,6 +154,9 @@ class MpcSettings:
         if not isinstance(self.ekf, EkfSettings):
             raise InvalidSettings(f"{p}.ekf must be an EkfSettings")
         self.ekf.validate(f"{p}.ekf")
+        if not isinstance(self.priorities, bool):
+            raise InvalidSettings(f"{p}.priorities must be True or False")
+        check_number(f"{p}.reach_every_s", self.reach_every_s, 1.0, 3600.0)
 
 
 class MpcController:
@@ -170,6 +186,9 @@ class MpcController:
         if s.ocp.ptc_limit and "ptc_power_fall" not in s.ocp.model_effects:
             ekf_model = HvacModel(self.params, tuple(s.ocp.model_effects) + ("ptc_power_fall",), dt_s=s.dt_s)
         self.ekf = DisturbanceEkf(ekf_model, s.ekf, s.dt_s, s.water_prediction)
+        pb = self.problem
+        self.reach = ReachableFlow(pb.model, pb.u_lo_phys, pb.u_hi_phys, pb.heater_max_phys, self.params,
+                                   every_s=s.reach_every_s) if s.priorities else None
         self._baseline = None
         self.reset()
 
@@ -195,6 +214,9 @@ class MpcController:
         self._prepared_for_next = False
         self._in_baseline = False
         self._last_solution: SolveResult | None = None
+        self._out_of_reach: dict = {}
+        if self.reach is not None:
+            self.reach.reset()
 
     def force_solver_failure(self, steps: int) -> None:
         """Make the next ``steps`` solves fail (tests of the fallback chain; this instance only)."""
@@ -275,8 +297,10 @@ class MpcController:
         cap = self._trap_cap()
         heater_c = float(self.ekf.x[pb.i_heater])
         u_lo, u_hi = pb.input_bounds(self.u_prev, cap, heater_c)
-        y_ref = pb.reference_vector(ref)
+        y_ref = self._tracked_reference(ref, d, cap)
         w_y = pb.output_weights(ref)
+        if "volume_flow_m3s" in self._out_of_reach:
+            w_y[1:5] *= OUT_OF_REACH_FLOW_WEIGHT
         # --- feedback
         if not self._prepared_for_next:
             self.solver.reset()
@@ -320,6 +344,20 @@ class MpcController:
                             cap=cap)
         stats["cold_start"] = bool(sol.extra.get("cold_start", False))
         return StepResult(Command.from_vector(u_cmd), stats)
+
+    def _tracked_reference(self, ref: Reference, d: np.ndarray, cap: float) -> np.ndarray:
+        """Reference vector of the stage outputs with the priorities applied: the total flow (and the
+        outlet flows alike) lowered to what the model can deliver at the temperature reference."""
+        y_ref = self.problem.reference_vector(ref)
+        self._out_of_reach = {}
+        if self.reach is None:
+            return y_ref
+        reach = self.reach.check(self.ekf.x, self.u_prev, d, ref.supply_temp_c, ref.volume_flow_m3s, cap,
+                                 self.settings.dt_s)
+        self._out_of_reach = dict(reach.out_of_reach)
+        if reach.flow_m3s is not None and reach.flow_m3s < ref.volume_flow_m3s:
+            y_ref[1:5] *= reach.flow_m3s / ref.volume_flow_m3s
+        return y_ref
 
     def _disturbance(self, setpoint: float) -> np.ndarray:
         e = self.ekf
@@ -382,6 +420,7 @@ class MpcController:
             "fallback": fallback,
             "mode": "heating" if heating else "cooling",
             "solver": getattr(self.solver, "name", self.settings.solver),
+            "out_of_reach": dict(getattr(self, "_out_of_reach", {})),
         }
         if cap is not None:
             stats["valve_a_cap_pct"] = cap

@@ -1,0 +1,136 @@
+"""Priorities of the references: supply temperature first, then total flow, then the split, then energy.
+
+The tracking cost trades every reference against every other; where all can be met together
+that does no harm, but when the blower cannot deliver the total flow at the asked temperature
+(for instance 200 m3/h at a 32 C inlet: more flow needs more bypass, more bypass warmer air) a
+weighted sum gives up supply temperature for a few percent of flow. This module does the first
+stage of a two-stage (lexicographic) scheme (docs/robustness.md sec. 1):
+
+1. :class:`ReachableFlow` solves a small steady-state problem on the controller's model, with the
+   estimator's disturbances: the largest total flow whose rest state has the supply temperature at
+   its reference (temperature error penalised far above flow, so where the temperature itself is
+   out of reach it comes as close as the actuators allow);
+2. the MPC then tracks ``min(reference, reachable)`` (outlet flows scaled alike) and reports the
+   shortfall in ``stats["out_of_reach"]``.
+
+The problem is only solved when the flow reference is high enough to be in doubt
+(``check_fraction`` of the blower's nominal open flow) and then every ``every_s`` seconds, warm
+started; IPOPT with an iteration cap (deterministic).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from hvac_mpc.models.box import HvacModel
+from hvac_mpc.models.parameters import Parameters
+
+#: Temperature error weight of the steady-state problem, per degC^2, against flow in units of FLOW_UNIT_M3S.
+TEMP_WEIGHT_PER_C2 = 1e3
+FLOW_UNIT_M3S = 0.01
+
+
+@dataclass
+class Reach:
+    """Result of one reachability check: the flow to track and what is out of reach (name -> shortfall)."""
+
+    flow_m3s: float | None
+    out_of_reach: dict
+
+
+class ReachableFlow:
+    """Largest steady total flow with the supply temperature at its reference, on the controller's model."""
+
+    def __init__(self, model: HvacModel, u_lo: np.ndarray, u_hi: np.ndarray, heater_temp_max_c: float,
+                 params: Parameters, every_s: float = 10.0, check_fraction: float = 0.6, margin: float = 0.02,
+                 temp_tolerance_c: float = 0.2, max_iter: int = 60):
+        self.model = model
+        self.every_s = float(every_s)
+        self.margin = float(margin)
+        self.temp_tolerance_c = float(temp_tolerance_c)
+        self.check_flow_m3s = check_fraction * params.flow_per_watt_m3s_per_w * params.blower_power_max_w
+        nx, nu, nd = len(model.states), len(model.inputs), len(model.disturbances)
+        x, u = ca.SX.sym("x", nx), ca.SX.sym("u", nu)
+        d, t_ref, a_cap = ca.SX.sym("d", nd), ca.SX.sym("t_ref"), ca.SX.sym("a_cap")
+        p = ca.DM(model.p_default)
+        y = model.output(x, u, d, p)
+        flow = y[model.outputs.index("volume_flow_m3s")]
+        temp = y[model.outputs.index("duct_air_temp_c")]
+        heater = x[model.states.index("heater_temp_c")]
+        i_a = model.inputs.index("valve_a_pct")
+        cost = TEMP_WEIGHT_PER_C2 * (temp - t_ref) ** 2 - flow / FLOW_UNIT_M3S
+        g = ca.vertcat(model.ode(x, u, d, p), heater, u[i_a] - a_cap)
+        nlp = {"x": ca.vertcat(x, u), "p": ca.vertcat(d, t_ref, a_cap), "f": cost, "g": g}
+        opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.max_iter": int(max_iter), "ipopt.tol": 1e-6,
+                "ipopt.sb": "yes"}
+        self.solver = ca.nlpsol("reachable_flow", "ipopt", nlp, opts)
+        self.out = ca.Function("reach_out", [x, u, d], [flow, temp])
+        self.lbx = np.concatenate([np.full(nx, -np.inf), u_lo])
+        self.ubx = np.concatenate([np.full(nx, np.inf), u_hi])
+        self.lbg = np.concatenate([np.zeros(nx), [-np.inf, -np.inf]])
+        self.ubg = np.concatenate([np.zeros(nx), [heater_temp_max_c, 0.0]])
+        self.nx = nx
+        self.reset()
+
+    def reset(self) -> None:
+        self._w: np.ndarray | None = None
+        self._age_s = np.inf
+        self._last = Reach(None, {})
+        self._key: tuple | None = None
+        self._latched: tuple | None = None
+
+    def check(self, x: np.ndarray, u: np.ndarray, d: np.ndarray, temp_ref_c: float, flow_ref_m3s: float,
+              a_cap_pct: float, dt_s: float) -> Reach:
+        """The flow to track (``None``: the reference as it is) and the out-of-reach report.
+
+        ``x``, ``u``, ``d``: the estimate, the command in force and the disturbances (physical).
+        Re-solved when the reference changes or every ``every_s``; otherwise the last answer.
+        """
+        if flow_ref_m3s < self.check_flow_m3s:
+            self.reset()
+            return self._last
+        flow_now = float(self.out(x, u, d)[0])
+        key = (round(temp_ref_c, 6), round(flow_ref_m3s, 9))
+        self._age_s += dt_s
+        if key == self._key and self._age_s < self.every_s:
+            return self._limit(flow_ref_m3s, flow_now)
+        self._key, self._age_s = key, 0.0
+        w0 = self._w if self._w is not None else np.concatenate([x, u])
+        try:
+            sol = self.solver(x0=w0, p=np.concatenate([d, [temp_ref_c, a_cap_pct]]), lbx=self.lbx, ubx=self.ubx,
+                              lbg=self.lbg, ubg=self.ubg)
+            w = np.asarray(sol["x"]).ravel()
+            flow, temp = (float(v) for v in self.out(w[:self.nx], w[self.nx:], d))
+        except Exception:  # noqa: BLE001 - no answer: track the reference as it is
+            self._last = Reach(None, {})
+            return self._last
+        if not (np.all(np.isfinite(w)) and np.isfinite(flow) and np.isfinite(temp)):
+            self._last = Reach(None, {})
+            return self._last
+        self._w = w
+        self._reachable = flow
+        self._temp_error = temp - temp_ref_c
+        return self._limit(flow_ref_m3s, flow_now)
+
+    def _limit(self, flow_ref_m3s: float, flow_now_m3s: float) -> Reach:
+        """Out of reach once the model says so, latched for this reference (the model's reachable flow
+        moves with the estimator's offsets; a reference must not flip back into a trade of temperature
+        for flow) until the flow is actually there. Shortfall: the reference less what is delivered
+        now or reachable, whichever is less."""
+        if self._w is None:
+            return self._last
+        reach: dict = {}
+        track = None
+        if flow_now_m3s >= flow_ref_m3s:
+            self._latched = None
+        if flow_ref_m3s > self._reachable or self._latched == self._key:
+            self._latched = self._key
+            reach["volume_flow_m3s"] = float(max(0.0, flow_ref_m3s - min(self._reachable, flow_now_m3s)))
+            track = float(min(self._reachable, flow_ref_m3s) * (1.0 - self.margin))
+        if abs(self._temp_error) > self.temp_tolerance_c:
+            reach["supply_temp_c"] = float(abs(self._temp_error))
+        self._last = Reach(track, reach)
+        return self._last
