@@ -27,7 +27,7 @@ STATES = ("motor_rise_c", "water_temp_c", "heater_temp_c", "supply_sensor_c")
 TRAP_STATE = "trap_air_temp_c"
 #: Longest time constant of one lag of the transport-delay chain (s): a delay of D seconds becomes
 #: ceil(D / this) first-order lags of D / n each (docs/robustness.md sec. 2).
-DELAY_LAG_MAX_S = 2.0
+DELAY_LAG_MAX_S = 1.0
 DISTURBANCES = ("inlet_temp_c", "chiller_setpoint_c", "mix_offset_c", "flow_offset_m3s")
 OUTPUTS = ("supply_temp_c", "volume_flow_m3s", "flow_m_m3s", "flow_f_m3s", "flow_w_m3s",
            "heater_temp_c", "supply_air_temp_c", "heater_outlet_temp_c", "heater_power_w",

@@ -137,7 +137,7 @@ def test_in_band_share_and_settle_time():
 def test_transport_delay_becomes_a_lag_chain_in_the_model():
     plain = HvacModel(Parameters())
     delayed = HvacModel(Parameters().replace(transport_delay_s=3.0))
-    assert plain.delay_states == () and len(delayed.delay_states) == 2
+    assert plain.delay_states == () and len(delayed.delay_states) == 3
     u = np.array([150.0, 0.0, 50.0, 100.0, 100.0, 100.0])
     d = plain.d_vector(32.0, 5.0)
     x0p, x0d = plain.steady_state(u, d), delayed.steady_state(u, d)
