@@ -24,7 +24,7 @@ from hvac_mpc.models.parameters import Parameters
 from hvac_mpc.models.plant import PLANT_EFFECTS
 from hvac_mpc.contract import Command
 
-from . import criteria, metrics, plant_seam, report, scenarios as scenario_defs
+from . import criteria, metrics, mismatch_suite, plant_seam, report, scenarios as scenario_defs
 from .perturbation import MAGNITUDE_RANGE, perturb_parameters
 from .simulate import Trace, actuator_bounds, plant_seed, simulate
 
@@ -45,8 +45,9 @@ def baseline_factory() -> Callable[[Command], object]:
     return lambda initial_command: BaselineController(Parameters(), dt_s=DT_S)
 
 
-def mpc_factory() -> Callable[[Command], object]:
-    """Factory of the MPC (``hvac_mpc.mpc.mpc_controller``) on the nominal parameters and default settings.
+def mpc_factory(params: Parameters | None = None) -> Callable[[Command], object]:
+    """Factory of the MPC (``hvac_mpc.mpc.mpc_controller``) on the nominal parameters (or ``params``,
+    e.g. a lab's parameter file with its transport delay) and default settings.
 
     Its only non-default setting is ``initial_command``, the command in force on the plant when
     the scenario starts (the MPC rate-limits its first move from it).
@@ -55,7 +56,8 @@ def mpc_factory() -> Callable[[Command], object]:
         from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
     except ImportError as exc:
         raise RuntimeError(f"the MPC hvac_mpc.mpc.mpc_controller.MpcController is not available: {exc}")
-    return lambda initial_command: MpcController(Parameters(), MpcSettings(initial_command=initial_command))
+    chosen = params or Parameters()
+    return lambda initial_command: MpcController(chosen, MpcSettings(initial_command=initial_command))
 
 
 def describe_controller(ctrl) -> str:
@@ -243,6 +245,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="run on the plant this function builds (keywords seed, dt_s; an object with "
                              "apply/advance/read, optionally set_environment/settle/truth) instead of the "
                              "built-in simulated plant")
+    parser.add_argument("--mpc-params", metavar="FILE", default=None,
+                        help="the MPC's parameters from this TOML or JSON file (e.g. transport_delay_s of the "
+                             "box); the baseline keeps the thesis values")
     parser.add_argument("--suite", choices=("mismatch",), default=None,
                         help="mismatch: both controllers on every variant of the independent simulator "
                              "(hvac_mpc.mismatch) on the cooling, heating and proband scenarios; a matrix of "
@@ -254,18 +259,14 @@ def run(args: argparse.Namespace) -> int:
         print(f"hvac-mpc bench: --seed must be an integer >= 0, got {args.seed}", file=sys.stderr)
         return 2
     if getattr(args, "suite", None) == "mismatch":
-        if args.plant:
-            print("hvac-mpc bench: --suite mismatch brings its own plants; drop --plant", file=sys.stderr)
-            return 2
-        from . import mismatch_suite
-        return mismatch_suite.run(args)
+        return run_mismatch_suite(args)
     plant_factory = None
     try:
         if getattr(args, "plant", None):
             plant_factory = plant_seam.load_factory(args.plant)
         chosen = scenario_defs.select(args.scenario, quick=args.quick)
-        factories = {"baseline": baseline_factory(), "mpc": mpc_factory()}
-    except (ValueError, RuntimeError) as exc:
+        factories = {"baseline": baseline_factory(), "mpc": mpc_factory(mpc_parameters(args))}
+    except (ValueError, RuntimeError, OSError, KeyError) as exc:
         print(f"hvac-mpc bench: {exc}", file=sys.stderr)
         return 2
     command = "hvac-mpc bench" + "".join(f" {shlex.quote(a)}" for a in _argv_from(args))
@@ -292,6 +293,53 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def run_mismatch_suite(args: argparse.Namespace) -> int:
+    """``--suite mismatch``: every variant of the independent simulator (:mod:`.mismatch_suite`);
+    ``--scenario`` picks among the suite's scenarios; output in ``--out`` (default out/mismatch)."""
+    if args.plant:
+        print("hvac-mpc bench: --suite mismatch brings its own plants; drop --plant", file=sys.stderr)
+        return 2
+    known = scenario_defs.mismatch_scenarios()
+    names = args.scenario or list(known)
+    unknown = [n for n in names if n not in known]
+    if unknown:
+        print(f"hvac-mpc bench: --scenario: unknown name(s) {unknown} in the mismatch suite; choose from "
+              f"{list(known)}", file=sys.stderr)
+        return 2
+    try:
+        factories = {"baseline": baseline_factory(), "mpc": mpc_factory(mpc_parameters(args))}
+    except (ValueError, RuntimeError) as exc:
+        print(f"hvac-mpc bench: {exc}", file=sys.stderr)
+        return 2
+    chosen = [known[n].quick() if args.quick else known[n] for n in dict.fromkeys(names)]
+    variants = mismatch_suite.variant_names()
+    t0 = time.perf_counter()
+    bar = ProgressBar(len(variants) * sum(int(round(s.duration_s / DT_S)) for s in chosen) * len(report.CONTROLLERS))
+    try:
+        results, traces = mismatch_suite.run_suite(variants, chosen, factories, args.seed, run_benchmark, progress=bar)
+    finally:
+        bar.close()
+    results["meta"] = {"command": "hvac-mpc bench" + "".join(f" {shlex.quote(a)}" for a in _argv_from(args)),
+                       "seed": args.seed, "quick": bool(args.quick), "elapsed_s": time.perf_counter() - t0,
+                       "scenarios": [s.name for s in chosen], "variants": variants}
+    out = Path(args.out if args.out != "out/bench" else "out/mismatch")
+    mismatch_suite.write_outputs(results, traces, out, plots=not args.no_plots)
+    print(mismatch_suite.terminal_text(results))
+    print(f"report: {out / 'report.md'}  results: {out / 'results.json'}")
+    return 0
+
+
+def mpc_parameters(args: argparse.Namespace) -> Parameters | None:
+    """The MPC's parameters from ``--mpc-params`` (None: nominal); errors name the file."""
+    path = getattr(args, "mpc_params", None)
+    if not path:
+        return None
+    try:
+        return Parameters.from_file(path)
+    except (OSError, ValueError, KeyError) as exc:
+        raise ValueError(f"--mpc-params {path}: {exc}") from exc
+
+
 def _argv_from(args: argparse.Namespace) -> list[str]:
     """The options as typed, rebuilt from the parsed arguments (for the report's command line)."""
     argv = []
@@ -307,6 +355,8 @@ def _argv_from(args: argparse.Namespace) -> list[str]:
         argv.append("--no-plots")
     if getattr(args, "plant", None):
         argv += ["--plant", args.plant]
+    if getattr(args, "mpc_params", None):
+        argv += ["--mpc-params", args.mpc_params]
     if getattr(args, "suite", None):
         argv += ["--suite", args.suite]
     return argv

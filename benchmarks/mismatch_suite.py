@@ -11,17 +11,13 @@ proband sequence, a total-flow reference out of reach). Output in ``--out`` (def
 
 from __future__ import annotations
 
-import argparse
 import functools
-import shlex
-import sys
-import time
 from pathlib import Path
-from typing import Mapping, Sequence
+from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
-from . import bench, report, scenarios as scenario_defs
+from . import report, scenarios as scenario_defs
 
 #: The ratios of the matrix: (figure key, column label).
 MATRIX_FIGURES = (("temp_iae_cs", "T IAE"), ("flow_iae_m3", "flow IAE"), ("energy_wh", "energy"))
@@ -64,15 +60,17 @@ def out_of_reach_steady(trace, scenario: scenario_defs.Scenario) -> dict:
     return {"steady_temp_error_max_c": worst, "steady_samples_reported": reported}
 
 
-def run_suite(variants: Sequence[str], chosen: Sequence[scenario_defs.Scenario], seed: int,
-              progress: bench.ProgressBar | None = None) -> tuple[dict, dict]:
-    """Every variant on every scenario with both controllers; returns (results, traces by variant)."""
-    factories = {"baseline": bench.baseline_factory(), "mpc": bench.mpc_factory()}
+def run_suite(variants: Sequence[str], chosen: Sequence[scenario_defs.Scenario], factories: Mapping,
+              seed: int, run_benchmark: Callable[..., tuple[dict, dict]], progress=None) -> tuple[dict, dict]:
+    """Every variant on every scenario with both controllers; returns (results, traces by variant).
+
+    ``factories`` and ``run_benchmark`` are those of :mod:`.bench` (passed in: the benchmark command
+    calls this module, not the other way round)."""
     results: dict = {"variants": {}}
     traces: dict = {}
     for v in variants:
-        res, tr = bench.run_benchmark(chosen, factories, seed, progress=progress, plant_factory=variant_factory(v),
-                                      plant_name=f"hvac_mpc.mismatch:make_plant('{v}')")
+        res, tr = run_benchmark(chosen, factories, seed, progress=progress, plant_factory=variant_factory(v),
+                                plant_name=f"hvac_mpc.mismatch:make_plant('{v}')")
         traces[v] = tr
         row = {}
         for name, sc in res["scenarios"].items():
@@ -175,7 +173,8 @@ def markdown(results: Mapping, plots: Mapping[str, str]) -> str:
            f"Command: `{meta['command']}`  ", f"Seed {meta['seed']}, {'quick' if meta['quick'] else 'full'} "
            f"scenarios, {meta['elapsed_s']:.0f} s wall time.", "",
            "Plants: `hvac_mpc.mismatch.make_plant(variant)` (its own equations, mismatch/README.md); controllers "
-           "on the nominal `Parameters()`, neither told the variant. Cells are MPC / baseline (lower is better).", ""]
+           "on the nominal `Parameters()` (the MPC on `--mpc-params` if given), neither told the variant. Cells are "
+           "MPC / baseline (lower is better).", ""]
     for key, lab in MATRIX_FIGURES:
         if key in s:
             out.append(f"- {lab}: median {s[key]['median']:.2f}, worst {s[key]['worst']:.2f} ({s[key]['worst_cell']})")
@@ -231,41 +230,14 @@ def plot_variant(plt, variant: str, traces: Mapping[str, Mapping[str, object]], 
     plt.close(fig)
 
 
-def run(args: argparse.Namespace) -> int:
-    """The ``--suite mismatch`` command (options of ``hvac-mpc bench``; ``--scenario`` picks among the suite's)."""
-    if args.seed < 0:
-        print(f"hvac-mpc bench: --seed must be an integer >= 0, got {args.seed}", file=sys.stderr)
-        return 2
-    known = scenario_defs.mismatch_scenarios()
-    names = args.scenario or list(known)
-    unknown = [n for n in names if n not in known]
-    if unknown:
-        print(f"hvac-mpc bench: --scenario: unknown name(s) {unknown} in the mismatch suite; choose from "
-              f"{list(known)}", file=sys.stderr)
-        return 2
-    chosen = [known[n].quick() if args.quick else known[n] for n in dict.fromkeys(names)]
-    variants = variant_names()
-    t0 = time.perf_counter()
-    bar = bench.ProgressBar(len(variants) * sum(int(round(s.duration_s / bench.DT_S)) for s in chosen)
-                            * len(report.CONTROLLERS))
-    try:
-        results, traces = run_suite(variants, chosen, args.seed, progress=bar)
-    finally:
-        bar.close()
-    out = Path(args.out if args.out != "out/bench" else "out/mismatch")
+def write_outputs(results: Mapping, traces: Mapping, out: Path, plots: bool) -> None:
+    """results.json, report.md and (with matplotlib) one PNG per variant in ``out``."""
     out.mkdir(parents=True, exist_ok=True)
-    results["meta"] = {"command": "hvac-mpc bench" + "".join(f" {shlex.quote(a)}" for a in bench._argv_from(args)),
-                       "seed": args.seed, "quick": bool(args.quick), "elapsed_s": time.perf_counter() - t0,
-                       "scenarios": [s.name for s in chosen], "variants": variants}
-    plots: dict[str, str] = {}
-    if not args.no_plots:
-        plt = report.import_pyplot()
-        if plt is not None:
-            for v, tr in traces.items():
-                plots[v] = f"{v}.png"
-                plot_variant(plt, v, tr, out / plots[v])
+    files: dict[str, str] = {}
+    plt = report.import_pyplot() if plots else None
+    if plt is not None:
+        for v, tr in traces.items():
+            files[v] = f"{v}.png"
+            plot_variant(plt, v, tr, out / files[v])
     report.write_json(results, out / "results.json")
-    (out / "report.md").write_text(markdown(results, plots))
-    print(terminal_text(results))
-    print(f"report: {out / 'report.md'}  results: {out / 'results.json'}")
-    return 0
+    (out / "report.md").write_text(markdown(results, files))
