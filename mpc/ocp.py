@@ -25,8 +25,9 @@ decided as openings (:mod:`hvac_mpc.mpc.valve_map`); their plan-stage rate limit
 opening (:meth:`TrackingProblem.rate_bounds`), the applied move's on the angle.
 
 Which supply temperature is tracked (``OcpSpec.tracked_temperature``, default ``"blend"``): half
-the true mixed air the cabin receives (model output ``supply_air_temp_c``, mixed-air offset
-included) and half the thermocouple reading (tau 5.73 s, thesis sec. 5.4.1). Tracking the air
+the true mixed air at the thermocouple (model output ``duct_air_temp_c``: ``supply_air_temp_c``,
+mixed-air offset included, after the transport delay if the parameters set one, docs/robustness.md
+sec. 2) and half the thermocouple reading (tau 5.73 s, thesis sec. 5.4.1). Tracking the air
 alone leaves the reading, which is what the reference is judged on, a sensor lag behind;
 tracking the reading alone makes the controller overshoot the air to hurry the sensor. The
 blend (``sensor_share`` 0.5, a tuning choice on the simulated plant) leads the air a little
