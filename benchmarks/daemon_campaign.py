@@ -160,8 +160,8 @@ def _run_inprocess(cfg: DaemonConfig, hook: Callable | None = None) -> tuple[Dae
 
     def keep(d, sample):
         samples.append({k: sample.get(k) for k in ("time_s", "mode", "controller", "sensor_faults", "stale",
-                                                   "interlock", "events", "heater_cmd_w", "connected",
-                                                   "inner_fallback")})
+                                                   "interlock", "events", "connected", "inner_fallback",
+                                                   "supply_temp_c", "volume_flow_m3s", *Command().as_dict())})
         if hook is not None:
             hook(d, sample)
 
@@ -564,25 +564,34 @@ def slow_header_flood(workdir: Path, n: int, controller: str = "baseline", hold_
     state: dict[str, Any] = {"health_s": [], "codes": []}
     stop = threading.Event()
 
+    def connect(port: int) -> socket.socket | None:
+        try:
+            s_ = socket.create_connection(("127.0.0.1", port), timeout=2.0)
+            s_.sendall(b"GET /status HTTP/1.1\r\n")
+            return s_
+        except OSError:
+            state["connect_failed"] = state.get("connect_failed", 0) + 1
+            return None
+
     def trickle(port: int) -> None:
-        socks = []
-        for _ in range(n):
-            try:
-                s_ = socket.create_connection(("127.0.0.1", port), timeout=2.0)
-                s_.sendall(b"GET /status HTTP/1.1\r\n")
-                socks.append(s_)
-            except OSError:
-                state["connect_failed"] = state.get("connect_failed", 0) + 1
+        socks = [connect(port) for _ in range(n)]
+        state["reconnects"] = 0
         end = time.monotonic() + hold_s
         while time.monotonic() < end:
-            for s_ in socks:
+            for i, s_ in enumerate(socks):
                 try:
+                    if s_ is None:
+                        raise OSError
                     s_.sendall(b"X")
-                except OSError:
-                    pass
+                except OSError:  # dropped by the server: the attacker comes back at once
+                    if s_ is not None:
+                        s_.close()
+                    socks[i] = connect(port)
+                    state["reconnects"] += 1
             time.sleep(0.5)
         for s_ in socks:
-            s_.close()
+            if s_ is not None:
+                s_.close()
         stop.set()
 
     def poll(port: int) -> None:
@@ -622,7 +631,7 @@ def slow_header_flood(workdir: Path, n: int, controller: str = "baseline", hold_
     missed = state["after"][1] - state["before"][1]
     bad = [c for c in state["codes"] if c != 200]
     o.notes = (f"/health {len(state['codes'])} polls, worst {worst * 1000:.0f} ms; late ticks {late}, deadline "
-               f"misses {missed}; header timeouts {state['guard']['header_timeouts']}")
+               f"misses {missed}; dropped {state['guard']['header_timeouts']}, reconnected {state['reconnects']}")
     o.detected = int(state["guard"]["header_timeouts"] > 0)
     if worst > 1.0 or bad:
         o.violations.append(f"/health: worst {worst:.2f} s, non-200 answers {bad[:5]}")
@@ -833,9 +842,274 @@ def sigterm_shutdown(workdir: Path, controller: str = "baseline") -> list[Outcom
     return results
 
 
+# ---------------------------------------------------------------------------------- log, config, modes
+def disk_full(workdir: Path, controller: str = "baseline", outage_s: float = 60.0) -> Outcome:
+    """Every log write fails with ENOSPC for ``outage_s`` daemon seconds: control goes on, /health
+    says degraded, the rows are held in memory and written when the disk takes them again."""
+    start = 40.0
+    state: dict[str, Any] = {"health": {}}
+
+    def hook(d, sample):
+        t = sample["time_s"]
+        if t in (start - 5, start + outage_s / 2, start + outage_s + 30):
+            state["health"][t] = _request(d.api.port, "GET", "/health")[1]
+
+    cfg = _config(workdir, "log_disk_full", controller, [{"target": "log", "kind": "enospc", "start_s": start,
+                                                          "end_s": start + outage_s}], ticks=200,
+                  extra={"api": {"enabled": True, "port": 0}, "log": {"retry_s": 5.0}})
+    d, code, samples = _run_inprocess(cfg, hook)
+    o = Outcome("log_disk_full_60s", "log", code, rows=len(samples))
+    o.injected = {k: v for k, v in d.injected.items() if k.startswith("log:")}
+    o.violations = check_log(cfg.log.path, cfg.safety)
+    h = state["health"]
+    status = [h.get(t, {}).get("status") for t in sorted(h)]
+    if status != ["ok", "degraded", "ok"]:
+        o.violations.append(f"/health status before, during, after: {status}")
+    controlling = [s for s in samples if start <= s["time_s"] < start + outage_s and s["controller"] == controller]
+    if len(controlling) < outage_s - 1:
+        o.violations.append(f"controller ran {len(controlling)} of {outage_s:.0f} samples during the outage")
+    rows = len(read_log(cfg.log.path)["time_s"])
+    if rows != len(samples):
+        o.violations.append(f"{rows} rows in the log for {len(samples)} samples")
+    o.detected = int(status[1:2] == ["degraded"])
+    o.notes = f"{rows} rows of {len(samples)} samples logged, {d.writer.counters['write_errors']} failed writes"
+    return o
+
+
+def _committed(path: Path) -> int:
+    """Bytes up to and including the last newline (the committed rows)."""
+    with path.open("rb") as fh:
+        size = fh.seek(0, os.SEEK_END)
+        fh.seek(max(0, size - 65536))
+        tail = fh.read()
+    return size - len(tail) + tail.rfind(b"\n") + 1
+
+
+def _prefix_digest(path: Path, n: int) -> str:
+    import hashlib
+
+    h = hashlib.sha256()
+    with path.open("rb") as fh:
+        left = n
+        while left:
+            block = fh.read(min(left, 1 << 22))
+            if not block:
+                break
+            h.update(block)
+            left -= len(block)
+    return h.hexdigest()
+
+
+def big_log(path: Path, size_mb: float) -> int:
+    """A valid daemon log of about ``size_mb`` MB (consecutive samples) with a torn last row."""
+    from hvac_mpc.models.measurement_log import COLUMNS
+
+    header = ",".join(COLUMNS) + "\n"
+    row = ",".join(["{t}", "120.0", "0.0", "100.0", "100.0", "100.0", "100.0", "25.0", "0.03", "20.0"]
+                   + [""] * (len(COLUMNS) - 12) + ["control", "baseline", "2026-11-23T10:00:00.000Z"]) + "\n"
+    n = int(size_mb * 2**20 / len(row))
+    with path.open("w") as fh:
+        fh.write(header)
+        for start in range(0, n, 10000):
+            fh.write("".join(row.format(t=float(k)) for k in range(start, min(n, start + 10000))))
+        fh.write(row.format(t=float(n))[:25])  # torn by a crash
+    return n
+
+
+def tail_repair_kills(workdir: Path, size_mb: float = 20.0, kills: int = 6, seed: int = 0) -> Outcome:
+    """SIGKILL at random moments of the daemon's start (tail repair included) on a big log with a
+    torn tail, repeated (a new torn row each time): no committed byte may change."""
+    rng = np.random.default_rng(seed)
+    log = workdir / "big_log.csv"
+    big_log(log, size_mb)
+    cfg = process_config(workdir, "big_log", speedup=math.inf, extra={"api": {"enabled": False}})
+    o = Outcome(f"log_sigkill_during_tail_repair_{size_mb:.0f}MB", "log")
+    o.injected = {"process:sigkill": 0, "log:torn_row": 0}
+    repaired = 0
+    for _ in range(kills):
+        n = _committed(log)
+        digest = _prefix_digest(log, n)
+        p = start_daemon(cfg)
+        time.sleep(float(rng.uniform(0.3, 2.5)))
+        p.send_signal(signal.SIGKILL)
+        p.wait(10)
+        o.injected["process:sigkill"] += 1
+        if log.stat().st_size < n or _prefix_digest(log, n) != digest:
+            o.violations.append(f"committed bytes changed (size {log.stat().st_size}, committed {n})")
+            break
+        repaired += int(_committed(log) == log.stat().st_size)
+        with log.open("ab") as fh:  # the next crash's torn row
+            fh.write(b"123456789.0,120.0,0.0,1")
+        o.injected["log:torn_row"] += 1
+    o.rows = _committed(log)
+    o.detected = repaired
+    o.notes = f"{kills} kills on a {log.stat().st_size / 2**20:.0f} MB log, torn tail already repaired at {repaired}"
+    return o
+
+
+BAD_CONFIGS = {
+    "binary": b"\x00\xff\xfe\x89PNG\r\n",
+    "reference_number": b"reference = 5\n",
+    "reference_text": b'reference = "abc"\n',
+    "fallback_number": b"[controller]\nfallback = [1]\n",
+    "unknown_effect": b'[backend.simulated]\neffects = ["warp_drive"]\n',
+    "zero_min_flow": b"[safety]\nmin_flow_m3s = 0.0\n",
+    "no_interlock_sensor": b"[safety]\ninterlock_sensors = []\n",
+    "module_name_controller": b'[controller]\nname = "os:system"\n',
+    "huge_integer": b"[loop]\nperiod_s = 1" + b"0" * 400 + b"\n",
+}
+BAD_CONFIG_KEYS = {"binary": "UTF-8", "reference_number": "reference", "reference_text": "reference",
+                   "fallback_number": "controller.fallback", "unknown_effect": "backend.simulated.effects",
+                   "zero_min_flow": "min_flow_m3s", "no_interlock_sensor": "interlock_sensors",
+                   "module_name_controller": "controller.name", "huge_integer": "loop.period_s",
+                   "directory": "directory"}
+
+
+def bad_config_files(workdir: Path) -> list[Outcome]:
+    """Each bad file through ``hvac-mpc daemon --config``: exit 2, the key named, no traceback, no log."""
+    import contextlib
+    import io
+
+    import argparse
+
+    from hvac_mpc.daemon import main as daemon_main
+
+    def cli_main(argv: list[str]) -> int:  # what ``hvac-mpc daemon`` runs
+        parser = argparse.ArgumentParser()
+        daemon_main.configure(parser)
+        return daemon_main.run(parser.parse_args(argv[1:]))
+
+    results = []
+    for name in [*BAD_CONFIGS, "directory"]:
+        d = workdir / f"badcfg_{name}"
+        d.mkdir(parents=True, exist_ok=True)
+        path = d / "daemon.toml"
+        if name == "directory":
+            path.mkdir(exist_ok=True)
+        else:
+            path.write_bytes(BAD_CONFIGS[name])
+        err = io.StringIO()
+        with contextlib.redirect_stderr(err):
+            try:
+                code = cli_main(["daemon", "--config", str(path)])
+            except Exception as exc:  # noqa: BLE001 - an escaped exception is the failure counted
+                code, err = -1, io.StringIO(f"Traceback: {type(exc).__name__}: {exc}")
+        text = err.getvalue()
+        o = Outcome(f"config_{name}", "config", code)
+        if code != 2:
+            o.violations.append(f"exit code {code}")
+        if BAD_CONFIG_KEYS[name] not in text or "Traceback" in text:
+            o.violations.append(f"message {text[:120]!r}")
+        if (d / "hvac_daemon_log.csv").exists():
+            o.violations.append("a log was started")
+        o.detected = int(not o.violations)
+        o.notes = text.strip().split(": ", 2)[-1][:70]
+        results.append(o)
+    return results
+
+
+def _steps_within_rates(samples: list[dict], t_switch: float, window_s: float, safety: SafetyConfig,
+                        dt_s: float = 1.0) -> list[str]:
+    rates = {"blower_power_w": safety.rate_blower_w_per_s, "heater_cmd_w": safety.rate_heater_w_per_s}
+    by_t = {s["time_s"]: s for s in samples}
+    out = []
+    for t in np.arange(t_switch + dt_s, t_switch + window_s + dt_s / 2, dt_s):
+        a, b = by_t.get(t - dt_s), by_t.get(t)
+        if a is None or b is None:
+            continue
+        for name in ("blower_power_w", "heater_cmd_w", "valve_a_pct", "valve_m_pct", "valve_f_pct", "valve_w_pct"):
+            lim = rates.get(name, safety.rate_valve_pct_per_s) * dt_s
+            if abs(b[name] - a[name]) > lim + 1e-6:
+                out.append(f"t = {t:.0f} s: {name} moved {abs(b[name] - a[name]):.1f} (limit {lim:.0f})")
+    return out
+
+
+def mode_switches_over_modbus(workdir: Path) -> Outcome:
+    """MPC -> PID -> manual -> MPC through the API on the simulated plant behind the real Modbus
+    server, the reference held across each switch and changed between them: no actuator faster
+    than its rate limit at a switch, the supply temperature within 0.5 C of its value at the
+    switch for the next 10 s; in manual, heater on at low flow is refused and logged."""
+    from hvac_mpc.daemon.modbus_sim import PlantModbusServer
+    from hvac_mpc.models.plant import SimulatedPlant
+
+    port = free_port()
+    server = PlantModbusServer(SimulatedPlant(seed=5), port=port).start()
+    switches = {250.0: "auto-pid", 500.0: "manual", 750.0: "auto-mpc"}
+    state: dict[str, Any] = {"answers": {}}
+
+    def hook(d, sample):
+        t = sample["time_s"]
+        token = state.setdefault("token", token_path(d.cfg).read_text().strip())
+        port_ = d.api.port
+
+        def put(path, body):
+            return _request(port_, "PUT", path, json.dumps(body).encode(), token=token)
+
+        if t in switches and t < 700:
+            state["answers"][t] = put("/mode", {"mode": switches[t]})
+        elif 700.0 <= t and "back" not in state and (
+                abs(sample["supply_temp_c"] - sample["ref_supply_temp_c"]) <= 0.2 or t >= 850.0):
+            # the operator hands back to the MPC once the box has settled near the reference again
+            state["back"] = t
+            switches[t] = switches.pop(750.0)
+            state["answers"][t] = put("/mode", {"mode": "auto-mpc"})
+        elif t == 350.0:
+            put("/reference", {"supply_temp_c": 17.0, "volume_flow_m3s": 0.035})  # changed between switches
+        elif t == 500.0 + 20:
+            state["held"] = {k: sample[k] for k in ("blower_power_w", "valve_m_pct", "valve_f_pct", "valve_w_pct",
+                                                     "heater_cmd_w", "valve_a_pct")}
+            state["answers"]["low_flow"] = put("/manual", {"blower_power_w": 30.0, "valve_m_pct": 0.0,
+                                                           "valve_f_pct": 0.0, "valve_w_pct": 0.0,
+                                                           "heater_cmd_w": 0.0})
+        elif t == 500.0 + 50:
+            state["answers"]["heater_at_low_flow"] = put("/manual", {"heater_cmd_w": 200.0})
+            state["flow_at_refusal"] = sample["volume_flow_m3s"]
+        elif t == 500.0 + 60:
+            state["answers"]["restore_flow"] = put("/manual", {k: v for k, v in state["held"].items()
+                                                               if k != "heater_cmd_w"})
+        elif t == 500.0 + 80:
+            state["answers"]["restore_heater"] = put("/manual", {"heater_cmd_w": state["held"]["heater_cmd_w"]})
+
+    cfg = _config(workdir, "mode_switches", "mpc", [], ticks=900 + 40,
+                  reference={"supply_temp_c": 20.0, "volume_flow_m3s": 0.03},
+                  extra={"backend": {"kind": "modbus", "modbus": {"port": port, "timeout_s": 0.5}},
+                         "api": {"enabled": True, "port": 0}, "loop": {"deadline_s": 0.5}})
+    try:
+        d, code, samples = _run_inprocess(cfg, hook)
+    finally:
+        server.stop()
+    o = Outcome("modes_mpc_pid_manual_mpc_over_modbus", "modes", code, rows=len(samples))
+    o.violations = check_log(cfg.log.path, cfg.safety)
+    by_t = {s["time_s"]: s for s in samples}
+    worst = {}
+    for ts, mode in switches.items():
+        answer = state["answers"].get(ts, (0, None))
+        if answer[0] != 200:
+            o.violations.append(f"switch to {mode} at {ts:.0f} s answered {answer}")
+        o.violations += _steps_within_rates(samples, ts, 30.0, cfg.safety)
+        t0 = by_t[ts]["supply_temp_c"]
+        dev = max(abs(by_t[ts + k]["supply_temp_c"] - t0) for k in range(1, 11))
+        worst[mode] = dev
+        if dev > 0.5:
+            o.violations.append(f"supply temperature moved {dev:.2f} C within 10 s of the switch to {mode}")
+    refused = state["answers"].get("heater_at_low_flow", (0, {}))
+    if refused[0] != 409 or "heater refused" not in str(refused[1]):
+        o.violations.append(f"heater at low flow answered {refused}")
+    if any(by_t[t]["heater_cmd_w"] > 0 for t in np.arange(550.0, 561.0)):
+        o.violations.append("heater on after the refusal while the manual setting starved the flow")
+    history = [h["to"] for h in d.status()["mode_history"]]
+    if history != ["auto-pid", "manual", "auto-mpc"] or d.counters["manual_refused"] != 1:
+        o.violations.append(f"mode history {history}, refused {d.counters['manual_refused']}")
+    o.detected = int(refused[0] == 409)
+    o.notes = ("max |dT| 10 s after switch: " + ", ".join(f"{m} {v:.2f} C" for m, v in worst.items())
+               + f"; back to MPC at {state.get('back', float('nan')):.0f} s"
+               + f"; refused at flow {state.get('flow_at_refusal', float('nan')):.4f} m3/s")
+    return o
+
+
 # ---------------------------------------------------------------------------------- campaign
 def run_campaign(workdir: str | Path, include_processes: bool = True, controller: str = "baseline",
-                 mpc: str = "mpc") -> dict[str, Any]:
+                 mpc: str = "mpc", big_log_mb: float = 20.0) -> dict[str, Any]:
     """Run every scenario; returns ``{"outcomes": [...], "counts": {...}}``."""
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
@@ -845,9 +1119,13 @@ def run_campaign(workdir: str | Path, include_processes: bool = True, controller
     outcomes += controller_scenarios(workdir, mpc)
     outcomes += backend_scenarios(workdir, controller)
     outcomes += api_scenarios(workdir, controller)
+    outcomes.append(disk_full(workdir, controller))
+    outcomes += bad_config_files(workdir)
+    outcomes.append(mode_switches_over_modbus(workdir))
     if include_processes:
         outcomes += sigkill_restart(workdir, controller)
         outcomes += sigterm_shutdown(workdir, controller)
+        outcomes.append(tail_repair_kills(workdir, big_log_mb))
     counts: dict[str, Any] = {"scenarios": len(outcomes), "passed": sum(o.ok for o in outcomes),
                               "violations": sum(len(o.violations) for o in outcomes), "by_category": {},
                               "injected_fault_ticks": {}, "wall_s": 0.0}
@@ -882,9 +1160,11 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description="run the daemon's fault campaign")
     ap.add_argument("--workdir", default="daemon_campaign")
     ap.add_argument("--no-processes", action="store_true")
+    ap.add_argument("--big-log-mb", type=float, default=20.0,
+                    help="size of the log killed during its tail repair (e.g. 400)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.ERROR)
-    result = run_campaign(args.workdir, include_processes=not args.no_processes)
+    result = run_campaign(args.workdir, include_processes=not args.no_processes, big_log_mb=args.big_log_mb)
     print(format_report(result))
     return 0 if result["counts"]["violations"] == 0 else 1
 

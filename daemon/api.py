@@ -40,6 +40,7 @@ LOG = logging.getLogger("hvac_mpc.daemon")
 JSON = "application/json"
 MAX_INT_DIGITS = 30
 MAX_PATH_CHARS = 2048
+MAX_HEADER_BYTES = 8192
 
 
 class BadRequest(ValueError):
@@ -156,6 +157,8 @@ class ApiApp:
         await send({"type": "http.response.body", "body": body})
 
     async def _handle(self, scope: dict, receive: Callable) -> tuple[int, Any, list]:
+        if sum(len(k) + len(v) + 4 for k, v in scope["headers"]) > MAX_HEADER_BYTES:
+            raise BadRequest(431, f"request headers larger than {MAX_HEADER_BYTES} bytes")
         headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope["headers"]}
         self._check_host_and_origin(headers)
         method, path = scope["method"], scope["path"].rstrip("/") or "/"

@@ -52,14 +52,26 @@ max_ticks = 0           # stop after N samples (0 = until SIGTERM/SIGINT)
 [log]
 path = "hvac_daemon_log.csv"   # measurement log (docs/model.md sec. 4); a restart appends
 fsync = true
+rotate_bytes = 0        # new segment past this size (0 = never); segments listed in <stem>.index.csv
+rotate_daily = false    # new segment at each UTC midnight
+buffer_rows = 86400     # rows kept in memory while the disk fails (then the oldest are dropped)
+retry_s = 5.0           # between write attempts while the log is degraded
 
 [api]
 enabled = true
-host = "127.0.0.1"      # anything else needs a token
+host = "127.0.0.1"
 port = 8750
 port_file = ""
-token_env = ""          # e.g. "HVAC_MPC_TOKEN": the bearer token is read from this variable
+token_file = ""         # bearer token of every write, generated at first start (mode 0600);
+                        # "" = <log stem>.token beside the log
+token_env = ""          # or: the environment variable holding the token
+auth_reads = false      # true: reads need the token too (/health stays open)
+allowed_hosts = []      # Host names accepted besides loopback and api.host (DNS rebinding guard)
+allowed_origins = []    # Origins accepted besides the API's own
 max_body_bytes = 4096
+header_timeout_s = 2.0  # request headers must arrive within this time
+body_timeout_s = 5.0
+max_connections = 256   # beyond it the oldest connection still sending headers is dropped
 
 [controller]
 name = "mpc"            # example; "baseline" is the default
@@ -89,6 +101,11 @@ safe_blower_w = 120.0
 stuck_samples = 30
 stale_samples = 3
 cooldown_max_s = 900.0
+rate_blower_w_per_s = 60.0    # manual mode and the transfer after a mode switch
+rate_heater_w_per_s = 60.0
+rate_valve_pct_per_s = 20.0
+transfer_s = 30.0
+unsafe = false                # true allows min_flow_m3s = 0 and no interlock sensor (logged)
 
 [reference]
 supply_temp_c = 20.0

@@ -108,7 +108,6 @@ class DurableLog:
         self._committed = 0
         self._first: dict[str, str] | None = None
         self._last: dict[str, str] | None = None
-        self._rows = 0
         self._open()
 
     # ------------------------------------------------------------------ opening and rotation
@@ -131,7 +130,6 @@ class DurableLog:
             self._last = _row_fields(_last_line(self.path), list(self.columns))
             if self._last is not None and self._last.get("time_s") == "time_s":
                 self._last = None
-            self._rows = 0 if self._first is None else -1  # unknown count: not needed until rotation
 
     def _second_line(self) -> bytes:
         with self.path.open("rb") as fh:
@@ -155,7 +153,6 @@ class DurableLog:
         self._index_segment(target)
         self.counters["rotations"] += 1
         self._first = self._last = None
-        self._rows = 0
 
     def _rotate(self) -> None:
         os.close(self._fd)
@@ -245,7 +242,6 @@ class DurableLog:
                 self._buffer.popleft()
                 self._first = self._first or fields_
                 self._last = fields_
-                self._rows = self._rows + 1 if self._rows >= 0 else -1
                 self.counters["rows_written"] += 1
         except OSError as exc:
             self.counters["write_errors"] += 1

@@ -245,6 +245,8 @@ class Daemon:
                 raise ModeError(f"mode {mode!r} refused: the daemon is {self.state}", 409)
             if chain is not None and mode not in self.chains:
                 self.chains[mode] = chain
+            elif chain is not None and chain is not self.chains[mode]:
+                chain.close()  # a concurrent request built it first
             old = self.mode
             if mode == old:
                 return {"mode": mode, "changed": False}

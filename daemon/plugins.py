@@ -6,7 +6,7 @@ A package registers its controller class in its own ``pyproject.toml``::
     my-controller = "my_package.module:MyController"
 
 and the configuration names it (``[controller] name = "my-controller"``). A ``module:name``
-written in a configuration file or sent to the API is never imported (docs/daemon.md).
+written in a configuration file or sent to the API is never imported (README, daemon section).
 """
 
 from __future__ import annotations
