@@ -77,17 +77,11 @@ def _pairs(values: list[str]) -> dict[str, Any]:
     return out
 
 
-def request(base: str, method: str, path: str, body: Any = None, token: str | None = None,
+def request(base: str, method: str, path: str, data: bytes | None = None, headers: dict | None = None,
             timeout: float = 30.0) -> tuple[int, Any]:
-    """One API call: (status, decoded JSON answer)."""
-    headers = {"User-Agent": USER_AGENT}
-    data = None
-    if body is not None:
-        data = json.dumps(body).encode()
-        headers["Content-Type"] = "application/json"
-    if token:
-        headers["Authorization"] = f"Bearer {token}"
-    req = urllib.request.Request(base + path, data=data, method=method, headers=headers)
+    """One API call: (status, decoded JSON answer or None). Raises OSError when nothing answers."""
+    req = urllib.request.Request(base + path, data=data, method=method,
+                                 headers={"User-Agent": USER_AGENT, **(headers or {})})
     try:
         with urllib.request.urlopen(req, timeout=timeout) as resp:
             return resp.status, json.loads(resp.read() or b"null")
@@ -96,7 +90,16 @@ def request(base: str, method: str, path: str, body: Any = None, token: str | No
             return exc.code, json.loads(exc.read() or b"null")
         except ValueError:
             return exc.code, None
-    except (urllib.error.URLError, OSError) as exc:
+
+
+def _call(base: str, method: str, path: str, body: Any, token: str | None, timeout: float) -> tuple[int, Any]:
+    headers = {"Authorization": f"Bearer {token}"} if token else {}
+    data = None
+    if body is not None:
+        data, headers["Content-Type"] = json.dumps(body).encode(), "application/json"
+    try:
+        return request(base, method, path, data, headers, timeout)
+    except OSError as exc:
         raise CtlError(f"no daemon at {base}: {getattr(exc, 'reason', exc)}") from None
 
 
@@ -112,13 +115,13 @@ def run(args: argparse.Namespace) -> int:
         if args.action == "mode" and args.values:
             if len(args.values) != 1:
                 raise CtlError("mode takes one name: auto-mpc, auto-pid, manual or safe-stop")
-            status, answer = request(base, "PUT", "/mode", {"mode": args.values[0]}, token, args.timeout)
+            status, answer = _call(base, "PUT", "/mode", {"mode": args.values[0]}, token, args.timeout)
         elif args.action == "set":
-            status, answer = request(base, "PUT", "/manual", _pairs(args.values), token, args.timeout)
+            status, answer = _call(base, "PUT", "/manual", _pairs(args.values), token, args.timeout)
         elif args.action == "reference":
-            status, answer = request(base, "PUT", "/reference", _pairs(args.values), token, args.timeout)
+            status, answer = _call(base, "PUT", "/reference", _pairs(args.values), token, args.timeout)
         else:
-            status, answer = request(base, "GET", f"/{args.action}", None, token, args.timeout)
+            status, answer = _call(base, "GET", f"/{args.action}", None, token, args.timeout)
     except CtlError as exc:
         print(f"hvac-mpc ctl: {exc}", file=sys.stderr)
         return 2

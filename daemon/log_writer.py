@@ -26,7 +26,7 @@ from collections import deque
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping
 
-from hvac_mpc.models.measurement_log import COLUMNS, LogFormatError, repair_tail
+from hvac_mpc.models.measurement_log import COLUMNS, LogFormatError, cell_text, repair_tail, schema_columns
 
 LOG = logging.getLogger("hvac_mpc.daemon")
 INDEX_COLUMNS = ("segment", "first_time_s", "last_time_s", "first_utc", "last_utc", "rows")
@@ -36,15 +36,6 @@ def utc_now_iso(now_s: float | None = None) -> str:
     """ISO 8601 UTC with milliseconds, e.g. ``2026-11-23T13:05:00.123Z``."""
     t = _dt.datetime.fromtimestamp(time.time() if now_s is None else now_s, _dt.timezone.utc)
     return t.strftime("%Y-%m-%dT%H:%M:%S.") + f"{t.microsecond // 1000:03d}Z"
-
-
-def _cell(value: Any) -> str:
-    if value is None:
-        return ""
-    if isinstance(value, str):
-        return value
-    value = float(value)
-    return repr(value) if value == value and abs(value) != float("inf") else ""
 
 
 def _csv_line(values: Iterable[str]) -> bytes:
@@ -87,10 +78,7 @@ class DurableLog:
                  retry_s: float = 5.0, wall_clock: Callable[[], float] = time.time,
                  inject: Callable[[], None] | None = None):
         self.path = Path(path)
-        self.columns = tuple(columns)
-        unknown = sorted(set(self.columns) - set(COLUMNS))
-        if unknown:
-            raise LogFormatError(f"unknown log column(s) {unknown}")
+        self.columns = schema_columns(columns)
         self.fsync = fsync
         self.rotate_bytes = rotate_bytes
         self.rotate_daily = rotate_daily
@@ -222,7 +210,7 @@ class DurableLog:
         unknown = sorted(set(row) - set(self.columns))
         if unknown:
             raise LogFormatError(f"unknown log column(s) {unknown}")
-        cells = [_cell(row.get(c)) for c in self.columns]
+        cells = [cell_text(row.get(c)) for c in self.columns]
         entry = (_csv_line(cells), dict(zip(self.columns, cells)))
         if len(self._buffer) == self._buffer.maxlen:
             self.counters["rows_dropped"] += 1

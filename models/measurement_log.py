@@ -32,7 +32,8 @@ class LogFormatError(ValueError):
     """The log does not follow the schema; the message names the column."""
 
 
-def _cell(value: Any) -> str:
+def cell_text(value: Any) -> str:
+    """A log cell: text as is, a finite number as its repr, anything else empty."""
     if value is None:
         return ""
     if isinstance(value, str):
@@ -41,15 +42,21 @@ def _cell(value: Any) -> str:
     return "" if not math.isfinite(value) else repr(value)
 
 
+def schema_columns(columns: Iterable[str]) -> tuple[str, ...]:
+    """``columns`` as a tuple, every one a schema column (else :class:`LogFormatError` naming them)."""
+    out = tuple(columns)
+    unknown = sorted(set(out) - set(COLUMNS))
+    if unknown:
+        raise LogFormatError(f"unknown log column(s) {unknown}")
+    return out
+
+
 class LogWriter:
     """Appends rows to a CSV log in the schema; each row is flushed and fsynced on write."""
 
     def __init__(self, path: str | Path, columns: Iterable[str] = COLUMNS, fsync: bool = True):
         self.path = Path(path)
-        self.columns = tuple(columns)
-        unknown = sorted(set(self.columns) - set(COLUMNS))
-        if unknown:
-            raise LogFormatError(f"unknown log column(s) {unknown}")
+        self.columns = schema_columns(columns)
         self.fsync = fsync
         exists = self.path.exists() and self.path.stat().st_size > 0
         if exists:
@@ -69,7 +76,7 @@ class LogWriter:
         unknown = sorted(set(row) - set(self.columns))
         if unknown:
             raise LogFormatError(f"unknown log column(s) {unknown}")
-        self._writer.writerow([_cell(row.get(c)) for c in self.columns])
+        self._writer.writerow([cell_text(row.get(c)) for c in self.columns])
         self._flush()
 
     def _flush(self) -> None:

@@ -8,18 +8,17 @@ from __future__ import annotations
 import errno
 import json
 import logging
-import os
 import urllib.request
 
 import numpy as np
 import pytest
 
 from hvac_mpc.benchmarks.daemon_campaign import _request
-from hvac_mpc.daemon.config import ConfigError, config_from_mapping, load_config
+from hvac_mpc.daemon.config import ConfigError, config_from_mapping
 from hvac_mpc.daemon.log_writer import DurableLog
 from hvac_mpc.daemon.loop import Daemon
 from hvac_mpc.daemon.server import token_path
-from hvac_mpc.models.measurement_log import COLUMNS, read_log, repair_tail
+from hvac_mpc.models.measurement_log import read_log, repair_tail
 
 pytest.importorskip("uvicorn", reason="the API needs the 'server' extra (uvicorn)")
 
@@ -311,3 +310,15 @@ def test_example_configuration_is_valid():
 
     cfg = config_from_mapping(tomllib.loads(EXAMPLE_TOML))
     assert cfg.controller.name == "mpc" and cfg.api.header_timeout_s == 2.0 and not cfg.safety.unsafe
+
+
+def test_readers_keep_columns_they_do_not_know(tmp_path):
+    from hvac_mpc.models.measurement_log import REQUIRED_COLUMNS
+
+    path = tmp_path / "future.csv"
+    header = list(REQUIRED_COLUMNS) + ["utc", "model_sha256"]
+    path.write_text(",".join(header) + "\n" + ",".join(["1.0"] * len(REQUIRED_COLUMNS)
+                                                       + ["2026-11-23T10:00:00.000Z", "ab12"]) + "\n")
+    log = read_log(path)
+    assert log["utc"][0] == "2026-11-23T10:00:00.000Z" and log["model_sha256"][0] == "ab12"
+    assert log["supply_temp_c"][0] == 1.0
