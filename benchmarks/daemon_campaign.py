@@ -958,11 +958,13 @@ BAD_CONFIGS = {
     "no_interlock_sensor": b"[safety]\ninterlock_sensors = []\n",
     "module_name_controller": b'[controller]\nname = "os:system"\n',
     "huge_integer": b"[loop]\nperiod_s = 1" + b"0" * 400 + b"\n",
+    "public_bind_open_reads": b'[api]\nhost = "0.0.0.0"\n',
 }
 BAD_CONFIG_KEYS = {"binary": "UTF-8", "reference_number": "reference", "reference_text": "reference",
                    "fallback_number": "controller.fallback", "unknown_effect": "backend.simulated.effects",
                    "zero_min_flow": "min_flow_m3s", "no_interlock_sensor": "interlock_sensors",
                    "module_name_controller": "controller.name", "huge_integer": "loop.period_s",
+                   "public_bind_open_reads": "api.auth_reads",
                    "directory": "directory"}
 
 

@@ -222,6 +222,13 @@ class ApiConfig(_Section):
     max_connections: int = _f(256, "open connections; beyond it the oldest one still sending headers is "
                                    "dropped (slow clients cannot exhaust it)", 8, 100000)
 
+    @model_validator(mode="after")
+    def _reads_off_loopback(self) -> "ApiConfig":
+        if self.enabled and self.host not in LOOPBACK_HOSTS and not self.auth_reads:
+            raise ValueError(f"host = {self.host!r} is not loopback: set api.auth_reads = true so reads need the "
+                             "token too (writes always do)")
+        return self
+
 
 class ControllerConfig(_Section):
     name: str = _f("baseline", f"a registered controller (entry point group {CONTROLLER_GROUP}): "

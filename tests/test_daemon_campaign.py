@@ -32,7 +32,7 @@ def test_fault_campaign_keeps_actuators_safe(tmp_path, capsys):
     by = counts["by_category"]
     assert by["sensor"]["tried"] == 19 and by["controller"]["tried"] == 4 and by["process"]["tried"] == 4
     assert by["api"]["tried"] >= 50 and by["backend"]["tried"] == 2
-    assert by["log"]["tried"] == 2 and by["config"]["tried"] == 10 and by["modes"]["tried"] == 1
+    assert by["log"]["tried"] == 2 and by["config"]["tried"] == 11 and by["modes"]["tried"] == 1
     names = {o.name for o in result["outcomes"]}
     assert {"api_slow_header_flood_16", "api_slow_header_flood_200", "api_no_token", "api_foreign_host",
             "api_foreign_origin", "api_no_content_type", "api_integer_10_pow_400"} <= names

@@ -71,6 +71,12 @@ def test_unsafe_override_is_explicit_and_logged(tmp_path, caplog):
         config_from_mapping({"safety": {"unsafe": True, "heater_max_w": 300.0}})  # hard limits stay
 
 
+def test_public_bind_needs_authenticated_reads():
+    with pytest.raises(ConfigError, match=r"api: host = '0.0.0.0' is not loopback: set api.auth_reads = true"):
+        config_from_mapping({"api": {"host": "0.0.0.0"}})
+    assert config_from_mapping({"api": {"host": "0.0.0.0", "auth_reads": True}}).api.auth_reads
+
+
 def test_controllers_come_only_from_the_entry_point_group(test_controllers):
     from hvac_mpc.daemon.plugins import registered_controllers
 
@@ -322,3 +328,18 @@ def test_readers_keep_columns_they_do_not_know(tmp_path):
     log = read_log(path)
     assert log["utc"][0] == "2026-11-23T10:00:00.000Z" and log["model_sha256"][0] == "ab12"
     assert log["supply_temp_c"][0] == 1.0
+
+
+def test_authenticated_reads_when_configured(tmp_path):
+    cfg = _cfg(tmp_path, api={"auth_reads": True}, loop={"max_ticks": 10})
+    out = {}
+
+    def hook(d, sample):
+        if sample["time_s"] == 3.0:
+            token = token_path(d.cfg).read_text().strip()
+            out["health"] = _request(d.api.port, "GET", "/health")[0]
+            out["status"] = _request(d.api.port, "GET", "/status")[0]
+            out["status_token"] = _request(d.api.port, "GET", "/status", token=token)[0]
+
+    assert Daemon(cfg, tick_hook=hook).run() == 0
+    assert out == {"health": 200, "status": 401, "status_token": 200}
