@@ -24,12 +24,7 @@ from hvac_mpc.contract import Controller, StepResult
 from hvac_mpc.contract import Reference
 
 from .config import FaultSpec
-
-BUILTIN = {
-    "mpc": ("hvac_mpc.mpc.mpc_controller", "MpcController"),
-    "baseline": ("hvac_mpc.mpc.baseline", "BaselineController"),
-}
-
+from .plugins import CONTROLLER_GROUP, registered_controllers
 
 class ControllerLoadError(ValueError):
     """The configured controller cannot be found or built; the message says which and why."""
@@ -37,26 +32,23 @@ class ControllerLoadError(ValueError):
 
 def load_controller(spec: str, params: Parameters, dt_s: float, settings: Mapping[str, Any] | None = None
                     ) -> Controller:
-    """Build a controller by name: 'mpc', 'baseline' or 'package.module:Class'.
+    """Build a registered controller by name: 'mpc', 'baseline' or a plug-in's entry-point name.
 
     'mpc' gets ``MpcController(params, MpcSettings(**settings))``; 'baseline' gets
-    ``BaselineController(params, dt_s)``; a custom class gets ``Class(params=..., dt_s=..., **settings)``.
+    ``BaselineController(params, dt_s)``; a plug-in class gets ``Class(params=..., dt_s=..., **settings)``.
     """
     settings = dict(settings or {})
-    if spec in BUILTIN:
-        module_name, cls_name = BUILTIN[spec]
-    elif ":" in spec:
-        module_name, cls_name = spec.split(":", 1)
-    else:
-        raise ControllerLoadError(f"controller {spec!r}: use 'mpc', 'baseline' or 'package.module:Class'")
+    known = registered_controllers()
+    if spec not in known:
+        raise ControllerLoadError(f"controller {spec!r} is not registered (entry point group {CONTROLLER_GROUP}); "
+                                  f"registered: {sorted(known)}")
     try:
-        module = importlib.import_module(module_name)
-        cls = getattr(module, cls_name)
+        cls = known[spec].load()
     except (ImportError, AttributeError) as exc:
-        raise ControllerLoadError(f"controller {spec!r}: cannot import {module_name}.{cls_name} ({exc})") from None
+        raise ControllerLoadError(f"controller {spec!r}: cannot import {known[spec].value} ({exc})") from None
     try:
         if spec == "mpc":
-            settings_cls = getattr(module, "MpcSettings")
+            settings_cls = getattr(importlib.import_module(cls.__module__), "MpcSettings")
             if "dt_s" in getattr(settings_cls, "__dataclass_fields__", {}) and "dt_s" not in settings:
                 settings["dt_s"] = dt_s
             return cls(params, settings_cls(**_nested(settings_cls, settings)))
@@ -88,6 +80,9 @@ def reset_controller(ctrl: Controller, command: Command | None) -> None:
         ctrl.reset(command=command)
     else:
         ctrl.reset()
+        track = getattr(ctrl, "track", None)
+        if callable(track) and command is not None:
+            track(command)  # bumpless: the thesis baseline presets its integrators from the command
 
 
 class InjectedFailure(RuntimeError):

@@ -9,7 +9,12 @@ Each tick (sample time ``time_s = t0 + k * period_s``):
 3. compute the command: the controller chain (primary under a deadline, fallbacks), or the safe
    command when a sensor the controller needs is invalid, or the shutdown command;
 4. apply the heater interlock (independent of any controller), write the command;
-5. append the sample to the measurement log (flushed and fsynced) and publish it to the API.
+5. append the sample to the measurement log (fsynced; buffered in memory while the disk fails,
+   :mod:`hvac_mpc.daemon.log_writer`) and publish it to the API.
+
+The command comes from the operator mode in force (:mod:`hvac_mpc.daemon.modes`): the controller
+chain of ``auto-mpc``/``auto-pid``/``auto``, the operator's setting in ``manual``, the safe
+command in ``safe-stop``; the interlock acts after it in every mode.
 
 Shutdown (SIGTERM/SIGINT, ``max_ticks`` or a fatal error): heater off at once, the blower
 keeps running at least at ``safe_blower_w`` with all outlets open and valve a sending the air
@@ -21,17 +26,21 @@ sample after the last logged row), so a restarted daemon appends without a gap.
 
 from __future__ import annotations
 
+import bisect
 import csv
+import errno
 import io
 import logging
 import math
 import threading
 import time
 import traceback
+from collections import deque
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Callable
 
-from hvac_mpc.models.measurement_log import COLUMNS, LogWriter
+from hvac_mpc.models.measurement_log import COLUMNS
 from hvac_mpc.models.parameters import Parameters
 from hvac_mpc.contract import Command, Measurement
 from hvac_mpc.contract import Reference
@@ -39,6 +48,8 @@ from hvac_mpc.contract import Reference
 from .backends import BackendError, IoBackend, make_backend
 from .config import SENSOR_FIELDS, DaemonConfig, resolve
 from .controllers import ControllerChain, FaultInjectingController, load_controller
+from .log_writer import DurableLog, utc_now_iso
+from .modes import AUTO_CONTROLLERS, MODES, ModeChange, ModeError, heater_refusal, initial_mode, rate_limited
 from .safety import HeaterEstimator, HeaterInterlock, SensorMonitor, SensorStatus, safe_command
 
 LOG = logging.getLogger("hvac_mpc.daemon")
@@ -46,6 +57,8 @@ COMMAND_FIELDS = ("blower_power_w", "heater_cmd_w", "valve_a_pct", "valve_m_pct"
 REF_COLUMNS = {"supply_temp_c": "ref_supply_temp_c", "volume_flow_m3s": "ref_volume_flow_m3s",
                "flow_m_m3s": "ref_flow_m_m3s", "flow_f_m3s": "ref_flow_f_m3s", "flow_w_m3s": "ref_flow_w_m3s"}
 BLOWER_MIN_W = 30.0
+#: Upper bounds (s) of the tick-time histogram (/metrics).
+TICK_TIME_BUCKETS_S = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5)
 
 
 def last_logged_time(path: Path) -> float | None:
@@ -110,16 +123,29 @@ class Daemon:
         self.log_path = resolve(config, config.log.path)
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
         self._log_lock = _lock_log(self.log_path)
+        self.tick = 0
+        self.t0 = 0.0
         try:
-            self.writer = LogWriter(self.log_path, COLUMNS, fsync=config.log.fsync)
-            last = last_logged_time(self.log_path)
+            lc = config.log
+            self.writer = DurableLog(self.log_path, COLUMNS, fsync=lc.fsync, rotate_bytes=lc.rotate_bytes,
+                                     rotate_daily=lc.rotate_daily, buffer_rows=lc.buffer_rows, retry_s=lc.retry_s,
+                                     wall_clock=lambda: self.time_s, inject=self._log_fault)
+            last = self.writer.last_time_s
             self.t0 = 0.0 if last is None else last + self.dt
-            self.tick = 0
             self.backend = backend or make_backend(config, self.params, clock=lambda: self.time_s)
+            self.mode = initial_mode(config.controller.name)
             self.chain = self._build_chain()
         except BaseException:
             self._log_lock.close()
             raise
+        self.chains: dict[str, ControllerChain] = {self.mode: self.chain}
+        self._tick_mode = self.mode
+        self._switched = False
+        self._manual_target: Command | None = None
+        self._transfer_until_s = -math.inf
+        self.mode_history: deque[ModeChange] = deque(maxlen=200)
+        if config.safety.unsafe_overrides():
+            LOG.warning("UNSAFE configuration (safety.unsafe = true): %s", ", ".join(config.safety.unsafe_overrides()))
         self.monitor = SensorMonitor(config.safety)
         self.interlock = HeaterInterlock(config.safety, self.params)
         self.estimator = HeaterEstimator(self.params)
@@ -143,6 +169,8 @@ class Daemon:
             "disconnected_ticks": 0, "backend_errors": 0, "reconnect_attempts": 0, "reconnects": 0,
             "sensor_fault_ticks": {}, "reference_updates": 0, "fatal_errors": 0, "shutdown_ticks": 0,
             "max_step_time_s": 0.0, "max_tick_time_s": 0.0, "solver_status": {}, "inner_fallback_ticks": {},
+            "mode_changes": 0, "manual_commands": 0, "manual_refused": 0,
+            "tick_time_sum_s": 0.0, "tick_time_buckets": [0] * (len(TICK_TIME_BUCKETS_S) + 1),
         }
         self._fired: set[int] = set()
         self.injected: dict[str, int] = {}
@@ -151,41 +179,41 @@ class Daemon:
             self._start_api()
 
     # ------------------------------------------------------------------ construction
-    def _build_chain(self) -> ControllerChain:
+    def _build_chain(self, primary: str | None = None) -> ControllerChain:
+        """The chain of ``primary`` (default: the configured controller): primary, then the
+        configured fallbacks; the configured settings go to the configured controller only."""
         c = self.cfg.controller
-        names = [c.name] + [f for f in c.fallback if f != c.name]
+        primary = primary or c.name
+        names = [primary] + [f for f in c.fallback if f != primary]
         chain = []
         for i, name in enumerate(names):
-            ctrl = load_controller(name, self.params, self.dt, c.settings if i == 0 else None)
+            ctrl = load_controller(name, self.params, self.dt, c.settings if name == c.name else None)
             if i == 0 and any(f.target == "controller" for f in self.cfg.faults):
                 ctrl = FaultInjectingController(ctrl, self.cfg.faults, clock=lambda: self.time_s)
             chain.append((name, ctrl))
         return ControllerChain(chain, self.cfg.loop.step_deadline_s)
 
     def _start_api(self) -> None:
-        import os
+        from .server import ApiServer
 
-        from .api import ReferenceApi
+        self.api = ApiServer(self, self.cfg).start()
+        LOG.info("HTTP API on http://%s:%d", self.cfg.api.host, self.api.port)
 
-        a = self.cfg.api
-        token = a.token or (os.environ.get(a.token_env, "") if a.token_env else "")
-        if a.token_env and not token and a.host not in ("127.0.0.1", "localhost", "::1"):
-            raise ValueError(f"api.token_env = {a.token_env!r} is empty or unset; refusing to serve on {a.host}")
-        self.api = ReferenceApi(self, a.host, a.port, token=token, max_body_bytes=a.max_body_bytes,
-                                request_timeout_s=a.request_timeout_s).start()
-        if a.port_file:
-            pf = resolve(self.cfg, a.port_file)
-            tmp = pf.with_suffix(pf.suffix + ".tmp")
-            tmp.write_text(str(self.api.port))
-            tmp.replace(pf)
-        LOG.info("reference API on http://%s:%d", a.host, self.api.port)
+    def _log_fault(self) -> None:
+        """Injected log faults ([[faults]] target 'log'): every write fails in the window."""
+        for f in self.cfg.faults:
+            if f.target == "log" and f.active(self.time_s):
+                key = f"log:{f.kind}"
+                self.injected[key] = self.injected.get(key, 0) + 1
+                code = errno.ENOSPC if f.kind == "enospc" else errno.EIO
+                raise OSError(code, f"injected: {errno.errorcode[code]}")
 
     # ------------------------------------------------------------------ API side (thread-safe)
     def get_reference(self) -> Reference:
         with self._lock:
             return self.reference
 
-    def set_reference(self, ref: Reference) -> None:
+    def set_reference(self, ref: Reference, client: str = "") -> None:
         with self._lock:
             self.reference = ref
             self.counters["reference_updates"] += 1
@@ -194,27 +222,95 @@ class Daemon:
         with self._lock:
             return None if self.latest is None else dict(self.latest)
 
+    def get_mode(self) -> dict[str, Any]:
+        with self._lock:
+            return {"mode": self.mode, "modes": self.available_modes(),
+                    "manual_target": None if self._manual_target is None or self.mode != "manual"
+                    else self._manual_target.as_dict(),
+                    "history": [h.as_dict() for h in list(self.mode_history)[-20:]]}
+
+    def available_modes(self) -> list[str]:
+        return [m for m in MODES if m != "auto" or self.cfg.controller.name not in AUTO_CONTROLLERS.values()]
+
+    def set_mode(self, mode: str, client: str) -> dict[str, Any]:
+        """Switch the operator mode (applied at the next tick, bumplessly); logged with the client."""
+        if mode not in self.available_modes():
+            raise ModeError(f"mode {mode!r}: allowed {self.available_modes()}")
+        with self._lock:
+            chain = self.chains.get(mode)
+        if chain is None and mode in AUTO_CONTROLLERS:
+            chain = self._build_chain(AUTO_CONTROLLERS[mode])  # outside the lock: building may take seconds
+        with self._lock:
+            if self.state not in ("starting", "running") or self._stop_requests or self._fatal:
+                raise ModeError(f"mode {mode!r} refused: the daemon is {self.state}", 409)
+            if chain is not None and mode not in self.chains:
+                self.chains[mode] = chain
+            elif chain is not None and chain is not self.chains[mode]:
+                chain.close()  # a concurrent request built it first
+            old = self.mode
+            if mode == old:
+                return {"mode": mode, "changed": False}
+            self.mode = mode
+            self._switched = True
+            self._manual_target = Command(**self._last_cmd.as_dict()) if mode == "manual" else None
+            change = ModeChange(utc_now_iso(), self.time_s, old, mode, client)
+            self.mode_history.append(change)
+            self.counters["mode_changes"] += 1
+        LOG.warning("mode %s -> %s at t = %.1f s (%s) requested by %s", old, mode, change.time_s, change.utc, client)
+        return {"mode": mode, "changed": True, "from": old}
+
+    def set_manual(self, values: dict[str, float], client: str) -> dict[str, Any]:
+        """Set actuators in manual mode; refused (with the reason, logged) where the interlock would be."""
+        with self._lock:
+            if self.mode != "manual" or self._manual_target is None:
+                raise ModeError(f"manual commands need mode 'manual' (now {self.mode!r}); PUT /mode first", 409)
+            target = replace(self._manual_target, **values)
+            why = heater_refusal(target.heater_cmd_w, self.latest, self.cfg.safety) \
+                if "heater_cmd_w" in values else None
+            if why is not None:
+                self.counters["manual_refused"] += 1
+            else:
+                self._manual_target = target
+                self.counters["manual_commands"] += 1
+            t = self.time_s
+        if why is not None:
+            LOG.warning("manual command %s from %s refused at t = %.1f s: %s", values, client, t, why)
+            raise ModeError(why, 409)
+        LOG.info("manual command %s from %s at t = %.1f s", values, client, t)
+        return {"accepted": values, "target": target.as_dict()}
+
     def status(self) -> dict[str, Any]:
         with self._lock:
-            counters = {k: (dict(v) if isinstance(v, dict) else v) for k, v in self.counters.items()}
-            out = {"state": self.state, "mode": self._last_mode, "time_s": self.time_s, "connected": self.connected,
-                   "controller": self.cfg.controller.name, "backend": self.cfg.backend.kind,
-                   "reference": self.reference.as_dict(), "counters": counters,
+            counters = {k: (dict(v) if isinstance(v, dict) else list(v) if isinstance(v, list) else v)
+                        for k, v in self.counters.items()}
+            out = {"state": self.state, "mode": self._last_mode, "operator_mode": self.mode, "time_s": self.time_s,
+                   "connected": self.connected, "controller": self.chain.controllers[0][0],
+                   "backend": self.cfg.backend.kind, "reference": self.reference.as_dict(), "counters": counters,
                    "interlock_trips": dict(self.interlock.trips), "heater_estimate_c": self.estimator.temp_c,
-                   "uptime_s": time.monotonic() - self._started_wall}
+                   "uptime_s": time.monotonic() - self._started_wall, "log": self.writer.status(),
+                   "degraded": self.degraded(), "unsafe": self.cfg.safety.unsafe_overrides(),
+                   "tick_time_bounds_s": list(TICK_TIME_BUCKETS_S),
+                   "mode_history": [h.as_dict() for h in list(self.mode_history)[-20:]]}
         injected: dict[str, int] = dict(self.injected)
         for obj in (self.backend, self.chain.controllers[0][1]):
             injected.update(getattr(obj, "injected", {}))
         out["injected_faults"] = injected
         if self.api is not None:
-            out["api_requests"] = {**self.api.counts, "dropped": self.api.dropped, "refused": self.api.refused}
+            out["api_requests"] = self.api.stats()
         return out
+
+    def degraded(self) -> list[str]:
+        """What works but not as it should (the loop still controls): 'log' while rows are buffered."""
+        return ["log"] if self.writer.state != "ok" else []
 
     def health(self) -> tuple[bool, dict[str, Any]]:
         age = time.monotonic() - self._last_tick_wall
         limit = max(5.0 * self.cfg.loop.wall_period_s, 5.0)
         ok = self.state in ("running", "shutdown") and age < limit
-        return ok, {"state": self.state, "last_tick_age_s": round(age, 3), "connected": self.connected}
+        degraded = self.degraded()
+        return ok, {"status": ("degraded" if degraded else "ok") if ok else "down", "degraded": degraded,
+                    "state": self.state, "mode": self.mode, "last_tick_age_s": round(age, 3),
+                    "connected": self.connected, "log": self.writer.state}
 
     # ------------------------------------------------------------------ control
     @property
@@ -249,8 +345,7 @@ class Daemon:
                     self._fatal = True
                     self._stop_reason = self._stop_reason or f"fatal: {exc}"
                     done = False
-                self.counters["max_tick_time_s"] = max(self.counters["max_tick_time_s"],
-                                                       time.perf_counter() - t_start)
+                self._count_tick_time(time.perf_counter() - t_start)
                 self._last_tick_wall = time.monotonic()
                 if done:
                     break
@@ -269,6 +364,13 @@ class Daemon:
         finally:
             self._close()
         return self.exit_code
+
+    def _count_tick_time(self, dt_s: float) -> None:
+        c = self.counters
+        with self._lock:
+            c["max_tick_time_s"] = max(c["max_tick_time_s"], dt_s)
+            c["tick_time_sum_s"] += dt_s
+            c["tick_time_buckets"][bisect.bisect_left(TICK_TIME_BUCKETS_S, dt_s)] += 1
 
     def _sleep_until(self, wall: float) -> None:
         """Sleep in short slices so a stop request (signal or other thread) is seen within 50 ms."""
@@ -364,6 +466,10 @@ class Daemon:
                 raise RuntimeError(f"injected fatal error at t = {t} s")
         with self._lock:
             ref = self.reference
+            switched, self._switched = self._switched, False
+            op_mode, manual_target = self.mode, self._manual_target
+        if switched:
+            self._switch_to(op_mode)
         if (self._stop_requests or self._fatal) and self._shutdown_start_s is None:
             self._shutdown_start_s = t
             self.state = "shutdown"
@@ -415,6 +521,12 @@ class Daemon:
                 events.append("sensors:" + ",".join(unusable))
                 self.counters["safe_ticks"] += 1
                 self.chain.reset()
+            elif op_mode == "safe-stop":
+                mode = used = "safe-stop"
+                cmd = safe_command(s, blower_w=max(self._last_cmd.blower_power_w, s.safe_blower_w))
+            elif op_mode == "manual" and manual_target is not None:
+                mode = used = "manual"
+                cmd = rate_limited(manual_target, self._last_cmd, s, self.dt)
             else:
                 outcome = self.chain.step(cm, ref, self._last_cmd)
                 events += outcome.events
@@ -438,7 +550,9 @@ class Daemon:
                     used = outcome.used or "none"
                     self._count_stats(stats)
                     mode = str(stats.get("mode") or "control")
-                    if used == self.cfg.controller.name:
+                    if t < self._transfer_until_s:  # bumpless: rate-limited from the command in force
+                        cmd = rate_limited(cmd, self._last_cmd, s, self.dt)
+                    if used == self.chain.controllers[0][0]:
                         self.counters["primary_ticks"] += 1
                     else:
                         fb = self.counters["fallback_ticks"]
@@ -471,6 +585,14 @@ class Daemon:
             self.tick_hook(self, sample)
         return finished
 
+    def _switch_to(self, op_mode: str) -> None:
+        """Apply a mode switch in the loop thread: the new chain is reset (its controller starts
+        from the command in force) and the transfer window begins."""
+        if op_mode in self.chains:
+            self.chain = self.chains[op_mode]
+            self.chain.reset()
+        self._transfer_until_s = self.time_s + self.cfg.safety.transfer_s
+
     def _count_stats(self, stats: dict[str, Any]) -> None:
         """Count the controller's own solver statuses and fallbacks (bounded number of keys)."""
         for key, value in (("solver_status", stats.get("status")), ("inner_fallback_ticks", stats.get("fallback"))):
@@ -490,6 +612,7 @@ class Daemon:
             row[col] = getattr(ref, f)
         row["mode"] = mode
         row["controller"] = used
+        row["utc"] = utc_now_iso()
         return row
 
     def _emergency_stop(self) -> None:
@@ -530,15 +653,14 @@ class Daemon:
 
     def _close(self) -> None:
         self.state = "stopped"
-        for closer in (self.chain.close, self.backend.close, self.writer.close):
+        closers = [c.close for c in self.chains.values()] + [self.backend.close, self.writer.close]
+        for closer in closers:
             try:
                 closer()
             except Exception:  # noqa: BLE001
                 LOG.exception("while closing")
         if self.api is not None:
             self.api.stop()
-            if self.cfg.api.port_file:
-                resolve(self.cfg, self.cfg.api.port_file).unlink(missing_ok=True)
         self._log_lock.close()
         LOG.info("daemon stopped at t = %.1f s (%s)", self.time_s, self._stop_reason or "done")
 

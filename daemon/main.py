@@ -11,7 +11,6 @@ configuration or a failure to start (nothing was driven).
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import logging
 import math
 import signal
@@ -44,14 +43,14 @@ def _overrides(cfg, args):
             raise ConfigError(f"--speedup {args.speedup!r}: a positive number or 'max'") from None
         if not speed > 0:
             raise ConfigError(f"--speedup {args.speedup!r}: a positive number or 'max'")
-        loop = dataclasses.replace(loop, speedup=speed)
+        loop = loop.replace(speedup=speed)
     if args.max_ticks is not None:
         if args.max_ticks < 0:
             raise ConfigError("--max-ticks: 0 (run until stopped) or a positive count")
-        loop = dataclasses.replace(loop, max_ticks=args.max_ticks)
+        loop = loop.replace(max_ticks=args.max_ticks)
     if args.log:
-        log = dataclasses.replace(log, path=args.log)
-    return dataclasses.replace(cfg, loop=loop, log=log)
+        log = log.replace(path=args.log)
+    return cfg.model_copy(update={"loop": loop, "log": log})
 
 
 def run(args: argparse.Namespace) -> int:
@@ -74,7 +73,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     try:
         cfg = _overrides(load_config(args.config), args)
-    except ConfigError as exc:
+    except (ConfigError, ValueError) as exc:
         print(f"hvac-mpc daemon: configuration error: {exc}", file=sys.stderr)
         return 2
 

@@ -27,6 +27,7 @@ import numpy as np
 from hvac_mpc.models.measurement_log import read_log
 
 from .config import config_from_mapping
+from .server import token_path
 from .loop import Daemon
 
 #: Allowed memory growth from the end of the first plant hour to the end of the last.
@@ -51,9 +52,10 @@ def random_reference(rng: np.random.Generator) -> dict[str, float]:
     return ref
 
 
-def _put(port: int, body: dict) -> int:
+def _put(port: int, body: dict, token: str) -> int:
     req = urllib.request.Request(f"http://127.0.0.1:{port}/reference", data=json.dumps(body).encode(),
-                                 method="PUT", headers={"Content-Type": "application/json"})
+                                 method="PUT", headers={"Content-Type": "application/json",
+                                                        "Authorization": f"Bearer {token}"})
     try:
         with urllib.request.urlopen(req, timeout=5) as resp:
             return resp.status
@@ -92,7 +94,7 @@ def run_soak(hours: float, log_path: str | Path, controller: str = "baseline", r
             return
         if k < n_ticks and k % int(round(reference_every_s / d.dt)) == 0:
             sent["sent"] += 1
-            sent["accepted"] += _put(d.api.port, random_reference(rng)) == 200
+            sent["accepted"] += _put(d.api.port, random_reference(rng), token_path(d.cfg).read_text().strip()) == 200
         if k % int(round(memory_every_s / d.dt)) == 0:
             gc.collect()
             memory.append({"hour": k * d.dt / 3600.0, "rss_mb": rss_mb(),

@@ -1,8 +1,11 @@
 """The measurement-log schema (docs/model.md sec. 4): one row per sample, CSV with a header.
 
 Writers flush every row, so a crash loses at most the row in flight; opening an existing log
-appends. Readers accept CSV or Parquet (with pyarrow installed) and a column mapping for a
-lab's own column names.
+appends after repairing a torn last row in place (:func:`repair_tail`: truncated at the last
+newline, never rewritten). Readers accept CSV or Parquet (with pyarrow installed) and a column
+mapping for a lab's own column names; a column a reader does not know is kept as read (numbers,
+or text when it is not numeric), so new columns such as ``utc`` (the wall-clock time of the
+sample, ISO 8601 UTC) are additive.
 """
 
 from __future__ import annotations
@@ -20,16 +23,17 @@ REQUIRED_COLUMNS = ("time_s", "blower_power_w", "heater_cmd_w", "valve_a_pct", "
 OPTIONAL_COLUMNS = ("heater_power_w", "water_temp_c", "chiller_setpoint_c", "hvac_inlet_rh_pct",
                     "heater_outlet_temp_c", "cabin_temp_c", "cabin_rh_pct", "outlet_m_temp_c", "outlet_f_temp_c",
                     "outlet_w_temp_c", "ref_supply_temp_c", "ref_volume_flow_m3s", "ref_flow_m_m3s",
-                    "ref_flow_f_m3s", "ref_flow_w_m3s", "mode", "controller")
+                    "ref_flow_f_m3s", "ref_flow_w_m3s", "mode", "controller", "utc")
 COLUMNS = REQUIRED_COLUMNS + OPTIONAL_COLUMNS
-TEXT_COLUMNS = ("mode", "controller")
+TEXT_COLUMNS = ("mode", "controller", "utc")
 
 
 class LogFormatError(ValueError):
     """The log does not follow the schema; the message names the column."""
 
 
-def _cell(value: Any) -> str:
+def cell_text(value: Any) -> str:
+    """A log cell: text as is, a finite number as its repr, anything else empty."""
     if value is None:
         return ""
     if isinstance(value, str):
@@ -38,15 +42,21 @@ def _cell(value: Any) -> str:
     return "" if not math.isfinite(value) else repr(value)
 
 
+def schema_columns(columns: Iterable[str]) -> tuple[str, ...]:
+    """``columns`` as a tuple, every one a schema column (else :class:`LogFormatError` naming them)."""
+    out = tuple(columns)
+    unknown = sorted(set(out) - set(COLUMNS))
+    if unknown:
+        raise LogFormatError(f"unknown log column(s) {unknown}")
+    return out
+
+
 class LogWriter:
     """Appends rows to a CSV log in the schema; each row is flushed and fsynced on write."""
 
     def __init__(self, path: str | Path, columns: Iterable[str] = COLUMNS, fsync: bool = True):
         self.path = Path(path)
-        self.columns = tuple(columns)
-        unknown = sorted(set(self.columns) - set(COLUMNS))
-        if unknown:
-            raise LogFormatError(f"unknown log column(s) {unknown}")
+        self.columns = schema_columns(columns)
         self.fsync = fsync
         exists = self.path.exists() and self.path.stat().st_size > 0
         if exists:
@@ -54,7 +64,7 @@ class LogWriter:
                 header = next(csv.reader(fh), [])
             if tuple(header) != self.columns:
                 raise LogFormatError(f"{self.path}: existing header {header} differs from {list(self.columns)}")
-            _truncate_partial_last_line(self.path)
+            repair_tail(self.path, fsync=fsync)
         self._fh = self.path.open("a", newline="")
         self._writer = csv.writer(self._fh)
         if not exists:
@@ -66,7 +76,7 @@ class LogWriter:
         unknown = sorted(set(row) - set(self.columns))
         if unknown:
             raise LogFormatError(f"unknown log column(s) {unknown}")
-        self._writer.writerow([_cell(row.get(c)) for c in self.columns])
+        self._writer.writerow([cell_text(row.get(c)) for c in self.columns])
         self._flush()
 
     def _flush(self) -> None:
@@ -85,11 +95,34 @@ class LogWriter:
         self.close()
 
 
-def _truncate_partial_last_line(path: Path) -> None:
-    """Drop a last line cut short by a crash (no trailing newline), so appends start clean."""
-    data = path.read_bytes()
-    if data and not data.endswith(b"\n"):
-        path.write_bytes(data[: data.rfind(b"\n") + 1])
+def repair_tail(path: str | Path, fsync: bool = True, chunk_bytes: int = 65536) -> int:
+    """Drop a last line cut short by a crash (no trailing newline), in place; returns the bytes removed.
+
+    Reads backwards from the end to the last newline and truncates the file there (one
+    ``ftruncate``, then fsync): committed rows are never rewritten, so a crash during the repair
+    loses nothing but the torn row, whatever the size of the log."""
+    with open(path, "r+b") as fh:
+        size = fh.seek(0, os.SEEK_END)
+        pos = size
+        keep = 0
+        while pos > 0:
+            start = max(0, pos - chunk_bytes)
+            fh.seek(start)
+            block = fh.read(pos - start)
+            if pos == size and block.endswith(b"\n"):
+                return 0
+            i = block.rfind(b"\n")
+            if i >= 0:
+                keep = start + i + 1
+                break
+            pos = start
+        if keep == size:
+            return 0
+        fh.truncate(keep)
+        fh.flush()
+        if fsync:
+            os.fsync(fh.fileno())
+    return size - keep
 
 
 def read_log(path: str | Path, mapping: Mapping[str, str] | None = None) -> dict[str, np.ndarray]:
@@ -127,6 +160,9 @@ def read_log(path: str | Path, mapping: Mapping[str, str] | None = None) -> dict
         try:
             out[name] = np.array([np.nan if v in ("", None) else float(v) for v in values], float)
         except ValueError as exc:
+            if name not in COLUMNS:  # a column this reader does not know: kept as text
+                out[name] = np.array(["" if v is None else str(v) for v in values], dtype=object)
+                continue
             raise LogFormatError(f"{path}: column {name!r} holds a non-numeric value ({exc})") from None
     return out
 

@@ -4,3 +4,27 @@ import os
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("MPLBACKEND", "Agg")
+
+
+import pytest  # noqa: E402
+
+
+@pytest.fixture
+def test_controllers(monkeypatch):
+    """Registers the tests' own controllers (tests/daemon_helpers.py) as entry points of the
+    daemon's controller group, for this test only (in-process daemons; the group is the only way
+    a controller is loaded)."""
+    from importlib.metadata import EntryPoint
+
+    from hvac_mpc.daemon import plugins
+
+    real = plugins.entry_points
+
+    def entry_points(group: str):
+        eps = list(real(group=group))
+        if group == plugins.CONTROLLER_GROUP:
+            eps.append(EntryPoint(name="test-simple-pi", value="daemon_helpers:SimplePi", group=group))
+        return eps
+
+    monkeypatch.setattr(plugins, "entry_points", entry_points)
+    return ["test-simple-pi"]

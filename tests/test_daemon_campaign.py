@@ -1,9 +1,11 @@
 """The daemon's fault campaign (hvac_mpc.benchmarks.daemon_campaign): sensor NaN/stuck/out of range/
 missing/stale/wrong value, controller failure/NaN/missed deadline/solver failure, backend
 disconnect (injected and a real Modbus server stopped and restarted), a controller driving the
-flow below the heater minimum, a fatal error, hostile API input and tokens, SIGKILL with a
-restart, SIGTERM and SIGINT. Every logged sample is checked for safety; the counts are printed.
-About 40 s."""
+flow below the heater minimum, a fatal error, hostile API input (token, content type, Host and
+Origin, overflow, slow headers and bodies, 16 and 200 slow-header connections), the disk full for
+60 s, every bad configuration file, operator modes switched over the real Modbus server, SIGKILL
+with a restart, SIGKILL during the tail repair of a 20 MB log (repeated), SIGTERM and SIGINT.
+Every logged sample is checked for safety; the counts are printed. About 90 s."""
 
 from __future__ import annotations
 
@@ -29,10 +31,15 @@ def test_fault_campaign_keeps_actuators_safe(tmp_path, capsys):
     assert counts["violations"] == 0 and counts["passed"] == counts["scenarios"]
     by = counts["by_category"]
     assert by["sensor"]["tried"] == 19 and by["controller"]["tried"] == 4 and by["process"]["tried"] == 4
-    assert by["api"]["tried"] >= 30 and by["backend"]["tried"] == 2
+    assert by["api"]["tried"] >= 50 and by["backend"]["tried"] == 2
+    assert by["log"]["tried"] == 2 and by["config"]["tried"] == 11 and by["modes"]["tried"] == 1
+    names = {o.name for o in result["outcomes"]}
+    assert {"api_slow_header_flood_16", "api_slow_header_flood_200", "api_no_token", "api_foreign_host",
+            "api_foreign_origin", "api_no_content_type", "api_integer_10_pow_400"} <= names
     injected = counts["injected_fault_ticks"]
     for kind in ("sensor:nan", "sensor:stuck", "sensor:out_of_range", "sensor:missing", "sensor:stale",
                  "controller:fail", "controller:nan", "controller:delay", "controller:solver",
-                 "backend:disconnect", "daemon:fatal", "process:sigkill", "process:SIGTERM"):
+                 "backend:disconnect", "daemon:fatal", "process:sigkill", "process:SIGTERM", "log:enospc",
+                 "log:torn_row"):
         assert injected.get(kind, 0) > 0, kind
     assert all(o.detected > 0 for o in result["outcomes"]), [o.name for o in result["outcomes"] if not o.detected]

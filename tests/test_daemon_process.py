@@ -75,7 +75,8 @@ def test_daemon_process_tracks_references_from_the_api(tmp_path, capsys):
         wait_plant_time(port, 60.0, proc)
         finals = []
         for ref in REFERENCES:
-            code, body = _request(port, "PUT", "/reference", json.dumps(ref).encode())
+            code, body = _request(port, "PUT", "/reference", json.dumps(ref).encode(),
+                                  token=(tmp_path / "track.token").read_text().strip())
             assert code == 200 and body["accepted"]["supply_temp_c"] == ref["supply_temp_c"]
             t0 = sample(port)["time_s"]
             finals.append((ref, wait_plant_time(port, t0 + SEGMENT_S, proc)))
