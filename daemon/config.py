@@ -7,7 +7,8 @@ Sections (all optional; defaults below)::
     [api]         enabled, host, port (0 = any free port), port_file, token, token_env, max_body_bytes
     [controller]  name ("mpc", "baseline" or "package.module:Class"), fallback (list), parameters_file,
                   [controller.settings] (passed to the controller's settings)
-    [backend]     kind ("simulated" or "modbus"), [backend.simulated], [backend.modbus]
+    [backend]     kind ("simulated", "modbus" or "opcua"), [backend.simulated], [backend.modbus], [backend.opcua]
+    [calibration] file (raw device signals, docs/fieldbus.md); [systemd] enabled, stall_s, ping_interval_s
     [safety]      interlock limits, sensor checks, cool-down and reconnect timing
     [reference]   the initial reference (fields of :class:`hvac_mpc.mpc.reference.Reference`)
     [[faults]]    fault injection (tests, commissioning): target, kind, start_s, end_s, signal, value,
@@ -26,6 +27,12 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from hvac_mpc.contract import InvalidReference, Reference
+from hvac_mpc.validation import describe_error
+from pydantic import BaseModel, ValidationError
+
+from .calibration import CalibrationConfig
+from .opcua import OpcUaConfig
+from .watchdog import SystemdConfig
 
 
 #: A complete, commented configuration (``hvac-mpc daemon --example-config``).
@@ -58,7 +65,7 @@ parameters_file = ""
 [controller.settings]   # MpcSettings fields for "mpc", e.g. solver = "rti"
 
 [backend]
-kind = "simulated"      # or "modbus"
+kind = "simulated"      # or "modbus", "opcua"
 [backend.simulated]
 seed = 0
 effects = ["all"]
@@ -69,6 +76,20 @@ host = "127.0.0.1"
 port = 5020
 device_id = 1
 timeout_s = 0.3
+signals = "engineering" # or "raw": device signals through [calibration] (docs/fieldbus.md)
+[backend.opcua]
+endpoint = "opc.tcp://127.0.0.1:4840/hvac-mpc/"
+namespace = "urn:hvac-mpc:box"
+timeout_s = 0.5
+signals = "engineering"
+
+[calibration]
+file = ""               # raw-signal calibration; "" = the thesis's (daemon/thesis_calibration.toml)
+
+[systemd]
+enabled = true          # READY/WATCHDOG/STOPPING when started by systemd (Type=notify)
+stall_s = 0.0           # no tick for this long = hung, pings stop; 0 = 3 periods, at least 2 s
+ping_interval_s = 0.0   # 0 = half of WatchdogSec
 
 [safety]
 heater_max_w = 240.0
@@ -181,13 +202,16 @@ class ModbusBackendConfig:
     port: int = _f(5020, "Modbus TCP port (502 on a real coupler)", 1, 65535)
     device_id: int = _f(1, "Modbus unit/device id", 0, 255)
     timeout_s: float = _f(0.3, "request timeout", 0.01, 10.0)
+    signals: str = _f("engineering", "holding registers 0-5 carry engineering values or raw device signals "
+                                     "(calibration file)", choices=("engineering", "raw"))
 
 
 @dataclass(frozen=True)
 class BackendConfig:
-    kind: str = _f("simulated", "I/O backend", choices=("simulated", "modbus"))
+    kind: str = _f("simulated", "I/O backend", choices=("simulated", "modbus", "opcua"))
     simulated: SimulatedBackendConfig = field(default_factory=SimulatedBackendConfig)
     modbus: ModbusBackendConfig = field(default_factory=ModbusBackendConfig)
+    opcua: OpcUaConfig = field(default_factory=OpcUaConfig)
 
 
 @dataclass(frozen=True)
@@ -264,6 +288,8 @@ class DaemonConfig:
     reference: dict = field(default_factory=lambda: {"supply_temp_c": 20.0, "volume_flow_m3s": 0.03})
     faults: list = field(default_factory=list)
     base_dir: str = "."
+    systemd: SystemdConfig = field(default_factory=SystemdConfig)
+    calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
 
     @property
     def initial_reference(self) -> Reference:
@@ -327,9 +353,19 @@ def _build(cls: type, data: Any, where: str) -> Any:
             if cls is BackendConfig else None
         if sub is not None:
             kwargs[name] = _build(sub, value, f"{where}.{name}")
+        elif cls is BackendConfig and name == "opcua":
+            kwargs[name] = _model(OpcUaConfig, value, f"{where}.{name}")
         else:
             kwargs[name] = _check_value(cls, name, value, f"{where}.{name}")
     return cls(**kwargs)
+
+
+def _model(model: type[BaseModel], data: Any, where: str) -> Any:
+    """A section validated by its pydantic model (hvac_mpc.validation)."""
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(describe_error(exc, f"{where}.")) from None
 
 
 def _check_safety(s: SafetyConfig) -> None:
@@ -369,7 +405,7 @@ def _build_fault(data: Any, i: int) -> FaultSpec:
 
 def config_from_mapping(data: Mapping[str, Any], base_dir: str | Path = ".") -> DaemonConfig:
     """Validated :class:`DaemonConfig` from a parsed TOML mapping."""
-    allowed = set(_SECTIONS) | {"reference", "faults"}
+    allowed = set(_SECTIONS) | {"reference", "faults", "systemd", "calibration"}
     unknown = sorted(set(data) - allowed)
     if unknown:
         raise ConfigError(f"unknown section(s) {unknown}; allowed: {sorted(allowed)}")
@@ -389,6 +425,8 @@ def config_from_mapping(data: Mapping[str, Any], base_dir: str | Path = ".") -> 
     if api.enabled and api.host not in ("127.0.0.1", "localhost", "::1") and not (api.token or api.token_env):
         raise ConfigError(f"api.host = {api.host!r} is not loopback: set api.token_env (or api.token) so "
                           "requests need a bearer token")
+    kwargs["systemd"] = _model(SystemdConfig, data.get("systemd", {}), "systemd")
+    kwargs["calibration"] = _model(CalibrationConfig, data.get("calibration", {}), "calibration")
     return DaemonConfig(reference=reference, faults=[_build_fault(f, i) for i, f in enumerate(faults)],
                         base_dir=str(base_dir), **kwargs)
 

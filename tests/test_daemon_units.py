@@ -51,8 +51,8 @@ def test_config_errors_name_the_key_and_range(tmp_path):
                                          "start_s": 1.0, "end_s": 2.0}]})
     with pytest.raises(ConfigError, match=r"api.host = '0.0.0.0' is not loopback"):
         config_from_mapping({"api": {"host": "0.0.0.0"}})
-    with pytest.raises(ConfigError, match=r"backend.kind = 'opcua': allowed values"):
-        config_from_mapping({"backend": {"kind": "opcua"}})
+    with pytest.raises(ConfigError, match=r"backend.kind = 'profinet': allowed values"):
+        config_from_mapping({"backend": {"kind": "profinet"}})
     assert config_from_mapping({"api": {"host": "0.0.0.0", "token_env": "HVAC_TOKEN"}}).api.host == "0.0.0.0"
     path = tmp_path / "d.toml"
     path.write_text('[loop]\nspeedup = "max"\n[log]\npath = "x.csv"\n')
