@@ -184,9 +184,7 @@ class Calibration(BaseModel):
     @field_validator("actuators")
     @classmethod
     def _all_actuators(cls, v: dict[str, SignalMap]) -> dict[str, SignalMap]:
-        unknown = sorted(set(v) - set(INPUTS))
-        if unknown:
-            raise ValueError(f"unknown actuator(s) {unknown}; allowed: {list(INPUTS)}")
+        _only_known(v, INPUTS, "actuator")
         missing = [n for n in INPUTS if n not in v]
         if missing:
             raise ValueError(f"missing actuator(s) {missing}: every actuator needs a map")
@@ -200,9 +198,7 @@ class Calibration(BaseModel):
     @field_validator("sensors")
     @classmethod
     def _known_sensors(cls, v: dict[str, SignalMap]) -> dict[str, SignalMap]:
-        unknown = sorted(set(v) - set(SENSOR_NAMES))
-        if unknown:
-            raise ValueError(f"unknown sensor(s) {unknown}; allowed: {list(SENSOR_NAMES)}")
+        _only_known(v, SENSOR_NAMES, "sensor")
         return v
 
     # ---------------------------------------------------------------- commands
@@ -231,17 +227,23 @@ class Calibration(BaseModel):
     def sensor_to_eng(self, name: str, raw: float | None) -> float | None:
         """A sensor's reading in its unit; None and NaN pass through; beyond the table the end
         segments extend linearly, so an over-range reading stays implausible."""
-        m = self.sensors.get(name)
-        if m is None or raw is None or not math.isfinite(raw):
-            return raw
-        return _extrapolated(raw, m.raw, m.eng)
+        return self._sensor(name, raw, to_eng=True)
 
     def sensor_to_raw(self, name: str, eng: float | None) -> float | None:
         """Device side: the raw reading a sensor gives for a value in its unit."""
+        return self._sensor(name, eng, to_eng=False)
+
+    def _sensor(self, name: str, value: float | None, to_eng: bool) -> float | None:
         m = self.sensors.get(name)
-        if m is None or eng is None or not math.isfinite(eng):
-            return eng
-        return _extrapolated(eng, m.eng, m.raw)
+        if m is None or value is None or not math.isfinite(value):
+            return value
+        return _extrapolated(value, m.raw, m.eng) if to_eng else _extrapolated(value, m.eng, m.raw)
+
+
+def _only_known(names, allowed: tuple[str, ...], what: str) -> None:
+    unknown = sorted(set(names) - set(allowed))
+    if unknown:
+        raise ValueError(f"unknown {what}(s) {unknown}; allowed: {list(allowed)}")
 
 
 def _extrapolated(x: float, xs: list[float], ys: list[float]) -> float:

@@ -18,6 +18,7 @@ moves again (docs/fieldbus.md).
 
 from __future__ import annotations
 
+import argparse
 import asyncio
 import threading
 import time
@@ -28,6 +29,7 @@ from hvac_mpc.contract import Command, Measurement
 from hvac_mpc.models.plant import SimulatedPlant
 
 from .calibration import Calibration
+from .modbus import STATUS_HEARTBEAT, STATUS_RAW, STATUS_WATCHDOG
 
 
 class SimulatedDevice:
@@ -119,6 +121,11 @@ class SimulatedDevice:
             if self._snapshot is None or self._snapshot[0] != key:
                 self._snapshot = (key, self.plant.read())
             return self._snapshot[1]
+
+    def status_bits(self) -> int:
+        """Status word: bit 0 I/O watchdog tripped, bit 1 raw signals, bit 2 heartbeat watchdog tripped."""
+        return ((STATUS_WATCHDOG if self.watchdog_tripped else 0) | (STATUS_RAW if self.calibration else 0)
+                | (STATUS_HEARTBEAT if self.heartbeat_tripped else 0))
 
     def check_heartbeat(self) -> bool:
         """The heartbeat watchdog (wall time): heater off, blower on for the cool-down when the
@@ -213,3 +220,33 @@ class SimulatedDevice:
 
     def __exit__(self, *exc) -> None:
         self.stop()
+
+
+def run_standalone(argv: list[str] | None, server_cls: type, protocol: str, port: int) -> int:
+    """Command line of a simulator module: serve the simulated box until Ctrl-C."""
+    parser = argparse.ArgumentParser(description=f"the simulated HVAC box as a {protocol} server")
+    parser.add_argument("--host", default="127.0.0.1")
+    parser.add_argument("--port", type=int, default=port)
+    parser.add_argument("--mode", choices=("lockstep", "realtime"), default="realtime")
+    parser.add_argument("--speedup", type=float, default=1.0)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--heartbeat-timeout", type=float, default=3.0,
+                        help="heater off when the heartbeat is unchanged this long (wall s; 0 = off)")
+    parser.add_argument("--raw", nargs="?", const="", metavar="CALIBRATION",
+                        help="take raw signals, decoded with this calibration file (default: the thesis's)")
+    args = parser.parse_args(argv)
+    calibration = None
+    if args.raw is not None:
+        from .calibration import load_calibration
+
+        calibration = load_calibration(args.raw)
+    server = server_cls(SimulatedPlant(seed=args.seed), host=args.host, port=args.port, mode=args.mode,
+                        speedup=args.speedup, heartbeat_timeout_s=args.heartbeat_timeout,
+                        calibration=calibration).start()
+    print(f"{protocol} plant simulator on {args.host}:{args.port} ({args.mode})", flush=True)
+    try:
+        while True:
+            time.sleep(3600)
+    except KeyboardInterrupt:
+        server.stop()
+    return 0

@@ -23,16 +23,14 @@ decodes them with it, and reports calibrated sensors as raw readings. Run standa
 
 from __future__ import annotations
 
-import argparse
 import asyncio
-import time
 
 from hvac_mpc.models.plant import SimulatedPlant
 
 from .calibration import Calibration
-from .device_sim import SimulatedDevice
-from .modbus import (HOLDING_COUNT, INPUT_COUNT, STATUS_HEARTBEAT, STATUS_RAW, STATUS_WATCHDOG, decode_command,
-                     encode_command, encode_measurement, raw_sensor_registers)
+from .device_sim import SimulatedDevice, run_standalone
+from .modbus import (HOLDING_COUNT, INPUT_COUNT, decode_command, encode_command, encode_measurement,
+                     raw_sensor_registers)
 
 FC_READ_INPUT = 4
 WRITE_FCS = (6, 16, 23)
@@ -57,25 +55,8 @@ class PlantModbusServer(SimulatedDevice):
     def input_registers(self) -> list[int]:
         m = self.measurement()
         with self.lock:
-            status = ((STATUS_WATCHDOG if self.watchdog_tripped else 0) | (STATUS_RAW if self.calibration else 0)
-                      | (STATUS_HEARTBEAT if self.heartbeat_tripped else 0))
-            regs = encode_measurement(m, self.heartbeat or 0, status)
+            regs = encode_measurement(m, self.heartbeat or 0, self.status_bits())
             return regs if self.calibration is None else raw_sensor_registers(regs, m, self.calibration)
-
-    async def _action(self, function_code, start_address, address, count, registers, set_values):
-        if function_code == FC_READ_INPUT:
-            regs = self.input_registers()
-            registers[0:INPUT_COUNT] = regs
-            return None
-        if function_code in WRITE_FCS and set_values is not None:
-            current = list(registers[0:HOLDING_COUNT])
-            off = address - start_address
-            current[off:off + len(set_values)] = list(set_values)
-            regs = [int(v) for v in current[:HOLDING_COUNT]]
-            cmd, hb = decode_command(regs, self.calibration)
-            self.received.append((hb, regs, cmd))
-            self._on_command(cmd, hb)
-        return None
 
     async def _action(self, function_code, start_address, address, count, registers, set_values):
         if function_code == FC_READ_INPUT:
@@ -131,32 +112,7 @@ class PlantModbusServer(SimulatedDevice):
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description="the simulated HVAC box as a Modbus TCP server")
-    parser.add_argument("--host", default="127.0.0.1")
-    parser.add_argument("--port", type=int, default=5020)
-    parser.add_argument("--mode", choices=("lockstep", "realtime"), default="realtime")
-    parser.add_argument("--speedup", type=float, default=1.0)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--heartbeat-timeout", type=float, default=3.0,
-                        help="heater off when the heartbeat is unchanged this long (wall s; 0 = off)")
-    parser.add_argument("--raw", nargs="?", const="", metavar="CALIBRATION",
-                        help="take raw signals, decoded with this calibration file (default: the thesis's)")
-    args = parser.parse_args(argv)
-    calibration = None
-    if args.raw is not None:
-        from .calibration import load_calibration
-
-        calibration = load_calibration(args.raw)
-    server = PlantModbusServer(SimulatedPlant(seed=args.seed), host=args.host, port=args.port, mode=args.mode,
-                               speedup=args.speedup, heartbeat_timeout_s=args.heartbeat_timeout,
-                               calibration=calibration).start()
-    print(f"Modbus plant simulator on {args.host}:{args.port} ({args.mode})", flush=True)
-    try:
-        while True:
-            time.sleep(3600)
-    except KeyboardInterrupt:
-        server.stop()
-    return 0
+    return run_standalone(argv, PlantModbusServer, "Modbus TCP", 5020)
 
 
 if __name__ == "__main__":

@@ -3,7 +3,7 @@
 Equal to the Modbus TCP backend (:mod:`.modbus`): the same signals, heartbeat, status bits and
 raw-signal mode, for labs whose PLC or I/O system speaks OPC UA. asyncua is optional (extra
 ``opcua``) and imported only when this backend is used. asyncua is asynchronous: the client runs
-in an event loop of its own (one thread per backend) and the daemon's calls wait for it with a
+in an event loop of its own (a thread per connection) and the daemon's calls wait for it with a
 timeout, so a silent server costs at most ``timeout_s`` per call.
 
 Address space (namespace URI ``namespace``, default ``urn:hvac-mpc:box``; string node ids)::
@@ -42,7 +42,6 @@ from hvac_mpc.contract import INPUTS, Command, Measurement
 
 from .calibration import Calibration
 from .io import BackendError
-from .modbus import STATUS_RAW  # noqa: F401 - the same status bits as the Modbus map
 
 SENSOR_NODES = ("time_s", "supply_temp_c", "volume_flow_m3s", "hvac_inlet_temp_c", "water_temp_c",
                 "chiller_setpoint_c", "heater_power_w", "heater_outlet_temp_c")
@@ -94,8 +93,22 @@ class EventLoopThread:
             raise
 
     def stop(self) -> None:
+        """Cancel what still runs in the loop (the client's keep-alive), then end the thread."""
+        async def cancel_all() -> None:
+            tasks = [t for t in asyncio.all_tasks() if t is not asyncio.current_task()]
+            for t in tasks:
+                t.cancel()
+            if tasks:
+                await asyncio.wait(tasks, timeout=1.0)
+
+        try:
+            self.run(cancel_all(), 2.0)
+        except BaseException:  # noqa: BLE001 - stopping anyway
+            pass
         self.loop.call_soon_threadsafe(self.loop.stop)
         self._thread.join(2.0)
+        if not self._thread.is_alive():
+            self.loop.close()
 
 
 class OpcUaBackend:
@@ -135,8 +148,7 @@ class OpcUaBackend:
     def connect(self) -> None:
         ua_mod = _asyncua()
         self.close()
-        if self._io is None:
-            self._io = EventLoopThread("opcua-client")
+        self._io = EventLoopThread("opcua-client")
         # the handshake is several round trips (hello, channel, session, activation, namespace)
         self._call("connect", self._connect(ua_mod), 8 * self.cfg.timeout_s + 1.0)
 
@@ -214,19 +226,17 @@ class OpcUaBackend:
             del self.latency_s[:5000]
 
     def close(self) -> None:
+        """Close the session (bounded by ``timeout_s``) and end the client's event-loop thread."""
         client, self._client = self._client, None
-        if client is not None and self._io is not None:
+        io, self._io = self._io, None
+        if io is None:
+            return
+        if client is not None:
             try:
-                self._io.run(asyncio.wait_for(client.disconnect(), self.cfg.timeout_s), 2 * self.cfg.timeout_s)
+                io.run(asyncio.wait_for(client.disconnect(), self.cfg.timeout_s), 2 * self.cfg.timeout_s)
             except BaseException:  # noqa: BLE001 - closing a broken link may fail too
                 pass
-
-    def shutdown(self) -> None:
-        """Close the link and end the client's event-loop thread."""
-        self.close()
-        if self._io is not None:
-            self._io.stop()
-            self._io = None
+        io.stop()
 
 
 def _value(dv) -> float | None:

@@ -12,16 +12,13 @@ the daemon's sensor checks. Run standalone::
 
 from __future__ import annotations
 
-import argparse
 import math
-import time
 
 from hvac_mpc.contract import INPUTS, Command
 from hvac_mpc.models.plant import SimulatedPlant
 
 from .calibration import Calibration
-from .device_sim import SimulatedDevice
-from .modbus import STATUS_HEARTBEAT, STATUS_RAW, STATUS_WATCHDOG
+from .device_sim import SimulatedDevice, run_standalone
 from .opcua import SENSOR_NODES, _asyncua, node_id
 
 
@@ -59,10 +56,6 @@ class PlantOpcUaServer(SimulatedDevice):
         if v is None:
             return ua.DataValue(StatusCode=ua.StatusCode(ua.StatusCodes.BadNoData))
         return ua.DataValue(ua.Variant(float(v), ua.VariantType.Double))
-
-    def status_bits(self) -> int:
-        return ((STATUS_WATCHDOG if self.watchdog_tripped else 0) | (STATUS_RAW if self.calibration else 0)
-                | (STATUS_HEARTBEAT if self.heartbeat_tripped else 0))
 
     async def _post_write(self, event, _dispatcher) -> None:
         """A write naming the heartbeat node applies the actuator nodes as one command."""
@@ -139,32 +132,7 @@ class PlantOpcUaServer(SimulatedDevice):
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description="the simulated HVAC box as an OPC UA server")
-    parser.add_argument("--host", default="127.0.0.1")
-    parser.add_argument("--port", type=int, default=4840)
-    parser.add_argument("--mode", choices=("lockstep", "realtime"), default="realtime")
-    parser.add_argument("--speedup", type=float, default=1.0)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--heartbeat-timeout", type=float, default=3.0,
-                        help="heater off when the heartbeat is unchanged this long (wall s; 0 = off)")
-    parser.add_argument("--raw", nargs="?", const="", metavar="CALIBRATION",
-                        help="take raw signals, decoded with this calibration file (default: the thesis's)")
-    args = parser.parse_args(argv)
-    calibration = None
-    if args.raw is not None:
-        from .calibration import load_calibration
-
-        calibration = load_calibration(args.raw)
-    server = PlantOpcUaServer(SimulatedPlant(seed=args.seed), host=args.host, port=args.port, mode=args.mode,
-                              speedup=args.speedup, heartbeat_timeout_s=args.heartbeat_timeout,
-                              calibration=calibration).start()
-    print(f"OPC UA plant simulator on {server.endpoint} ({args.mode})", flush=True)
-    try:
-        while True:
-            time.sleep(3600)
-    except KeyboardInterrupt:
-        server.stop()
-    return 0
+    return run_standalone(argv, PlantOpcUaServer, "OPC UA", 4840)
 
 
 if __name__ == "__main__":

@@ -118,8 +118,6 @@ def test_daemon_controls_the_plant_over_opcua_through_outage_bad_values_and_safe
         thread.join(30)
         latency = list(getattr(daemon.backend, "latency_s", []))
         server.stop()
-        if isinstance(daemon.backend, OpcUaBackend):
-            daemon.backend.shutdown()
     shutdown = [x for x in rec.since(t_stop) if x["mode"] in ("shutdown", "stopped")]
     assert shutdown and all(x["heater_cmd_w"] == 0.0 for x in shutdown)
     assert all(x["blower_power_w"] >= 120.0 for x in shutdown[:-1]) and shutdown[-1]["mode"] == "stopped"
@@ -153,11 +151,24 @@ def test_opcua_raw_signals_decoded_by_the_device_and_format_mismatch_refused(tmp
                                    "safety": {"cooldown_max_s": 5.0}}, base_dir=tmp_path)
         daemon = Daemon(cfg, tick_hook=hook)
         assert daemon.run() == 0
-        daemon.backend.shutdown()
         eng = OpcUaBackend(OpcUaConfig(endpoint=server.endpoint, timeout_s=0.3))
         with pytest.raises(BackendError, match="the device takes raw signals, the daemon is set to engineering"):
             eng.connect()
-        eng.shutdown()
+        eng.close()
+        # a silent server (its event loop blocked, as behind a pulled cable): a read ends in timeout_s
+        raw = OpcUaBackend(OpcUaConfig(endpoint=server.endpoint, timeout_s=0.3), calibration=cal)
+        raw.connect()
+        raw.read()
+        server._loop.call_soon_threadsafe(time.sleep, 1.5)
+        time.sleep(0.05)
+        t0 = time.monotonic()
+        with pytest.raises(BackendError, match="read failed"):
+            raw.read()
+        silent_s = time.monotonic() - t0
+        time.sleep(1.6)
+        raw.connect()  # the server answers again: reconnected
+        assert raw.read().time_s > 0
+        raw.close()
     finally:
         server.stop()
     received = [(hb, cmd) for hb, _, cmd in server.received if hb in written]
@@ -168,3 +179,4 @@ def test_opcua_raw_signals_decoded_by_the_device_and_format_mismatch_refused(tmp
     # the nodes carried duty cycles and volts, not W and %
     raws = [r for _, r, _ in server.received]
     assert all(0.04 <= r["valve_m_pct"] <= 0.07 and 0.0 <= r["heater_cmd_w"] <= 5.0 for r in raws)
+    assert silent_s < 0.3 + 0.5, silent_s

@@ -242,3 +242,29 @@ def test_sigkill_daemon_modbus_device_switches_heater_off_within_heartbeat_timeo
     assert cmd.heater_cmd_w == 0.0 and cmd.blower_power_w >= max(blower_before, 120.0) - 1e-9
     assert cmd.valve_a_pct == 100.0 and status & 0x4
     assert server.command.heater_cmd_w == 0.0  # held off: nobody moved the heartbeat
+
+
+@pytest.mark.slow
+def test_daemon_process_under_a_systemd_stand_in_ready_pings_stopping(tmp_path):
+    """``hvac-mpc daemon`` as systemd starts it: $NOTIFY_SOCKET and $WATCHDOG_USEC in the environment."""
+    from hvac_mpc.benchmarks.daemon_campaign import process_config, start_daemon, wait_for
+
+    path = f"@hvac-mpc-test-{uuid.uuid4().hex}"
+    systemd = NotifySocket(path)
+    cfg = process_config(tmp_path, "unit", "baseline", speedup=10.0,
+                         extra={"safety": {"cooldown_max_s": 20.0}})
+    proc = start_daemon(cfg, env={"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "400000"})
+    try:
+        wait_for(lambda: len(systemd.times("WATCHDOG=1")) >= 8, 60, "eight watchdog pings", proc)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        time.sleep(0.1)
+        systemd.close()
+    assert proc.returncode == 0, err.decode()[-2000:]
+    ready, pings, stopping = systemd.times("READY=1"), systemd.times("WATCHDOG=1"), systemd.times("STOPPING=1")
+    assert len(ready) == 1 and len(stopping) == 1 and ready[0] < pings[0] < stopping[0]
+    gaps = [b - a for a, b in zip(pings, pings[1:])]
+    assert max(gaps) < 0.4, gaps  # every half WATCHDOG_USEC (0.2 s), never the whole timeout
