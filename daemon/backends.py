@@ -18,14 +18,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
+from pathlib import Path
 from typing import Callable, Sequence
 
 from hvac_mpc.models.parameters import Parameters
 from hvac_mpc.models.plant import PLANT_EFFECTS, Environment, SimulatedPlant
 from hvac_mpc.contract import Command, Measurement
 
-from .calibration import Calibration, load_calibration
-from .config import DaemonConfig, FaultSpec, SimulatedBackendConfig, resolve
+from .calibration import Calibration
+from .config import DaemonConfig, FaultSpec, SimulatedBackendConfig
 from .io import BackendError, IoBackend
 
 #: Largest gap (samples) the simulated plant integrates to catch up; beyond it the plant is
@@ -144,8 +145,7 @@ class FaultInjectingBackend:
 
 def _calibration(config: DaemonConfig) -> Calibration:
     """The configured calibration file (relative to the configuration), or the thesis's."""
-    f = config.calibration.file
-    return load_calibration(resolve(config, f) if f else None)
+    return config.calibration.load(Path(config.base_dir))
 
 
 def make_backend(config: DaemonConfig, params: Parameters, clock: Callable[[], float]) -> IoBackend:

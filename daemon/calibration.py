@@ -288,3 +288,14 @@ class CalibrationConfig(BaseModel):
 
     file: str = Field("", description="calibration file (TOML, relative to the configuration); "
                                       "'' = the shipped thesis calibration (thesis table 1)")
+
+    def load(self, base_dir: Path) -> Calibration:
+        """The calibration in force: the file (relative to ``base_dir``) or the thesis's."""
+        return load_calibration(base_dir / self.file if self.file else None)
+
+    def check(self, base_dir: Path, error: type[Exception] = CalibrationError) -> None:
+        """Raise ``error`` naming the file and field when the calibration is invalid."""
+        try:
+            self.load(base_dir)
+        except CalibrationError as exc:
+            raise error(f"calibration.file: {exc}") from None

@@ -427,6 +427,8 @@ def config_from_mapping(data: Mapping[str, Any], base_dir: str | Path = ".") -> 
                           "requests need a bearer token")
     kwargs["systemd"] = _model(SystemdConfig, data.get("systemd", {}), "systemd")
     kwargs["calibration"] = _model(CalibrationConfig, data.get("calibration", {}), "calibration")
+    if "raw" in (kwargs["backend"].modbus.signals, kwargs["backend"].opcua.signals):
+        kwargs["calibration"].check(Path(base_dir), ConfigError)  # a bad calibration file: nothing starts
     return DaemonConfig(reference=reference, faults=[_build_fault(f, i) for i, f in enumerate(faults)],
                         base_dir=str(base_dir), **kwargs)
 

@@ -11,9 +11,9 @@ the decoding of raw signals, plus the thread that runs a protocol server's event
 Both have the I/O side's watchdog: when no new heartbeat arrives for ``watchdog_samples``
 samples the heater is switched off (a PLC's communication-loss reaction). Independently of plant
 time, the heartbeat watchdog runs on wall time: a heartbeat unchanged for ``heartbeat_timeout_s``
-(the daemon killed, or hung) switches the heater off and keeps the blower running for the
-cool-down (at least ``cooldown_blower_w``, valve a and the outlets open) until the heartbeat
-moves again (docs/fieldbus.md).
+(the daemon killed, or hung) switches the heater off and, when the heater was on in the last
+``cooldown_hold_s``, keeps the blower running for the cool-down (at least ``cooldown_blower_w``,
+valve a and the outlets open) until the heartbeat moves again (docs/fieldbus.md).
 """
 
 from __future__ import annotations
@@ -61,6 +61,10 @@ class SimulatedDevice:
         self.heartbeat_tripped = False
         self.heartbeat_trips: list[float] = []  # wall time (time.monotonic) of each trip
         self._heartbeat_wall: float | None = None  # wall time the heartbeat last changed
+        self._heater_on_wall: float | None = None  # wall time a command last had the heater on
+        #: ASSUMPTION: a heater on within this many wall seconds before a heartbeat trip may still be
+        #: hot (body time constant ~90 s, docs/model.md): the blower cools it; otherwise outputs hold
+        self.cooldown_hold_s = 300.0
         self.received: deque = deque(maxlen=20000)  # (heartbeat, raw signals as written, decoded command)
         self._snapshot: tuple[tuple, Measurement] | None = None
         self._thread: threading.Thread | None = None
@@ -106,6 +110,8 @@ class SimulatedDevice:
             elif self.heartbeat_tripped:
                 cmd = self.command  # an unchanged heartbeat does not release the heartbeat watchdog
             self.command = cmd
+            if cmd.heater_cmd_w > 0:
+                self._heater_on_wall = time.monotonic()
             self.plant.apply(cmd)
             self.samples_since_write = 0
             self.watchdog_tripped = False
@@ -135,10 +141,14 @@ class SimulatedDevice:
                     or time.monotonic() - self._heartbeat_wall < self.heartbeat_timeout_s):
                 return False
             self.heartbeat_tripped = True
-            self.heartbeat_trips.append(time.monotonic())
-            self.command = replace(self.command, heater_cmd_w=0.0,
-                                   blower_power_w=max(self.command.blower_power_w, self.cooldown_blower_w),
-                                   valve_a_pct=100.0, valve_m_pct=100.0, valve_f_pct=100.0, valve_w_pct=100.0)
+            now = time.monotonic()
+            self.heartbeat_trips.append(now)
+            if self._heater_on_wall is not None and now - self._heater_on_wall <= self.cooldown_hold_s:
+                self.command = replace(self.command, heater_cmd_w=0.0,
+                                       blower_power_w=max(self.command.blower_power_w, self.cooldown_blower_w),
+                                       valve_a_pct=100.0, valve_m_pct=100.0, valve_f_pct=100.0, valve_w_pct=100.0)
+            else:  # the heater has been off long enough (e.g. after the daemon's own cool-down): hold
+                self.command = replace(self.command, heater_cmd_w=0.0)
             self.plant.apply(self.command)
             return True
 

@@ -42,9 +42,9 @@ in a safe state when the daemon stops writing, and lets the plant simulator adva
 
 Device-side heartbeat watchdog (docs/fieldbus.md): the daemon writes the heartbeat every tick, a
 new value each time. A device that sees it unchanged for its timeout (the simulator's
-``heartbeat_timeout_s``, wall time) switches the heater off and keeps the blower running (at least
-its cool-down power, valve a open so the air passes the heater) until the heartbeat moves again;
-it sets status bit 2 meanwhile.
+``heartbeat_timeout_s``, wall time) switches the heater off and, if the heater was on lately,
+keeps the blower running (at least its cool-down power, valve a open so the air passes the
+heater) until the heartbeat moves again; it sets status bit 2 meanwhile.
 """
 
 from __future__ import annotations

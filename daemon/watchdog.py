@@ -85,7 +85,7 @@ class Notifier:
             self._sock.sendall(message.encode("utf-8"))
         except OSError as exc:
             self.errors += 1
-            LOG.warning("sd_notify %r failed: %s", message, exc)
+            (LOG.warning if self.errors <= 3 else LOG.debug)("sd_notify %r failed: %s", message, exc)
             self.close()
             return False
         self.sent.append(message.split("=", 1)[0])

@@ -167,14 +167,16 @@ def test_sensor_maps_decode_raw_readings_and_keep_over_range_implausible():
     assert cal.sensor_to_raw("heater_outlet_temp_c", 50.0) == pytest.approx(12.0)
 
 
-def test_daemon_refuses_a_bad_calibration_file_at_start(tmp_path):
-    from hvac_mpc.daemon.config import config_from_mapping
-    from hvac_mpc.daemon.loop import Daemon
+def test_daemon_refuses_a_bad_calibration_file_at_configuration(tmp_path):
+    from hvac_mpc.daemon.config import ConfigError, config_from_mapping
 
     bad = tmp_path / "cal.toml"
     bad.write_text('[actuators.valve_a_pct]\nsignal = "servo_duty"\nopen = 0.3\nclosed = 0.055\n')
-    cfg = config_from_mapping({"backend": {"kind": "modbus", "modbus": {"signals": "raw"}},
-                               "calibration": {"file": "cal.toml"}, "api": {"enabled": False},
-                               "log": {"path": "x.csv"}}, base_dir=tmp_path)
-    with pytest.raises(CalibrationError, match=r"cal.toml: .*valve_a_pct: .*raw \[0.3\] outside"):
-        Daemon(cfg)
+    data = {"backend": {"kind": "modbus", "modbus": {"signals": "raw"}}, "calibration": {"file": "cal.toml"}}
+    with pytest.raises(ConfigError, match=r"calibration\.file: .*cal.toml: .*valve_a_pct: .*raw \[0.3\] outside"):
+        config_from_mapping(data, base_dir=tmp_path)
+    assert list(tmp_path.iterdir()) == [bad]  # nothing written
+    with pytest.raises(ConfigError, match=r"calibration\.file: .*no such calibration file"):
+        config_from_mapping({**data, "calibration": {"file": "nope.toml"}}, base_dir=tmp_path)
+    # engineering signals: the calibration file is not used, so not required
+    assert config_from_mapping({"calibration": {"file": "nope.toml"}}, base_dir=tmp_path).calibration.file

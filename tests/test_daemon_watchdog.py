@@ -268,3 +268,38 @@ def test_daemon_process_under_a_systemd_stand_in_ready_pings_stopping(tmp_path):
     assert len(ready) == 1 and len(stopping) == 1 and ready[0] < pings[0] < stopping[0]
     gaps = [b - a for a, b in zip(pings, pings[1:])]
     assert max(gaps) < 0.4, gaps  # every half WATCHDOG_USEC (0.2 s), never the whole timeout
+
+
+def test_systemd_opcua_and_calibration_sections_name_the_key():
+    from hvac_mpc.daemon.config import ConfigError
+
+    cases = [({"systemd": {"stall_s": -1.0}}, r"systemd\.stall_s: Input should be greater than or equal to 0"),
+             ({"systemd": {"enable": True}}, r"systemd\.enable: Extra inputs are not permitted"),
+             ({"backend": {"opcua": {"timeout_s": 50}}}, r"backend\.opcua\.timeout_s: Input should be less than or equal to 10"),
+             ({"backend": {"opcua": {"endpoint": "http://x"}}}, r"backend\.opcua\.endpoint: String should match"),
+             ({"backend": {"opcua": {"signals": "volts"}}}, r"backend\.opcua\.signals: Input should be 'engineering' or 'raw'"),
+             ({"backend": {"modbus": {"signals": "volts"}}}, r"backend\.modbus\.signals = 'volts': allowed values"),
+             ({"calibration": {"path": "x.toml"}}, r"calibration\.path: Extra inputs are not permitted")]
+    for data, expected in cases:
+        with pytest.raises(ConfigError, match=expected):
+            config_from_mapping(data)
+    cfg = config_from_mapping({"backend": {"kind": "opcua", "opcua": {"signals": "raw"}}, "systemd": {"enabled": False}})
+    assert cfg.backend.opcua.signals == "raw" and not cfg.systemd.enabled
+
+
+def test_device_heartbeat_watchdog_cools_a_heater_that_was_on_and_holds_otherwise():
+    from hvac_mpc.daemon.device_sim import SimulatedDevice
+
+    for heater_w, blower_after in ((200.0, 120.0), (0.0, 40.0)):
+        dev = SimulatedDevice(SimulatedPlant(seed=1), heartbeat_timeout_s=0.1)
+        dev._on_command(Command(blower_power_w=40.0, heater_cmd_w=heater_w, valve_a_pct=20.0), 1)
+        dev._on_command(Command(blower_power_w=40.0, heater_cmd_w=0.0, valve_a_pct=20.0), 2)
+        assert not dev.check_heartbeat()  # within the timeout
+        time.sleep(0.15)
+        assert dev.check_heartbeat() and dev.status_bits() & 0x4
+        assert dev.command.heater_cmd_w == 0.0 and dev.command.blower_power_w == blower_after
+        assert dev.command.valve_a_pct == (100.0 if heater_w else 20.0)
+        dev._on_command(Command(blower_power_w=40.0, heater_cmd_w=150.0, valve_a_pct=20.0), 2)
+        assert dev.command.heater_cmd_w == 0.0  # an unchanged heartbeat does not release it
+        dev._on_command(Command(blower_power_w=40.0, heater_cmd_w=150.0, valve_a_pct=20.0), 3)
+        assert dev.command.heater_cmd_w == 150.0 and not dev.status_bits() & 0x4  # a new one does
