@@ -26,9 +26,10 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Mapping
 
+from pydantic import BaseModel, ValidationError
+
 from hvac_mpc.contract import InvalidReference, Reference
 from hvac_mpc.validation import describe_error
-from pydantic import BaseModel, ValidationError
 
 from .calibration import CalibrationConfig
 from .opcua import OpcUaConfig

@@ -180,3 +180,20 @@ def test_daemon_refuses_a_bad_calibration_file_at_configuration(tmp_path):
         config_from_mapping({**data, "calibration": {"file": "nope.toml"}}, base_dir=tmp_path)
     # engineering signals: the calibration file is not used, so not required
     assert config_from_mapping({"calibration": {"file": "nope.toml"}}, base_dir=tmp_path).calibration.file
+
+
+def test_modbus_raw_sensor_registers_round_trip_within_one_count():
+    from hvac_mpc.contract import Measurement
+    from hvac_mpc.daemon.modbus import decode_measurement, encode_measurement, raw_sensor_registers, sensors_from_raw
+
+    cal = calibration_from_mapping({**GOOD, "sensors": {
+        "volume_flow_m3s": {"signal": "voltage_v", "raw": [0.0, 10.0], "eng": [0.0, 0.1]},
+        "heater_outlet_temp_c": {"signal": "current_ma", "raw": [4.0, 20.0], "eng": [-50.0, 150.0]}}})
+    m = Measurement(time_s=12.0, supply_temp_c=18.25, volume_flow_m3s=0.03117, hvac_inlet_temp_c=25.0,
+                    heater_outlet_temp_c=63.4, heater_power_w=None)
+    regs = raw_sensor_registers(encode_measurement(m), m, cal)
+    assert regs[3] == 3117  # 3.117 V in mV
+    back = sensors_from_raw(regs, decode_measurement(regs)[0], cal)
+    assert back.volume_flow_m3s == pytest.approx(0.03117, abs=0.1 / 10.0 * 1e-3)
+    assert back.heater_outlet_temp_c == pytest.approx(63.4, abs=200.0 / 16.0 * 1e-3)
+    assert back.supply_temp_c == pytest.approx(18.25) and back.heater_power_w is None
