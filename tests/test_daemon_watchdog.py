@@ -161,9 +161,9 @@ def test_systemd_ready_pings_while_healthy_none_while_hung_stopping_at_shutdown(
     ready, pings, stopping = systemd.times("READY=1"), systemd.times("WATCHDOG=1"), systemd.times("STOPPING=1")
     assert len(ready) == 1 and len(stopping) == 1
     assert healthy_pings >= 5, systemd.messages  # ~9 expected in 0.9 s at 0.1 s
-    # the last tick before the hang finished before t_hang - 0.3 + 0.05; the stall limit is 0.5 s:
-    # no ping from t_hang + 0.3 until the loop ran again
-    hung = [t for t in pings if t_hang + 0.3 <= t <= t_hang + 1.5]
+    # the last tick before the hang finished about t_hang - 0.3; the stall limit is 0.5 s, so no
+    # ping from t_hang + 0.5 (a margin for a slow last tick) until the loop ran again
+    hung = [t for t in pings if t_hang + 0.5 <= t <= t_hang + 1.5]
     assert hung == [], f"{len(hung)} pings while the loop hung"
     assert daemon.tick > ticks_during_hang
     assert any(t > t_hang + 1.5 for t in pings), "pings did not resume once the loop ran again"
@@ -238,7 +238,7 @@ def test_sigkill_daemon_modbus_device_switches_heater_off_within_heartbeat_timeo
         server.stop()
     print(f"\nheater {cmd.heater_cmd_w} W, blower {cmd.blower_power_w} W {t_off - t_kill:.2f} s after SIGKILL "
           f"(heartbeat timeout {timeout_s} s)")
-    assert t_off - t_kill <= timeout_s + 0.15
+    assert t_off - t_kill <= timeout_s + 0.25  # the timeout, plus the device's 50 ms check and scheduling
     assert cmd.heater_cmd_w == 0.0 and cmd.blower_power_w >= max(blower_before, 120.0) - 1e-9
     assert cmd.valve_a_pct == 100.0 and status & 0x4
     assert server.command.heater_cmd_w == 0.0  # held off: nobody moved the heartbeat
@@ -253,9 +253,9 @@ def test_daemon_process_under_a_systemd_stand_in_ready_pings_stopping(tmp_path):
     systemd = NotifySocket(path)
     cfg = process_config(tmp_path, "unit", "baseline", speedup=10.0,
                          extra={"safety": {"cooldown_max_s": 20.0}})
-    proc = start_daemon(cfg, env={"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "400000"})
+    proc = start_daemon(cfg, env={"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "1000000"})
     try:
-        wait_for(lambda: len(systemd.times("WATCHDOG=1")) >= 8, 60, "eight watchdog pings", proc)
+        wait_for(lambda: len(systemd.times("WATCHDOG=1")) >= 5, 60, "five watchdog pings", proc)
         proc.send_signal(signal.SIGTERM)
         _, err = proc.communicate(timeout=60)
     finally:
@@ -267,7 +267,7 @@ def test_daemon_process_under_a_systemd_stand_in_ready_pings_stopping(tmp_path):
     ready, pings, stopping = systemd.times("READY=1"), systemd.times("WATCHDOG=1"), systemd.times("STOPPING=1")
     assert len(ready) == 1 and len(stopping) == 1 and ready[0] < pings[0] < stopping[0]
     gaps = [b - a for a, b in zip(pings, pings[1:])]
-    assert max(gaps) < 0.4, gaps  # every half WATCHDOG_USEC (0.2 s), never the whole timeout
+    assert max(gaps) < 1.0, gaps  # every half WATCHDOG_USEC (0.5 s), never the whole timeout
 
 
 def test_systemd_opcua_and_calibration_sections_name_the_key():
