@@ -10,6 +10,10 @@ configuration; docs/real-box.md describes it). Modules, one job each:
 * :mod:`.backends`    the I/O interface, the simulated plant backend, fault injection;
 * :mod:`.modbus`      the Modbus TCP register map and client backend; :mod:`.modbus_sim` the
   simulated plant behind a real Modbus TCP server;
+* :mod:`.opcua`       the OPC UA address space and client backend; :mod:`.opcua_sim` the simulated
+  plant behind a real OPC UA server; :mod:`.device_sim` the device side both simulators share;
+* :mod:`.calibration` engineering values <-> raw device signals (``thesis_calibration.toml``);
+* :mod:`.watchdog`    systemd notifications (READY, WATCHDOG while healthy, STOPPING);
 * :mod:`.api`         the HTTP/JSON reference API;
 * :mod:`.io`          the backend interface (:class:`.io.IoBackend`, :class:`.io.BackendError`);
 * :mod:`.soak`        the soak run (the fault campaign is :mod:`hvac_mpc.benchmarks.daemon_campaign`);

@@ -8,6 +8,8 @@ the daemon then writes safe outputs and reconnects with backoff.
   lockstep with the daemon clock (one sample per tick, however fast the loop runs).
 * :class:`hvac_mpc.daemon.modbus.ModbusBackend`: Modbus TCP to a PLC, an I/O coupler or the
   plant simulator server (:mod:`hvac_mpc.daemon.modbus_sim`).
+* :class:`hvac_mpc.daemon.opcua.OpcUaBackend`: OPC UA to a PLC or the plant simulator server
+  (:mod:`hvac_mpc.daemon.opcua_sim`).
 * :class:`FaultInjectingBackend`: wraps any backend and injects the ``[[faults]]`` of the
   configuration (sensor NaN, stuck, out of range, missing, stale, a wrong value; backend disconnect).
 """
@@ -16,12 +18,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
+from pathlib import Path
 from typing import Callable, Sequence
 
 from hvac_mpc.models.parameters import Parameters
 from hvac_mpc.models.plant import PLANT_EFFECTS, Environment, SimulatedPlant
 from hvac_mpc.contract import Command, Measurement
 
+from .calibration import Calibration
 from .config import DaemonConfig, FaultSpec, SimulatedBackendConfig
 from .io import BackendError, IoBackend
 
@@ -139,6 +143,11 @@ class FaultInjectingBackend:
         self.inner.close()
 
 
+def _calibration(config: DaemonConfig) -> Calibration:
+    """The configured calibration file (relative to the configuration), or the thesis's."""
+    return config.calibration.load(Path(config.base_dir))
+
+
 def make_backend(config: DaemonConfig, params: Parameters, clock: Callable[[], float]) -> IoBackend:
     """The configured backend, wrapped for fault injection when ``[[faults]]`` name any."""
     kind = config.backend.kind
@@ -150,9 +159,15 @@ def make_backend(config: DaemonConfig, params: Parameters, clock: Callable[[], f
         from .modbus import ModbusBackend
         c = config.backend.modbus
         backend = ModbusBackend(c.host, c.port, device_id=c.device_id, timeout_s=c.timeout_s,
-                                dt_s=config.loop.period_s, clock=clock)
+                                dt_s=config.loop.period_s, clock=clock,
+                                calibration=_calibration(config) if c.signals == "raw" else None)
+    elif kind == "opcua":
+        from .opcua import OpcUaBackend
+        c = config.backend.opcua
+        backend = OpcUaBackend(c, dt_s=config.loop.period_s, clock=clock,
+                               calibration=_calibration(config) if c.signals == "raw" else None)
     else:  # pragma: no cover - the configuration rejects other kinds
-        raise ValueError(f"backend.kind = {kind!r}: allowed 'simulated', 'modbus'")
+        raise ValueError(f"backend.kind = {kind!r}: allowed 'simulated', 'modbus', 'opcua'")
     if any(f.target in ("sensor", "backend") for f in config.faults):
         backend = FaultInjectingBackend(backend, config.faults, clock)
     return backend

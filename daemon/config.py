@@ -8,7 +8,8 @@ Sections (all optional; defaults below)::
                   timeouts, body and connection limits, allowed hosts and origins
     [controller]  name and fallback (registered entry points of group ``hvac_mpc.controllers``),
                   parameters_file, [controller.settings] (passed to the controller's settings)
-    [backend]     kind ("simulated" or "modbus"), [backend.simulated], [backend.modbus]
+    [backend]     kind ("simulated", "modbus" or "opcua"), [backend.simulated], [backend.modbus], [backend.opcua]
+    [calibration] file (raw device signals, docs/fieldbus.md); [systemd] enabled, stall_s, ping_interval_s
     [safety]      interlock limits, sensor checks, rate limits, cool-down and reconnect timing,
                   ``unsafe`` (the explicit, logged override of the safety bounds)
     [reference]   the initial reference (fields of :class:`hvac_mpc.contract.Reference`)
@@ -34,7 +35,10 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from hvac_mpc.contract import REFERENCE_RANGES, InvalidReference, Reference
 from hvac_mpc.models.plant import PLANT_EFFECTS
 
+from .calibration import CalibrationConfig
+from .opcua import OpcUaConfig
 from .plugins import CONTROLLER_GROUP, registered_controllers
+from .watchdog import SystemdConfig
 
 LOG = logging.getLogger("hvac_mpc.daemon")
 
@@ -80,7 +84,7 @@ parameters_file = ""
 [controller.settings]   # MpcSettings fields for "mpc", e.g. solver = "rti"
 
 [backend]
-kind = "simulated"      # or "modbus"
+kind = "simulated"      # or "modbus", "opcua"
 [backend.simulated]
 seed = 0
 effects = ["all"]
@@ -91,6 +95,20 @@ host = "127.0.0.1"
 port = 5020
 device_id = 1
 timeout_s = 0.3
+signals = "engineering" # or "raw": device signals through [calibration] (docs/fieldbus.md)
+[backend.opcua]
+endpoint = "opc.tcp://127.0.0.1:4840/hvac-mpc/"
+namespace = "urn:hvac-mpc:box"
+timeout_s = 0.5
+signals = "engineering"
+
+[calibration]
+file = ""               # raw-signal calibration; "" = the thesis's (daemon/thesis_calibration.toml)
+
+[systemd]
+enabled = true          # READY/WATCHDOG/STOPPING when started by systemd (Type=notify)
+stall_s = 0.0           # no tick for this long = hung, pings stop; 0 = 3 periods, at least 2 s
+ping_interval_s = 0.0   # 0 = half of WatchdogSec
 
 [safety]
 heater_max_w = 240.0
@@ -274,12 +292,15 @@ class ModbusBackendConfig(_Section):
     port: int = _f(5020, "Modbus TCP port (502 on a real coupler)", 1, 65535)
     device_id: int = _f(1, "Modbus unit/device id", 0, 255)
     timeout_s: float = _f(0.3, "request timeout", 0.01, 10.0)
+    signals: Literal["engineering", "raw"] = _f(
+        "engineering", "holding registers 0-5 carry engineering values or raw device signals (calibration file)")
 
 
 class BackendConfig(_Section):
-    kind: Literal["simulated", "modbus"] = _f("simulated", "I/O backend")
+    kind: Literal["simulated", "modbus", "opcua"] = _f("simulated", "I/O backend")
     simulated: SimulatedBackendConfig = Field(default_factory=SimulatedBackendConfig)
     modbus: ModbusBackendConfig = Field(default_factory=ModbusBackendConfig)
+    opcua: OpcUaConfig = Field(default_factory=OpcUaConfig)
 
 
 SensorRange = Annotated[list[float], Field(min_length=2, max_length=2, description="[lo, hi] with lo < hi")]
@@ -418,6 +439,8 @@ class DaemonConfig(_Section):
                                       description="the initial reference (Reference fields)")
     faults: list[FaultSpec] = Field(default_factory=list)
     base_dir: str = "."
+    systemd: SystemdConfig = Field(default_factory=SystemdConfig)
+    calibration: CalibrationConfig = Field(default_factory=CalibrationConfig)
 
     @field_validator("reference", mode="before")
     @classmethod
@@ -514,6 +537,8 @@ def config_from_mapping(data: Mapping[str, Any], base_dir: str | Path = ".") -> 
         cfg = DaemonConfig.model_validate({**dict(data), "base_dir": str(base_dir)})
     except ValidationError as exc:
         raise ConfigError(describe_config_error(exc)) from None
+    if "raw" in (cfg.backend.modbus.signals, cfg.backend.opcua.signals):
+        cfg.calibration.check(Path(base_dir), ConfigError)  # a bad calibration file: nothing starts
     if cfg.safety.unsafe and cfg.safety.unsafe_overrides():
         LOG.warning("safety.unsafe = true: safety bounds overridden: %s", ", ".join(cfg.safety.unsafe_overrides()))
     return cfg

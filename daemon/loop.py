@@ -51,6 +51,7 @@ from .controllers import ControllerChain, FaultInjectingController, load_control
 from .log_writer import DurableLog, utc_now_iso
 from .modes import AUTO_CONTROLLERS, MODES, ModeChange, ModeError, heater_refusal, initial_mode, rate_limited
 from .safety import HeaterEstimator, HeaterInterlock, SensorMonitor, SensorStatus, safe_command
+from .watchdog import start_watchdog
 
 LOG = logging.getLogger("hvac_mpc.daemon")
 COMMAND_FIELDS = ("blower_power_w", "heater_cmd_w", "valve_a_pct", "valve_m_pct", "valve_f_pct", "valve_w_pct")
@@ -175,6 +176,7 @@ class Daemon:
         self._fired: set[int] = set()
         self.injected: dict[str, int] = {}
         self.api = None
+        self._watchdog = None
         if config.api.enabled:
             self._start_api()
 
@@ -325,6 +327,8 @@ class Daemon:
 
     def run(self) -> int:
         self.state = "running"
+        self._watchdog = start_watchdog(self.cfg.systemd, self.cfg.loop.wall_period_s, lambda: self.state,
+                                        lambda: time.monotonic() - self._last_tick_wall, lambda: self.tick)
         LOG.info("daemon starting at t = %.1f s (log %s, controller %s, backend %s)", self.t0, self.log_path,
                  self.cfg.controller.name, self.cfg.backend.kind)
         wall_period = self.cfg.loop.wall_period_s
@@ -653,6 +657,8 @@ class Daemon:
 
     def _close(self) -> None:
         self.state = "stopped"
+        if self._watchdog is not None:
+            self._watchdog.stop()
         closers = [c.close for c in self.chains.values()] + [self.backend.close, self.writer.close]
         for closer in closers:
             try:

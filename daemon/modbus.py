@@ -20,7 +20,9 @@ Register map (device id ``device_id``; addresses zero-based)::
     7    heater_power_w        int16                     0.1 W
     8    heater_outlet_temp_c  int16                     0.01 C
     9    heartbeat_echo        uint16                    last heartbeat the I/O side applied
-    10   status                uint16 bits               bit 0: I/O watchdog tripped (safe outputs)
+    10   status                uint16 bits               bit 0: I/O watchdog tripped (safe outputs),
+                                                     bit 1: the device takes raw signals,
+                                                     bit 2: heartbeat timeout tripped (heater off)
 
   holding registers (FC 16, written by the daemon in one request; FC 03 reads them back)
     0    blower_power_w        uint16                    0.1 W
@@ -28,10 +30,21 @@ Register map (device id ``device_id``; addresses zero-based)::
     2-5  valve_a/m/f/w_pct     uint16                    0.01 %
     6    heartbeat             uint16                    sample counter (mod 65536) the command is for
 
+With ``signals = "raw"`` holding registers 0-5 carry the raw device signals of the calibration
+(:mod:`.calibration`) as counts of their resolution (servo duty cycle 1e-5, PWM duty 1e-4, volts
+and milliamps 1e-3), and sensor registers of calibrated sensors carry raw readings (int16 counts).
+The device reports its signal format in status bit 1; a daemon configured otherwise refuses it.
+
 An int16 of 0x8000 (-32768) means "no value" (wire break, channel fault), as analogue I/O
 modules report it; values beyond the int16 range saturate at +-32767 (over-range), which the
 daemon's plausibility check flags. The heartbeat lets the I/O side's watchdog put the outputs
 in a safe state when the daemon stops writing, and lets the plant simulator advance in lockstep.
+
+Device-side heartbeat watchdog (docs/fieldbus.md): the daemon writes the heartbeat every tick, a
+new value each time. A device that sees it unchanged for its timeout (the simulator's
+``heartbeat_timeout_s``, wall time) switches the heater off and, if the heater was on lately,
+keeps the blower running (at least its cool-down power, valve a open so the air passes the
+heater) until the heartbeat moves again; it sets status bit 2 meanwhile.
 """
 
 from __future__ import annotations
@@ -40,8 +53,11 @@ import logging
 import math
 from typing import Callable
 
+from dataclasses import replace
+
 from hvac_mpc.contract import Command, Measurement
 
+from .calibration import Calibration
 from .io import BackendError
 
 NO_VALUE = -32768
@@ -56,6 +72,8 @@ INPUT_COUNT = 11
 HOLDING_COUNT = 7
 TIME_SCALE_S = 0.1
 STATUS_WATCHDOG = 0x1
+STATUS_RAW = 0x2
+STATUS_HEARTBEAT = 0x4
 
 
 def _int16(value: float | None, scale: float) -> int:
@@ -90,8 +108,11 @@ def decode_measurement(regs: list[int]) -> tuple[Measurement, int, int]:
     return Measurement(time_s=t, **values), regs[9], regs[10]
 
 
-def encode_command(cmd: Command, heartbeat: int) -> list[int]:
-    """Holding registers 0..6 for a command (clipped to the register range)."""
+def encode_command(cmd: Command, heartbeat: int, calibration: Calibration | None = None) -> list[int]:
+    """Holding registers 0..6 for a command (clipped to the register range); raw signals with a
+    calibration."""
+    if calibration is not None:
+        return [max(0, min(65535, c)) for c in calibration.command_counts(cmd)] + [heartbeat & 0xFFFF]
     regs = []
     for name, scale in COMMAND_REGISTERS:
         v = getattr(cmd, name)
@@ -101,11 +122,31 @@ def encode_command(cmd: Command, heartbeat: int) -> list[int]:
     return regs + [heartbeat & 0xFFFF]
 
 
-def decode_command(regs: list[int]) -> tuple[Command, int]:
-    """Command and heartbeat from holding registers 0..6."""
+def decode_command(regs: list[int], calibration: Calibration | None = None) -> tuple[Command, int]:
+    """Command and heartbeat from holding registers 0..6 (raw signals with a calibration)."""
     if len(regs) != HOLDING_COUNT:
         raise ValueError(f"expected {HOLDING_COUNT} holding registers, got {len(regs)}")
+    if calibration is not None:
+        return calibration.command_from_counts(regs[:6]), regs[6]
     return Command(**{name: regs[i] * scale for i, (name, scale) in enumerate(COMMAND_REGISTERS)}), regs[6]
+
+
+def raw_sensor_registers(regs: list[int], m: Measurement, calibration: Calibration) -> list[int]:
+    """Device side: input registers with the calibrated sensors' raw readings (int16 counts)."""
+    regs = list(regs)
+    for i, (name, _) in enumerate(SENSOR_REGISTERS):
+        if name in calibration.sensors:
+            regs[2 + i] = _int16(calibration.sensor_to_raw(name, getattr(m, name)), calibration.sensors[name].count_s)
+    return regs
+
+
+def sensors_from_raw(regs: list[int], m: Measurement, calibration: Calibration) -> Measurement:
+    """Daemon side: the calibrated sensors' readings in their units, from raw int16 counts."""
+    values = {}
+    for i, (name, _) in enumerate(SENSOR_REGISTERS):
+        if name in calibration.sensors:
+            values[name] = calibration.sensor_to_eng(name, _from_int16(regs[2 + i], calibration.sensors[name].count_s))
+    return replace(m, **values) if values else m
 
 
 def heartbeat_for(time_s: float, dt_s: float) -> int:
@@ -128,8 +169,9 @@ class ModbusBackend:
     """Daemon side of the register map above (synchronous pymodbus client, one request each)."""
 
     def __init__(self, host: str, port: int, device_id: int = 1, timeout_s: float = 0.3, dt_s: float = 1.0,
-                 clock: Callable[[], float] | None = None):
+                 clock: Callable[[], float] | None = None, calibration: Calibration | None = None):
         self.host, self.port, self.device_id = host, port, device_id
+        self.calibration = calibration  # None: engineering values; else raw signals
         self.timeout_s, self.dt_s = timeout_s, dt_s
         self.clock = clock or (lambda: 0.0)
         self._client = None
@@ -164,11 +206,17 @@ class ModbusBackend:
     def read(self) -> Measurement:
         rr = self._call("read input registers", self._client.read_input_registers if self._client else None,
                         0, count=INPUT_COUNT)
-        m, self.heartbeat_echo, self.status_bits = decode_measurement(list(rr.registers))
-        return m
+        regs = list(rr.registers)
+        m, self.heartbeat_echo, self.status_bits = decode_measurement(regs)
+        if bool(self.status_bits & STATUS_RAW) != (self.calibration is not None):
+            self.close()
+            want, got = ("raw", "engineering") if self.calibration is not None else ("engineering", "raw")
+            raise BackendError(f"Modbus TCP {self.host}:{self.port}: the device takes {got} signals, "
+                               f"the daemon is set to {want} (backend.modbus.signals)")
+        return m if self.calibration is None else sensors_from_raw(regs, m, self.calibration)
 
     def write(self, command: Command) -> None:
-        regs = encode_command(command, heartbeat_for(self.clock(), self.dt_s))
+        regs = encode_command(command, heartbeat_for(self.clock(), self.dt_s), self.calibration)
         self._call("write holding registers", self._client.write_registers if self._client else None, 0, regs)
 
     def close(self) -> None:

@@ -49,8 +49,8 @@ def test_config_errors_name_the_key_and_range(tmp_path):
     with pytest.raises(ConfigError, match=r"faults\[0\]: kind = 'melt'"):
         config_from_mapping({"faults": [{"target": "sensor", "kind": "melt", "signal": "supply_temp_c",
                                          "start_s": 1.0, "end_s": 2.0}]})
-    with pytest.raises(ConfigError, match=r"backend.kind: Input should be 'simulated' or 'modbus' \(got 'opcua'\)"):
-        config_from_mapping({"backend": {"kind": "opcua"}})
+    with pytest.raises(ConfigError, match=r"backend.kind: Input should be 'simulated', 'modbus' or 'opcua' \(got 'profinet'\)"):
+        config_from_mapping({"backend": {"kind": "profinet"}})
     path = tmp_path / "d.toml"
     path.write_text('[loop]\nspeedup = "max"\n[log]\npath = "x.csv"\n')
     cfg = load_config(path)
