@@ -273,13 +273,13 @@ def test_daemon_process_under_a_systemd_stand_in_ready_pings_stopping(tmp_path):
 def test_systemd_opcua_and_calibration_sections_name_the_key():
     from hvac_mpc.daemon.config import ConfigError
 
-    cases = [({"systemd": {"stall_s": -1.0}}, r"systemd\.stall_s: Input should be greater than or equal to 0"),
-             ({"systemd": {"enable": True}}, r"systemd\.enable: Extra inputs are not permitted"),
-             ({"backend": {"opcua": {"timeout_s": 50}}}, r"backend\.opcua\.timeout_s: Input should be less than or equal to 10"),
+    cases = [({"systemd": {"stall_s": -1.0}}, r"systemd\.stall_s = -1.0 is outside the allowed range \[0.0, 3600.0\]"),
+             ({"systemd": {"enable": True}}, r"systemd\.enable: unknown key; allowed: \['enabled', 'ping_interval_s', 'stall_s'\]"),
+             ({"backend": {"opcua": {"timeout_s": 50}}}, r"backend\.opcua\.timeout_s = 50 is outside the allowed range \[0.01, 10.0\]"),
              ({"backend": {"opcua": {"endpoint": "http://x"}}}, r"backend\.opcua\.endpoint: String should match"),
              ({"backend": {"opcua": {"signals": "volts"}}}, r"backend\.opcua\.signals: Input should be 'engineering' or 'raw'"),
-             ({"backend": {"modbus": {"signals": "volts"}}}, r"backend\.modbus\.signals = 'volts': allowed values"),
-             ({"calibration": {"path": "x.toml"}}, r"calibration\.path: Extra inputs are not permitted")]
+             ({"backend": {"modbus": {"signals": "volts"}}}, r"backend\.modbus\.signals: Input should be 'engineering' or 'raw' \(got 'volts'\)"),
+             ({"calibration": {"path": "x.toml"}}, r"calibration\.path: unknown key; allowed: \['file'\]")]
     for data, expected in cases:
         with pytest.raises(ConfigError, match=expected):
             config_from_mapping(data)
