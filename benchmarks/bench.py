@@ -182,7 +182,8 @@ def write_logs(traces: Mapping[str, Mapping[str, Trace]], folder: Path) -> None:
             cols = {"time_s": tr.time_s}
             for i, a in enumerate(tr.actuators):
                 cols[a] = tr.applied[:, i]
-            cols.update({"hvac_inlet_temp_c": np.full(n, tr.environment["inlet_temp_c"]),
+            cols.update({"hvac_inlet_temp_c": tr.measured.get("hvac_inlet_temp_c", np.full(n, tr.environment["inlet_temp_c"])),
+                         "cabin_temp_c": tr.measured.get("cabin_temp_c", np.full(n, np.nan)),
                          "volume_flow_m3s": tr.measured["volume_flow_m3s"],
                          "supply_temp_c": tr.measured["supply_temp_c"],
                          "heater_power_w": tr.truth["heater_power_w"],

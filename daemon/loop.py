@@ -33,12 +33,13 @@ from typing import Any, Callable
 
 from hvac_mpc.models.measurement_log import COLUMNS, LogWriter
 from hvac_mpc.models.parameters import Parameters
-from hvac_mpc.contract import Command, Measurement
+from hvac_mpc.contract import EXTRA_SIGNALS, Command, Measurement
 from hvac_mpc.contract import Reference
 
 from .backends import BackendError, IoBackend, make_backend
 from .config import SENSOR_FIELDS, DaemonConfig, resolve
 from .controllers import ControllerChain, FaultInjectingController, load_controller
+from .monitor import ModelInForce, ModelLoadError, ModelMonitor, ModelSlots, MonitorSettings
 from .safety import HeaterEstimator, HeaterInterlock, SensorMonitor, SensorStatus, safe_command
 
 LOG = logging.getLogger("hvac_mpc.daemon")
@@ -95,11 +96,16 @@ class Daemon:
     """The controller daemon. ``run()`` blocks until stopped and returns the exit code."""
 
     def __init__(self, config: DaemonConfig, *, backend: IoBackend | None = None,
-                 tick_hook: Callable[["Daemon", dict], None] | None = None):
+                 tick_hook: Callable[["Daemon", dict], None] | None = None,
+                 initial_command: Command | None = None, monitor: MonitorSettings | None = None):
+        """``initial_command``: the command in force on the box when the daemon starts (default: the
+        safe command); ``monitor``: settings of the model monitor (:mod:`.monitor`)."""
         self.cfg = config
         self.dt = config.loop.period_s
+        self.monitor_settings = monitor or MonitorSettings()
         pfile = config.controller.parameters_file
-        self.params = Parameters.from_file(resolve(config, pfile)) if pfile else Parameters()
+        model = self._read_model(str(resolve(config, pfile)) if pfile else "")
+        self.params = model.params
         self.tick_hook = tick_hook
         self._lock = threading.Lock()
         self._stop_requests = 0
@@ -116,7 +122,8 @@ class Daemon:
             self.t0 = 0.0 if last is None else last + self.dt
             self.tick = 0
             self.backend = backend or make_backend(config, self.params, clock=lambda: self.time_s)
-            self.chain = self._build_chain()
+            self.chain = model.chain = self._build_chain()
+            self.models = ModelSlots(model)
         except BaseException:
             self._log_lock.close()
             raise
@@ -129,7 +136,7 @@ class Daemon:
         self._next_reconnect_s = self.t0
         self._backoff_s = config.safety.reconnect_initial_s
         self._held: dict[str, tuple[float, float]] = {}  # field -> (value, time_s of last good reading)
-        self._last_cmd = safe_command(config.safety)
+        self._last_cmd = initial_command or safe_command(config.safety)
         self._last_mode = ""
         self._shutdown_start_s: float | None = None
         self.state = "starting"
@@ -151,12 +158,12 @@ class Daemon:
             self._start_api()
 
     # ------------------------------------------------------------------ construction
-    def _build_chain(self) -> ControllerChain:
+    def _build_chain(self, params: Parameters | None = None) -> ControllerChain:
         c = self.cfg.controller
         names = [c.name] + [f for f in c.fallback if f != c.name]
         chain = []
         for i, name in enumerate(names):
-            ctrl = load_controller(name, self.params, self.dt, c.settings if i == 0 else None)
+            ctrl = load_controller(name, params or self.params, self.dt, c.settings if i == 0 else None)
             if i == 0 and any(f.target == "controller" for f in self.cfg.faults):
                 ctrl = FaultInjectingController(ctrl, self.cfg.faults, clock=lambda: self.time_s)
             chain.append((name, ctrl))
@@ -190,6 +197,66 @@ class Daemon:
             self.reference = ref
             self.counters["reference_updates"] += 1
 
+    def _read_model(self, path: str) -> ModelInForce:
+        """A model file read, validated and run once (monitor built); its controller chain is built later."""
+        from hvac_mpc.identification.model_file import load_model_file
+
+        from .monitor import model_hash
+        try:
+            params, effects = load_model_file(path) if path else (Parameters(), ())
+            mon = ModelMonitor(params, effects, self.dt, self.monitor_settings, model_hash(path or None))
+            probe = mon.model.steady_state(Command().vector(), mon.model.d_vector(25.0, 5.0), mon.model.p_default)
+            if not all(math.isfinite(v) for v in probe):
+                raise ValueError("its steady state at the default command is not finite")
+        except (OSError, ValueError, KeyError, TypeError, RuntimeError) as exc:
+            raise ModelLoadError(f"model file {path!r}: {exc}") from None
+        return ModelInForce(path, mon.hash, params, tuple(effects), mon, None)
+
+    def load_model(self, path: str | Path, client: str = "") -> dict[str, Any]:
+        """Validate a model file, build its monitor and controllers, and swap them in between two
+        samples. Raises :class:`ModelLoadError` (nothing changes) when the file is not usable."""
+        model = self._read_model(str(path))
+        try:
+            model.chain = self._build_chain(model.params)
+        except Exception as exc:  # noqa: BLE001 - any build failure leaves the running model alone
+            raise ModelLoadError(f"model file {str(path)!r}: controllers cannot be built ({exc})") from None
+        with self._lock:
+            self.models.request(model, client, "load")
+        LOG.info("model %s (%s) requested by %s; swapped in at the next sample", model.hash, path, client or "-")
+        return {"hash": model.hash, "path": model.path, "effects": list(model.effects)}
+
+    def rollback_model(self, client: str = "") -> dict[str, Any]:
+        """Swap back to the model in force before the last swap (between two samples)."""
+        with self._lock:
+            prev = self.models.previous
+            if prev is None:
+                raise ModelLoadError("no earlier model to roll back to")
+            prev.monitor.reset()
+            self.models.request(prev, client, "rollback")
+        LOG.info("rollback to model %s requested by %s", prev.hash, client or "-")
+        return {"hash": prev.hash, "path": prev.path}
+
+    def _swap_model(self) -> None:
+        """At the start of a sample: put a requested model in force (controllers reset bumplessly)."""
+        with self._lock:
+            displaced = self.models.previous
+            swap = self.models.take(self.time_s, time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime()))
+        if swap is None:
+            return
+        old, new, event = swap
+        if displaced is not None and displaced is not new and displaced.chain is not None:
+            displaced.chain.close()
+        self.chain = new.chain
+        self.chain.reset()
+        self.params = new.params
+        new.monitor.reset()
+        LOG.warning("t = %.1f s: model %s -> %s (%s by %s)", self.time_s, old.hash, new.hash, event["action"],
+                    event["client"] or "-")
+
+    def model_metrics(self) -> dict[str, float]:
+        """The model monitor's gauges (for a metrics exporter)."""
+        return self.models.current.monitor.metrics()
+
     def latest_sample(self) -> dict[str, Any] | None:
         with self._lock:
             return None if self.latest is None else dict(self.latest)
@@ -201,7 +268,10 @@ class Daemon:
                    "controller": self.cfg.controller.name, "backend": self.cfg.backend.kind,
                    "reference": self.reference.as_dict(), "counters": counters,
                    "interlock_trips": dict(self.interlock.trips), "heater_estimate_c": self.estimator.temp_c,
-                   "uptime_s": time.monotonic() - self._started_wall}
+                   "uptime_s": time.monotonic() - self._started_wall,
+                   "model": {**self.models.current.monitor.status(), "path": self.models.current.path,
+                             "effects": list(self.models.current.effects), "swap_pending": self.models.pending(),
+                             "events": list(self.models.events[-10:])}}
         injected: dict[str, int] = dict(self.injected)
         for obj in (self.backend, self.chain.controllers[0][1]):
             injected.update(getattr(obj, "injected", {}))
@@ -330,6 +400,7 @@ class Daemon:
                 values[name] = None
         if unusable:
             return None, unusable
+        values.update({n: _num(getattr(m, n, None)) for n in EXTRA_SIGNALS})  # unchecked, passed on
         return Measurement(time_s=t, **values), []
 
     def _update_estimator(self, m: Measurement | None, status: SensorStatus | None) -> None:
@@ -347,6 +418,23 @@ class Daemon:
         flow = m.volume_flow_m3s if status.valid("volume_flow_m3s") else None
         est.update(self.dt, power, flow, air_in, valve_a)
 
+    def _monitor_model(self, m: Measurement | None, status: SensorStatus | None) -> None:
+        """Model monitor update with this reading and the command applied over the last sample."""
+        mon = self.models.current.monitor
+        was = mon.degraded
+        try:
+            if m is None or status is None or not status.all_valid(("volume_flow_m3s", "hvac_inlet_temp_c")):
+                mon.reset()
+            else:
+                mon.update(m, self._last_cmd)
+        except Exception as exc:  # noqa: BLE001 - the monitor never stops the control
+            self.counters["monitor_errors"] = self.counters.get("monitor_errors", 0) + 1
+            LOG.error("model monitor failed at t = %.1f s: %s", self.time_s, exc)
+            mon.reset()
+        if mon.degraded != was:
+            LOG.warning("t = %.1f s: model %s %s (horizon RMS %s)", self.time_s, mon.hash,
+                        "degraded" if mon.degraded else "back within its bounds", mon.horizon_rms)
+
     def _shutdown_command(self) -> Command:
         s = self.cfg.safety
         blower = max(self._last_cmd.blower_power_w, s.safe_blower_w)
@@ -362,6 +450,7 @@ class Daemon:
                 key = f"daemon:{f.kind}"
                 self.injected[key] = self.injected.get(key, 0) + 1
                 raise RuntimeError(f"injected fatal error at t = {t} s")
+        self._swap_model()
         with self._lock:
             ref = self.reference
         if (self._stop_requests or self._fatal) and self._shutdown_start_s is None:
@@ -386,6 +475,7 @@ class Daemon:
                 self.counters["sensor_fault_ticks"]["sample:stale"] = \
                     self.counters["sensor_fault_ticks"].get("sample:stale", 0) + 1
         self._update_estimator(m, status)
+        self._monitor_model(m, status)
 
         used = "none"
         events: list[str] = []
@@ -488,8 +578,11 @@ class Daemon:
             row[name] = _num(getattr(m, name)) if m is not None else None
         for f, col in REF_COLUMNS.items():
             row[col] = getattr(ref, f)
+        for name in EXTRA_SIGNALS:
+            row[name] = _num(getattr(m, name, None)) if m is not None else None
         row["mode"] = mode
         row["controller"] = used
+        row["model_hash"] = self.models.current.hash
         return row
 
     def _emergency_stop(self) -> None:
@@ -530,7 +623,8 @@ class Daemon:
 
     def _close(self) -> None:
         self.state = "stopped"
-        for closer in (self.chain.close, self.backend.close, self.writer.close):
+        for closer in (self.chain.close, self.backend.close, self.writer.close,
+                       *(m.chain.close for m in (self.models.previous,) if m is not None and m.chain is not self.chain)):
             try:
                 closer()
             except Exception:  # noqa: BLE001
