@@ -16,6 +16,8 @@ SUBCOMMANDS = {
     "solve-time": ("hvac_mpc.benchmarks.solve_time", "MPC step time against IPOPT and do-mpc"),
     "identify": ("hvac_mpc.identification.cli", "refine the model from a measurement log"),
     "daemon": ("hvac_mpc.daemon.main", "run the controller daemon"),
+    "experiment": ("hvac_mpc.benchmarks.experiment", "a bench scenario or an identification excitation through the daemon"),
+    "report": ("hvac_mpc.benchmarks.report_logs", "the bench's report (figures, ratios, plots) from logs of real runs"),
 }
 
 
