@@ -191,9 +191,9 @@ def markdown(results: Mapping, plots: Mapping[str, str], command: str) -> str:
         out += [f"| {label} | {b} | {m} | {r} |" for label, b, m, r in report.figure_rows(sc)]
         out.append("")
         for fig, band in sc["ratio_noise"].items():
-            if band is not None:
-                out.append(f"- ratio {fig}: {report._fmt_ratio(sc['ratios'][fig])}, noise band "
-                           f"[{band[0]:.2f}, {band[1]:.2f}]")
+            text = (f"noise band [{band[0]:.2f}, {band[1]:.2f}]" if band is not None else
+                    "no noise band: the noise bound reaches the baseline's figure, the ratio says little")
+            out.append(f"- ratio {fig}: {report._fmt_ratio(sc['ratios'][fig])}, {text}")
         for c in sc["criteria"]:
             line = f"- {c['status']}: {c['criterion']}, {c['value']}"
             if c["ratio"] is not None:

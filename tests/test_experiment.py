@@ -158,6 +158,7 @@ def test_excitation_identify_and_runtime_load_halve_the_online_residual(tmp_path
     second = tmp_path / "second.csv"
     excitation_run(second, 2, 600, hook)
     assert len(before) > 100 and len(after) > 100
+    print(f"flow horizon RMS: {np.mean(before):.5f} m3/s before, {np.mean(after):.5f} m3/s after the load")
     assert np.mean(after) <= 0.5 * np.mean(before), (np.mean(before), np.mean(after))
     log = read_log(second)
     h = model_hash(model)
