@@ -39,7 +39,7 @@ from hvac_mpc.contract import Reference
 from .backends import BackendError, IoBackend, make_backend
 from .config import SENSOR_FIELDS, DaemonConfig, resolve
 from .controllers import ControllerChain, FaultInjectingController, load_controller
-from .monitor import ModelInForce, ModelLoadError, ModelMonitor, ModelSlots, MonitorSettings
+from .monitor import ModelInForce, ModelLoadError, ModelSlots, MonitorSettings, read_model
 from .safety import HeaterEstimator, HeaterInterlock, SensorMonitor, SensorStatus, safe_command
 
 LOG = logging.getLogger("hvac_mpc.daemon")
@@ -104,7 +104,7 @@ class Daemon:
         self.dt = config.loop.period_s
         self.monitor_settings = monitor or MonitorSettings()
         pfile = config.controller.parameters_file
-        model = self._read_model(str(resolve(config, pfile)) if pfile else "")
+        model = read_model(str(resolve(config, pfile)) if pfile else "", self.dt, self.monitor_settings)
         self.params = model.params
         self.tick_hook = tick_hook
         self._lock = threading.Lock()
@@ -197,31 +197,16 @@ class Daemon:
             self.reference = ref
             self.counters["reference_updates"] += 1
 
-    def _read_model(self, path: str) -> ModelInForce:
-        """A model file read, validated and run once (monitor built); its controller chain is built later."""
-        from hvac_mpc.identification.model_file import load_model_file
-
-        from .monitor import model_hash
-        try:
-            params, effects = load_model_file(path) if path else (Parameters(), ())
-            mon = ModelMonitor(params, effects, self.dt, self.monitor_settings, model_hash(path or None))
-            probe = mon.model.steady_state(Command().vector(), mon.model.d_vector(25.0, 5.0), mon.model.p_default)
-            if not all(math.isfinite(v) for v in probe):
-                raise ValueError("its steady state at the default command is not finite")
-        except (OSError, ValueError, KeyError, TypeError, RuntimeError) as exc:
-            raise ModelLoadError(f"model file {path!r}: {exc}") from None
-        return ModelInForce(path, mon.hash, params, tuple(effects), mon, None)
-
     def load_model(self, path: str | Path, client: str = "") -> dict[str, Any]:
         """Validate a model file, build its monitor and controllers, and swap them in between two
         samples. Raises :class:`ModelLoadError` (nothing changes) when the file is not usable."""
-        model = self._read_model(str(path))
+        model = read_model(str(path), self.dt, self.monitor_settings)
         try:
             model.chain = self._build_chain(model.params)
         except Exception as exc:  # noqa: BLE001 - any build failure leaves the running model alone
             raise ModelLoadError(f"model file {str(path)!r}: controllers cannot be built ({exc})") from None
         with self._lock:
-            self.models.request(model, client, "load")
+            self._drop(self.models.request(model, client, "load"))
         LOG.info("model %s (%s) requested by %s; swapped in at the next sample", model.hash, path, client or "-")
         return {"hash": model.hash, "path": model.path, "effects": list(model.effects)}
 
@@ -231,10 +216,14 @@ class Daemon:
             prev = self.models.previous
             if prev is None:
                 raise ModelLoadError("no earlier model to roll back to")
-            prev.monitor.reset()
-            self.models.request(prev, client, "rollback")
+            self._drop(self.models.request(prev, client, "rollback"))
         LOG.info("rollback to model %s requested by %s", prev.hash, client or "-")
         return {"hash": prev.hash, "path": prev.path}
+
+    def _drop(self, model: ModelInForce | None) -> None:
+        """Release the controllers of a requested model replaced by a later request before its swap."""
+        if model is not None and model is not self.models.previous and model.chain is not None:
+            model.chain.close()
 
     def _swap_model(self) -> None:
         """At the start of a sample: put a requested model in force (controllers reset bumplessly)."""
@@ -269,9 +258,7 @@ class Daemon:
                    "reference": self.reference.as_dict(), "counters": counters,
                    "interlock_trips": dict(self.interlock.trips), "heater_estimate_c": self.estimator.temp_c,
                    "uptime_s": time.monotonic() - self._started_wall,
-                   "model": {**self.models.current.monitor.status(), "path": self.models.current.path,
-                             "effects": list(self.models.current.effects), "swap_pending": self.models.pending(),
-                             "events": list(self.models.events[-10:])}}
+                   "model": self.models.status()}
         injected: dict[str, int] = dict(self.injected)
         for obj in (self.backend, self.chain.controllers[0][1]):
             injected.update(getattr(obj, "injected", {}))

@@ -280,11 +280,20 @@ class ModelSlots:
         self._pending: tuple[ModelInForce, str, str] | None = None
         self.events: list[dict[str, Any]] = []
 
-    def request(self, model: ModelInForce, client: str, action: str) -> None:
+    def request(self, model: ModelInForce, client: str, action: str) -> ModelInForce | None:
+        """Ask for ``model`` at the next sample; returns a model that was waiting and is now dropped."""
+        dropped = None if self._pending is None else self._pending[0]
         self._pending = (model, client, action)
+        return dropped
 
     def pending(self) -> bool:
         return self._pending is not None
+
+    def status(self) -> dict[str, Any]:
+        """The monitor's status of the model in force, its file, effects and the last swaps."""
+        c = self.current
+        return {**c.monitor.status(), "path": c.path, "effects": list(c.effects), "swap_pending": self.pending(),
+                "events": list(self.events[-10:])}
 
     def take(self, time_s: float, wall_time: str) -> tuple[ModelInForce, ModelInForce, dict] | None:
         """Swap in the waiting model; returns (old, new, event) or None when nothing waits."""
@@ -299,3 +308,19 @@ class ModelSlots:
         self.events.append(event)
         del self.events[:-100]
         return old, model, event
+
+
+def read_model(path: str, dt_s: float, settings: MonitorSettings | None = None) -> ModelInForce:
+    """A model file (``""``: the built-in model) read, validated and run once, with its monitor; the
+    controller chain is left to the daemon. Raises :class:`ModelLoadError` naming the problem."""
+    from hvac_mpc.identification.model_file import load_model_file
+
+    try:
+        params, effects = load_model_file(path) if path else (Parameters(), ())
+        mon = ModelMonitor(params, effects, dt_s, settings, model_hash(path or None))
+        probe = mon.model.steady_state(Command().vector(), mon.model.d_vector(25.0, 5.0), mon.model.p_default)
+        if not np.all(np.isfinite(probe)):
+            raise ValueError("its steady state at the default command is not finite")
+    except (OSError, ValueError, KeyError, TypeError, RuntimeError) as exc:
+        raise ModelLoadError(f"model file {path!r}: {exc}") from None
+    return ModelInForce(path, mon.hash, params, tuple(effects), mon, None)

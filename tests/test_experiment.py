@@ -10,11 +10,11 @@ import pytest
 
 from hvac_mpc import cli
 from hvac_mpc.benchmarks import bench, scenarios as S
-from hvac_mpc.benchmarks.experiment import EXCITATION_CONTROLLER, PlantBackend, experiment_config, run_daemon
+from hvac_mpc.benchmarks.experiment import EXCITATION_CONTROLLER, PlantBackend, experiment_config
 from hvac_mpc.benchmarks.report_logs import build_results, noise_sigma
 from hvac_mpc.contract import INPUTS, Command, Measurement, Reference
-from hvac_mpc.daemon.loop import Daemon
 from hvac_mpc.daemon.excitation import ExcitationController, ExcitationSpec, InvalidExcitation, targets
+from hvac_mpc.daemon.loop import Daemon
 from hvac_mpc.daemon.monitor import BUILTIN_HASH, model_hash
 from hvac_mpc.identification import identify, write_model_file
 from hvac_mpc.identification.log_data import load
@@ -165,3 +165,40 @@ def test_excitation_identify_and_runtime_load_halve_the_online_residual(tmp_path
     assert set(log["model_hash"][log["time_s"] <= 300.0]) == {BUILTIN_HASH}
     assert set(log["model_hash"][log["time_s"] >= 301.0]) == {h}
     assert math.isfinite(np.nanmean(log["volume_flow_m3s"]))
+
+
+@pytest.mark.slow
+def test_scenario_experiment_through_the_modbus_backend(tmp_path):
+    """The same experiment on the daemon's Modbus backend (the bench's plant behind a real Modbus TCP
+    server): the log is the daemon's and the baseline's temperature IAE is the bench's within the
+    registers' resolution."""
+    pytest.importorskip("pymodbus", reason="the Modbus backend needs the 'fieldbus' extra (pymodbus)")
+    from hvac_mpc.benchmarks.daemon_campaign import free_port
+    from hvac_mpc.benchmarks.perturbation import perturb_parameters
+    from hvac_mpc.benchmarks.simulate import scenario_plant
+    from hvac_mpc.daemon.modbus_sim import PlantModbusServer
+    from hvac_mpc.models import Parameters
+
+    name, seed = "summer_cooling_steps", 0
+    sc = S.all_scenarios()[name].quick()
+    port = free_port()
+    server = PlantModbusServer(scenario_plant(sc, perturb_parameters(Parameters(), seed)[0], seed), port=port).start()
+    cfg = tmp_path / "lab.toml"
+    cfg.write_text(f'[loop]\nspeedup = "max"\ndeadline_s = 30.0\n[backend]\nkind = "modbus"\n'
+                   f'[backend.modbus]\nport = {port}\ntimeout_s = 1.0\n[safety]\ncooldown_max_s = 5.0\n')
+    try:
+        log = tmp_path / "modbus.csv"
+        assert cli.main(["experiment", "--scenario", name, "--quick", "--controller", "baseline",
+                         "--config", str(cfg), "--log", str(log)]) == 0
+    finally:
+        server.stop()
+    side = json.loads(log.with_suffix(".csv.json").read_text())
+    assert side["plant"] == "modbus" and side["counters"]["primary_ticks"] == 150
+    results, _ = build_results([log])
+    ours = results["scenarios"][name]["baseline"]["figures"]
+    bench_results, _ = bench.run_benchmark([sc], {"baseline": bench.baseline_factory(),
+                                                  "mpc": bench.baseline_factory()}, seed)
+    theirs = bench_results["scenarios"][name]["baseline"]["figures"]
+    noise = results["scenarios"][name]["runs"]["baseline"]["noise"]["temp_iae_cs"]["iae_bound"]
+    assert abs(ours["temp_iae_cs"] - theirs["temp_iae_cs"]) <= noise
+    assert ours["energy_wh"] == pytest.approx(theirs["energy_wh"], rel=0.02)
