@@ -159,7 +159,8 @@ def run_benchmark(chosen: Sequence[scenario_defs.Scenario], factories: Mapping[s
         results["scenarios"][sc.name] = {
             "description": sc.description, "kind": sc.kind, "seed": sc.seed, "duration_s": sc.duration_s,
             "warmup_s": sc.metrics_start_s, "scored_s": sc.duration_s - sc.metrics_start_s,
-            "inlet_temp_c": sc.inlet_temp_c, "chiller_setpoint_c": sc.chiller_setpoint_c, "notes": list(sc.notes),
+            "inlet_temp_c": sc.inlet_temp_c, "chiller_setpoint_c": sc.chiller_setpoint_c,
+            "notes": list(sc.notes) + cabin_notes(sc, traces[sc.name]),
             "step_times_s": sc.step_times_s(),
             "references": [{"from_s": 0.0, **sc.warmup.reference.as_dict()}]
             + [{"from_s": t, **seg.reference.as_dict()} for t, seg in zip(sc.step_times_s(), sc.segments)],
@@ -184,6 +185,18 @@ def run_benchmark(chosen: Sequence[scenario_defs.Scenario], factories: Mapping[s
     return results, traces
 
 
+def cabin_notes(sc: scenario_defs.Scenario, runs: Mapping[str, Trace]) -> list[str]:
+    """For a scenario with the cabin in the loop: where each controller left the cabin and the inlet."""
+    if sc.cabin is None:
+        return []
+    parts = []
+    for cname, tr in runs.items():
+        cabin, inlet = tr.measured["cabin_temp_c"], tr.measured["hvac_inlet_temp_c"]
+        parts.append(f"{report.LABELS[cname]}: cabin air {cabin[0]:.1f} -> {cabin[-1]:.1f} C, box inlet "
+                     f"{np.mean(inlet[:10]):.1f} -> {np.mean(inlet[-10:]):.1f} C")
+    return ["Cabin in the loop (" + "; ".join(parts) + ")."]
+
+
 def write_logs(traces: Mapping[str, Mapping[str, Trace]], folder: Path) -> None:
     """Each run as a measurement log (docs/model.md sec. 4): sensor readings, commands, references."""
     folder.mkdir(parents=True, exist_ok=True)
@@ -193,7 +206,8 @@ def write_logs(traces: Mapping[str, Mapping[str, Trace]], folder: Path) -> None:
             cols = {"time_s": tr.time_s}
             for i, a in enumerate(tr.actuators):
                 cols[a] = tr.applied[:, i]
-            cols.update({"hvac_inlet_temp_c": np.full(n, tr.environment["inlet_temp_c"]),
+            cols.update({"hvac_inlet_temp_c": tr.measured["hvac_inlet_temp_c"],
+                         "cabin_temp_c": tr.measured["cabin_temp_c"],
                          "volume_flow_m3s": tr.measured["volume_flow_m3s"],
                          "supply_temp_c": tr.measured["supply_temp_c"],
                          "heater_power_w": tr.truth["heater_power_w"],

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from hvac_mpc.mismatch.cabin import CabinSetup
 from hvac_mpc.models.parameters import Parameters
 from hvac_mpc.contract import Command
 from hvac_mpc.contract import Reference
@@ -57,6 +58,8 @@ class Scenario:
     quick_segment_s: float | None = 60.0
     quick_segments: int | None = None
     notes: tuple[str, ...] = field(default_factory=tuple)
+    #: The cabin feeding the box's inlet (``None``: the inlet held at ``inlet_temp_c``).
+    cabin: CabinSetup | None = None
 
     def __post_init__(self) -> None:
         if not self.name or not self.name.replace("_", "").isalnum():
@@ -242,10 +245,48 @@ def trapped_air_release() -> Scenario:
                "tau_trap_heat_s).",))
 
 
+# ---------------------------------------------------------------------------- the cabin in the loop
+def cabin_cooldown_summer() -> Scenario:
+    """A sun-soaked cabin pulled down: outside 32 C, cabin air 40 C and interior 45 C at the start,
+    400 W of sun on the interior (ASSUMPTION), 70 % recirculated air (mismatch/cabin.py)."""
+    cabin = CabinSetup(outside_temp_c=32.0, cabin_temp_c=40.0, interior_temp_c=45.0, solar_w=400.0)
+    segs = (Segment(300.0, _ref(14.0, 120.0)), Segment(300.0, _ref(16.0, 90.0)), Segment(300.0, _ref(18.0, 70.0)))
+    return Scenario(
+        name="cabin_cooldown_summer", seed=17, kind="cooling",
+        description="Cabin in the loop, summer pull-down: the box's inlet is 70 % cabin air (40 C at the start, "
+                    "interior 45 C, 400 W of sun) and 30 % outside air at 32 C, so the inlet temperature follows the "
+                    "supply air the controller delivered earlier; supply steps 14 -> 16 -> 18 C as the flow falls "
+                    "from 120 to 70 m3/h; chiller 5 C.",
+        inlet_temp_c=cabin.inlet_c(cabin.cabin_temp_c), chiller_setpoint_c=SUMMER_CHILLER_C,
+        initial_command=Command(_blower_for(120.0), 0.0, 80.0, 100.0, 100.0, 100.0),
+        warmup=Segment(60.0, _ref(16.0, 120.0)), segments=segs, quick_warmup_s=30.0, quick_segment_s=40.0,
+        quick_segments=2, cabin=cabin,
+        notes=("Cabin parameters are ASSUMPTIONS for a small car (mismatch/cabin.py: air 1.2e4 J/K, interior "
+               "6e4 J/K, air-interior 40 W/K, walls 20 W/K, driver 100 W).",))
+
+
+def cabin_warmup_winter() -> Scenario:
+    """A cold cabin warmed: outside 0 C, cabin and interior 2 C, 70 % recirculated air, heater only."""
+    cabin = CabinSetup(outside_temp_c=0.0, cabin_temp_c=2.0, interior_temp_c=2.0)
+    segs = (Segment(300.0, _ref(11.0, 40.0, SPLIT_WINTER)), Segment(300.0, _ref(13.0, 40.0, SPLIT_WINTER)),
+            Segment(300.0, _ref(12.0, 50.0, SPLIT_WINTER)))
+    return Scenario(
+        name="cabin_warmup_winter", seed=18, kind="heating",
+        description="Cabin in the loop, winter warm-up: the box's inlet is 70 % cabin air (2 C at the start) and "
+                    "30 % outside air at 0 C; supply steps 11 -> 13 -> 12 C at 40-50 m3/h with the heater alone "
+                    "(chiller set point 5 C); the 240 W heater lifts the air about 12 K at 40 m3/h, so the supply "
+                    "reference is met only as the cabin (and with it the inlet) warms.",
+        inlet_temp_c=cabin.inlet_c(cabin.cabin_temp_c), chiller_setpoint_c=5.0,
+        initial_command=Command(_blower_for(40.0), 120.0, 80.0, 100.0, 100.0, 100.0),
+        warmup=Segment(60.0, _ref(9.0, 40.0, SPLIT_WINTER)), segments=segs, quick_warmup_s=30.0,
+        quick_segment_s=40.0, quick_segments=2, cabin=cabin,
+        notes=("Cabin parameters are ASSUMPTIONS for a small car (mismatch/cabin.py).",))
+
+
 def all_scenarios() -> dict[str, Scenario]:
     """All scenarios by name, in report order."""
     items = (summer_cooling_steps(), winter_heating_steps(), flow_split_changes(), proband_sequence(),
-             chiller_hysteresis_step(), trapped_air_release())
+             chiller_hysteresis_step(), trapped_air_release(), cabin_cooldown_summer(), cabin_warmup_winter())
     return {s.name: s for s in items}
 
 

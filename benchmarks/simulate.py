@@ -31,8 +31,8 @@ REFERENCE_FIELDS = ("supply_temp_c", "volume_flow_m3s", "flow_m_m3s", "flow_f_m3
 #: Noise-free plant outputs recorded per sample (``SimulatedPlant.truth()`` names).
 TRUTH_FIELDS = ("supply_temp_c", "supply_air_temp_c", "volume_flow_m3s", "flow_m_m3s", "flow_f_m3s",
                 "flow_w_m3s", "heater_temp_c", "heater_power_w", "heater_outlet_temp_c", "water_temp_c")
-#: Sensor readings recorded per sample (``Measurement`` names).
-MEASURED_FIELDS = ("supply_temp_c", "volume_flow_m3s")
+#: Sensor readings recorded per sample (``Measurement`` names; NaN where a plant does not measure one).
+MEASURED_FIELDS = ("supply_temp_c", "volume_flow_m3s", "hvac_inlet_temp_c", "cabin_temp_c")
 
 
 @dataclass
@@ -118,6 +118,7 @@ def simulate(scenario: Scenario, controller, plant_params: Parameters, seed: int
         if abs(float(getattr(plant, "dt_s", dt_s)) - dt_s) > 1e-9:
             raise ValueError(f"plant: sample time {plant.dt_s} s differs from the benchmark's {dt_s} s")
         prepare_plant(plant, scenario)
+    plant = couple_cabin(scenario, plant)
     controller.reset()
     n = int(round(scenario.duration_s / dt_s))
     ref = {f: np.full(n, np.nan) for f in REFERENCE_FIELDS}
@@ -141,7 +142,8 @@ def simulate(scenario: Scenario, controller, plant_params: Parameters, seed: int
         for f in TRUTH_FIELDS:
             truth[f][k] = y[f]
         for f in MEASURED_FIELDS:
-            meas[f][k] = getattr(m, f)
+            v = getattr(m, f, None)
+            meas[f][k] = np.nan if v is None else v
         tic = time.perf_counter()
         try:
             result = controller.step(m, r)
@@ -169,3 +171,21 @@ def simulate(scenario: Scenario, controller, plant_params: Parameters, seed: int
                  environment={"inlet_temp_c": scenario.inlet_temp_c,
                               "chiller_setpoint_c": scenario.chiller_setpoint_c})
 
+
+
+def couple_cabin(scenario: Scenario, plant):
+    """The plant with the scenario's cabin feeding its inlet (``scenario.cabin``), or the plant itself."""
+    if getattr(scenario, "cabin", None) is None:
+        return plant
+    from hvac_mpc.mismatch.cabin import CabinLoop
+
+    return CabinLoop(plant, scenario.cabin)
+
+
+def scenario_plant(scenario: Scenario, plant_params: Parameters, seed: int, dt_s: float = 1.0):
+    """The plant :func:`simulate` runs for ``scenario`` and benchmark ``seed`` (for runs outside it,
+    e.g. the same plant behind the daemon in ``hvac-mpc experiment``)."""
+    plant = SimulatedPlant(plant_params, effects=PLANT_EFFECTS, seed=plant_seed(seed, scenario.seed), dt_s=dt_s,
+                           environment=Environment(scenario.inlet_temp_c, scenario.chiller_setpoint_c),
+                           initial_command=scenario.initial_command)
+    return couple_cabin(scenario, plant)

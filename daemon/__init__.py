@@ -6,6 +6,8 @@ configuration; docs/real-box.md describes it). Modules, one job each:
 * :mod:`.config`      the TOML configuration, validated key by key;
 * :mod:`.loop`        the fixed-rate loop, shutdown sequence and log (:class:`.loop.Daemon`);
 * :mod:`.safety`      sensor checks, heater interlock, heater temperature estimate, safe command;
+* :mod:`.monitor`     the model's online prediction residual, the model hash, runtime model swaps;
+* :mod:`.excitation`  identification excitations as a controller (open loop, inside the safety layer);
 * :mod:`.controllers` controllers by name, the deadline-guarded fallback chain, fault injection;
 * :mod:`.backends`    the I/O interface, the simulated plant backend, fault injection;
 * :mod:`.modbus`      the Modbus TCP register map and client backend; :mod:`.modbus_sim` the

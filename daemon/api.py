@@ -11,6 +11,8 @@ Endpoints (the route table in :func:`routes`, one line each)::
     PUT  /reference   set it (POST too); body: Reference fields as JSON
     PUT  /mode        {"mode": "auto-mpc" | "auto-pid" | "manual" | "safe-stop"}
     PUT  /manual      actuators in manual mode, e.g. {"blower_power_w": 150}
+    PUT  /model       {"path": "model.toml"}: validate a model file and swap it in between two samples
+    POST /model/rollback  back to the model in force before the last swap
 
 Every request: the Host header must name this server (loopback names, ``api.host``,
 ``api.allowed_hosts``; 403 otherwise, against DNS rebinding), an ``Origin`` must be the API's own
@@ -100,6 +102,8 @@ def routes(d: Any, metrics: Callable[[], bytes]) -> list[Route]:
         Route("PUT", "/mode", "write", lambda b, c: (200, d.set_mode(parse_mode(b), c))),
         Route("PUT", "/manual", "write", lambda b, c: (200, d.set_manual(
             parse_manual(b, d.cfg.safety.heater_max_w), c))),
+        Route("PUT", "/model", "write", lambda b, c: _put_model(d, b, c)),
+        Route("POST", "/model/rollback", "write", lambda b, c: _model_call(lambda: d.rollback_model(c))),
     ]
 
 
@@ -115,6 +119,22 @@ def _put_reference(d: Any, body: Any, client: str) -> tuple[int, Any]:
         raise BadRequest(400, f"invalid reference: {exc}") from None
     d.set_reference(ref, client)
     return 200, {"accepted": ref.as_dict()}
+
+
+def _put_model(d: Any, body: Any, client: str) -> tuple[int, Any]:
+    if not isinstance(body, dict) or set(body) != {"path"} or not isinstance(body["path"], str) or not body["path"]:
+        raise BadRequest(400, 'invalid model request: expected {"path": "<model file>"}')
+    return _model_call(lambda: d.load_model(body["path"], client))
+
+
+def _model_call(call: Callable[[], dict]) -> tuple[int, Any]:
+    """Run a model load or rollback; a refused one is a 409 naming why (nothing changed)."""
+    from .monitor import ModelLoadError
+
+    try:
+        return 200, call()
+    except ModelLoadError as exc:
+        raise BadRequest(409, str(exc)) from None
 
 
 # ---------------------------------------------------------------------------------------------- ASGI app

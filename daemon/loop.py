@@ -42,7 +42,7 @@ from typing import Any, Callable
 
 from hvac_mpc.models.measurement_log import COLUMNS
 from hvac_mpc.models.parameters import Parameters
-from hvac_mpc.contract import Command, Measurement
+from hvac_mpc.contract import EXTRA_SIGNALS, Command, Measurement
 from hvac_mpc.contract import Reference
 
 from .backends import BackendError, IoBackend, make_backend
@@ -50,6 +50,7 @@ from .config import SENSOR_FIELDS, DaemonConfig, resolve
 from .controllers import ControllerChain, FaultInjectingController, load_controller
 from .log_writer import DurableLog, utc_now_iso
 from .modes import AUTO_CONTROLLERS, MODES, ModeChange, ModeError, heater_refusal, initial_mode, rate_limited
+from .monitor import ModelInForce, ModelLoadError, ModelSlots, MonitorSettings, read_model
 from .safety import HeaterEstimator, HeaterInterlock, SensorMonitor, SensorStatus, safe_command
 from .watchdog import start_watchdog
 
@@ -109,11 +110,16 @@ class Daemon:
     """The controller daemon. ``run()`` blocks until stopped and returns the exit code."""
 
     def __init__(self, config: DaemonConfig, *, backend: IoBackend | None = None,
-                 tick_hook: Callable[["Daemon", dict], None] | None = None):
+                 tick_hook: Callable[["Daemon", dict], None] | None = None,
+                 initial_command: Command | None = None, monitor: MonitorSettings | None = None):
+        """``initial_command``: the command in force on the box when the daemon starts (default: the
+        safe command); ``monitor``: settings of the model monitor (:mod:`.monitor`)."""
         self.cfg = config
         self.dt = config.loop.period_s
+        self.monitor_settings = monitor or MonitorSettings()
         pfile = config.controller.parameters_file
-        self.params = Parameters.from_file(resolve(config, pfile)) if pfile else Parameters()
+        model = read_model(str(resolve(config, pfile)) if pfile else "", self.dt, self.monitor_settings)
+        self.params = model.params
         self.tick_hook = tick_hook
         self._lock = threading.Lock()
         self._stop_requests = 0
@@ -135,7 +141,8 @@ class Daemon:
             self.t0 = 0.0 if last is None else last + self.dt
             self.backend = backend or make_backend(config, self.params, clock=lambda: self.time_s)
             self.mode = initial_mode(config.controller.name)
-            self.chain = self._build_chain()
+            self.chain = model.chain = self._build_chain()
+            self.models = ModelSlots(model)
         except BaseException:
             self._log_lock.close()
             raise
@@ -156,7 +163,7 @@ class Daemon:
         self._next_reconnect_s = self.t0
         self._backoff_s = config.safety.reconnect_initial_s
         self._held: dict[str, tuple[float, float]] = {}  # field -> (value, time_s of last good reading)
-        self._last_cmd = safe_command(config.safety)
+        self._last_cmd = initial_command or safe_command(config.safety)
         self._last_mode = ""
         self._shutdown_start_s: float | None = None
         self.state = "starting"
@@ -181,15 +188,16 @@ class Daemon:
             self._start_api()
 
     # ------------------------------------------------------------------ construction
-    def _build_chain(self, primary: str | None = None) -> ControllerChain:
-        """The chain of ``primary`` (default: the configured controller): primary, then the
-        configured fallbacks; the configured settings go to the configured controller only."""
+    def _build_chain(self, primary: str | None = None, params: Parameters | None = None) -> ControllerChain:
+        """The chain of ``primary`` (default: the configured controller) with ``params`` (default: the
+        model in force): primary, then the configured fallbacks; the configured settings go to the
+        configured controller only."""
         c = self.cfg.controller
         primary = primary or c.name
         names = [primary] + [f for f in c.fallback if f != primary]
         chain = []
         for i, name in enumerate(names):
-            ctrl = load_controller(name, self.params, self.dt, c.settings if name == c.name else None)
+            ctrl = load_controller(name, params or self.params, self.dt, c.settings if name == c.name else None)
             if i == 0 and any(f.target == "controller" for f in self.cfg.faults):
                 ctrl = FaultInjectingController(ctrl, self.cfg.faults, clock=lambda: self.time_s)
             chain.append((name, ctrl))
@@ -219,6 +227,59 @@ class Daemon:
         with self._lock:
             self.reference = ref
             self.counters["reference_updates"] += 1
+
+    def load_model(self, path: str | Path, client: str = "") -> dict[str, Any]:
+        """Validate a model file, build its monitor and controllers, and swap them in between two
+        samples. Raises :class:`ModelLoadError` (nothing changes) when the file is not usable."""
+        model = read_model(str(path), self.dt, self.monitor_settings)
+        try:
+            model.chain = self._build_chain(AUTO_CONTROLLERS.get(self.mode), model.params)
+        except Exception as exc:  # noqa: BLE001 - any build failure leaves the running model alone
+            raise ModelLoadError(f"model file {str(path)!r}: controllers cannot be built ({exc})") from None
+        with self._lock:
+            self._drop(self.models.request(model, client, "load"))
+        LOG.info("model %s (%s) requested by %s; swapped in at the next sample", model.hash, path, client or "-")
+        return {"hash": model.hash, "path": model.path, "effects": list(model.effects)}
+
+    def rollback_model(self, client: str = "") -> dict[str, Any]:
+        """Swap back to the model in force before the last swap (between two samples)."""
+        with self._lock:
+            prev = self.models.previous
+            if prev is None:
+                raise ModelLoadError("no earlier model to roll back to")
+            self._drop(self.models.request(prev, client, "rollback"))
+        LOG.info("rollback to model %s requested by %s", prev.hash, client or "-")
+        return {"hash": prev.hash, "path": prev.path}
+
+    def _drop(self, model: ModelInForce | None) -> None:
+        """Release the controllers of a requested model replaced by a later request before its swap."""
+        if model is not None and model is not self.models.previous and model.chain is not None:
+            model.chain.close()
+
+    def _swap_model(self) -> None:
+        """At the start of a sample: put a requested model in force (controllers reset bumplessly)."""
+        with self._lock:
+            displaced = self.models.previous
+            swap = self.models.take(self.time_s, time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime()))
+        if swap is None:
+            return
+        old, new, event = swap
+        if displaced is not None and displaced is not new and displaced.chain is not None:
+            displaced.chain.close()
+        for mode, chain in list(self.chains.items()):  # chains of the old parameters are rebuilt on a switch
+            if chain is not old.chain:
+                chain.close()
+        self.chain = new.chain
+        self.chains = {self.mode: self.chain}
+        self.chain.reset()
+        self.params = new.params
+        new.monitor.reset()
+        LOG.warning("t = %.1f s: model %s -> %s (%s by %s)", self.time_s, old.hash, new.hash, event["action"],
+                    event["client"] or "-")
+
+    def model_metrics(self) -> dict[str, float]:
+        """The model monitor's gauges (for a metrics exporter)."""
+        return self.models.current.monitor.metrics()
 
     def latest_sample(self) -> dict[str, Any] | None:
         with self._lock:
@@ -292,7 +353,8 @@ class Daemon:
                    "uptime_s": time.monotonic() - self._started_wall, "log": self.writer.status(),
                    "degraded": self.degraded(), "unsafe": self.cfg.safety.unsafe_overrides(),
                    "tick_time_bounds_s": list(TICK_TIME_BUCKETS_S),
-                   "mode_history": [h.as_dict() for h in list(self.mode_history)[-20:]]}
+                   "mode_history": [h.as_dict() for h in list(self.mode_history)[-20:]],
+                   "model": self.models.status()}
         injected: dict[str, int] = dict(self.injected)
         for obj in (self.backend, self.chain.controllers[0][1]):
             injected.update(getattr(obj, "injected", {}))
@@ -436,6 +498,7 @@ class Daemon:
                 values[name] = None
         if unusable:
             return None, unusable
+        values.update({n: _num(getattr(m, n, None)) for n in EXTRA_SIGNALS})  # unchecked, passed on
         return Measurement(time_s=t, **values), []
 
     def _update_estimator(self, m: Measurement | None, status: SensorStatus | None) -> None:
@@ -453,6 +516,23 @@ class Daemon:
         flow = m.volume_flow_m3s if status.valid("volume_flow_m3s") else None
         est.update(self.dt, power, flow, air_in, valve_a)
 
+    def _monitor_model(self, m: Measurement | None, status: SensorStatus | None) -> None:
+        """Model monitor update with this reading and the command applied over the last sample."""
+        mon = self.models.current.monitor
+        was = mon.degraded
+        try:
+            if m is None or status is None or not status.all_valid(("volume_flow_m3s", "hvac_inlet_temp_c")):
+                mon.reset()
+            else:
+                mon.update(m, self._last_cmd)
+        except Exception as exc:  # noqa: BLE001 - the monitor never stops the control
+            self.counters["monitor_errors"] = self.counters.get("monitor_errors", 0) + 1
+            LOG.error("model monitor failed at t = %.1f s: %s", self.time_s, exc)
+            mon.reset()
+        if mon.degraded != was:
+            LOG.warning("t = %.1f s: model %s %s (horizon RMS %s)", self.time_s, mon.hash,
+                        "degraded" if mon.degraded else "back within its bounds", mon.horizon_rms)
+
     def _shutdown_command(self) -> Command:
         s = self.cfg.safety
         blower = max(self._last_cmd.blower_power_w, s.safe_blower_w)
@@ -468,6 +548,7 @@ class Daemon:
                 key = f"daemon:{f.kind}"
                 self.injected[key] = self.injected.get(key, 0) + 1
                 raise RuntimeError(f"injected fatal error at t = {t} s")
+        self._swap_model()
         with self._lock:
             ref = self.reference
             switched, self._switched = self._switched, False
@@ -496,6 +577,7 @@ class Daemon:
                 self.counters["sensor_fault_ticks"]["sample:stale"] = \
                     self.counters["sensor_fault_ticks"].get("sample:stale", 0) + 1
         self._update_estimator(m, status)
+        self._monitor_model(m, status)
 
         used = "none"
         events: list[str] = []
@@ -614,9 +696,12 @@ class Daemon:
             row[name] = _num(getattr(m, name)) if m is not None else None
         for f, col in REF_COLUMNS.items():
             row[col] = getattr(ref, f)
+        for name in EXTRA_SIGNALS:
+            row[name] = _num(getattr(m, name, None)) if m is not None else None
         row["mode"] = mode
         row["controller"] = used
         row["utc"] = utc_now_iso()
+        row["model_hash"] = self.models.current.hash
         return row
 
     def _emergency_stop(self) -> None:
@@ -659,7 +744,9 @@ class Daemon:
         self.state = "stopped"
         if self._watchdog is not None:
             self._watchdog.stop()
-        closers = [c.close for c in self.chains.values()] + [self.backend.close, self.writer.close]
+        previous = self.models.previous
+        chains = set(self.chains.values()) | ({previous.chain} if previous is not None and previous.chain else set())
+        closers = [c.close for c in chains] + [self.backend.close, self.writer.close]
         for closer in closers:
             try:
                 closer()

@@ -65,6 +65,12 @@ class DaemonCollector:
         yield GaugeMetricFamily(P + "heater_estimate_celsius", "estimated heater body temperature",
                                 value=st["heater_estimate_c"])
         yield GaugeMetricFamily(P + "connected", "1 while the backend is connected", value=float(st["connected"]))
+        residual = GaugeMetricFamily(P + "model_residual", "model prediction residual (RMS, signal units)",
+                                     labels=["name"])
+        for name, value in self.daemon.model_metrics().items():
+            if isinstance(value, (int, float)) and value == value:
+                residual.add_metric([name], float(value))
+        yield residual
 
 
 def daemon_registry(daemon: Any) -> CollectorRegistry:

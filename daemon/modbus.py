@@ -23,6 +23,9 @@ Register map (device id ``device_id``; addresses zero-based)::
     10   status                uint16 bits               bit 0: I/O watchdog tripped (safe outputs),
                                                      bit 1: the device takes raw signals,
                                                      bit 2: heartbeat timeout tripped (heater off)
+    11-17 optional signals     int16                     cabin_temp_c 0.01 C, cabin_rh_pct 0.01 %,
+                               outlet_m/f/w_temp_c 0.01 C, supply_rh_pct 0.01 %, hvac_inlet_rh_pct 0.01 %
+                               (NO_VALUE when the box does not measure them)
 
   holding registers (FC 16, written by the daemon in one request; FC 03 reads them back)
     0    blower_power_w        uint16                    0.1 W
@@ -68,7 +71,11 @@ SENSOR_REGISTERS = (("supply_temp_c", 0.01), ("volume_flow_m3s", 1e-5), ("hvac_i
 #: (field, scale) of holding registers 0..5 (uint16).
 COMMAND_REGISTERS = (("blower_power_w", 0.1), ("heater_cmd_w", 0.1), ("valve_a_pct", 0.01),
                      ("valve_m_pct", 0.01), ("valve_f_pct", 0.01), ("valve_w_pct", 0.01))
-INPUT_COUNT = 11
+#: (field, scale) of input registers 11.. (int16): the optional signals of ``Measurement``.
+EXTRA_SENSOR_REGISTERS = (("cabin_temp_c", 0.01), ("cabin_rh_pct", 0.01), ("outlet_m_temp_c", 0.01),
+                          ("outlet_f_temp_c", 0.01), ("outlet_w_temp_c", 0.01), ("supply_rh_pct", 0.01),
+                          ("hvac_inlet_rh_pct", 0.01))
+INPUT_COUNT = 11 + len(EXTRA_SENSOR_REGISTERS)
 HOLDING_COUNT = 7
 TIME_SCALE_S = 0.1
 STATUS_WATCHDOG = 0x1
@@ -91,20 +98,22 @@ def _from_int16(word: int, scale: float) -> float | None:
 
 
 def encode_measurement(m: Measurement, heartbeat_echo: int = 0, status: int = 0) -> list[int]:
-    """Input registers 0..10 for a measurement."""
+    """Input registers 0..INPUT_COUNT-1 for a measurement."""
     t = max(0, int(round(m.time_s / TIME_SCALE_S))) & 0xFFFFFFFF
     regs = [t >> 16, t & 0xFFFF]
     regs += [_int16(getattr(m, name), scale) for name, scale in SENSOR_REGISTERS]
     regs += [heartbeat_echo & 0xFFFF, status & 0xFFFF]
+    regs += [_int16(getattr(m, name), scale) for name, scale in EXTRA_SENSOR_REGISTERS]
     return regs
 
 
 def decode_measurement(regs: list[int]) -> tuple[Measurement, int, int]:
-    """Measurement, heartbeat echo and status bits from input registers 0..10."""
+    """Measurement, heartbeat echo and status bits from input registers 0..INPUT_COUNT-1."""
     if len(regs) != INPUT_COUNT:
         raise BackendError(f"expected {INPUT_COUNT} input registers, got {len(regs)}")
     t = ((regs[0] << 16) | regs[1]) * TIME_SCALE_S
     values = {name: _from_int16(regs[2 + i], scale) for i, (name, scale) in enumerate(SENSOR_REGISTERS)}
+    values.update({name: _from_int16(regs[11 + i], scale) for i, (name, scale) in enumerate(EXTRA_SENSOR_REGISTERS)})
     return Measurement(time_s=t, **values), regs[9], regs[10]
 
 

@@ -17,6 +17,8 @@ SUBCOMMANDS = {
     "identify": ("hvac_mpc.identification.cli", "refine the model from a measurement log"),
     "daemon": ("hvac_mpc.daemon.main", "run the controller daemon"),
     "ctl": ("hvac_mpc.daemon.ctl", "talk to a running daemon: status, mode, manual setting, reference"),
+    "experiment": ("hvac_mpc.benchmarks.experiment", "a bench scenario or an identification excitation through the daemon"),
+    "report": ("hvac_mpc.benchmarks.report_logs", "the bench's report (figures, ratios, plots) from logs of real runs"),
 }
 
 

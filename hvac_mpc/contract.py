@@ -63,9 +63,23 @@ class Measurement:
     chiller_setpoint_c: float | None = None
     heater_power_w: float | None = None
     heater_outlet_temp_c: float | None = None
+    cabin_temp_c: float | None = None
+    cabin_rh_pct: float | None = None
+    outlet_m_temp_c: float | None = None
+    outlet_f_temp_c: float | None = None
+    outlet_w_temp_c: float | None = None
+    supply_rh_pct: float | None = None
+    hvac_inlet_rh_pct: float | None = None
 
     def as_dict(self) -> dict[str, float | None]:
         return asdict(self)
+
+
+#: Optional signals the thesis's box measures beyond what the controllers need (thesis sec. 2: cabin
+#: temperature and humidity at the back of the cabin, a thermocouple at every outlet, humidity after the
+#: box and before the blower). ``None`` when a box does not measure them.
+EXTRA_SIGNALS = ("cabin_temp_c", "cabin_rh_pct", "outlet_m_temp_c", "outlet_f_temp_c", "outlet_w_temp_c",
+                 "supply_rh_pct", "hvac_inlet_rh_pct")
 
 
 #: Allowed ranges of each reference field (inclusive), SI units as in the names.

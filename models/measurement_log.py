@@ -23,9 +23,10 @@ REQUIRED_COLUMNS = ("time_s", "blower_power_w", "heater_cmd_w", "valve_a_pct", "
 OPTIONAL_COLUMNS = ("heater_power_w", "water_temp_c", "chiller_setpoint_c", "hvac_inlet_rh_pct",
                     "heater_outlet_temp_c", "cabin_temp_c", "cabin_rh_pct", "outlet_m_temp_c", "outlet_f_temp_c",
                     "outlet_w_temp_c", "ref_supply_temp_c", "ref_volume_flow_m3s", "ref_flow_m_m3s",
-                    "ref_flow_f_m3s", "ref_flow_w_m3s", "mode", "controller", "utc")
+                    "ref_flow_f_m3s", "ref_flow_w_m3s", "mode", "controller", "utc", "supply_rh_pct", "model_hash")
 COLUMNS = REQUIRED_COLUMNS + OPTIONAL_COLUMNS
-TEXT_COLUMNS = ("mode", "controller", "utc")
+#: Text columns; ``model_hash`` names the model file in force when the row was written (daemon logs).
+TEXT_COLUMNS = ("mode", "controller", "utc", "model_hash")
 
 
 class LogFormatError(ValueError):
@@ -58,12 +59,13 @@ class LogWriter:
         self.path = Path(path)
         self.columns = schema_columns(columns)
         self.fsync = fsync
+        self._ignored: frozenset[str] = frozenset()
         exists = self.path.exists() and self.path.stat().st_size > 0
         if exists:
             with self.path.open("r", newline="") as fh:
-                header = next(csv.reader(fh), [])
-            if tuple(header) != self.columns:
-                raise LogFormatError(f"{self.path}: existing header {header} differs from {list(self.columns)}")
+                header = tuple(next(csv.reader(fh), []))
+            if header != self.columns:
+                self._adopt_older_header(header)
             repair_tail(self.path, fsync=fsync)
         self._fh = self.path.open("a", newline="")
         self._writer = csv.writer(self._fh)
@@ -71,9 +73,19 @@ class LogWriter:
             self._writer.writerow(self.columns)
             self._flush()
 
+    def _adopt_older_header(self, header: tuple[str, ...]) -> None:
+        """Append to a log of an earlier schema version (a subset of the columns asked for, same order):
+        the columns it lacks are not written. Anything else raises :class:`LogFormatError`."""
+        if not (set(header) <= set(self.columns) and set(REQUIRED_COLUMNS) <= set(header)
+                and [c for c in self.columns if c in header] == list(header)):
+            raise LogFormatError(f"{self.path}: existing header {list(header)} differs from {list(self.columns)}")
+        self._ignored = frozenset(self.columns) - frozenset(header)
+        self.columns = header
+
     def write(self, row: Mapping[str, Any]) -> None:
-        """Write one sample; missing columns are left empty, unknown keys raise."""
-        unknown = sorted(set(row) - set(self.columns))
+        """Write one sample; missing columns are left empty, unknown keys raise (keys of columns an
+        appended older log lacks are dropped)."""
+        unknown = sorted(set(row) - set(self.columns) - self._ignored)
         if unknown:
             raise LogFormatError(f"unknown log column(s) {unknown}")
         self._writer.writerow([cell_text(row.get(c)) for c in self.columns])
@@ -129,6 +141,7 @@ def read_log(path: str | Path, mapping: Mapping[str, str] | None = None) -> dict
     """Read a CSV or Parquet log into column arrays (floats; NaN for empty; text columns as str).
 
     ``mapping`` maps the file's column names onto schema names (``{"T_sup": "supply_temp_c"}``).
+    Columns outside the schema are kept (as text when not numeric) for the callers to ignore.
     Missing required columns raise :class:`LogFormatError` naming them.
     """
     path = Path(path)

@@ -45,7 +45,8 @@ class HoldController:
 def test_scenarios_are_named_seeded_and_valid():
     all_ = S.all_scenarios()
     assert list(all_) == ["summer_cooling_steps", "winter_heating_steps", "flow_split_changes", "proband_sequence",
-                          "chiller_hysteresis_step", "trapped_air_release"]
+                          "chiller_hysteresis_step", "trapped_air_release", "cabin_cooldown_summer",
+                          "cabin_warmup_winter"]
     seeds = [s.seed for s in all_.values()]
     assert len(set(seeds)) == len(seeds)
     for sc in all_.values():

@@ -145,7 +145,7 @@ def test_modbus_register_codec_round_trip_and_sentinels():
     m = meas(123456.7, supply_temp_c=-12.34, volume_flow_m3s=0.04321, heater_power_w=239.9,
              heater_outlet_temp_c=math.nan, water_temp_c=None, chiller_setpoint_c=1e6)
     regs = encode_measurement(m, heartbeat_echo=70000, status=1)
-    assert len(regs) == 11 and all(0 <= r <= 0xFFFF for r in regs)
+    assert len(regs) == 11 + 7 and all(0 <= r <= 0xFFFF for r in regs)  # 7 optional signals appended
     back, hb, status = decode_measurement(regs)
     assert back.time_s == pytest.approx(123456.7) and hb == 70000 & 0xFFFF and status == 1
     assert back.supply_temp_c == pytest.approx(-12.34) and back.volume_flow_m3s == pytest.approx(0.04321)

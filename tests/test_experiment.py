@@ -1,0 +1,204 @@
+"""Experiments through the daemon: a bench scenario with either controller, the report from the two logs,
+identification excitations within their bounds, and the data loop on a daemon log with a model
+loaded at runtime."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from hvac_mpc import cli
+from hvac_mpc.benchmarks import bench, scenarios as S
+from hvac_mpc.benchmarks.experiment import EXCITATION_CONTROLLER, PlantBackend, experiment_config
+from hvac_mpc.benchmarks.report_logs import build_results, noise_sigma
+from hvac_mpc.contract import INPUTS, Command, Measurement, Reference
+from hvac_mpc.daemon.excitation import ExcitationController, ExcitationSpec, InvalidExcitation, targets
+from hvac_mpc.daemon.loop import Daemon
+from hvac_mpc.daemon.monitor import BUILTIN_HASH, model_hash
+from hvac_mpc.identification import identify, write_model_file
+from hvac_mpc.identification.log_data import load
+from hvac_mpc.mismatch import make_plant
+from hvac_mpc.models.measurement_log import COLUMNS, LogWriter, read_log
+
+
+# ---------------------------------------------------------------------------- excitation
+@pytest.mark.parametrize("kind", ["steps", "prbs", "multisine"])
+def test_excitation_stays_in_its_ranges_and_rates(kind):
+    spec = ExcitationSpec(kind=kind, seed=4, hold_min_s=10.0, hold_max_s=60.0)
+    ctrl = ExcitationController(dt_s=1.0, duration_s=600.0, kind=kind, seed=4, hold_min_s=10.0, hold_max_s=60.0)
+    ctrl.reset(command=Command(150.0, 0.0, 50.0, 100.0, 100.0, 100.0))
+    m = Measurement(0.0, 20.0, 0.03, 25.0)
+    u = np.array([ctrl.step(m, Reference(20.0, 0.03)).command.vector() for _ in range(600)])
+    prev = np.vstack([[150.0, 0.0, 50.0, 100.0, 100.0, 100.0], u[:-1]])
+    for j, name in enumerate(INPUTS):
+        lo, hi = spec.range_of(name)
+        assert u[:, j].min() >= min(lo, prev[0, j]) - 1e-9 and u[:, j].max() <= max(hi, prev[0, j]) + 1e-9
+        assert np.max(np.abs(u[:, j] - prev[:, j])) <= spec.rate_of(name) + 1e-9
+        assert np.ptp(u[:, j]) > 0.3 * (hi - lo)  # it does excite
+    tg = targets(spec, 6000)
+    if kind == "prbs":
+        blower = tg[:, INPUTS.index("blower_power_w")]
+        assert set(np.unique(blower)) <= set(spec.range_of("blower_power_w"))
+    # half the time (in blocks) the heater is off, as a cooling-like phase
+    assert 0.2 < np.mean(tg[:, INPUTS.index("heater_cmd_w")] == 0.0) < 0.9
+
+
+def test_excitation_settings_are_validated():
+    with pytest.raises(InvalidExcitation, match="kind"):
+        ExcitationSpec(kind="chirp")
+    with pytest.raises(InvalidExcitation, match="ranges.heater_cmd_w"):
+        ExcitationSpec(ranges={"heater_cmd_w": (0.0, 500.0)})
+    with pytest.raises(InvalidExcitation, match="hold_max_s"):
+        ExcitationSpec(hold_min_s=50.0, hold_max_s=20.0)
+
+
+# ---------------------------------------------------------------------------- logs
+def test_readers_ignore_unknown_columns_and_a_daemon_appends_to_an_older_log(tmp_path):
+    path = tmp_path / "old.csv"
+    old_columns = tuple(c for c in COLUMNS if c not in ("model_hash", "supply_rh_pct"))
+    row = {"time_s": 0.0, "blower_power_w": 100.0, "heater_cmd_w": 0.0, "valve_a_pct": 50.0, "valve_m_pct": 100.0,
+           "valve_f_pct": 100.0, "valve_w_pct": 100.0, "hvac_inlet_temp_c": 25.0, "volume_flow_m3s": 0.02,
+           "supply_temp_c": 15.0}
+    with LogWriter(path, old_columns) as w:
+        w.write(row)
+    with LogWriter(path) as w:  # today's schema on an older log: its header is kept
+        w.write({**row, "time_s": 1.0, "model_hash": "abc", "supply_rh_pct": 40.0})
+    log = read_log(path)
+    assert list(log["time_s"]) == [0.0, 1.0] and "model_hash" not in log
+    text = path.read_text().splitlines()
+    path.write_text("\n".join([text[0] + ",lab_note"] + [t + ",door open" for t in text[1:]]) + "\n")
+    assert list(read_log(path)["lab_note"]) == ["door open"] * 2
+
+
+def test_noise_estimate_from_second_differences():
+    rng = np.random.default_rng(0)
+    signal = np.concatenate([np.full(300, 20.0), np.full(300, 15.0)]) + 0.05 * rng.standard_normal(600)
+    assert noise_sigma(signal) == pytest.approx(0.05, rel=0.15)
+
+
+def test_experiment_refuses_an_existing_log_and_report_names_a_missing_reference(tmp_path, capsys):
+    log = tmp_path / "x.csv"
+    log.write_text("time_s\n")
+    assert cli.main(["experiment", "--scenario", "summer_cooling_steps", "--log", str(log)]) == 2
+    assert "exists" in capsys.readouterr().err
+    row = {"time_s": 0.0, "blower_power_w": 100.0, "heater_cmd_w": 0.0, "valve_a_pct": 50.0, "valve_m_pct": 100.0,
+           "valve_f_pct": 100.0, "valve_w_pct": 100.0, "hvac_inlet_temp_c": 25.0, "volume_flow_m3s": 0.02,
+           "supply_temp_c": 15.0}
+    with LogWriter(tmp_path / "noref.csv") as w:
+        for k in range(5):
+            w.write({**row, "time_s": float(k)})
+    assert cli.main(["report", str(tmp_path / "noref.csv"), "--out", str(tmp_path / "r")]) == 2
+    assert "ref_supply_temp_c" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------------- end to end
+@pytest.mark.slow
+def test_two_experiments_and_a_report_give_the_bench_ratios(tmp_path, capsys):
+    name, seed = "summer_cooling_steps", 0
+    logs = []
+    for c in ("baseline", "mpc"):
+        log = tmp_path / f"{c}.csv"
+        assert cli.main(["experiment", "--scenario", name, "--quick", "--controller", c, "--seed", str(seed),
+                         "--log", str(log)]) == 0
+        logs.append(log)
+        assert json.loads(log.with_suffix(".csv.json").read_text())["counters"]["primary_ticks"] == 150
+    assert cli.main(["report", *map(str, logs), "--out", str(tmp_path / "report"), "--no-plots"]) == 0
+    rep = json.loads((tmp_path / "report" / "results.json").read_text())["scenarios"][name]
+    sc = S.all_scenarios()[name].quick()
+    results, traces = bench.run_benchmark([sc], {"baseline": bench.baseline_factory(), "mpc": bench.mpc_factory()},
+                                          seed)
+    ref = results["scenarios"][name]
+    # the daemon ran the very same closed loop as the bench: commands identical sample by sample
+    for c, log in zip(("baseline", "mpc"), logs):
+        applied = np.column_stack([read_log(log)[a][:150] for a in INPUTS])
+        np.testing.assert_allclose(applied, traces[name][c].applied, atol=1e-9)
+    # ratios: energy exactly, temperature IAE within the noise band the report states
+    assert rep["ratios"]["energy_wh"] == pytest.approx(ref["ratios"]["energy_wh"], rel=1e-9)
+    lo, hi = rep["ratio_noise"]["temp_iae_cs"]
+    assert lo <= ref["ratios"]["temp_iae_cs"] <= hi
+    assert abs(rep["ratios"]["temp_iae_cs"] - ref["ratios"]["temp_iae_cs"]) < 0.1
+    assert [c["status"] for c in rep["criteria"]][0] == [c["status"] for c in ref["criteria"]][0]
+    assert "noise band" in (tmp_path / "report" / "report.md").read_text()
+
+
+@pytest.mark.slow
+def test_excitation_identify_and_runtime_load_halve_the_online_residual(tmp_path):
+    """Excitation on the independent box with a weaker blower -> identify on the daemon's log ->
+    the model loaded while the daemon runs: the monitor's flow residual falls by more than half."""
+    def excitation_run(log, seed, ticks, hook=None):
+        cfg = experiment_config({}, tmp_path, log, EXCITATION_CONTROLLER,
+                                {"kind": "steps", "seed": seed, "duration_s": float(ticks)}, ticks,
+                                {"supply_temp_c": 20.0, "volume_flow_m3s": 0.03}, simulated=True)
+        plant = make_plant("blower_weak", seed=seed, inlet_temp_c=28.0, chiller_setpoint_c=5.0,
+                           initial_command=Command(150.0, 0.0, 50.0, 100.0, 100.0, 100.0))
+        d = Daemon(cfg, backend=PlantBackend(plant), tick_hook=hook, initial_command=plant.command)
+        d.run()
+        return d
+
+    first = tmp_path / "excitation.csv"
+    excitation_run(first, 1, 1200)
+    data = load(first)  # the daemon's log as it is: text columns, shutdown rows
+    assert data.n >= 1200 and "volume_flow_m3s" in data.outputs
+    res = identify(data, quick=True)
+    err = res.holdout_errors()["volume_flow_m3s"]
+    assert err["rms_after"] <= 0.5 * err["rms_before"]
+    model = write_model_file(tmp_path / "model.toml", res.params, res.effects, res.extras)
+    before, after = [], []
+
+    def hook(d, sample):
+        rms = d.status()["model"]["horizon_rms"]["volume_flow_m3s"]
+        if sample["time_s"] == 300.0:
+            d.load_model(model, client="lab")
+        elif 120.0 <= sample["time_s"] < 300.0 and rms is not None:
+            before.append(rms)
+        elif sample["time_s"] >= 420.0 and rms is not None:
+            after.append(rms)
+
+    second = tmp_path / "second.csv"
+    excitation_run(second, 2, 600, hook)
+    assert len(before) > 100 and len(after) > 100
+    print(f"flow horizon RMS: {np.mean(before):.5f} m3/s before, {np.mean(after):.5f} m3/s after the load")
+    assert np.mean(after) <= 0.5 * np.mean(before), (np.mean(before), np.mean(after))
+    log = read_log(second)
+    h = model_hash(model)
+    assert set(log["model_hash"][log["time_s"] <= 300.0]) == {BUILTIN_HASH}
+    assert set(log["model_hash"][log["time_s"] >= 301.0]) == {h}
+    assert math.isfinite(np.nanmean(log["volume_flow_m3s"]))
+
+
+@pytest.mark.slow
+def test_scenario_experiment_through_the_modbus_backend(tmp_path):
+    """The same experiment on the daemon's Modbus backend (the bench's plant behind a real Modbus TCP
+    server): the log is the daemon's and the baseline's temperature IAE is the bench's within the
+    registers' resolution."""
+    pytest.importorskip("pymodbus", reason="the Modbus backend needs the 'fieldbus' extra (pymodbus)")
+    from hvac_mpc.benchmarks.daemon_campaign import free_port
+    from hvac_mpc.benchmarks.perturbation import perturb_parameters
+    from hvac_mpc.benchmarks.simulate import scenario_plant
+    from hvac_mpc.daemon.modbus_sim import PlantModbusServer
+    from hvac_mpc.models import Parameters
+
+    name, seed = "summer_cooling_steps", 0
+    sc = S.all_scenarios()[name].quick()
+    port = free_port()
+    server = PlantModbusServer(scenario_plant(sc, perturb_parameters(Parameters(), seed)[0], seed), port=port).start()
+    cfg = tmp_path / "lab.toml"
+    cfg.write_text(f'[loop]\nspeedup = "max"\ndeadline_s = 30.0\n[backend]\nkind = "modbus"\n'
+                   f'[backend.modbus]\nport = {port}\ntimeout_s = 1.0\n[safety]\ncooldown_max_s = 5.0\n')
+    try:
+        log = tmp_path / "modbus.csv"
+        assert cli.main(["experiment", "--scenario", name, "--quick", "--controller", "baseline",
+                         "--config", str(cfg), "--log", str(log)]) == 0
+    finally:
+        server.stop()
+    side = json.loads(log.with_suffix(".csv.json").read_text())
+    assert side["plant"] == "modbus" and side["counters"]["primary_ticks"] == 150
+    results, _ = build_results([log])
+    ours = results["scenarios"][name]["baseline"]["figures"]
+    bench_results, _ = bench.run_benchmark([sc], {"baseline": bench.baseline_factory(),
+                                                  "mpc": bench.baseline_factory()}, seed)
+    theirs = bench_results["scenarios"][name]["baseline"]["figures"]
+    noise = results["scenarios"][name]["runs"]["baseline"]["noise"]["temp_iae_cs"]["iae_bound"]
+    assert abs(ours["temp_iae_cs"] - theirs["temp_iae_cs"]) <= noise
+    assert ours["energy_wh"] == pytest.approx(theirs["energy_wh"], rel=0.02)

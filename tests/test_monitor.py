@@ -1,0 +1,94 @@
+"""Model monitoring: the online residual against an independent box, degraded state, model hash in
+every log row, a model loaded at runtime (validated, swapped between two samples) and rolled back."""
+
+import numpy as np
+import pytest
+
+from hvac_mpc.contract import Command
+from hvac_mpc.daemon.config import config_from_mapping
+from hvac_mpc.daemon.loop import Daemon
+from hvac_mpc.daemon.monitor import (BUILTIN_HASH, InvalidMonitorSettings, ModelLoadError, ModelMonitor,
+                                     MonitorSettings, model_hash)
+from hvac_mpc.identification import write_model_file
+from hvac_mpc.mismatch import make_plant
+from hvac_mpc.models import Parameters
+from hvac_mpc.models.measurement_log import read_log
+
+
+def run_monitor(monitor, variant, n=420, seed=2):
+    """Random blower and outlet-valve steps on the independent box; the monitor sees every sample."""
+    rng = np.random.default_rng(seed)
+    plant = make_plant(variant, seed=1, inlet_temp_c=28.0, chiller_setpoint_c=5.0,
+                       initial_command=Command(150.0, 0.0, 60.0, 100.0, 100.0, 100.0))
+    cmd = plant.command
+    for k in range(n):
+        monitor.update(plant.read(), cmd)
+        if k % 30 == 0:
+            cmd = Command(rng.uniform(60, 250), 0.0, rng.uniform(0, 100), *rng.uniform(30, 100, 3))
+        plant.apply(cmd)
+        plant.advance()
+    return monitor
+
+
+def test_residual_names_a_weak_blower_and_a_model_that_knows_it_predicts_better():
+    nominal = run_monitor(ModelMonitor(settings=MonitorSettings(bound_volume_flow_m3s=0.004)), "blower_weak")
+    assert nominal.evaluations >= 30 and nominal.state == "degraded"
+    assert nominal.horizon_rms["volume_flow_m3s"] > 0.004
+    # the same box with a model whose blower gives 20 % less flow per watt (what the variant does)
+    p = Parameters()
+    weak = Parameters().replace(flow_per_watt_m3s_per_w=0.8 * p.flow_per_watt_m3s_per_w)
+    fitted = run_monitor(ModelMonitor(weak, settings=MonitorSettings(bound_volume_flow_m3s=0.004)), "blower_weak")
+    assert fitted.horizon_rms["volume_flow_m3s"] < 0.5 * nominal.horizon_rms["volume_flow_m3s"]
+    status = fitted.status()
+    assert status["model_hash"] == BUILTIN_HASH and set(status["horizon_rms"]) >= {"supply_temp_c", "volume_flow_m3s"}
+    assert fitted.metrics()["model_horizon_rms_volume_flow_m3s"] == status["horizon_rms"]["volume_flow_m3s"]
+
+
+def test_monitor_settings_are_validated():
+    with pytest.raises(InvalidMonitorSettings, match="horizon_s"):
+        MonitorSettings(horizon_s=1.0)
+    with pytest.raises(InvalidMonitorSettings, match="degraded_after"):
+        MonitorSettings(degraded_after=0)
+
+
+def daemon_config(tmp_path, ticks):
+    return config_from_mapping({"loop": {"speedup": "max", "max_ticks": ticks, "deadline_s": 30.0},
+                                "log": {"path": str(tmp_path / "log.csv"), "fsync": False},
+                                "api": {"enabled": False}, "controller": {"name": "baseline"},
+                                "safety": {"cooldown_max_s": 5.0, "cooldown_min_s": 1.0}})
+
+
+def test_model_loaded_at_runtime_is_logged_in_every_row_and_rolled_back(tmp_path):
+    good = write_model_file(tmp_path / "model.toml", Parameters().replace(flow_per_watt_m3s_per_w=1.7e-4), [])
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[parameters]\nno_such_parameter = 1.0\n")
+    seen: dict = {}
+
+    def hook(d, sample):
+        t = sample["time_s"]
+        if t == 10.0:
+            with pytest.raises(ModelLoadError, match="no_such_parameter"):
+                d.load_model(bad, client="alice")
+            seen["after_bad"] = d.status()["model"]["model_hash"]
+            seen["loaded"] = d.load_model(good, client="bob")
+        if t == 30.0:
+            seen["rolled"] = d.rollback_model(client="carol")
+
+    daemon = Daemon(daemon_config(tmp_path, 45), tick_hook=hook)
+    with pytest.raises(ModelLoadError, match="no earlier model"):
+        daemon.rollback_model()
+    daemon.run()
+    log = read_log(tmp_path / "log.csv")
+    h = model_hash(good)
+    assert seen["after_bad"] == BUILTIN_HASH and seen["loaded"]["hash"] == h != BUILTIN_HASH
+    hashes = list(log["model_hash"])
+    t = log["time_s"]
+    # swapped between two samples: the row after the request carries the new hash, and back after the rollback
+    assert all(x == BUILTIN_HASH for x, ti in zip(hashes, t) if ti <= 10.0)
+    assert all(x == h for x, ti in zip(hashes, t) if 11.0 <= ti <= 30.0)
+    assert all(x == BUILTIN_HASH for x, ti in zip(hashes, t) if ti >= 31.0)
+    events = daemon.status()["model"]["events"]
+    assert [(e["action"], e["client"], e["time_s"]) for e in events] == [("load", "bob", 11.0), ("rollback", "carol", 31.0)]
+    assert events[0]["to_hash"] == h and events[1]["to_hash"] == BUILTIN_HASH
+    # the controllers ran on the loaded parameters while it was in force, and the interlock held throughout
+    assert daemon.status()["counters"]["safe_ticks"] == 0
