@@ -38,7 +38,7 @@ from . import scenarios as scenario_defs
 from .perturbation import perturb_parameters
 from .simulate import plant_seed, scenario_plant
 
-EXCITATION_CONTROLLER = "hvac_mpc.daemon.excitation:ExcitationController"
+EXCITATION_CONTROLLER = "excitation"  # registered entry point (pyproject.toml)
 CONTROLLERS = ("mpc", "baseline")
 #: Deadline of a controller step on a simulated plant run as fast as possible (s of wall time): the
 #: largest the configuration allows, so the run does not depend on the machine's load.

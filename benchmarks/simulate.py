@@ -24,6 +24,8 @@ from hvac_mpc.models.box import INPUT_LOWER, INPUTS, input_upper
 from hvac_mpc.models.parameters import Parameters
 from hvac_mpc.models.plant import PLANT_EFFECTS, Environment, SimulatedPlant
 
+from hvac_mpc.daemon.controllers import reset_controller
+
 from .scenarios import Scenario
 
 #: Reference fields recorded per sample (NaN where the split is free).
@@ -119,7 +121,7 @@ def simulate(scenario: Scenario, controller, plant_params: Parameters, seed: int
             raise ValueError(f"plant: sample time {plant.dt_s} s differs from the benchmark's {dt_s} s")
         prepare_plant(plant, scenario)
     plant = couple_cabin(scenario, plant)
-    controller.reset()
+    reset_controller(controller, scenario.initial_command)  # bumpless from the command in force, as the daemon
     n = int(round(scenario.duration_s / dt_s))
     ref = {f: np.full(n, np.nan) for f in REFERENCE_FIELDS}
     truth = {f: np.full(n, np.nan) for f in TRUTH_FIELDS}

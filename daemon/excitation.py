@@ -3,7 +3,7 @@
 :class:`ExcitationController` ignores the reference and plays a seeded sequence of actuator
 targets (random steps, PRBS or a multisine, per actuator within its amplitude range), moved
 towards each target no faster than the actuator's rate limit. It runs in the daemon's controller
-slot (``controller.name = "hvac_mpc.daemon.excitation:ExcitationController"``), so the sensor
+slot (``controller.name = "excitation"``, a registered entry point), so the sensor
 checks, the heater interlock and the shutdown sequence hold as for any controller
 (docs/real-box.md, experiments).
 """
