@@ -67,17 +67,20 @@ def actuator_bounds(params: Parameters | None = None) -> tuple[np.ndarray, np.nd
 
 
 def simulate(scenario: Scenario, controller, plant_params: Parameters, seed: int, name: str = "controller",
-             progress: Callable[[int, int], None] | None = None, dt_s: float = 1.0) -> Trace:
+             progress: Callable[[int, int], None] | None = None, dt_s: float = 1.0, plant=None) -> Trace:
     """Run ``controller`` (Controller protocol) through ``scenario`` on a plant with ``plant_params``.
 
-    All plant effects are on (``PLANT_EFFECTS``). A command with a non-finite value is recorded as
+    All plant effects are on (``PLANT_EFFECTS``). ``plant``: a fresh plant (``Plant`` protocol with
+    ``truth()``), already in the scenario's conditions, to run on instead; ``plant_params`` is then
+    not used. A command with a non-finite value is recorded as
     requested and the previous command is held. ``progress(k, n)`` is called every sample.
     """
     if abs(getattr(controller, "dt_s", dt_s) - dt_s) > 1e-9:
         raise ValueError(f"controller {name}: sample time {controller.dt_s} s differs from the plant's {dt_s} s")
-    plant = SimulatedPlant(plant_params, effects=PLANT_EFFECTS, seed=plant_seed(seed, scenario.seed), dt_s=dt_s,
-                           environment=Environment(scenario.inlet_temp_c, scenario.chiller_setpoint_c),
-                           initial_command=scenario.initial_command)
+    if plant is None:
+        plant = SimulatedPlant(plant_params, effects=PLANT_EFFECTS, seed=plant_seed(seed, scenario.seed), dt_s=dt_s,
+                               environment=Environment(scenario.inlet_temp_c, scenario.chiller_setpoint_c),
+                               initial_command=scenario.initial_command)
     controller.reset()
     n = int(round(scenario.duration_s / dt_s))
     ref = {f: np.full(n, np.nan) for f in REFERENCE_FIELDS}

@@ -16,6 +16,7 @@ SUBCOMMANDS = {
     "solve-time": ("hvac_mpc.benchmarks.solve_time", "MPC step time against IPOPT and do-mpc"),
     "identify": ("hvac_mpc.identification.cli", "refine the model from a measurement log"),
     "daemon": ("hvac_mpc.daemon.main", "run the controller daemon"),
+    "sweep": ("hvac_mpc.benchmarks.sweep", "thousands of closed-loop runs on Dask, one Parquet row per run"),
 }
 
 
