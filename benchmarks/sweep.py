@@ -41,6 +41,8 @@ SUMMARY_KPIS = {"temp_iae_cs": "high", "flow_iae_m3": "high", "energy_wh": "high
                 "violations_total": "high", "fallbacks": "high", "step_p99_ms": "high"}
 #: KPIs compared as MPC / baseline over paired runs.
 RATIO_KPIS = ("temp_iae_cs", "flow_iae_m3", "energy_wh")
+#: Dask settings of the LocalCluster's workers.
+WORKER_CONFIG = {"distributed.worker.profile.enabled": False}
 #: The ``--quick`` sweep: about two minutes on two cores.
 QUICK_SPEC = {"scenarios": ["summer_cooling_steps", "winter_heating_steps"], "seeds": [0, 1, 2, 3],
               "plants": ["simulated", "simulated_perturbed", "nominal", "delay_3s", "combo_tc_blower_valve"],
@@ -66,10 +68,16 @@ def _distributed():
 
 
 def local_client(workers: int):
-    """A client of a new LocalCluster: ``workers`` processes of one thread each (dashboard on a free port)."""
+    """A client of a new LocalCluster: ``workers`` processes of one thread each (dashboard on a free port).
+
+    The workers' statistical profiler (a stack sample every 10 ms) is off: it costs CPU the runs need.
+    """
     distributed = _distributed()
-    cluster = distributed.LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                       dashboard_address=":0")
+    import dask
+
+    with dask.config.set(WORKER_CONFIG):
+        cluster = distributed.LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                           dashboard_address=":0")
     return distributed.Client(cluster)
 
 
@@ -315,9 +323,9 @@ def plot_summary(rows: Sequence[dict], out: Path) -> list[str]:
     return files + ["ratios.png"]
 
 
-def write_summary(folder: Path, plots: bool = True) -> dict:
-    """summary.json, summary.md and plots from every row in ``folder``."""
-    rows = read_results(folder)
+def write_summary(folder: Path, plots: bool = True, run_ids: set[str] | None = None) -> dict:
+    """summary.json, summary.md and plots from the rows in ``folder`` (only ``run_ids`` if given)."""
+    rows = [r for r in read_results(folder) if run_ids is None or r["run_id"] in run_ids]
     summary = summarise(rows)
     (folder / "summary.json").write_text(json.dumps(summary, indent=2))
     (folder / "summary.md").write_text(summary_markdown(summary))
@@ -383,6 +391,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 def spec_from_args(args: argparse.Namespace) -> SweepSpec:
     """The spec file (or the quick or default spec) with the options given on the command line."""
+    if args.spec and args.quick:
+        raise InvalidSweep("--quick and --spec: choose one (--quick is a spec of its own)")
     data = load_spec(args.spec).model_dump() if args.spec else (dict(QUICK_SPEC) if args.quick else {})
     given = {"sampling": args.sampling, "samples": args.samples, "sample_seed": args.sample_seed,
              "scenarios": args.scenario, "seeds": None if args.seeds is None else list(range(args.seeds)),
@@ -421,7 +431,7 @@ def run(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         print(f"hvac-mpc sweep: interrupted; finished runs are in {out}, the same command resumes", file=sys.stderr)
         return 130
-    summary = write_summary(out, plots=not args.no_plots)
+    summary = write_summary(out, plots=not args.no_plots, run_ids={r.run_id for r in runs})
     print(f"{counts['ran']} runs in {counts['elapsed_s']:.1f} s ({counts['skipped']} already done), "
           f"{counts['failed']} failed; {summary['runs']} rows in {out}")
     for kpi, s in summary["mpc_over_baseline"].items():

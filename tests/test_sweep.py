@@ -175,6 +175,8 @@ def test_cli_rejects_bad_options_and_changes_nothing(tmp_path, capsys):
     assert "unknown scenario 'nope'" in capsys.readouterr().err
     assert main(["sweep", "--replay", str(out)]) == 2
     assert "--row" in capsys.readouterr().err
+    assert main(["sweep", "--quick", "--seeds", "0", "--out", str(out)]) == 2
+    assert "--seeds: expected an integer >= 1" in capsys.readouterr().err
     assert not out.exists()
 
 
