@@ -259,11 +259,18 @@ def summarise(rows: Sequence[dict]) -> dict:
         "failures": [{"run_id": r["run_id"], "error": r["error"].splitlines()[0]} for r in failed[:50]],
         "groups": {g: {k: distribution(rs, k, w) for k, w in SUMMARY_KPIS.items()} for g, rs in sorted(groups.items())},
         "mpc_over_baseline": mpc_baseline_ratios(rows),
+        "mpc_over_baseline_by_plant": {p: mpc_baseline_ratios([r for r in rows if r["plant"] == p])
+                                       for p in sorted({r["plant"] for r in rows})},
     }
 
 
 def _fmt(v) -> str:
     return "-" if v is None else f"{v:.4g}"
+
+
+def _table_row(label: str, s: dict) -> str:
+    return (f"| {label} | {s['n']} | {_fmt(s['median'])} | {_fmt(s['p5'])} | {_fmt(s['p95'])} | {_fmt(s['worst'])} | "
+            f"{s['worst_run_id'] or '-'} |")
 
 
 def summary_markdown(summary: dict) -> str:
@@ -273,15 +280,14 @@ def summary_markdown(summary: dict) -> str:
         lines += [f"## {kpi}", "", "| plant / controller | n | median | p5 | p95 | worst | worst run |",
                   "|---|---|---|---|---|---|---|"]
         for g, d in summary["groups"].items():
-            s = d[kpi]
-            lines.append(f"| {g} | {s['n']} | {_fmt(s['median'])} | {_fmt(s['p5'])} | {_fmt(s['p95'])} | "
-                         f"{_fmt(s['worst'])} | {s['worst_run_id'] or '-'} |")
+            lines.append(_table_row(g, d[kpi]))
         lines.append("")
     lines += ["## MPC / baseline (paired runs; < 1: the MPC is better)", "",
               "| figure | pairs | median | p5 | p95 | worst | worst run |", "|---|---|---|---|---|---|---|"]
-    for kpi, s in summary["mpc_over_baseline"].items():
-        lines.append(f"| {kpi} | {s['n']} | {_fmt(s['median'])} | {_fmt(s['p5'])} | {_fmt(s['p95'])} | "
-                     f"{_fmt(s['worst'])} | {s['worst_run_id'] or '-'} |")
+    lines += [_table_row(kpi, s) for kpi, s in summary["mpc_over_baseline"].items()]
+    lines += ["", "MPC / baseline per plant, temperature IAE:", "",
+              "| plant | pairs | median | p5 | p95 | worst | worst run |", "|---|---|---|---|---|---|---|"]
+    lines += [_table_row(p, r["temp_iae_cs"]) for p, r in summary["mpc_over_baseline_by_plant"].items()]
     if summary["failures"]:
         lines += ["", "## Failed runs", ""] + [f"- {f['run_id']}: {f['error']}" for f in summary["failures"]]
     return "\n".join(lines) + "\n"
