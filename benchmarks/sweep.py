@@ -120,9 +120,11 @@ class ResultStore:
         tmp.replace(path)
         return path
 
-    def rows(self) -> list[dict]:
-        """All stored rows, parts in name order, each run id once (the first written)."""
-        return read_results(self.folder) if self.folder.is_dir() else []
+    def run_ids(self) -> set[str]:
+        """Ids of the runs stored so far (only that column is read)."""
+        _, pq = _pyarrow()
+        files = sorted(self.folder.glob("part-*.parquet")) if self.folder.is_dir() else []
+        return {i for f in files for i in pq.read_table(f, columns=["run_id"]).column("run_id").to_pylist()}
 
 
 def read_results(path: str | Path) -> list[dict]:
@@ -158,7 +160,7 @@ def run_sweep(runs: Sequence[RunSpec], out: str | Path, client=None, batch_size:
     for every completed run. Returns counts: planned, skipped (already done), ran, failed, elapsed_s.
     """
     store = ResultStore(out)
-    done = {r["run_id"] for r in store.rows()}
+    done = store.run_ids()
     todo = [r for r in runs if r.run_id not in done]
     bar = ProgressBar(len(todo), enabled=progress)
     pending: list[dict] = []
