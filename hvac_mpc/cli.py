@@ -19,6 +19,7 @@ SUBCOMMANDS = {
     "ctl": ("hvac_mpc.daemon.ctl", "talk to a running daemon: status, mode, manual setting, reference"),
     "experiment": ("hvac_mpc.benchmarks.experiment", "a bench scenario or an identification excitation through the daemon"),
     "report": ("hvac_mpc.benchmarks.report_logs", "the bench's report (figures, ratios, plots) from logs of real runs"),
+    "sweep": ("hvac_mpc.benchmarks.sweep", "thousands of closed-loop runs on Dask, one Parquet row per run"),
 }
 
 
