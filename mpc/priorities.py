@@ -13,9 +13,10 @@ stage of a two-stage (lexicographic) scheme (docs/robustness.md sec. 1):
 2. the MPC then tracks ``min(reference, reachable)`` (outlet flows scaled alike) and reports the
    shortfall in ``stats["out_of_reach"]``.
 
-The problem is only solved when the flow reference is high enough to be in doubt
-(``check_fraction`` of the blower's nominal open flow) and then every ``every_s`` seconds, warm
-started; IPOPT with an iteration cap (deterministic).
+The problem is only solved when the flow reference is high enough to be in doubt (above
+``check_fraction`` of the blower's nominal open flow, and above 90 % of what full blower power with
+open outlets would give at the present valve a and heater) and then every ``every_s`` seconds,
+warm started; IPOPT with an iteration cap (deterministic).
 """
 
 from __future__ import annotations
@@ -52,6 +53,10 @@ class ReachableFlow:
         self.margin = float(margin)
         self.temp_tolerance_c = float(temp_tolerance_c)
         self.check_flow_m3s = check_fraction * params.flow_per_watt_m3s_per_w * params.blower_power_max_w
+        self.headroom = 0.9
+        self.u_hi = np.asarray(u_hi, float)
+        self.i_blower = model.inputs.index("blower_power_w")
+        self.i_outlets = [model.inputs.index(n) for n in ("valve_m_pct", "valve_f_pct", "valve_w_pct")]
         nx, nu, nd = len(model.states), len(model.inputs), len(model.disturbances)
         x, u = ca.SX.sym("x", nx), ca.SX.sym("u", nu)
         d, t_ref, a_cap = ca.SX.sym("d", nd), ca.SX.sym("t_ref"), ca.SX.sym("a_cap")
@@ -93,6 +98,14 @@ class ReachableFlow:
             self.reset()
             return self._last
         flow_now = float(self.out(x, u, d)[0])
+        # plainly within reach: the blower at full power with the outlets open gives the reference
+        # with headroom without moving valve a or the heater (so without touching the temperature)
+        u_full = np.array(u, float)
+        u_full[self.i_blower] = self.u_hi[self.i_blower]
+        u_full[self.i_outlets] = self.u_hi[self.i_outlets]
+        if flow_ref_m3s <= self.headroom * float(self.out(x, u_full, d)[0]):
+            self.reset()
+            return self._last
         key = (round(temp_ref_c, 6), round(flow_ref_m3s, 9))
         self._age_s += dt_s
         if key == self._key and self._age_s < self.every_s:
