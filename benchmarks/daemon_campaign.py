@@ -546,28 +546,36 @@ def api_scenarios(workdir: Path, controller: str = "baseline") -> list[Outcome]:
     return results
 
 
-def slow_header_flood(workdir: Path, n: int, controller: str = "baseline", hold_s: float = 6.0) -> Outcome:
-    """``n`` connections trickling request headers (one byte every 0.5 s, from another thread) for
-    ``hold_s`` wall seconds while the daemon runs at 10x: /health is polled every 0.1 s and must
-    answer within 1 s every time; the loop must miss no deadline and start no tick late."""
-    import threading
+class SlowHeaderFlood:
+    """``n`` connections trickling request headers (one byte every 0.5 s, reconnecting at once when
+    dropped) for ``hold_s`` wall seconds, and /health polled every 0.1 s, from two threads."""
 
-    state: dict[str, Any] = {"health_s": [], "codes": []}
-    stop = threading.Event()
+    def __init__(self, n: int, hold_s: float):
+        import threading
 
-    def connect(port: int) -> socket.socket | None:
+        self.n, self.hold_s = n, hold_s
+        self.health_s: list[float] = []
+        self.codes: list[int] = []
+        self.reconnects = 0
+        self.stop = threading.Event()
+
+    def start(self, port: int) -> None:
+        import threading
+
+        for fn in (self._trickle, self._poll):
+            threading.Thread(target=fn, args=(port,), daemon=True).start()
+
+    def _connect(self, port: int) -> socket.socket | None:
         try:
             s_ = socket.create_connection(("127.0.0.1", port), timeout=2.0)
             s_.sendall(b"GET /status HTTP/1.1\r\n")
             return s_
         except OSError:
-            state["connect_failed"] = state.get("connect_failed", 0) + 1
             return None
 
-    def trickle(port: int) -> None:
-        socks = [connect(port) for _ in range(n)]
-        state["reconnects"] = 0
-        end = time.monotonic() + hold_s
+    def _trickle(self, port: int) -> None:
+        socks = [self._connect(port) for _ in range(self.n)]
+        end = time.monotonic() + self.hold_s
         while time.monotonic() < end:
             for i, s_ in enumerate(socks):
                 try:
@@ -577,35 +585,52 @@ def slow_header_flood(workdir: Path, n: int, controller: str = "baseline", hold_
                 except OSError:  # dropped by the server: the attacker comes back at once
                     if s_ is not None:
                         s_.close()
-                    socks[i] = connect(port)
-                    state["reconnects"] += 1
+                    socks[i] = self._connect(port)
+                    self.reconnects += 1
             time.sleep(0.5)
         for s_ in socks:
             if s_ is not None:
                 s_.close()
-        stop.set()
+        self.stop.set()
 
-    def poll(port: int) -> None:
-        while not stop.is_set():
+    def _poll(self, port: int) -> None:
+        while not self.stop.is_set():
             t = time.monotonic()
             try:
                 code = _request(port, "GET", "/health", timeout=2.0)[0]
             except OSError:
                 code = 0
-            state["health_s"].append(time.monotonic() - t)
-            state["codes"].append(code)
+            self.health_s.append(time.monotonic() - t)
+            self.codes.append(code)
             time.sleep(0.1)
+
+    def judge(self, o: Outcome, late: int, missed: int, dropped: int) -> None:
+        """/health within 1 s every time, no late tick, no deadline miss, slow connections dropped."""
+        worst = max(self.health_s) if self.health_s else float("inf")
+        bad = [c for c in self.codes if c != 200]
+        o.notes = (f"/health {len(self.codes)} polls, worst {worst * 1000:.0f} ms; late ticks {late}, deadline "
+                   f"misses {missed}; dropped {dropped}, reconnected {self.reconnects}")
+        o.detected = int(dropped > 0)
+        if worst > 1.0 or bad:
+            o.violations.append(f"/health: worst {worst:.2f} s, non-200 answers {bad[:5]}")
+        if late or missed:
+            o.violations.append(f"loop: {late} late ticks, {missed} deadline misses during the flood")
+        if not o.detected:
+            o.violations.append("no slow-header connection was dropped")
+
+
+def slow_header_flood(workdir: Path, n: int, controller: str = "baseline", hold_s: float = 6.0) -> Outcome:
+    """:class:`SlowHeaderFlood` against an in-process daemon at 10x real time."""
+    flood = SlowHeaderFlood(n, hold_s)
+    state: dict[str, Any] = {}
 
     def hook(d, sample):
         if sample["time_s"] == 10.0:
             state["before"] = (d.counters["late_ticks"], d.counters["deadline_misses"])
-            state["t0"] = (sample["time_s"], time.monotonic())
-            for fn in (trickle, poll):
-                threading.Thread(target=fn, args=(d.api.port,), daemon=True).start()
-        elif "t0" in state and "after" not in state and stop.is_set():
+            flood.start(d.api.port)
+        elif "before" in state and "after" not in state and flood.stop.is_set():
             state["after"] = (d.counters["late_ticks"], d.counters["deadline_misses"])
-            state["during"] = (sample["time_s"] - state["t0"][0], time.monotonic() - state["t0"][1])
-            state["guard"] = d.api.stats()
+            state["dropped"] = d.api.stats()["header_timeouts"]
             d.request_stop("flood checked")
 
     cfg = _config(workdir, f"api_slow_headers_{n}", controller, [], ticks=0,
@@ -617,19 +642,44 @@ def slow_header_flood(workdir: Path, n: int, controller: str = "baseline", hold_
     if "after" not in state:
         o.violations.append("flood did not finish within the run")
         return o
-    worst = max(state["health_s"]) if state["health_s"] else float("inf")
-    late = state["after"][0] - state["before"][0]
-    missed = state["after"][1] - state["before"][1]
-    bad = [c for c in state["codes"] if c != 200]
-    o.notes = (f"/health {len(state['codes'])} polls, worst {worst * 1000:.0f} ms; late ticks {late}, deadline "
-               f"misses {missed}; dropped {state['guard']['header_timeouts']}, reconnected {state['reconnects']}")
-    o.detected = int(state["guard"]["header_timeouts"] > 0)
-    if worst > 1.0 or bad:
-        o.violations.append(f"/health: worst {worst:.2f} s, non-200 answers {bad[:5]}")
-    if late or missed:
-        o.violations.append(f"loop: {late} late ticks, {missed} deadline misses during the flood")
-    if not o.detected:
-        o.violations.append("no slow-header connection was dropped")
+    flood.judge(o, state["after"][0] - state["before"][0], state["after"][1] - state["before"][1],
+                state["dropped"])
+    return o
+
+
+def slow_header_flood_process(workdir: Path, n: int = 200, hold_s: float = 6.0) -> Outcome:
+    """:class:`SlowHeaderFlood` against the daemon process at real time (1 s samples)."""
+    cfg = process_config(workdir, "flood_process", speedup=1.0, reference={"supply_temp_c": 20.0,
+                                                                          "volume_flow_m3s": 0.03},
+                         extra={"api": {"header_timeout_s": 2.0}})
+    port_file = workdir / "flood_process.port"
+    for f in (workdir / "flood_process.csv", port_file):
+        f.unlink(missing_ok=True)
+    flood = SlowHeaderFlood(n, hold_s)
+    p = start_daemon(cfg)
+    o = Outcome(f"api_slow_header_flood_{n}_process_1x", "api")
+    try:
+        wait_for(port_file.exists, 60, "the API port", p)
+        port = int(port_file.read_text())
+        wait_for(lambda: (_request(port, "GET", "/sample")[1] or {}).get("time_s", -1) >= 2.0, 30, "3 samples", p)
+        before = _request(port, "GET", "/status")[1]["counters"]
+        flood.start(port)
+        wait_for(flood.stop.is_set, hold_s + 30, "the end of the flood", p)
+        status = _request(port, "GET", "/status")[1]
+        for _ in range(2):  # the second request skips the cool-down wait
+            p.send_signal(signal.SIGTERM)
+            time.sleep(0.2)
+        _, err = p.communicate(timeout=60)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    o.exit_code = p.returncode
+    after = status["counters"]
+    flood.judge(o, after["late_ticks"] - before["late_ticks"], after["deadline_misses"] - before["deadline_misses"],
+                status["api_requests"]["header_timeouts"])
+    o.violations += check_log(workdir / "flood_process.csv", SafetyConfig())
+    if p.returncode != 0:
+        o.violations.append(f"exit code {p.returncode}: {err.decode()[-300:]}")
     return o
 
 
@@ -1129,6 +1179,7 @@ def run_campaign(workdir: str | Path, include_processes: bool = True, controller
         outcomes += sigkill_restart(workdir, controller)
         outcomes += sigterm_shutdown(workdir, controller)
         outcomes.append(tail_repair_kills(workdir, big_log_mb))
+        outcomes.append(slow_header_flood_process(workdir))
     counts: dict[str, Any] = {"scenarios": len(outcomes), "passed": sum(o.ok for o in outcomes),
                               "violations": sum(len(o.violations) for o in outcomes), "by_category": {},
                               "injected_fault_ticks": {}, "wall_s": 0.0}

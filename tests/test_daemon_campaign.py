@@ -2,7 +2,8 @@
 missing/stale/wrong value, controller failure/NaN/missed deadline/solver failure, backend
 disconnect (injected and a real Modbus server stopped and restarted), a controller driving the
 flow below the heater minimum, a fatal error, hostile API input (token, content type, Host and
-Origin, overflow, slow headers and bodies, 16 and 200 slow-header connections), the disk full for
+Origin, overflow, slow headers and bodies, 16 and 200 slow-header connections, 200 against the
+daemon process at real time), the disk full for
 60 s, every bad configuration file, operator modes switched over the real Modbus server, SIGKILL
 with a restart, SIGKILL during the tail repair of a 20 MB log (repeated), SIGTERM and SIGINT.
 Every logged sample is checked for safety; the counts are printed. About 90 s."""
@@ -34,7 +35,8 @@ def test_fault_campaign_keeps_actuators_safe(tmp_path, capsys):
     assert by["api"]["tried"] >= 50 and by["backend"]["tried"] == 2
     assert by["log"]["tried"] == 2 and by["config"]["tried"] == 11 and by["modes"]["tried"] == 1
     names = {o.name for o in result["outcomes"]}
-    assert {"api_slow_header_flood_16", "api_slow_header_flood_200", "api_no_token", "api_foreign_host",
+    assert {"api_slow_header_flood_16", "api_slow_header_flood_200", "api_slow_header_flood_200_process_1x",
+            "api_no_token", "api_foreign_host",
             "api_foreign_origin", "api_no_content_type", "api_integer_10_pow_400"} <= names
     injected = counts["injected_fault_ticks"]
     for kind in ("sensor:nan", "sensor:stuck", "sensor:out_of_range", "sensor:missing", "sensor:stale",
