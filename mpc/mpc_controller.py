@@ -42,6 +42,7 @@ from hvac_mpc.models.parameters import Parameters
 from hvac_mpc.contract import Command, Measurement
 
 from hvac_mpc.contract import StepResult
+from .codegen import CodegenReport, compile_buffered
 from .estimator import DisturbanceEkf, EkfSettings
 from .ocp import InvalidSettings, OcpSpec, TrackingProblem, check_number, trap_cap_pct
 from hvac_mpc.contract import InvalidReference, Reference
@@ -79,6 +80,10 @@ class MpcSettings:
             before the thesis baseline takes over (s).
         jit: compile the mapped stage function with the C compiler (about 1 s at construction;
             falls back to the CasADi virtual machine if compiling fails).
+        codegen: evaluate the hot path (the QP data of ``rti``/``sqp`` and the estimator's model
+            functions) as generated C, built with the C compiler on first use and cached on disk
+            per model and settings (:mod:`hvac_mpc.mpc.codegen`); without a compiler CasADi's
+            interpreter runs the same functions (results equal up to round-off).
         water_prediction: ``"hold"`` or ``"setpoint"``, see :mod:`hvac_mpc.mpc.estimator`.
         chiller_setpoint_c: chiller set point used when the measurement carries none (degC).
         initial_command: the command in force before the first step (the first move is
@@ -102,6 +107,7 @@ class MpcSettings:
     deadline_s: float = 0.5
     plan_fallback_s: float = 30.0
     jit: bool = False
+    codegen: bool = True
     water_prediction: str = "hold"
     chiller_setpoint_c: float = 5.0
     initial_command: Command = field(default_factory=Command)
@@ -129,6 +135,8 @@ class MpcSettings:
         check_number(f"{p}.plan_fallback_s", self.plan_fallback_s, 0.0, 3600.0)
         if not isinstance(self.jit, bool):
             raise InvalidSettings(f"{p}.jit must be True or False")
+        if not isinstance(self.codegen, bool):
+            raise InvalidSettings(f"{p}.codegen must be True or False")
         if self.water_prediction not in ("hold", "setpoint"):
             raise InvalidSettings(f"{p}.water_prediction = {self.water_prediction!r} must be 'hold' or 'setpoint'")
         check_number(f"{p}.chiller_setpoint_c", self.chiller_setpoint_c, -10.0, 30.0)
@@ -170,6 +178,9 @@ class MpcController:
         if s.ocp.ptc_limit and "ptc_power_fall" not in s.ocp.model_effects:
             ekf_model = HvacModel(self.params, tuple(s.ocp.model_effects) + ("ptc_power_fall",), dt_s=s.dt_s)
         self.ekf = DisturbanceEkf(ekf_model, s.ekf, s.dt_s, s.water_prediction)
+        self.codegen = getattr(self.solver, "codegen", None) or CodegenReport()
+        if s.codegen:
+            compile_buffered(self.ekf, ("f", "h"), self.codegen)
         self._baseline = None
         self.reset()
 
@@ -182,7 +193,7 @@ class MpcController:
         return RtiOsqpSolver(pb, eps=s.osqp_eps, max_iter=s.osqp_max_iter, sqp_max_iter=sqp_iter,
                              sqp_tol=s.sqp_tol, check_termination=s.osqp_check_termination,
                              lm_inputs=s.levenberg_marquardt, cold_start_qps=s.cold_start_qps,
-                             reference_change_qps=s.reference_change_qps)
+                             reference_change_qps=s.reference_change_qps, codegen=s.codegen)
 
     # ------------------------------------------------------------------ protocol
     def reset(self, command: Command | None = None) -> None:
