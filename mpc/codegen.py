@@ -85,22 +85,25 @@ def compiled(fn: ca.Function, report: CodegenReport | None = None) -> ca.Functio
         report.outcomes[name] = f"interpreted: {SWITCH_ENV}=0"
         return fn
     try:
-        key = structure_key(fn)
         folder = cache_dir()
-        lib = folder / f"{name}_{key}.so"
-        if lib.exists():
-            outcome = "cached"
-        else:
-            t0 = time.perf_counter()
-            _build(fn, folder, lib)
-            report.build_time_s += time.perf_counter() - t0
-            outcome = "built"
+        lib = folder / f"{name}_{structure_key(fn)}.so"
+        outcome = _ensure(lib, lambda: _build(fn, folder, lib), report)
         ext = ca.external(name, str(lib))
         report.outcomes[name] = outcome
         return ext
     except Exception as exc:  # noqa: BLE001 - no compiler, read-only cache, ...: the interpreter works
         report.outcomes[name] = f"interpreted: {type(exc).__name__}: {str(exc)[:200]}"
         return fn
+
+
+def _ensure(lib: Path, build, report: CodegenReport) -> str:
+    """``"cached"`` if ``lib`` exists, else build it (time into ``report``) and say ``"built"``."""
+    if lib.exists():
+        return "cached"
+    t0 = time.perf_counter()
+    build()
+    report.build_time_s += time.perf_counter() - t0
+    return "built"
 
 
 def _build(fn: ca.Function, folder: Path, lib: Path) -> None:
@@ -147,13 +150,7 @@ def compiled_nlpsol(name: str, plugin: str, nlp: dict, opts: dict, report: Codeg
         h = hashlib.sha256(structure_key(structure).encode())
         h.update((plugin + " ".join(flags)).encode())
         lib = cache_dir() / f"{name}_{h.hexdigest()[:20]}.so"
-        if lib.exists():
-            outcome = "cached"
-        else:
-            t0 = time.perf_counter()
-            _build_dependencies(solver, lib, flags)
-            report.build_time_s += time.perf_counter() - t0
-            outcome = "built"
+        outcome = _ensure(lib, lambda: _build_dependencies(solver, lib, flags), report)
         out = ca.nlpsol(name, plugin, str(lib), opts)
         report.outcomes[name] = outcome
         return out

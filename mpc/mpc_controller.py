@@ -201,7 +201,7 @@ class MpcController:
         self.u_prev = (command or self.settings.initial_command).vector().copy()
         self.ekf.reset()
         self.solver.reset()
-        self._plan: tuple[np.ndarray, float] | None = None  # (U physical (N, nu), age s)
+        self._plan: tuple[np.ndarray, float] | None = None  # (U scaled (N, nu), age s), unscaled when used
         self._reference: Reference | None = None
         self._prepared_for_next = False
         self._in_baseline = False
@@ -305,7 +305,7 @@ class MpcController:
                 sol.ok = False
                 status = "non-finite command"
         if sol.ok:
-            self._plan = (pb.unscale_u(sol.U), 0.0)
+            self._plan = (sol.U, 0.0)
             self._in_baseline = False
             self._last_solution = sol
         else:
@@ -356,7 +356,7 @@ class MpcController:
             if age < min(s.plan_fallback_s, horizon):
                 j = int(np.searchsorted(self.problem.t_nodes, age, side="right") - 1)
                 self._plan = (U, age)
-                return U[min(j, len(U) - 1)].copy(), "shifted_plan"
+                return self.problem.unscale_u(U[min(j, len(U) - 1)]), "shifted_plan"
         self._plan = None
         if ref is not None:
             try:
