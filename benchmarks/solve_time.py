@@ -243,10 +243,13 @@ def _run(args: argparse.Namespace, steps: int, cost_seeds: int) -> int:
     print_table(results)
     if "suboptimality" in rti:
         so = rti["suboptimality"]
-        if so["steps"]:
-            print(f"RTI suboptimality per step against converged IPOPT from the same state ({so['steps']} steps): "
-                  f"median {so['median_pct']:.3f} %, p95 {so['p95_pct']:.3f} %, max {so['max_pct']:.3f} %, "
-                  f"min {so['min_pct']:.3f} %, IPOPT failures {so['ipopt_failures']}")
+        print(f"RTI suboptimality per step against converged IPOPT from the same state ({so['steps']} steps, "
+              f"IPOPT failures {so['ipopt_failures']}):")
+        for name in ("decision", "plan"):
+            if name in so:
+                v = so[name]
+                print(f"  {name:<8} median {v['median_pct']:.3f} %, p95 {v['p95_pct']:.3f} %, "
+                      f"max {v['max_pct']:.3f} %, min {v['min_pct']:.3f} %")
     if seeds_cost:
         print("closed-loop cost, RTI against IPOPT, per plant noise seed: "
               + ", ".join(f"seed {c['seed']} {c['rti_vs_ipopt_pct']:+.2f} %" for c in seeds_cost)
