@@ -76,8 +76,8 @@ def suboptimality(pb: TrackingProblem, records: list[dict[str, Any]], *, jit: bo
     """Per-step suboptimality of the recorded RTI plans (see the module docstring)."""
     cost_fn = pb.cost_function()
     ipopt = IpoptReferenceSolver(pb, warm_start_init_point=False, jit=jit)
-    values, decision, failed, iters = [], [], 0, []
-    for rec in records:
+    values, decision, failed, iters, steps = [], [], 0, [], []
+    for step, rec in enumerate(records):
         if rec["U"] is None or (skip_cold and rec["cold"]):
             continue
         J_rti, w0 = plan_cost(pb, cost_fn, rec)
@@ -100,6 +100,7 @@ def suboptimality(pb: TrackingProblem, records: list[dict[str, Any]], *, jit: bo
         values.append((J_rti - J_opt) / abs(J_opt))
         decision.append((fixed.extra["objective"] - J_opt) / abs(J_opt))
         iters.append(res.iterations)
+        steps.append(step)
     out = {"steps": len(values), "ipopt_failures": failed, "converged_with": ipopt.settings}
     for name, vals in (("plan", values), ("decision", decision)):
         v = 100.0 * np.array(vals)
@@ -108,6 +109,8 @@ def suboptimality(pb: TrackingProblem, records: list[dict[str, Any]], *, jit: bo
                              max_pct=float(v.max()), min_pct=float(v.min()))
     if iters:
         out["median_ipopt_iterations"] = float(np.median(iters))
+    out["per_step"] = {"step": steps, "plan_pct": [100.0 * v for v in values],
+                       "decision_pct": [100.0 * v for v in decision]}
     return out
 
 

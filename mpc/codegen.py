@@ -132,7 +132,12 @@ def compile_buffered(owner, attributes: tuple[str, ...], report: CodegenReport |
     CasADi functions, e.g. the estimator)."""
     from .casadi_eval import BufferedFunction
     for name in attributes:
-        setattr(owner, name, BufferedFunction(compiled(getattr(owner, name).fn, report)))
+        current = getattr(owner, name, None)
+        if not isinstance(current, BufferedFunction):  # the owner changed: leave it interpreted
+            if report is not None:
+                report.outcomes[f"{type(owner).__name__}.{name}"] = "interpreted: not a BufferedFunction"
+            continue
+        setattr(owner, name, BufferedFunction(compiled(current.fn, report)))
 
 
 def compiled_nlpsol(name: str, plugin: str, nlp: dict, opts: dict, report: CodegenReport | None = None,
