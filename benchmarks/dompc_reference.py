@@ -114,6 +114,7 @@ class DoMpcSolver:
             warnings.simplefilter("ignore")
             mpc.setup()
         self.mpc = mpc
+        self.settings = {"nlp_solver": "ipopt (do-mpc defaults)", "max_iter": int(max_iter), "compiled": False}
         self.fail_next = 0
         self._initialised = False
 

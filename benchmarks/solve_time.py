@@ -4,10 +4,19 @@ All controllers run the same closed loop on the simulated plant (all effects on,
 same reference scenario, same estimator and fallback chain), each solving the same discrete
 problem (:class:`~hvac_mpc.mpc.ocp.TrackingProblem` at the default horizon):
 
-* ``rti``: the real-time iteration with OSQP (:mod:`hvac_mpc.mpc.rti_osqp`);
+* ``rti``: the real-time iteration with OSQP (:mod:`hvac_mpc.mpc.rti_osqp`), its QP data and
+  estimator as generated C (``--no-codegen``: CasADi's interpreter);
 * ``ipopt``: the full NLP solved to convergence by CasADi + IPOPT (:mod:`hvac_mpc.mpc.ipopt_reference`);
+  with ``--jit`` its functions run as generated C, compiled once and cached (the build time is
+  reported apart, as ``codegen_build_s``, not in the step times);
+* ``fatrop``: the same problem written stage by stage (state augmented with the last input and
+  the slack) and solved to convergence by fatrop (:mod:`hvac_mpc.benchmarks.fatrop_reference`);
 * ``do-mpc``: do-mpc given the same discrete model, horizon and weights (optional extra
   ``compare``; :mod:`hvac_mpc.benchmarks.dompc_reference`).
+
+Every result carries its solver's settings (``settings``: tolerances, compiled or not). The
+per-step suboptimality of the RTI against the converged solution from the same state
+(:mod:`hvac_mpc.benchmarks.suboptimality`) is measured on a second, untimed run of the RTI loop.
 
 Step time is the wall time of ``MpcController.step`` (estimator, solver, Python overhead), the
 first (cold) step excluded from the statistics. Closed-loop cost is the MPC's stage cost
@@ -39,6 +48,7 @@ import numpy as np  # noqa: E402
 from hvac_mpc.models.plant import Environment, SimulatedPlant  # noqa: E402
 
 from hvac_mpc.contract import Command
+from hvac_mpc.mpc.ipopt_reference import IpoptReferenceSolver  # noqa: E402
 from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings  # noqa: E402
 from hvac_mpc.mpc.ocp import TrackingProblem  # noqa: E402
 from hvac_mpc.contract import Reference  # noqa: E402
@@ -88,6 +98,9 @@ def closed_loop(name: str, make: Callable[[], MpcController], steps: int, seed: 
     t_setup = time.perf_counter()
     ctrl = make()
     setup_s = time.perf_counter() - t_setup
+    report = getattr(ctrl.solver, "codegen", None)
+    settings = dict(getattr(ctrl.solver, "settings", {}) or {})
+    settings.setdefault("compiled", bool(report is not None and report.active))
     plant = SimulatedPlant(seed=seed, environment=Environment(inlet_c, 5.0))
     plant.settle(INITIAL)
     ctrl.reset(plant.command)
@@ -111,12 +124,29 @@ def closed_loop(name: str, make: Callable[[], MpcController], steps: int, seed: 
         statuses[key] = statuses.get(key, 0) + 1
     t = np.array(times[1:]) * 1e3  # first (cold) step excluded
     return {
-        "controller": name, "steps": steps, "setup_s": setup_s, "jit": bool(getattr(ctrl, "jit_active", False)),
+        "controller": name, "steps": steps, "setup_s": setup_s, "settings": settings,
+        "codegen": dict(report.outcomes) if report is not None else {},
+        "codegen_build_s": float(report.build_time_s) if report is not None else 0.0,
         "median_ms": float(np.median(t)), "p99_ms": float(np.percentile(t, 99)), "max_ms": float(t.max()),
         "median_iterations": float(np.median(iters[1:])), "max_iterations": int(max(iters)),
         "max_qp_solves": int(max(solves)), "fallback_steps": int(fallbacks), "statuses": statuses,
         "cost": {**cost, "total": float(sum(cost.values()))},
     }
+
+
+def rti_suboptimality(make: Callable[[], MpcController], steps: int, seed: int, jit: bool) -> dict[str, Any]:
+    """The RTI loop again (untimed), each feedback recorded, then the converged cost per step."""
+    from .suboptimality import FeedbackRecorder, suboptimality
+    recorder: list[FeedbackRecorder] = []
+
+    def make_recorded() -> MpcController:
+        ctrl = make()
+        ctrl.solver = FeedbackRecorder(ctrl.solver)
+        recorder.append(ctrl.solver)
+        return ctrl
+
+    closed_loop("rti", make_recorded, steps, seed)
+    return suboptimality(recorder[0].inner.pb, recorder[0].records, jit=jit)
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -131,8 +161,14 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", type=Path, default=Path("solve_time.json"), help="where to write the results")
     parser.add_argument("--no-ipopt", action="store_true", help="skip the IPOPT reference")
     parser.add_argument("--no-dompc", action="store_true", help="skip do-mpc")
+    parser.add_argument("--no-fatrop", action="store_true", help="skip fatrop")
     parser.add_argument("--jit", action="store_true",
-                        help="JIT-compile the RTI's stage functions (needs a C compiler; ~2 s more setup)")
+                        help="IPOPT with its NLP functions as generated C (built once, cached on disk; "
+                             "the first build takes minutes and is reported apart)")
+    parser.add_argument("--no-codegen", action="store_true",
+                        help="run the RTI's QP data and estimator in CasADi's interpreter")
+    parser.add_argument("--no-suboptimality", action="store_true",
+                        help="skip the per-step suboptimality of the RTI against converged IPOPT")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -155,14 +191,23 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace, steps: int, cost_seeds: int) -> int:
-    rti_settings = MpcSettings(jit=bool(getattr(args, "jit", False)))
+    rti_settings = MpcSettings(codegen=not getattr(args, "no_codegen", False))
     make_rti = lambda: MpcController(settings=rti_settings)  # noqa: E731
     # the reference must not be cut short by the real-time deadline
-    make_ipopt = lambda: MpcController(settings=MpcSettings(solver="ipopt", deadline_s=600.0))  # noqa: E731
+    ipopt_settings = MpcSettings(solver="ipopt", deadline_s=600.0)
+    jit = bool(getattr(args, "jit", False))
+    make_ipopt = lambda: MpcController(  # noqa: E731
+        settings=ipopt_settings, solver_factory=lambda pb: IpoptReferenceSolver(
+            pb, tol=ipopt_settings.ipopt_tol, max_iter=ipopt_settings.ipopt_max_iter, jit=jit))
     contenders: list[tuple[str, Callable[[], MpcController]]] = [("rti", make_rti)]
     notes = []
     if not args.no_ipopt:
         contenders.append(("ipopt", make_ipopt))
+    if not getattr(args, "no_fatrop", False):
+        from .fatrop_reference import FatropSolver
+        contenders.append(("fatrop", lambda: MpcController(
+            settings=ipopt_settings, solver_factory=lambda pb: FatropSolver(
+                pb, tol=ipopt_settings.ipopt_tol, max_iter=ipopt_settings.ipopt_max_iter))))
     if not args.no_dompc:
         try:
             from .dompc_reference import DoMpcSolver, _import_do_mpc
@@ -191,7 +236,20 @@ def _run(args: argparse.Namespace, steps: int, cost_seeds: int) -> int:
                                "ipopt": closed_loop("ipopt", make_ipopt, steps, seed)["cost"]["total"]})
         for c in seeds_cost:
             c["rti_vs_ipopt_pct"] = 100.0 * (c["rti"] / c["ipopt"] - 1.0)
+    if not getattr(args, "no_suboptimality", False):
+        print(f"per-step suboptimality: rti for {steps} steps, then converged IPOPT from each step's state ...",
+              flush=True)
+        rti["suboptimality"] = rti_suboptimality(make_rti, steps, args.seed, jit)
     print_table(results)
+    if "suboptimality" in rti:
+        so = rti["suboptimality"]
+        print(f"RTI suboptimality per step against converged IPOPT from the same state ({so['steps']} steps, "
+              f"IPOPT failures {so['ipopt_failures']}):")
+        for name in ("decision", "plan"):
+            if name in so:
+                v = so[name]
+                print(f"  {name:<8} median {v['median_pct']:.3f} %, p95 {v['p95_pct']:.3f} %, "
+                      f"max {v['max_pct']:.3f} %, min {v['min_pct']:.3f} %")
     if seeds_cost:
         print("closed-loop cost, RTI against IPOPT, per plant noise seed: "
               + ", ".join(f"seed {c['seed']} {c['rti_vs_ipopt_pct']:+.2f} %" for c in seeds_cost)

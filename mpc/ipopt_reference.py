@@ -5,7 +5,9 @@ built once with CasADi (SX, exact Hessian) from :class:`TrackingProblem`: identi
 ``[x_0..x_N, u_0..u_N-1, s_1..s_N]`` (scaled), stage functions, cost, bounds, rate limits and
 soft heater limit. Per-step data enter as NLP parameters; every solve is warm-started from the
 shifted previous primal solution and the previous multipliers. ``obj_scaling`` only scales the
-objective inside IPOPT (an option, the problem is unchanged).
+objective inside IPOPT (an option, the problem is unchanged). With ``jit`` the NLP's functions
+(objective, constraints, gradient, Jacobian, Hessian of the Lagrangian) run as generated C,
+compiled once and cached on disk (:func:`hvac_mpc.mpc.codegen.compiled_nlpsol`).
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ import time
 import casadi as ca
 import numpy as np
 
+from .codegen import CodegenReport, compiled_nlpsol
 from .ocp import TrackingProblem, shift_maps
 from .rti_osqp import SolveResult
 
@@ -25,7 +28,7 @@ class IpoptReferenceSolver:
     name = "ipopt"
 
     def __init__(self, problem: TrackingProblem, *, tol: float = 1e-6, max_iter: int = 300,
-                 warm_start_init_point: bool = True, obj_scaling: float = 1e-3):
+                 warm_start_init_point: bool = True, obj_scaling: float = 1e-3, jit: bool = False):
         self.pb = pb = problem
         N, nx, nu = pb.N, pb.nx, pb.nu
         self.n = (N + 1) * nx + N * nu + N
@@ -60,7 +63,15 @@ class IpoptReferenceSolver:
             opts.update({"ipopt.warm_start_init_point": "yes", "ipopt.warm_start_bound_push": 1e-8,
                          "ipopt.warm_start_mult_bound_push": 1e-8, "ipopt.warm_start_slack_bound_push": 1e-8,
                          "ipopt.mu_init": 1e-4})
-        self.nlp = ca.nlpsol("ipopt_reference", "ipopt", {"x": w, "p": p, "f": cost, "g": g}, opts)
+        nlp = {"x": w, "p": p, "f": cost, "g": g}
+        self.codegen = CodegenReport()
+        if jit:
+            self.nlp = compiled_nlpsol("ipopt_reference", "ipopt", nlp, opts, self.codegen)
+        else:
+            self.nlp = ca.nlpsol("ipopt_reference", "ipopt", nlp, opts)
+        self.settings = {"tol": tol, "max_iter": int(max_iter), "warm_start_init_point": warm_start_init_point,
+                         "obj_scaling": obj_scaling, "compiled": self.codegen.active,
+                         "linear_solver": "mumps", "hessian": "exact"}
         rb = pb.rate_bounds()
         self.lbg = np.concatenate([np.zeros(self.n_eq), -rb.ravel(), np.full(N + n_ptc, -np.inf)])
         self.ubg = np.concatenate([np.zeros(self.n_eq), rb.ravel(), np.full(N, pb.heater_row_bound),

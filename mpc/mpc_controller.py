@@ -44,6 +44,7 @@ from hvac_mpc.models.parameters import Parameters
 from hvac_mpc.contract import Command, Measurement
 
 from hvac_mpc.contract import StepResult
+from .codegen import CodegenReport, compile_buffered
 from .estimator import DisturbanceEkf, EkfSettings
 from .priorities import ReachableFlow
 from .ocp import InvalidSettings, OcpSpec, TrackingProblem, check_number, trap_cap_pct
@@ -86,6 +87,10 @@ class MpcSettings:
             before the thesis baseline takes over (s).
         jit: compile the mapped stage function with the C compiler (about 1 s at construction;
             falls back to the CasADi virtual machine if compiling fails).
+        codegen: evaluate the hot path (the QP data of ``rti``/``sqp`` and the estimator's model
+            functions) as generated C, built with the C compiler on first use and cached on disk
+            per model and settings (:mod:`hvac_mpc.mpc.codegen`); without a compiler CasADi's
+            interpreter runs the same functions (results equal up to round-off).
         water_prediction: ``"hold"`` or ``"setpoint"``, see :mod:`hvac_mpc.mpc.estimator`.
         chiller_setpoint_c: chiller set point used when the measurement carries none (degC).
         initial_command: the command in force before the first step (the first move is
@@ -113,6 +118,7 @@ class MpcSettings:
     deadline_s: float = 0.5
     plan_fallback_s: float = 30.0
     jit: bool = False
+    codegen: bool = True
     water_prediction: str = "hold"
     chiller_setpoint_c: float = 5.0
     initial_command: Command = field(default_factory=Command)
@@ -142,6 +148,8 @@ class MpcSettings:
         check_number(f"{p}.plan_fallback_s", self.plan_fallback_s, 0.0, 3600.0)
         if not isinstance(self.jit, bool):
             raise InvalidSettings(f"{p}.jit must be True or False")
+        if not isinstance(self.codegen, bool):
+            raise InvalidSettings(f"{p}.codegen must be True or False")
         if self.water_prediction not in ("hold", "setpoint"):
             raise InvalidSettings(f"{p}.water_prediction = {self.water_prediction!r} must be 'hold' or 'setpoint'")
         check_number(f"{p}.chiller_setpoint_c", self.chiller_setpoint_c, -10.0, 30.0)
@@ -189,6 +197,9 @@ class MpcController:
         pb = self.problem
         self.reach = ReachableFlow(pb.model, pb.u_lo_phys, pb.u_hi_phys, pb.heater_max_phys, self.params,
                                    every_s=s.reach_every_s) if s.priorities else None
+        self.codegen = getattr(self.solver, "codegen", None) or CodegenReport()
+        if s.codegen:
+            compile_buffered(self.ekf, ("f", "h"), self.codegen)
         self._baseline = None
         self.reset()
 
@@ -201,7 +212,7 @@ class MpcController:
         return RtiOsqpSolver(pb, eps=s.osqp_eps, max_iter=s.osqp_max_iter, sqp_max_iter=sqp_iter,
                              sqp_tol=s.sqp_tol, check_termination=s.osqp_check_termination,
                              lm_inputs=s.levenberg_marquardt, cold_start_qps=s.cold_start_qps,
-                             reference_change_qps=s.reference_change_qps)
+                             reference_change_qps=s.reference_change_qps, codegen=s.codegen)
 
     # ------------------------------------------------------------------ protocol
     def reset(self, command: Command | None = None) -> None:
@@ -209,7 +220,7 @@ class MpcController:
         self.u_prev = (command or self.settings.initial_command).vector().copy()
         self.ekf.reset()
         self.solver.reset()
-        self._plan: tuple[np.ndarray, float] | None = None  # (U physical (N, nu), age s)
+        self._plan: tuple[np.ndarray, float] | None = None  # (U scaled (N, nu), age s), unscaled when used
         self._reference: Reference | None = None
         self._prepared_for_next = False
         self._in_baseline = False
@@ -318,7 +329,7 @@ class MpcController:
                 sol.ok = False
                 status = "non-finite command"
         if sol.ok:
-            self._plan = (pb.unscale_u(sol.U), 0.0)
+            self._plan = (sol.U, 0.0)
             self._in_baseline = False
             self._last_solution = sol
         else:
@@ -383,7 +394,7 @@ class MpcController:
             if age < min(s.plan_fallback_s, horizon):
                 j = int(np.searchsorted(self.problem.t_nodes, age, side="right") - 1)
                 self._plan = (U, age)
-                return U[min(j, len(U) - 1)].copy(), "shifted_plan"
+                return self.problem.unscale_u(U[min(j, len(U) - 1)]), "shifted_plan"
         self._plan = None
         if ref is not None:
             try:

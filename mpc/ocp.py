@@ -545,8 +545,10 @@ class TrackingProblem:
             weight = self.dt[k] if k < self.N else self.terminal_s
             cost += weight * ca.dot(sw, e * e)
             if k < self.N:
-                blower_w = uk[0] * self.u_sc[0] + self.u_off[0]
-                cost += self.dt[k] * self.energy_weight * ((blower_w + y[5]) / self.energy_scale_w) ** 2
+                ib = INPUTS.index("blower_power_w")
+                blower_w = uk[ib] * self.u_sc[ib] + self.u_off[ib]
+                heater_w = y[STAGE_OUTPUTS.index("heater_power_w")]
+                cost += self.dt[k] * self.energy_weight * ((blower_w + heater_w) / self.energy_scale_w) ** 2
         prev = u_prev
         for k in range(self.N):
             du = U[:, k] - prev

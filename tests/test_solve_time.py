@@ -62,10 +62,52 @@ def test_benchmark_runs_all_contenders_side_by_side_and_writes_json(tmp_path, ca
         assert 0 < r["median_ms"] <= r["p99_ms"] <= r["max_ms"]
         assert np.isfinite(r["cost"]["total"]) and r["cost"]["total"] > 0
         assert "cost_vs_ipopt_pct" in r
+    assert names[2] == "fatrop"
+    for r in data["results"]:
+        assert isinstance(r["settings"]["compiled"], bool)
+    rti = data["results"][0]
+    assert rti["settings"]["qp_solver"] == "osqp" and rti["settings"]["compiled"] is True
+    assert data["results"][1]["settings"]["compiled"] is False  # IPOPT interpreted without --jit
+    # per-step suboptimality against converged IPOPT from the same state, after the cold start
+    so = rti["suboptimality"]
+    assert so["steps"] == 3 and so["ipopt_failures"] == 0
+    for figure in ("plan", "decision"):
+        v = so[figure]
+        assert v["min_pct"] <= v["median_pct"] <= v["p95_pct"] <= v["max_pct"]
+    # fixing the first move can only cost (up to IPOPT's tolerance)
+    assert so["decision"]["min_pct"] > -0.1
     assert data["results"][0]["median_ratio_vs_rti"] == pytest.approx(1.0)
     assert data["results"][0]["max_qp_solves"] <= MpcSettings().cold_start_qps
     table = capsys.readouterr().out
     assert "median ms" in table and "rti" in table and "ipopt" in table
+
+
+def test_a_solve_that_would_overrun_the_deadline_falls_back_and_the_next_ones_solve_again():
+    ctrl = MpcController(settings=MpcSettings(deadline_s=0.5))
+    plant = SimulatedPlant(seed=2, environment=Environment(solve_time.INLET_C, 5.0))
+    plant.settle(solve_time.INITIAL)
+    ctrl.reset(plant.command)
+    for k in range(3):
+        res = ctrl.step(plant.read(), solve_time.reference_at(float(k)))
+        assert res.stats["fallback"] is None
+        plant.apply(res.command)
+        plant.advance()
+    # no time left when the feedback starts: no QP is started, the shifted plan stands in
+    res = ctrl.solver.feedback(np.zeros(ctrl.problem.nx), np.zeros(6), np.zeros(4), np.zeros(6), np.ones(6),
+                               -np.ones((ctrl.problem.N, 6)), np.ones((ctrl.problem.N, 6)), time_limit_s=1e-12)
+    assert not res.ok and res.status == "deadline" and res.qp_solves == 0
+    ctrl.solver.reset()
+    object.__setattr__(ctrl.settings, "deadline_s", 1e-9)
+    res = ctrl.step(plant.read(), solve_time.reference_at(3.0))
+    assert res.stats["fallback"] == "baseline" or res.stats["fallback"] == "shifted_plan"
+    assert res.stats["qp_solves"] == 0 and res.stats["status"] == "deadline"
+    lo, hi = ctrl.problem.command_bounds(plant.command.vector())
+    assert np.all(res.command.vector() >= lo - 1e-9) and np.all(res.command.vector() <= hi + 1e-9)
+    plant.apply(res.command)
+    plant.advance()
+    object.__setattr__(ctrl.settings, "deadline_s", 0.5)
+    res = ctrl.step(plant.read(), solve_time.reference_at(4.0))
+    assert res.stats["fallback"] is None and res.stats["qp_solves"] >= 1
 
 
 def test_benchmark_rejects_too_few_steps(tmp_path):

@@ -1,0 +1,182 @@
+"""C code generation of CasADi functions, compiled once per structure and cached on disk.
+
+:func:`compiled` turns a CasADi function into the same function evaluated by generated C
+(``Function.generate``, ``gcc -O2``, loaded with ``casadi.external``). The shared object is
+cached under :func:`cache_dir` and named by a hash of the function's serialised form (its
+whole expression graph, so every model parameter and setting it embeds), the CasADi version,
+the compiler flags and the machine: a changed model or setting gives another hash and a new
+build, an unchanged one loads in milliseconds. Weights, bounds and references are inputs of
+the functions, not part of the hash.
+
+Without a working compiler (or with ``HVAC_MPC_CODEGEN=0``) the function is returned as it
+is and evaluated by CasADi's interpreter: the same expression graph, so the same results up to
+floating-point round-off. :class:`CodegenReport` says which happened and how long building took.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import platform
+import shutil
+import subprocess
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import casadi as ca
+
+#: Compiler flags of the generated code (no fast-math: results stay those of the interpreter).
+CFLAGS = ("-O2", "-fPIC", "-shared")
+#: Environment variable naming the cache folder (default ``~/.cache/hvac-mpc``).
+CACHE_ENV = "HVAC_MPC_CACHE_DIR"
+#: Environment variable switching code generation off (``0``) for a whole process.
+SWITCH_ENV = "HVAC_MPC_CODEGEN"
+
+
+@dataclass
+class CodegenReport:
+    """What :func:`compiled` did for each function: ``"cached"``, ``"built"`` or ``"interpreted: why"``."""
+
+    outcomes: dict[str, str] = field(default_factory=dict)
+    build_time_s: float = 0.0
+
+    @property
+    def active(self) -> bool:
+        """True when every function runs as generated C."""
+        return bool(self.outcomes) and all(not v.startswith("interpreted") for v in self.outcomes.values())
+
+
+def cache_dir() -> Path:
+    """Folder of the compiled functions: ``$HVAC_MPC_CACHE_DIR``, else ``$XDG_CACHE_HOME/hvac-mpc``,
+    else ``~/.cache/hvac-mpc``."""
+    env = os.environ.get(CACHE_ENV)
+    if env:
+        return Path(env)
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "hvac-mpc"
+
+
+def structure_key(fn: ca.Function) -> str:
+    """Hash of the function's expression graph, the CasADi version, the flags and the machine."""
+    h = hashlib.sha256()
+    h.update(fn.serialize().encode())
+    h.update(ca.__version__.encode())
+    h.update(" ".join(CFLAGS).encode())
+    h.update(platform.machine().encode())
+    return h.hexdigest()[:20]
+
+
+def compiler() -> str | None:
+    """The C compiler to use (``$CC``, else gcc, else cc), or None."""
+    for name in (os.environ.get("CC"), "gcc", "cc"):
+        if name and shutil.which(name):
+            return name
+    return None
+
+
+def compiled(fn: ca.Function, report: CodegenReport | None = None) -> ca.Function:
+    """``fn`` as generated C (built on first use, then loaded from the cache), or ``fn`` itself
+    when code generation is off or fails (the reason goes into ``report``)."""
+    report = report if report is not None else CodegenReport()
+    name = fn.name()
+    if os.environ.get(SWITCH_ENV, "1") == "0":
+        report.outcomes[name] = f"interpreted: {SWITCH_ENV}=0"
+        return fn
+    try:
+        folder = cache_dir()
+        lib = folder / f"{name}_{structure_key(fn)}.so"
+        outcome = _ensure(lib, lambda: _build(fn, folder, lib), report)
+        ext = ca.external(name, str(lib))
+        report.outcomes[name] = outcome
+        return ext
+    except Exception as exc:  # noqa: BLE001 - no compiler, read-only cache, ...: the interpreter works
+        report.outcomes[name] = f"interpreted: {type(exc).__name__}: {str(exc)[:200]}"
+        return fn
+
+
+def _ensure(lib: Path, build, report: CodegenReport) -> str:
+    """``"cached"`` if ``lib`` exists, else build it (time into ``report``) and say ``"built"``."""
+    if lib.exists():
+        return "cached"
+    t0 = time.perf_counter()
+    build()
+    report.build_time_s += time.perf_counter() - t0
+    return "built"
+
+
+def _build(fn: ca.Function, folder: Path, lib: Path) -> None:
+    """Generate C for ``fn``, compile it and move the shared object into place atomically."""
+    cc = compiler()
+    if cc is None:
+        raise RuntimeError("no C compiler found (set CC or install gcc)")
+    folder.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=folder) as tmp:
+        cwd = os.getcwd()
+        try:
+            os.chdir(tmp)  # Function.generate writes into the working directory
+            source = fn.generate(f"{lib.stem}.c", {"with_header": False})
+        finally:
+            os.chdir(cwd)
+        src = Path(tmp) / source
+        out = Path(tmp) / lib.name
+        subprocess.run([cc, *CFLAGS, str(src), "-o", str(out), "-lm"], check=True, capture_output=True,
+                       timeout=600)
+        os.replace(out, lib)  # two processes building at once both end with a whole file
+
+
+def compile_buffered(owner, attributes: tuple[str, ...], report: CodegenReport | None = None) -> None:
+    """Replace ``owner.<attribute>`` (a :class:`~.casadi_eval.BufferedFunction`) by the same
+    function as generated C, for each attribute named (a hook for objects that build their own
+    CasADi functions, e.g. the estimator)."""
+    from .casadi_eval import BufferedFunction
+    for name in attributes:
+        current = getattr(owner, name, None)
+        if not isinstance(current, BufferedFunction):  # the owner changed: leave it interpreted
+            if report is not None:
+                report.outcomes[f"{type(owner).__name__}.{name}"] = "interpreted: not a BufferedFunction"
+            continue
+        setattr(owner, name, BufferedFunction(compiled(current.fn, report)))
+
+
+def compiled_nlpsol(name: str, plugin: str, nlp: dict, opts: dict, report: CodegenReport | None = None,
+                    flags: tuple[str, ...] = ("-O1", "-fPIC", "-shared")) -> ca.Function:
+    """``casadi.nlpsol(name, plugin, nlp, opts)`` with the NLP's functions (objective, constraints
+    and their derivatives) as generated C, built once and cached like :func:`compiled` (a whole
+    NLP is large: ``-O1`` by default). Falls back to the interpreted solver, reason in ``report``."""
+    report = report if report is not None else CodegenReport()
+    solver = ca.nlpsol(name, plugin, nlp, opts)
+    if os.environ.get(SWITCH_ENV, "1") == "0":
+        report.outcomes[name] = f"interpreted: {SWITCH_ENV}=0"
+        return solver
+    try:
+        structure = ca.Function("nlp", [nlp["x"], nlp["p"]], [nlp["f"], nlp["g"]])
+        h = hashlib.sha256(structure_key(structure).encode())
+        h.update((plugin + " ".join(flags)).encode())
+        lib = cache_dir() / f"{name}_{h.hexdigest()[:20]}.so"
+        outcome = _ensure(lib, lambda: _build_dependencies(solver, lib, flags), report)
+        out = ca.nlpsol(name, plugin, str(lib), opts)
+        report.outcomes[name] = outcome
+        return out
+    except Exception as exc:  # noqa: BLE001 - the interpreted solver solves the same problem
+        report.outcomes[name] = f"interpreted: {type(exc).__name__}: {str(exc)[:200]}"
+        return solver
+
+
+def _build_dependencies(solver: ca.Function, lib: Path, flags: tuple[str, ...]) -> None:
+    cc = compiler()
+    if cc is None:
+        raise RuntimeError("no C compiler found (set CC or install gcc)")
+    lib.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=lib.parent) as tmp:
+        cwd = os.getcwd()
+        try:
+            os.chdir(tmp)
+            source = solver.generate_dependencies(f"{lib.stem}.c")
+        finally:
+            os.chdir(cwd)
+        out = Path(tmp) / lib.name
+        subprocess.run([cc, *flags, str(Path(tmp) / source), "-o", str(out), "-lm"], check=True,
+                       capture_output=True, timeout=1800)
+        os.replace(out, lib)

@@ -1,0 +1,82 @@
+"""Generated C for the hot path: built on first use into the cache, loaded afterwards, the same
+results as CasADi's interpreter, and the interpreter when no compiler is there.
+
+Budget: about 15 s on a loaded two-core machine (one build of the QP data and the estimator's
+functions into an empty cache folder, two short closed loops).
+"""
+
+import casadi as ca
+import numpy as np
+
+from hvac_mpc.benchmarks import solve_time
+from hvac_mpc.models import Environment, SimulatedPlant
+from hvac_mpc.mpc import codegen
+from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
+from hvac_mpc.mpc.ocp import OcpSpec, Weights
+
+
+def _commands(settings: MpcSettings, steps: int) -> tuple[np.ndarray, MpcController]:
+    ctrl = MpcController(settings=settings)
+    plant = SimulatedPlant(seed=3, environment=Environment(solve_time.INLET_C, 5.0))
+    plant.settle(solve_time.INITIAL)
+    ctrl.reset(plant.command)
+    out = []
+    for k in range(steps):
+        # reference changes at 0 and 30 s: a cold start, then the two-QP path
+        res = ctrl.step(plant.read(), solve_time.reference_at(float(k)))
+        plant.apply(res.command)
+        plant.advance()
+        assert res.stats["fallback"] is None
+        out.append(res.command.vector())
+    return np.array(out), ctrl
+
+
+def test_compiled_and_interpreted_closed_loops_give_the_same_commands_from_an_empty_cache(tmp_path, monkeypatch):
+    monkeypatch.setenv(codegen.CACHE_ENV, str(tmp_path))
+    compiled_cmds, ctrl = _commands(MpcSettings(codegen=True), 34)
+    assert ctrl.codegen.active
+    assert set(ctrl.codegen.outcomes.values()) == {"built"}
+    assert len(list(tmp_path.glob("*.so"))) == len(ctrl.codegen.outcomes)
+    interpreted_cmds, vm = _commands(MpcSettings(codegen=False), 34)
+    assert not vm.codegen.active
+    assert np.allclose(compiled_cmds, interpreted_cmds, rtol=0.0, atol=1e-9)
+    # a second controller with the same model loads the shared objects instead of building them
+    again = MpcController(settings=MpcSettings(codegen=True))
+    assert set(again.codegen.outcomes.values()) == {"cached"}
+
+
+def test_weights_are_inputs_of_the_generated_code_and_the_model_is_part_of_its_key(tmp_path, monkeypatch):
+    monkeypatch.setenv(codegen.CACHE_ENV, str(tmp_path))
+    base = MpcController(settings=MpcSettings(codegen=False)).solver
+    reweighted = MpcController(settings=MpcSettings(codegen=False, levenberg_marquardt=0.5, ocp=OcpSpec(
+        weights=Weights(move_blower_per_w2=1e-3, slack_l1_per_c=9.0)))).solver
+    other_model = MpcController(settings=MpcSettings(codegen=False, ocp=OcpSpec(
+        model_effects=("fan_curve", "valve_leakage")))).solver
+    key = codegen.structure_key
+    assert key(base.qp_data) == key(reweighted.qp_data)
+    assert key(base.qp_gradient) == key(reweighted.qp_gradient)
+    assert key(base.qp_data) != key(other_model.qp_data)
+
+
+def test_without_a_compiler_the_interpreter_runs_the_same_function(tmp_path, monkeypatch):
+    monkeypatch.setenv(codegen.CACHE_ENV, str(tmp_path))
+    monkeypatch.setattr(codegen, "compiler", lambda: None)
+    x = ca.SX.sym("x", 2)
+    fn = ca.Function("hvac_test_square", [x], [x * x])
+    report = codegen.CodegenReport()
+    out = codegen.compiled(fn, report)
+    assert out is fn
+    assert report.outcomes["hvac_test_square"].startswith("interpreted: RuntimeError: no C compiler")
+    assert not report.active
+    assert not list(tmp_path.glob("*.so"))
+    monkeypatch.setenv(codegen.SWITCH_ENV, "0")
+    assert codegen.compiled(fn, report) is fn
+    assert "HVAC_MPC_CODEGEN=0" in report.outcomes["hvac_test_square"]
+
+
+def test_cache_folder_follows_the_environment(tmp_path, monkeypatch):
+    monkeypatch.setenv(codegen.CACHE_ENV, str(tmp_path / "c"))
+    assert codegen.cache_dir() == tmp_path / "c"
+    monkeypatch.delenv(codegen.CACHE_ENV)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert codegen.cache_dir() == tmp_path / "xdg" / "hvac-mpc"
