@@ -90,7 +90,9 @@ class MpcSettings:
         codegen: evaluate the hot path (the QP data of ``rti``/``sqp`` and the estimator's model
             functions) as generated C, built with the C compiler on first use and cached on disk
             per model and settings (:mod:`hvac_mpc.mpc.codegen`); without a compiler CasADi's
-            interpreter runs the same functions (results equal up to round-off).
+            interpreter runs the same functions (results equal up to round-off). Off by default: the
+            plant parameters are constants in the generated code, so each parameter set costs a
+            5-20 s build the first time; ``hvac-mpc solve-time`` turns it on.
         water_prediction: ``"hold"`` or ``"setpoint"``, see :mod:`hvac_mpc.mpc.estimator`.
         chiller_setpoint_c: chiller set point used when the measurement carries none (degC).
         initial_command: the command in force before the first step (the first move is
@@ -118,7 +120,7 @@ class MpcSettings:
     deadline_s: float = 0.5
     plan_fallback_s: float = 30.0
     jit: bool = False
-    codegen: bool = True
+    codegen: bool = False
     water_prediction: str = "hold"
     chiller_setpoint_c: float = 5.0
     initial_command: Command = field(default_factory=Command)
