@@ -92,3 +92,46 @@ def test_model_loaded_at_runtime_is_logged_in_every_row_and_rolled_back(tmp_path
     assert events[0]["to_hash"] == h and events[1]["to_hash"] == BUILTIN_HASH
     # the controllers ran on the loaded parameters while it was in force, and the interlock held throughout
     assert daemon.status()["counters"]["safe_ticks"] == 0
+
+
+def test_model_routes_of_the_api_load_refuse_and_roll_back(tmp_path):
+    import json
+    import urllib.error
+    import urllib.request
+
+    good = write_model_file(tmp_path / "model.toml", Parameters().replace(flow_per_watt_m3s_per_w=1.7e-4), [])
+    cfg = config_from_mapping({"loop": {"speedup": "max", "max_ticks": 30, "deadline_s": 30.0},
+                               "log": {"path": str(tmp_path / "log.csv"), "fsync": False}, "api": {"port": 0},
+                               "controller": {"name": "baseline"},
+                               "safety": {"cooldown_max_s": 5.0, "cooldown_min_s": 1.0}})
+    seen: dict = {}
+
+    def call(d, method, path, body, token=True):
+        headers = {"Content-Type": "application/json"}
+        if token:
+            headers["Authorization"] = "Bearer " + (tmp_path / "log.token").read_text().strip()
+        req = urllib.request.Request(f"http://127.0.0.1:{d.api.port}{path}", method=method, headers=headers,
+                                     data=json.dumps(body).encode())
+        try:
+            with urllib.request.urlopen(req, timeout=10) as r:
+                return r.status, json.loads(r.read())
+        except urllib.error.HTTPError as err:
+            return err.code, json.loads(err.read())
+
+    def hook(d, sample):
+        if sample["time_s"] == 5.0:
+            seen["no_token"] = call(d, "PUT", "/model", {"path": str(good)}, token=False)
+            seen["missing"] = call(d, "PUT", "/model", {"path": str(tmp_path / "nope.toml")})
+            seen["malformed"] = call(d, "PUT", "/model", {"file": str(good)})
+            seen["load"] = call(d, "PUT", "/model", {"path": str(good)})
+        if sample["time_s"] == 15.0:
+            seen["rollback"] = call(d, "POST", "/model/rollback", {})
+
+    daemon = Daemon(cfg, tick_hook=hook)
+    daemon.run()
+    assert seen["no_token"][0] == 401 and seen["missing"][0] == 409 and seen["malformed"][0] == 400
+    assert seen["load"][0] == 200 and seen["load"][1]["hash"] == model_hash(good)
+    assert seen["rollback"][0] == 200
+    hashes = dict(zip(read_log(tmp_path / "log.csv")["time_s"], read_log(tmp_path / "log.csv")["model_hash"]))
+    assert hashes[4.0] == BUILTIN_HASH and hashes[10.0] == model_hash(good) and hashes[20.0] == BUILTIN_HASH
+    assert [e["action"] for e in daemon.status()["model"]["events"]] == ["load", "rollback"]
