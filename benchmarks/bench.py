@@ -230,6 +230,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, metavar="N",
                         help="seed of the plant perturbation and the sensor noise (default: 0)")
     parser.add_argument("--no-plots", action="store_true", help="write the report without PNG plots")
+    parser.add_argument("--model", metavar="FILE", default=None,
+                        help="model file (hvac-mpc identify): also run the MPC with this refined model against the "
+                             "nominal MPC on the independent box --model-plant (section in the report)")
+    parser.add_argument("--model-plant", metavar="VARIANT", default="nominal",
+                        help="hvac_mpc.mismatch variant the --model comparison runs on (default: nominal)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -239,7 +244,10 @@ def run(args: argparse.Namespace) -> int:
     try:
         chosen = scenario_defs.select(args.scenario, quick=args.quick)
         factories = {"baseline": baseline_factory(), "mpc": mpc_factory()}
-    except (ValueError, RuntimeError) as exc:
+        if args.model:
+            from . import refined_model
+            refined_model.check(args.model, args.model_plant)
+    except (ValueError, RuntimeError, FileNotFoundError) as exc:
         print(f"hvac-mpc bench: {exc}", file=sys.stderr)
         return 2
     command = "hvac-mpc bench" + "".join(f" {shlex.quote(a)}" for a in _argv_from(args))
@@ -255,6 +263,8 @@ def run(args: argparse.Namespace) -> int:
                             "python": platform.python_version()})
     out = Path(args.out)
     notes = write_outputs(results, traces, out, plots=not args.no_plots)
+    if args.model:
+        refined_model.add_to_outputs(refined_model.compare(args.model, args.model_plant, chosen, args.seed), out)
     print(report.terminal_table(results))
     for n in notes:
         print(n)
@@ -275,4 +285,6 @@ def _argv_from(args: argparse.Namespace) -> list[str]:
         argv += ["--seed", str(args.seed)]
     if args.no_plots:
         argv.append("--no-plots")
+    if getattr(args, "model", None):
+        argv += ["--model", str(args.model), "--model-plant", args.model_plant]
     return argv

@@ -164,6 +164,8 @@ class ControllerConfig:
     fallback: list = _f(["baseline"], "controllers tried in order when the primary fails or misses its "
                                       "deadline; the safe command always comes last")
     parameters_file: str = _f("", "model parameters (TOML/JSON, hvac_mpc.models.parameters); '' = defaults")
+    model_file: str = _f("", "refined model file (hvac-mpc identify: parameters, effects, discovered terms) for "
+                             "'mpc'; its parameters replace parameters_file; '' = none")
     settings: dict = _f({}, "keyword arguments of the controller's settings (MpcSettings for 'mpc')")
 
 

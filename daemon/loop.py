@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from hvac_mpc.models.measurement_log import COLUMNS, LogWriter
+from hvac_mpc.models.model_file import load as load_refined_model
 from hvac_mpc.models.parameters import Parameters
 from hvac_mpc.contract import Command, Measurement
 from hvac_mpc.contract import Reference
@@ -98,8 +99,10 @@ class Daemon:
                  tick_hook: Callable[["Daemon", dict], None] | None = None):
         self.cfg = config
         self.dt = config.loop.period_s
-        pfile = config.controller.parameters_file
-        self.params = Parameters.from_file(resolve(config, pfile)) if pfile else Parameters()
+        pfile, mfile = config.controller.parameters_file, config.controller.model_file
+        self.refined = load_refined_model(resolve(config, mfile)) if mfile else None
+        self.params = (self.refined.parameters if self.refined is not None else
+                       Parameters.from_file(resolve(config, pfile)) if pfile else Parameters())
         self.tick_hook = tick_hook
         self._lock = threading.Lock()
         self._stop_requests = 0
@@ -156,7 +159,8 @@ class Daemon:
         names = [c.name] + [f for f in c.fallback if f != c.name]
         chain = []
         for i, name in enumerate(names):
-            ctrl = load_controller(name, self.params, self.dt, c.settings if i == 0 else None)
+            ctrl = load_controller(name, self.params, self.dt, c.settings if i == 0 else None,
+                                   model=self.refined if name == "mpc" else None)
             if i == 0 and any(f.target == "controller" for f in self.cfg.faults):
                 ctrl = FaultInjectingController(ctrl, self.cfg.faults, clock=lambda: self.time_s)
             chain.append((name, ctrl))

@@ -8,6 +8,6 @@
 """
 
 from .api import identify
-from .model_file import load_identification_extras, load_model_file, write_model_file
+from .model_file import load_identification_extras, load_model_file, load_refined_model, write_model_file
 
-__all__ = ["identify", "load_model_file", "load_identification_extras", "write_model_file"]
+__all__ = ["identify", "load_model_file", "load_refined_model", "load_identification_extras", "write_model_file"]

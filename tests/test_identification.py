@@ -18,7 +18,7 @@ from hvac_mpc.identification import thesis_data as td
 from hvac_mpc.identification import thesis_tables
 from hvac_mpc.identification.generator import simulate_log
 from hvac_mpc.identification.log_data import LogDataError, prepare
-from hvac_mpc.identification.pipeline import identify
+from hvac_mpc.identification.pipeline import DOCUMENTED_EFFECTS, identify
 from hvac_mpc.models import HvacModel, Parameters
 from hvac_mpc.models.measurement_log import LogFormatError, write_log
 
@@ -207,7 +207,8 @@ def test_command_reads_a_lab_log_through_a_column_mapping(tmp_path, capsys):
                "--out", str(out), "--quick", "--no-plots", "--quiet"])
     assert rc == 0
     assert "effects added: none" in capsys.readouterr().out
-    assert load_model_file(out / "model.toml")[1] == ()
+    # the command starts from the documented physics (PTC fall, fan curve, leaks) and adds nothing to it
+    assert load_model_file(out / "model.toml")[1] == DOCUMENTED_EFFECTS
     assert (out / "report.md").exists() and (out / "summary.json").exists()
 
 
