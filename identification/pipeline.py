@@ -275,23 +275,19 @@ def _output_share(fitter: Fitter, worse: Fit, better: Fit, output: str) -> float
     return float((c_w[j] - c_b[j]) / excess) if excess > 0.1 * n[j] else 0.0
 
 
-def _bic_change(fitter: Fitter, new: Fit, current: Fit, q: int) -> float:
-    """Change of the information criterion on the training rows (negative: the new structure is worth
-    its q parameters): sum over outputs of n_eff,o ln(C_new,o / C_cur,o) + q ln(n_eff), where n_eff,o is
-    the effective sample size of the current residual of output o (an autocorrelated residual would
-    otherwise count every row as independent evidence) and n_eff their mean; costs are floored at
-    their noise expectation. BIC form (Schwarz)."""
-    train = fitter.log.train
+def _bic_change(fitter: Fitter, new: Fit, current: Fit, q: int, output: str = "supply_temp_c") -> float:
+    """Change of the information criterion on the training rows of ``output`` (the candidate's primary
+    output; negative: the new structure is worth its q parameters): n_eff ln(C_new / C_cur) + q ln(n_eff),
+    BIC form (Schwarz). C is the output's scaled training cost floored at its noise expectation (a cost
+    below it carries no evidence); n_eff the effective sample size of its current residual, since an
+    autocorrelated residual would otherwise count every row as independent evidence. The other outputs
+    are guarded by the held-out gate (the total held-out error must fall)."""
     c_new, n = fitter.output_costs(new.y, "train")
     c_cur, _ = fitter.output_costs(current.y, "train")
-    total, n_effs = 0.0, []
-    for j in range(len(fitter.outputs)):
-        e = (fitter.y_meas[:, j] - current.y[:, j])[train]
-        n_eff = st.effective_n(e)
-        n_effs.append(n_eff)
-        # a cost below the noise expectation n_o carries no evidence: floor both at n_o
-        total += n_eff * np.log(max(c_new[j], n[j], 1e-300) / max(c_cur[j], n[j], 1e-300))
-    return float(total + q * np.log(max(np.mean(n_effs), 2.0)))
+    j = fitter.outputs.index(output)
+    n_eff = max(st.effective_n((fitter.y_meas[:, j] - current.y[:, j])[fitter.log.train]), 2.0)
+    ratio = max(c_new[j], n[j]) / max(c_cur[j], n[j], 1e-300)
+    return float(n_eff * np.log(ratio) + q * np.log(n_eff))
 
 
 def _holdout_correction(fitter: Fitter, fit: Fit, current: Fit) -> np.ndarray:
@@ -346,7 +342,7 @@ def _score_round(fitter: Fitter, current: Fit, current_free, lib, rnd: int, say,
         excess = c_o[jp] - n_o[jp]
         res.explained_primary = ((c_o[jp] - c_new[jp]) / excess) if excess > 0.1 * n_o[jp] else float("nan")
         res.dof = {"delay": 1, "bias": 2}.get(cand.kind, len(res.params) or len(cand.params))
-        res.bic_change = _bic_change(fitter, fit, current, res.dof)
+        res.bic_change = _bic_change(fitter, fit, current, res.dof, res.primary_output)
     return results
 
 
@@ -407,7 +403,7 @@ def _polish(fitter: Fitter, current: Fit, free, pairs: list, quick: bool) -> lis
     def task(i):
         r, cand = pairs[i]
         fit = fitter.fit(r.fit.effects, r.fit.p, list(free) + [fp for fp in cand.params], r.fit.post,
-                         max_nfev=8 if quick else 12, terms=current.terms,
+                         max_nfev=6 if quick else 8, terms=current.terms,
                          bias_outputs=[cand.output] if cand.kind == "bias" else ())
         if not fit.cost_train < r.fit.cost_train:
             fit = r.fit
@@ -482,7 +478,7 @@ def _forward(fitter: Fitter, nominal: Fit, free: list[FreeParam], lib, max_effec
                     r.delay_s = polished.post.delays[cand.output] * fitter.log.dt_s
                 if cand.kind == "bias":
                     r.bias = polished.post.bias[cand.output]
-            r.bic_change = _bic_change(fitter, r.fit, current, r.dof)
+            r.bic_change = _bic_change(fitter, r.fit, current, r.dof, r.primary_output)
             r.lr = nll_current - nll
             r.p_value = float(stats.chi2.sf(r.lr, r.dof)) if r.lr > 0 else 1.0
             r.p_threshold = ALPHA / m
@@ -582,7 +578,7 @@ def _discover(fitter: Fitter, current: Fit, free: list[FreeParam], quick: bool, 
     q = len(term.features)
     record.update({"term": term.as_dict(), "formula": term.formula(), "words": term.description,
                    "explained_holdout": gain, "bic_change": _bic_change(fitter, fit, current, q)})
-    if gain < FORWARD_MIN or not record["bic_change"] < 0:
+    if gain < FORWARD_MIN or not record["bic_change"] < 0 or not fit.cost_holdout < current.cost_holdout:
         record["accepted"] = False
         notes.append(f"discovery: term {term.formula()} rejected (removes {100 * gain:.0f} % of the held-out "
                      f"structure, information criterion {record['bic_change']:+.1f})")
