@@ -59,6 +59,9 @@ def compare(model_path: str | Path, variant: str, scenarios: Sequence[Scenario],
         better = closed_loop_iae(sc, MpcController(settings=settings, model=refined), variant, seed)
         out["scenarios"][sc.name] = {"nominal": nominal, "refined": better,
                                      "ratio": better["temp_iae_cs"] / max(nominal["temp_iae_cs"], 1e-12)}
+    total = {k: {f: sum(r[k][f] for r in out["scenarios"].values()) for f in ("temp_iae_cs", "air_temp_iae_cs")}
+             for k in ("nominal", "refined")}
+    out["total"] = dict(total, ratio=total["refined"]["temp_iae_cs"] / max(total["nominal"]["temp_iae_cs"], 1e-12))
     return out
 
 
@@ -71,7 +74,7 @@ def markdown(cmp: dict) -> list[str]:
              f"(hvac_mpc.mismatch), seed {cmp['seed']}; temperature IAE on the noise-free thermocouple reading.", "",
              "| scenario | IAE nominal (C s) | IAE refined (C s) | refined / nominal | air IAE nominal | air IAE refined |",
              "|---|---|---|---|---|---|"]
-    for name, r in cmp["scenarios"].items():
+    for name, r in list(cmp["scenarios"].items()) + [("all scenarios", cmp["total"])]:
         lines.append(f"| {name} | {r['nominal']['temp_iae_cs']:.1f} | {r['refined']['temp_iae_cs']:.1f} | "
                      f"{r['ratio']:.3f} | {r['nominal']['air_temp_iae_cs']:.1f} | {r['refined']['air_temp_iae_cs']:.1f} |")
     return lines

@@ -1,6 +1,8 @@
 """Refining the model from measured data: residuals, diagnostics, candidate effects, refit.
 
-- :func:`load_model_file` reads the model file ``hvac-mpc identify`` writes: ``(Parameters, effects)``.
+- :func:`load_model_file` reads the model file ``hvac-mpc identify`` writes: ``(Parameters, effects)``;
+  :func:`load_refined_model` reads all of it (parameters with the delay, effects, discovered terms),
+  validated (the format is :mod:`hvac_mpc.models.model_file`).
 - :func:`~hvac_mpc.identification.pipeline.identify` runs the procedure on a prepared log
   (:func:`~hvac_mpc.identification.log_data.load`).
 - :func:`~hvac_mpc.identification.generator.simulate_log` makes logs with the simulated plant.

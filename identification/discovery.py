@@ -32,8 +32,14 @@ from .simulator import shift
 
 #: Share of the held-out supply error (sum of squares) each kept feature must remove.
 MIN_STEP_GAIN = 0.05
+#: Features the selection may use (the whole vocabulary but the constant, which is always in).
+CANDIDATES = ("mix", "inlet", "inv_mass_flow", "mix_over_mass_flow", "inlet_minus_mix_over_mass_flow", "core_share",
+              "core_share_x_blower_out", "core_share_x_water", "mass_flow", "mix_x_mass_flow",
+              "heater_power_over_mass_flow")
 #: Most features in one term.
 MAX_FEATURES = 4
+#: Prefixes of the LARS path scored on the held-out rows (a term holds at most this many features).
+MAX_PATH = MAX_FEATURES
 
 
 def _lars_path(x: np.ndarray, y: np.ndarray):
@@ -80,7 +86,7 @@ def select(fitter: Fitter, fit: Fit, dy_free: np.ndarray | None = None) -> tuple
     j = fitter.outputs.index("supply_temp_c")
     resid = fitter.y_meas[:, j] - fit.y[:, j]
     view = sensor_view(fitter, fit, features(fitter, fit))
-    names = [k for k in view if k != "one"]
+    names = [k for k in view if k in CANDIDATES]
     x_all = np.column_stack([view[k] for k in names])
     base = np.column_stack([view["one"]] + ([dy_free] if dy_free is not None and dy_free.size else []))
     ok = np.isfinite(resid) & np.all(np.isfinite(x_all), axis=1) & np.all(np.isfinite(base), axis=1)
@@ -96,23 +102,24 @@ def select(fitter: Fitter, fit: Fit, dy_free: np.ndarray | None = None) -> tuple
     idx = sorted((k for k, e in enumerate(entered) if e is not None), key=lambda k: entered[k])
     order = [names[i] for i in np.flatnonzero(usable)[idx]]
     record = {"path_order": order, "steps": []}
-    chosen: list[str] = []
-    coef = np.zeros(0)
     c0, *_ = np.linalg.lstsq(base[tr], resid[tr], rcond=None)
-    sse_prev = float(np.sum((resid[ho] - base[ho] @ c0) ** 2))
-    record["holdout_sse_start"] = sse_prev
-    for name in order:
-        trial = chosen + [name]
-        a = np.column_stack([view[k] for k in trial] + [base])
+    sse_start = float(np.sum((resid[ho] - base[ho] @ c0) ** 2))
+    record["holdout_sse_start"] = sse_start
+    fits = []
+    for k in range(1, min(len(order), MAX_PATH) + 1):  # every prefix of the path, scored on the held-out rows
+        a = np.column_stack([view[f] for f in order[:k]] + [base])
         c, *_ = np.linalg.lstsq(a[tr], resid[tr], rcond=None)
         sse = float(np.sum((resid[ho] - a[ho] @ c) ** 2))
-        gain = (sse_prev - sse) / max(sse_prev, 1e-300)
-        record["steps"].append({"feature": name, "holdout_sse": sse, "gain": gain})
-        if gain < MIN_STEP_GAIN:
-            break
-        chosen, coef, sse_prev = trial, c[:len(trial) + 1], sse
-        if len(chosen) >= MAX_FEATURES:
-            break
+        fits.append((order[:k], c[:k + 1], sse))
+        record["steps"].append({"features": order[:k], "holdout_sse": sse})
+    chosen: list[str] = []
+    coef = np.zeros(0)
+    if fits:
+        best = min(sse for _, _, sse in fits)
+        if best <= (1.0 - MIN_STEP_GAIN) * sse_start:
+            # the smallest prefix within MIN_STEP_GAIN of the best improvement
+            limit = best + MIN_STEP_GAIN * (sse_start - best)
+            chosen, coef, _ = next(f for f in fits if f[2] <= limit)
     return chosen, coef, record
 
 

@@ -66,6 +66,8 @@ DISCOVERY_ALTERNATIONS = 2
 WORKERS = 2
 #: Share of the held-out structure a forward step must remove (each kept effect, in the backward pass too).
 FORWARD_MIN = 0.1
+#: The same for an output offset with drift (a generic two-parameter correction must earn more).
+BIAS_MIN = 0.3
 #: Correlation of two candidates' held-out corrections above which they explain the same residual.
 SAME_RESIDUAL_CORR = 0.9
 #: Largest transport delay scanned, s.
@@ -415,11 +417,12 @@ def _gate(r: CandidateResult) -> str:
     """Why a scored candidate cannot be the forward step ('' if it can)."""
     if not r.explained_holdout > 0:
         return "does not lower the held-out error with the nominal parameters refit together with it"
-    if not r.explained_primary >= FORWARD_MIN:
+    need = BIAS_MIN if r.kind == "bias" else FORWARD_MIN
+    if not r.explained_primary >= need:
         return (f"its primary output {r.primary_output} carries no held-out structure"
                 if not np.isfinite(r.explained_primary) else
                 f"removes {100 * r.explained_primary:.0f} % of the held-out structure of its primary output "
-                f"{r.primary_output} (needs {100 * FORWARD_MIN:.0f} %)")
+                f"{r.primary_output} (needs {100 * need:.0f} %)")
     if not r.bic_change < 0:
         return f"information criterion on the training rows does not fall (change {r.bic_change:+.1f})"
     return ""
@@ -561,7 +564,7 @@ def _discover(fitter: Fitter, current: Fit, free: list[FreeParam], quick: bool, 
     chosen, coef, record = discovery.select(fitter, current, dy[:, fitter.outputs.index("supply_temp_c"), :])
     record["structure_before"] = ratios
     if not chosen:
-        notes.append("discovery: no feature lowers the held-out supply error by "
+        notes.append("discovery: no prefix of the LARS path lowers the held-out supply error by "
                      f"{100 * discovery.MIN_STEP_GAIN:.0f} % (LARS path order: {record['path_order'][:5]})")
         return current, record
     term = discovery.term_from(chosen, coef)

@@ -274,6 +274,8 @@ def _markdown(res: IdentificationResult, data: dict, model_name: str) -> list[st
             md.append(f"- **{a.name}**: {a.description} ({a.source}); {what}. {a.reason}.")
     else:
         md.append("- No effect of the library was added.")
+    for t in res.terms:
+        md.append(f"- **discovered term {t.name}** (not in the library): {t.description}; `{t.formula()}`.")
     md += ["", f"Effects to enable: `{list(res.effects)}`; model file: `{model_name}` (load with "
            "`hvac_mpc.identification.load_model_file`).", ""]
     if res.extras:
@@ -294,7 +296,7 @@ def _markdown(res: IdentificationResult, data: dict, model_name: str) -> list[st
         for loc in res.localisation:
             md.append(f"- Held-out error {loc['structure_holdout']:.1f}x the noise variance: "
                       f"{localise.describe(loc)}.")
-        if not res.accepted:
+        if not res.accepted and not res.terms:
             md.append("- No candidate effect is claimed for this residual.")
         md.append("")
     plots = data["plots"]
