@@ -266,6 +266,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="mismatch: both controllers on every variant of the independent simulator "
                              "(hvac_mpc.mismatch) on the cooling, heating and proband scenarios; a matrix of "
                              "MPC/baseline ratios")
+    parser.add_argument("--model", metavar="FILE", default=None,
+                        help="model file (hvac-mpc identify): also run the MPC with this refined model against the "
+                             "nominal MPC on the independent box --model-plant (section in the report)")
+    parser.add_argument("--model-plant", metavar="VARIANT", default="nominal",
+                        help="hvac_mpc.mismatch variant the --model comparison runs on (default: nominal)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -280,6 +285,9 @@ def run(args: argparse.Namespace) -> int:
             plant_factory = plant_seam.load_factory(args.plant)
         chosen = scenario_defs.select(args.scenario, quick=args.quick)
         factories = {"baseline": baseline_factory(), "mpc": mpc_factory(mpc_parameters(args))}
+        if args.model:
+            from . import refined_model
+            refined_model.check(args.model, args.model_plant)
     except (ValueError, RuntimeError, OSError, KeyError) as exc:
         print(f"hvac-mpc bench: {exc}", file=sys.stderr)
         return 2
@@ -300,6 +308,8 @@ def run(args: argparse.Namespace) -> int:
                             "python": platform.python_version()})
     out = Path(args.out)
     notes = write_outputs(results, traces, out, plots=not args.no_plots)
+    if args.model:
+        refined_model.add_to_outputs(refined_model.compare(args.model, args.model_plant, chosen, args.seed), out)
     print(report.terminal_table(results))
     for n in notes:
         print(n)
@@ -373,4 +383,6 @@ def _argv_from(args: argparse.Namespace) -> list[str]:
         argv += ["--mpc-params", args.mpc_params]
     if getattr(args, "suite", None):
         argv += ["--suite", args.suite]
+    if getattr(args, "model", None):
+        argv += ["--model", str(args.model), "--model-plant", args.model_plant]
     return argv

@@ -49,6 +49,7 @@ from hvac_mpc.models.plant import Environment, SimulatedPlant  # noqa: E402
 
 from hvac_mpc.contract import Command
 from hvac_mpc.mpc.ipopt_reference import IpoptReferenceSolver  # noqa: E402
+from hvac_mpc.models.model_file import load as load_model_file  # noqa: E402
 from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings  # noqa: E402
 from hvac_mpc.mpc.ocp import TrackingProblem  # noqa: E402
 from hvac_mpc.contract import Reference  # noqa: E402
@@ -160,6 +161,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threads", type=int, default=2, choices=(1, 2), help="cores to use (default 2)")
     parser.add_argument("--json", type=Path, default=Path("solve_time.json"), help="where to write the results")
     parser.add_argument("--no-ipopt", action="store_true", help="skip the IPOPT reference")
+    parser.add_argument("--model", metavar="FILE", default=None,
+                        help="model file (hvac-mpc identify): every controller predicts with this refined model")
     parser.add_argument("--no-dompc", action="store_true", help="skip do-mpc")
     parser.add_argument("--no-fatrop", action="store_true", help="skip fatrop")
     parser.add_argument("--jit", action="store_true",
@@ -180,6 +183,12 @@ def run(args: argparse.Namespace) -> int:
     if not 1 <= cost_seeds <= 20:
         print(f"--cost-seeds must be in [1, 20], got {cost_seeds}")
         return 2
+    if getattr(args, "model", None):
+        try:
+            load_model_file(args.model)
+        except (ValueError, FileNotFoundError) as exc:
+            print(f"--model: {exc}")
+            return 2
     saved = os.sched_getaffinity(0) if hasattr(os, "sched_setaffinity") else None
     if saved is not None:
         os.sched_setaffinity(0, sorted(saved)[:args.threads])
@@ -192,12 +201,13 @@ def run(args: argparse.Namespace) -> int:
 
 def _run(args: argparse.Namespace, steps: int, cost_seeds: int) -> int:
     rti_settings = MpcSettings(codegen=not getattr(args, "no_codegen", False))
-    make_rti = lambda: MpcController(settings=rti_settings)  # noqa: E731
+    model = load_model_file(args.model) if getattr(args, "model", None) else None
+    make_rti = lambda: MpcController(settings=rti_settings, model=model)  # noqa: E731
     # the reference must not be cut short by the real-time deadline
     ipopt_settings = MpcSettings(solver="ipopt", deadline_s=600.0)
     jit = bool(getattr(args, "jit", False))
     make_ipopt = lambda: MpcController(  # noqa: E731
-        settings=ipopt_settings, solver_factory=lambda pb: IpoptReferenceSolver(
+        settings=ipopt_settings, model=model, solver_factory=lambda pb: IpoptReferenceSolver(
             pb, tol=ipopt_settings.ipopt_tol, max_iter=ipopt_settings.ipopt_max_iter, jit=jit))
     contenders: list[tuple[str, Callable[[], MpcController]]] = [("rti", make_rti)]
     notes = []
@@ -212,7 +222,7 @@ def _run(args: argparse.Namespace, steps: int, cost_seeds: int) -> int:
         try:
             from .dompc_reference import DoMpcSolver, _import_do_mpc
             _import_do_mpc()
-            contenders.append(("do-mpc", lambda: MpcController(settings=MpcSettings(deadline_s=600.0),
+            contenders.append(("do-mpc", lambda: MpcController(settings=MpcSettings(deadline_s=600.0), model=model,
                                                                solver_factory=lambda pb: DoMpcSolver(pb))))
         except ImportError as exc:
             notes.append(f"do-mpc skipped: {exc}")

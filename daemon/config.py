@@ -254,6 +254,8 @@ class ControllerConfig(_Section):
     fallback: list[str] = _f(["baseline"], "controllers tried in order when the primary fails or misses its "
                                            "deadline; the safe command always comes last")
     parameters_file: str = _f("", "model parameters (TOML/JSON, hvac_mpc.models.parameters); '' = defaults")
+    model_file: str = _f("", "refined model file (hvac-mpc identify: parameters, effects, discovered terms) for "
+                             "'mpc'; its parameters replace parameters_file; '' = none")
     settings: dict[str, Any] = _f({}, "keyword arguments of the controller's settings (MpcSettings for 'mpc')")
 
     @field_validator("name", "fallback")

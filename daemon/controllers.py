@@ -30,12 +30,13 @@ class ControllerLoadError(ValueError):
     """The configured controller cannot be found or built; the message says which and why."""
 
 
-def load_controller(spec: str, params: Parameters, dt_s: float, settings: Mapping[str, Any] | None = None
-                    ) -> Controller:
+def load_controller(spec: str, params: Parameters, dt_s: float, settings: Mapping[str, Any] | None = None,
+                    model: Any = None) -> Controller:
     """Build a registered controller by name: 'mpc', 'baseline' or a plug-in's entry-point name.
 
-    'mpc' gets ``MpcController(params, MpcSettings(**settings))``; 'baseline' gets
-    ``BaselineController(params, dt_s)``; a plug-in class gets ``Class(params=..., dt_s=..., **settings)``.
+    'mpc' gets ``MpcController(params, MpcSettings(**settings), model=model)`` (``model``: a refined
+    model from a model file, or None); 'baseline' gets ``BaselineController(params, dt_s)``; a plug-in
+    class gets ``Class(params=..., dt_s=..., **settings)``.
     """
     settings = dict(settings or {})
     known = registered_controllers()
@@ -51,6 +52,8 @@ def load_controller(spec: str, params: Parameters, dt_s: float, settings: Mappin
             settings_cls = getattr(importlib.import_module(cls.__module__), "MpcSettings")
             if "dt_s" in getattr(settings_cls, "__dataclass_fields__", {}) and "dt_s" not in settings:
                 settings["dt_s"] = dt_s
+            if model is not None:
+                return cls(params, settings_cls(**_nested(settings_cls, settings)), model=model)
             return cls(params, settings_cls(**_nested(settings_cls, settings)))
         if spec == "baseline":
             return cls(params, dt_s=dt_s, **settings)

@@ -41,6 +41,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from hvac_mpc.models.measurement_log import COLUMNS
+from hvac_mpc.models.model_file import load as load_refined_model
 from hvac_mpc.models.parameters import Parameters
 from hvac_mpc.contract import EXTRA_SIGNALS, Command, Measurement
 from hvac_mpc.contract import Reference
@@ -117,9 +118,11 @@ class Daemon:
         self.cfg = config
         self.dt = config.loop.period_s
         self.monitor_settings = monitor or MonitorSettings()
-        pfile = config.controller.parameters_file
-        model = read_model(str(resolve(config, pfile)) if pfile else "", self.dt, self.monitor_settings)
-        self.params = model.params
+        pfile, mfile = config.controller.parameters_file, config.controller.model_file
+        self.refined = load_refined_model(resolve(config, mfile)) if mfile else None
+        source = mfile or pfile
+        model = read_model(str(resolve(config, source)) if source else "", self.dt, self.monitor_settings)
+        self.params = self.refined.parameters if self.refined is not None else model.params
         self.tick_hook = tick_hook
         self._lock = threading.Lock()
         self._stop_requests = 0
@@ -197,7 +200,8 @@ class Daemon:
         names = [primary] + [f for f in c.fallback if f != primary]
         chain = []
         for i, name in enumerate(names):
-            ctrl = load_controller(name, params or self.params, self.dt, c.settings if name == c.name else None)
+            ctrl = load_controller(name, params or self.params, self.dt, c.settings if name == c.name else None,
+                                   model=self.refined if name == "mpc" and params is None else None)
             if i == 0 and any(f.target == "controller" for f in self.cfg.faults):
                 ctrl = FaultInjectingController(ctrl, self.cfg.faults, clock=lambda: self.time_s)
             chain.append((name, ctrl))

@@ -15,6 +15,7 @@ import logging
 import math
 import signal
 import sys
+from pathlib import Path
 
 from .config import ConfigError, load_config
 
@@ -24,6 +25,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--speedup", help="override loop.speedup (a factor, or 'max' for as fast as possible)")
     parser.add_argument("--max-ticks", type=int, help="override loop.max_ticks (stop after N samples)")
     parser.add_argument("--log", metavar="CSV", help="override log.path")
+    parser.add_argument("--model", metavar="FILE",
+                        help="refined model file (hvac-mpc identify) for the MPC: override controller.model_file")
     parser.add_argument("--verbose", "-v", action="store_true", help="log every mode change")
     parser.add_argument("--example-config", action="store_true", help="print a commented configuration and exit")
     parser.add_argument("--soak", type=float, metavar="HOURS",
@@ -50,7 +53,16 @@ def _overrides(cfg, args):
         loop = loop.replace(max_ticks=args.max_ticks)
     if args.log:
         log = log.replace(path=args.log)
-    return cfg.model_copy(update={"loop": loop, "log": log})
+    controller = cfg.controller
+    if getattr(args, "model", None):
+        from hvac_mpc.models.model_file import ModelFileError, load
+
+        try:
+            load(args.model)
+        except (ModelFileError, FileNotFoundError) as exc:
+            raise ConfigError(f"--model: {exc}") from None
+        controller = controller.replace(model_file=str(Path(args.model).resolve()))
+    return cfg.model_copy(update={"loop": loop, "log": log, "controller": controller})
 
 
 def run(args: argparse.Namespace) -> int:

@@ -2,7 +2,9 @@
 
 The procedure and its statistics: docs/identification.md.
 
-- :func:`load_model_file` reads the model file ``hvac-mpc identify`` writes: ``(Parameters, effects)``.
+- :func:`load_model_file` reads the model file ``hvac-mpc identify`` writes: ``(Parameters, effects)``;
+  :func:`load_refined_model` reads all of it (parameters with the delay, effects, discovered terms),
+  validated (the format is :mod:`hvac_mpc.models.model_file`).
 - :func:`~hvac_mpc.identification.pipeline.identify` runs the procedure on a prepared log
   (:func:`~hvac_mpc.identification.log_data.load`).
 - :func:`~hvac_mpc.identification.generator.simulate_log` makes logs with the simulated plant.
@@ -10,6 +12,6 @@ The procedure and its statistics: docs/identification.md.
 """
 
 from .api import identify
-from .model_file import load_identification_extras, load_model_file, write_model_file
+from .model_file import load_identification_extras, load_model_file, load_refined_model, write_model_file
 
-__all__ = ["identify", "load_model_file", "load_identification_extras", "write_model_file"]
+__all__ = ["identify", "load_model_file", "load_refined_model", "load_identification_extras", "write_model_file"]

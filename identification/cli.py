@@ -63,7 +63,7 @@ def _run_log(args, say) -> int:
 
     from . import log_data
     from .model_file import load_model_file
-    from .pipeline import identify
+    from .pipeline import DOCUMENTED_EFFECTS, identify
     from .report import write_report
 
     if not 0 <= args.max_effects <= 6:
@@ -71,7 +71,7 @@ def _run_log(args, say) -> int:
     path = Path(args.log)
     if not path.exists():
         raise FileNotFoundError(f"log file {path} does not exist")
-    base, effects = (load_model_file(args.params) if args.params else (Parameters(), ()))
+    base, effects = (load_model_file(args.params) if args.params else (Parameters(), DOCUMENTED_EFFECTS))
     t0 = time.perf_counter()
     log = log_data.load(path, _mapping(args.map), args.holdout_fraction)
     say(f"{log.n} rows, outputs {', '.join(log.output_names())}")
@@ -80,6 +80,10 @@ def _run_log(args, say) -> int:
     files = write_report(res, out, plots=not args.no_plots)
     added = [a.name for a in res.accepted] or ["none"]
     print(f"effects added: {', '.join(added)}")
+    for term in res.terms:
+        print(f"  discovered term {term.name}: {term.formula()}")
+    if res.timing_shift_samples:
+        print(f"  {next(n for n in res.notes if n.startswith('log timing'))}")
     for o, e in res.holdout_errors().items():
         print(f"  held-out {o}: RMS {e['rms_before']:.4g} -> {e['rms_after']:.4g}, "
               f"max {e['max_before']:.4g} -> {e['max_after']:.4g}")

@@ -41,7 +41,7 @@ def regressors(fitter: Fitter, fit: Fit) -> dict[str, np.ndarray]:
         if name in MODEL_OUTPUTS:
             continue
         out[name] = col
-    sim = fitter.simulator(fit.effects)
+    sim = fitter.simulator(fit.effects, fit.terms)
     out.update(sim.internals(fit.p, fit.states))
     n = log.n
     pb = log.u[:, INPUTS.index("blower_power_w")]
@@ -82,12 +82,38 @@ def structure_ratio(fitter: Fitter, fit: Fit, part: str = "holdout") -> dict[str
 
 def innovations_nll(fitter: Fitter, fit: Fit) -> tuple[np.ndarray, np.ndarray, float]:
     """EKF innovations, variances and the training negative log-likelihood (x2, constants dropped)."""
-    sim = fitter.simulator(fit.effects)
+    sim = fitter.simulator(fit.effects, fit.terms)
     nu, s = sim.innovations(fit.p, fitter.y_meas, fitter.sigma ** 2, fit.post)
     train = fitter.log.train
     ok = np.isfinite(nu) & train[:, None]
     nll = float(np.sum(np.where(ok, nu ** 2 / s + np.log(s), 0.0)))
     return nu, s, nll
+
+
+def holdout_tests(fitter: Fitter, fit: Fit, nu: np.ndarray, s: np.ndarray) -> dict:
+    """Residual tests on the held-out rows, per output: Ljung-Box whiteness of the EKF innovations
+    and the cross-correlation of the free-run residual with each command and the inlet temperature
+    (lags 0..25, 99 % coloured-signal band, joint chi2 test)."""
+    log = fitter.log
+    ho = log.holdout
+    signals = {name: log.u[:, i] for i, name in enumerate(INPUTS)}
+    signals["hvac_inlet_temp_c"] = log.inlet_temp_c
+    out = {}
+    for j, o in enumerate(fitter.outputs):
+        e = (fitter.y_meas[:, j] - fit.y[:, j])[ho]
+        if np.sum(np.isfinite(e)) < 100 or np.nanstd(e) == 0:
+            continue
+        wt = st.ljung_box((nu[:, j] / np.sqrt(s[:, j]))[ho])
+        rec = {"ljung_box_q": wt.q, "threshold": wt.threshold, "p_value": wt.p_value, "white": wt.white,
+               "acf_band": wt.band, "ccf": {}}
+        for name, z in signals.items():
+            if np.nanstd(z[ho]) == 0:
+                continue
+            cc = st.cross_correlation(e, z[ho])
+            rec["ccf"][name] = {"peak_ratio": cc.peak_ratio, "peak_lag": cc.peak_lag, "zeta": cc.zeta, "dof": cc.dof,
+                                "p_value": cc.p_value, "independent": bool(cc.p_value >= 0.01)}
+        out[o] = rec
+    return out
 
 
 def diagnose(fitter: Fitter, fit: Fit, top: int = 8) -> dict:
@@ -99,6 +125,7 @@ def diagnose(fitter: Fitter, fit: Fit, top: int = 8) -> dict:
     out: dict = {"metrics": metrics(fitter, fit), "structure_holdout": structure_ratio(fitter, fit, "holdout"),
                  "structure_train": structure_ratio(fitter, fit, "train"), "ekf_nll_train": nll,
                  "whiteness": {}, "ccf": {}, "binned": {}, "steps": {}}
+    out["holdout_tests"] = holdout_tests(fitter, fit, nu, s)
     for j, o in enumerate(fitter.outputs):
         e = (fitter.y_meas[:, j] - fit.y[:, j])[train]
         if np.nanstd(e) == 0 or np.sum(np.isfinite(e)) < 100:

@@ -77,6 +77,7 @@ class Fit:
     nfev: int = 0
     message: str = ""
     extra: dict = field(default_factory=dict)
+    terms: tuple = ()             # discovered terms (models/discovered.py) in the structure
 
     def residual(self, y_meas: np.ndarray) -> np.ndarray:
         return y_meas - self.y
@@ -96,10 +97,10 @@ class Fitter:
         self.names = Parameters.scalar_names()
         self._sims: dict[frozenset, Simulator] = {}
 
-    def simulator(self, effects: Iterable[str]) -> Simulator:
-        key = frozenset(effects)
+    def simulator(self, effects: Iterable[str], terms: tuple = ()) -> Simulator:
+        key = (frozenset(effects), tuple(terms))
         if key not in self._sims:
-            self._sims[key] = Simulator(self.log, self.base, key, self.outputs)
+            self._sims[key] = Simulator(self.log, self.base, key[0], self.outputs, key[1])
         return self._sims[key]
 
     # ------------------------------------------------------------------ costs
@@ -128,20 +129,21 @@ class Fitter:
         return int(ok[self.log.train].sum()), int(ok[self.log.holdout].sum())
 
     def evaluate(self, effects: Iterable[str], p: np.ndarray, post: OutputPost, free: Sequence[str] = (),
-                 nfev: int = 0, message: str = "") -> Fit:
-        sim = self.simulator(effects)
+                 nfev: int = 0, message: str = "", terms: tuple = ()) -> Fit:
+        sim = self.simulator(effects, terms)
         y, states = sim.simulate(p)
         y = post.apply(y)
         ct, ch = self.costs(y)
         nt, nh = self.counts()
-        return Fit(frozenset(effects), p.copy(), post.copy(), tuple(free), y, states, ct, ch, nt, nh, nfev, message)
+        return Fit(frozenset(effects), p.copy(), post.copy(), tuple(free), y, states, ct, ch, nt, nh, nfev, message,
+                   terms=tuple(terms))
 
     # ------------------------------------------------------------------ fitting
-    def identifiable(self, effects, p, post, free: Sequence[FreeParam]) -> list[FreeParam]:
+    def identifiable(self, effects, p, post, free: Sequence[FreeParam], terms: tuple = ()) -> list[FreeParam]:
         """Drop free parameters the training data barely excite (theta column norm < 1)."""
         if not free:
             return []
-        sim = self.simulator(effects)
+        sim = self.simulator(effects, terms)
         e = self._e_matrix(p, free)
         _, dy = sim.simulate_with_sensitivity(p, e)
         dy = post.apply(np.zeros(dy.shape[:2]), dy)[1]
@@ -149,6 +151,62 @@ class Fitter:
         ok = np.isfinite(self.y_meas) & self.log.train[:, None]
         norms = np.sqrt(np.sum(np.where(ok[:, :, None], scaled, 0.0) ** 2, axis=(0, 1)))
         return [fp for fp, nrm in zip(free, norms) if nrm >= 1.0]
+
+    def raw_sensitivity(self, effects, p: np.ndarray, free: Sequence[FreeParam], terms: tuple = ()) -> np.ndarray:
+        """dY/dtheta of the free run before the output corrections (n x n_y x len(free))."""
+        if not free:
+            return np.zeros((self.log.n, len(self.outputs), 0))
+        return self.simulator(effects, terms).simulate_with_sensitivity(p, self._e_matrix(p, free))[1]
+
+    def gn_step(self, effects, p0: np.ndarray, free: Sequence[FreeParam], dy_free: np.ndarray,
+                own: Sequence[FreeParam], post: OutputPost, bias_outputs: Sequence[str] = (), terms: tuple = (),
+                damping: float = 1e-2) -> Fit:
+        """One joint Gauss-Newton step from ``p0``: the free parameters (sensitivities ``dy_free``, taken
+        from the current model) and the candidate's own parameters (and offsets) together, evaluated by a
+        free run (the step halved up to twice while the training cost rises; no step at all if it still does). The score of a candidate with the nominal
+        parameters refit together with it, at the cost of about two free runs."""
+        sim = self.simulator(effects, terms)
+        post = post.copy()
+        for o in bias_outputs:
+            post.bias.pop(o, None)
+        y0, dy_own = sim.simulate_with_sensitivity(p0, self._e_matrix(p0, own)) if own else (sim.simulate(p0)[0], None)
+        cols = [dy_free] + ([dy_own] if own else [])
+        d = np.concatenate(cols, axis=2)
+        y0, d = post.apply(y0, d)
+        bias_idx = [self.outputs.index(o) for o in bias_outputs]
+        extra = []
+        for j in bias_idx:
+            block = np.zeros((self.log.n, len(self.outputs), 2))
+            block[:, j, 0] = self.sigma[j]
+            block[:, j, 1] = self.sigma[j] * post.ramp
+            extra.append(block)
+        if extra:
+            d = np.concatenate([d] + extra, axis=2)
+        ok = np.isfinite(self.y_meas) & self.log.train[:, None]
+        r = np.where(ok, (self.y_meas - y0) / self.sigma, 0.0)[self.log.train].ravel()
+        jm = np.where(ok[:, :, None], d / self.sigma[None, :, None], 0.0)[self.log.train].reshape(-1, d.shape[2])
+        jtj = jm.T @ jm
+        step = np.linalg.solve(jtj + damping * np.diag(np.diag(jtj) + 1e-12), jm.T @ r)
+        all_free = list(free) + list(own)
+        best = None
+        for scale in (1.0, 0.5, 0.25, 0.0):
+            theta = scale * step
+            p = p0.copy()
+            for k, fp in enumerate(all_free):
+                i = self.names.index(fp.name)
+                lo, hi = fp.bounds()
+                v = p0[i] * math.exp(np.clip(theta[k], -3.0, 3.0)) if fp.transform == "log" else p0[i] + fp.scale * theta[k]
+                p[i] = min(max(v, lo), hi)
+            trial = post.copy()
+            for k, j in enumerate(bias_idx):
+                b = len(all_free) + 2 * k
+                trial.bias[self.outputs[j]] = (float(theta[b] * self.sigma[j]), float(theta[b + 1] * self.sigma[j]))
+            fit = self.evaluate(effects, p, trial, [fp.name for fp in all_free], 1, "one Gauss-Newton step", terms)
+            if best is None or fit.cost_train < best.cost_train:
+                best = fit
+            if np.isfinite(fit.cost_train) and fit.cost_train <= float(r @ r):
+                break
+        return best
 
     def _e_matrix(self, p: np.ndarray, free: Sequence[FreeParam]) -> np.ndarray:
         e = np.zeros((len(self.names), len(free)))
@@ -159,11 +217,11 @@ class Fitter:
 
     def fit(self, effects: Iterable[str], p_start: np.ndarray, free: Sequence[FreeParam], post: OutputPost,
             bias_outputs: Sequence[str] = (), max_nfev: int | None = None,
-            only_outputs: Sequence[str] | None = None) -> Fit:
+            only_outputs: Sequence[str] | None = None, terms: tuple = ()) -> Fit:
         """Fit ``free`` model parameters (and offset+drift of ``bias_outputs``) on the training rows
         (of ``only_outputs`` when given, else of every logged output)."""
         effects = frozenset(effects)
-        sim = self.simulator(effects)
+        sim = self.simulator(effects, terms)
         free = list(free)
         p0 = p_start.copy()
         idx = [self.names.index(fp.name) for fp in free]
@@ -235,7 +293,7 @@ class Fitter:
         at_lo, at_hi = theta0 - lo_b < 1e-3 * width, hi_b - theta0 < 1e-3 * width
         theta0 = np.where(at_lo, lo_b + 0.02 * width, np.where(at_hi, hi_b - 0.02 * width, theta0))
         if len(theta0) == 0:
-            return self.evaluate(effects, p0, post)
+            return self.evaluate(effects, p0, post, terms=terms)
         max_nfev = max_nfev or (12 if self.quick else 40)
         sol = least_squares(resid, theta0, jac=jac, bounds=(lo_b, hi_b), method="trf", x_scale="jac",
                             max_nfev=max_nfev, ftol=1e-8, xtol=1e-8, gtol=1e-10)
@@ -243,6 +301,6 @@ class Fitter:
         for k, j in enumerate(bias_idx):
             post.bias[self.outputs[j]] = (float(sol.x[n_model + 2 * k] * self.sigma[j]),
                                           float(sol.x[n_model + 2 * k + 1] * self.sigma[j]))
-        fit = self.evaluate(effects, p, post, [fp.name for fp in free], sol.nfev, sol.message)
+        fit = self.evaluate(effects, p, post, [fp.name for fp in free], sol.nfev, sol.message, terms)
         fit.extra["theta"] = sol.x.tolist()
         return fit

@@ -16,6 +16,8 @@ import numpy as np
 from hvac_mpc.models.box import INPUTS
 from hvac_mpc.models.measurement_log import read_log
 
+from . import log_repair
+
 #: Logged outputs the model predicts (log column = model output name).
 MODEL_OUTPUTS = ("supply_temp_c", "volume_flow_m3s", "heater_outlet_temp_c", "heater_power_w")
 #: Allowed ranges of the logged commands (docs/model.md sec. 2; blower 0 W allowed for 'off').
@@ -55,6 +57,8 @@ class LogData:
     holdout: np.ndarray
     notes: list[str] = field(default_factory=list)
     source: str = ""
+    bad_rows: dict = field(default_factory=dict)
+    timing_shift_samples: int = 0
 
     @property
     def n(self) -> int:
@@ -94,17 +98,22 @@ def prepare(columns: Mapping[str, np.ndarray], holdout_fraction: float = 1 / 3, 
     if not 0.1 <= holdout_fraction <= 0.6:
         raise LogDataError(f"holdout_fraction = {holdout_fraction} is outside the allowed range [0.1, 0.6]")
     notes: list[str] = []
-    t = np.asarray(columns["time_s"], float)
+    if len(np.asarray(columns["time_s"])) < MIN_SAMPLES:
+        raise LogDataError(f"log has {len(columns['time_s'])} rows; identification needs at least {MIN_SAMPLES} "
+                           "(column time_s)")
+    t_raw = np.asarray(columns["time_s"], float)
+    steps = np.diff(np.sort(t_raw[np.isfinite(t_raw)]))
+    steps = steps[steps > 0]
+    dt = float(np.median(steps)) if len(steps) else 0.0
+    regular = steps[steps < 1.5 * dt]
+    if dt <= 0 or np.max(np.abs(regular - dt)) > 0.05 * dt:
+        raise LogDataError(f"column time_s: sampling must be uniform (median step {dt} s, steps range "
+                           f"{regular.min() if len(regular) else 0}..{regular.max() if len(regular) else 0} s); "
+                           "resample the log first")
+    columns, bad_rows = log_repair.repair(columns, INPUTS, dt)
+    notes += [f"bad rows: {line}" for line in log_repair.describe(bad_rows)]
+    t = columns["time_s"]
     n = len(t)
-    if n < MIN_SAMPLES:
-        raise LogDataError(f"log has {n} rows; identification needs at least {MIN_SAMPLES} (column time_s)")
-    dts = np.diff(t)
-    if not np.all(np.isfinite(t)) or np.any(dts <= 0):
-        raise LogDataError("column time_s must be finite and strictly increasing")
-    dt = float(np.median(dts))
-    if np.max(np.abs(dts - dt)) > 0.05 * dt:
-        raise LogDataError(f"column time_s: sampling must be uniform (median step {dt} s, "
-                           f"steps range {dts.min()}..{dts.max()} s); resample the log first")
     u = np.zeros((n, len(INPUTS)))
     for i, name in enumerate(INPUTS):
         col = np.asarray(columns[name], float)
@@ -159,7 +168,7 @@ def prepare(columns: Mapping[str, np.ndarray], holdout_fraction: float = 1 / 3, 
     idx = np.arange(n)
     train = (idx >= burn) & (idx < n_train_end)
     holdout = idx >= n_train_end
-    return LogData(t, dt, u, u_prev, inlet, sp, water, outputs, signals, train, holdout, notes, source)
+    return LogData(t, dt, u, u_prev, inlet, sp, water, outputs, signals, train, holdout, notes, source, bad_rows)
 
 
 def load(path: str | Path, mapping: Mapping[str, str] | None = None, holdout_fraction: float = 1 / 3) -> LogData:

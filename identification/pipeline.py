@@ -1,29 +1,31 @@
-"""From a measurement log to a refined model: fit, diagnose, score candidate effects, decide.
+"""From a measurement log to a refined model: fit, diagnose, select effects, discover terms, decide.
 
 Procedure (stated in the report):
 
-1. Split in time: after a 120 s burn-in, the first 2/3 of the log train, the last 1/3 is held
-   out (``holdout_fraction``). The initial state is the steady state at the first row.
-2. Fit the nominal model's free parameters (:data:`~.fitting.NOMINAL_FREE`, those the data
-   excite) on the training rows by free-run output error, each output scaled by its noise
-   level (estimated from the log's second differences): first the flow equation's parameters
-   on the volume flow alone, then the others on all outputs. Candidate fits refit all jointly.
-3. Diagnose the residuals (:mod:`.diagnostics`).
-4. Score every applicable candidate (:mod:`.candidates`): start from its null (or the best of a
-   small grid), refit it together with the free parameters on the training rows.
-5. Keep a candidate only if (a) the held-out rows carry structure beyond noise (scaled cost at
-   least 1.1 per sample on some output), (b) it removes at least half of that held-out
-   structure, summed over the outputs and on its own primary output (the first output of its
-   signature, the outputs where the effect must show if it is the cause, that is logged and
-   carries held-out structure), and (c) it is
-   significant on the training rows: likelihood ratio of the EKF one-step innovations
-   against chi2(q) at alpha = 0.01, Bonferroni-corrected over the candidates of the round.
-   Among those kept, take the one with the lowest held-out error; repeat with the rest.
-6. If structure remains and nothing fits, locate it (:mod:`.localise`) instead of naming an effect.
+1. Log checks (:mod:`.log_repair`, :mod:`.timing`): bad rows found, counted and masked; a constant
+   shift of the sensor columns against the commands found on the flow, reported and corrected.
+2. Split in time: after a 120 s burn-in, the first 2/3 of the log train, the last 1/3 is held
+   out. Fit the nominal model's free parameters (:data:`~.fitting.NOMINAL_FREE`, those the data
+   excite) on the training rows by free-run output error, each output scaled by its noise level:
+   first the flow equation's parameters on the volume flow alone, then the others on all outputs.
+3. Diagnose the residuals (:mod:`.diagnostics`), on the training and the held-out rows.
+4. Joint screening: every applicable candidate (:mod:`.candidates`) takes one Gauss-Newton step
+   together with the free parameters, so that a nominal refit cannot absorb it before it is scored.
+5. Forward selection: the best screened candidates are refit fully; a candidate is kept if it
+   lowers the held-out error, removes at least ``FORWARD_MIN`` of the held-out structure of its
+   primary output (the first output of its signature that is logged and carries structure), lowers
+   the information criterion on the training rows and passes the EKF likelihood-ratio test
+   (alpha = 0.01, Bonferroni over the round). Candidates whose held-out corrections correlate with
+   the kept one above ``SAME_RESIDUAL_CORR`` are reported as explaining the same residual.
+6. Term discovery (:mod:`.discovery`) when the supply temperature stays structured; one more
+   forward pass when a term was added; then a backward pass re-testing every kept effect.
+7. Whatever structure remains is located (:mod:`.localise`) instead of being named.
 """
 
 from __future__ import annotations
 
+import multiprocessing
+import os
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Iterable
@@ -34,12 +36,18 @@ from scipy import stats
 from hvac_mpc.models.box import MODEL_EFFECTS
 from hvac_mpc.models.parameters import Parameters
 
-from . import localise
+from . import discovery, localise, timing
+from . import statistics as st
 from .candidates import Candidate, library
 from .diagnostics import diagnose, innovations_nll
 from .fitting import FLOW_PARAMS, NOMINAL_FREE, Fit, Fitter, FreeParam
 from .log_data import LogData
-from .simulator import OutputPost, shift
+from .simulator import OutputPost, Simulator, shift
+
+#: The box's documented physics the identification starts from: the PTC power fall (thesis sec. 2.3)
+#: and the flow network (fan curve and closed-valve leaks, thesis sec. 3.2, tables 3-6); the
+#: controller's model carries them too (docs/identification.md).
+DOCUMENTED_EFFECTS = ("ptc_power_fall", "fan_curve", "valve_leakage")
 
 #: Decision thresholds (see the module docstring).
 ALPHA = 0.01
@@ -48,6 +56,20 @@ STRUCTURE_MIN = 1.1
 #: Share of the training structure a candidate must remove with its own parameters alone to be
 #: refitted jointly with the free parameters (screening).
 SCREEN_MIN = 0.05
+#: Function evaluations of a joint screening fit (the best candidates are then polished).
+SCREEN_NFEV = 3
+#: Candidates refit fully per round (the best after the joint screening step).
+POLISH = 2
+#: Alternations between the whole-model refit and the discovered term's coefficients.
+DISCOVERY_ALTERNATIONS = 2
+#: Processes scoring candidates side by side (the benchmark's budget is two cores).
+WORKERS = 2
+#: Share of the held-out structure a forward step must remove (each kept effect, in the backward pass too).
+FORWARD_MIN = 0.1
+#: The same for an output offset with drift (a generic two-parameter correction must earn more).
+BIAS_MIN = 0.3
+#: Correlation of two candidates' held-out corrections above which they explain the same residual.
+SAME_RESIDUAL_CORR = 0.9
 #: Largest transport delay scanned, s.
 MAX_DELAY_S = 30.0
 
@@ -77,6 +99,9 @@ class CandidateResult:
     dof: int = 0
     p_value: float = float("nan")
     p_threshold: float = float("nan")
+    bic_change: float = float("nan")      # information criterion with it minus without (training rows)
+    same_as: str = ""                     # candidate that explains the same residual
+    backward_share: float = float("nan")  # held-out structure its removal costs with the others in
     fit: Fit | None = None
 
     def summary(self) -> dict:
@@ -101,6 +126,10 @@ class IdentificationResult:
     extras: dict
     notes: list[str]
     timings: dict
+    terms: tuple = ()
+    discovery: dict | None = None
+    timing_shift_samples: int = 0
+    steps: list = field(default_factory=list)
 
     @property
     def sigma(self) -> dict[str, float]:
@@ -134,33 +163,38 @@ def _grid_start(fitter: Fitter, effects, p: np.ndarray, post: OutputPost, cand: 
 
 
 def _screen_and_fit(fitter: Fitter, current: Fit, free: list[FreeParam], effects, p0: np.ndarray,
-                    own: list[FreeParam], post: OutputPost, bias_outputs=()) -> tuple[Fit | None, str]:
-    """Screen with the candidate's own parameters only (cheap); refit jointly if it removes any
-    of the training structure (docs/identification.md, 'The loop': screen, then refit the promising few)."""
-    screen = fitter.fit(effects, p0, own, post, bias_outputs=bias_outputs, max_nfev=8) if (own or bias_outputs) \
-        else fitter.evaluate(effects, p0, post)
-    excess = fitter.structure(current.y, "train")
-    gain = (current.cost_train - screen.cost_train) / excess if excess > 0 else 0.0
-    if gain < SCREEN_MIN:
-        screen.extra["screened_out"] = gain
-        return screen, ""
-    return fitter.fit(effects, screen.p, free + list(own), screen.post, bias_outputs=bias_outputs), ""
+                    own: list[FreeParam], post: OutputPost, bias_outputs=(), flow_side: bool = False
+                    ) -> tuple[Fit | None, str]:
+    """Joint screening: the candidate's own parameters and the free parameters of the current model
+    take one Gauss-Newton step together (so a nominal refit cannot absorb the effect before it is
+    scored); the best candidates are refit fully afterwards (:func:`_forward`). The flow equation's
+    parameters join only for a candidate on the flow side (``flow_side``): they were fitted on the
+    measured flow alone, and a temperature-side step must not bend them (docs/identification.md, procedure step 2)."""
+    dy_free = current.extra.get("dy_free")
+    if dy_free is None:
+        dy_free = fitter.raw_sensitivity(current.effects, current.p, free, current.terms)
+        current.extra["dy_free"] = dy_free
+    keep = [k for k, fp in enumerate(free) if flow_side or fp.name not in FLOW_PARAMS]
+    return fitter.gn_step(effects, p0, [free[k] for k in keep], dy_free[:, :, keep], own, post, bias_outputs,
+                          current.terms), ""
 
 
 def _score_model(fitter: Fitter, current: Fit, free: list[FreeParam], cand: Candidate) -> tuple[Fit | None, str]:
     effects = current.effects | frozenset(cand.effects)
     p0 = _grid_start(fitter, effects, current.p, current.post, cand)
-    visible = fitter.identifiable(effects, p0, current.post, cand.params)
+    visible = fitter.identifiable(effects, p0, current.post, cand.params, current.terms)
     if not visible:
         return None, "its parameters do not change the logged outputs here (not observable)"
-    return _screen_and_fit(fitter, current, free, effects, p0, list(visible), current.post)
+    return _screen_and_fit(fitter, current, free, effects, p0, list(visible), current.post,
+                           flow_side="volume_flow_m3s" in cand.signature)
 
 
 def _score_delay(fitter: Fitter, current: Fit, free: list[FreeParam], cand: Candidate) -> tuple[Fit | None, str]:
     o = cand.output
     j = fitter.outputs.index(o)
-    sim = fitter.simulator(current.effects)
-    y_raw, _ = sim.simulate(current.p)
+    y_raw = current.extra.get("y_raw")
+    if y_raw is None:
+        y_raw = fitter.simulator(current.effects, current.terms).simulate(current.p)[0]
     base_post = current.post.copy()
     base_post.delays.pop(o, None)
     y0 = base_post.apply(y_raw)
@@ -173,12 +207,13 @@ def _score_delay(fitter: Fitter, current: Fit, free: list[FreeParam], cand: Cand
             best_d, best_c = d, c
     post = base_post.copy()
     post.delays[o] = best_d
-    return _screen_and_fit(fitter, current, free, current.effects, current.p, [], post)
+    return _screen_and_fit(fitter, current, free, current.effects, current.p, [], post,
+                           flow_side=o == "volume_flow_m3s")
 
 
 def _score_bias(fitter: Fitter, current: Fit, free: list[FreeParam], cand: Candidate) -> tuple[Fit | None, str]:
     return _screen_and_fit(fitter, current, free, current.effects, current.p, [], current.post,
-                           bias_outputs=[cand.output])
+                           bias_outputs=[cand.output], flow_side=cand.output == "volume_flow_m3s")
 
 
 def _primary(cand: Candidate, outputs: tuple[str, ...], ratios: np.ndarray) -> str:
@@ -199,42 +234,225 @@ def _new_params(fitter: Fitter, fit: Fit, current: Fit) -> dict:
     return out
 
 
-def identify(log: LogData, base: Parameters | None = None, base_effects: Iterable[str] = (), quick: bool = False,
-             max_effects: int = 4, progress: Callable[[str], None] | None = None) -> IdentificationResult:
-    """Run the whole procedure of the module docstring on a prepared log."""
-    say = progress or (lambda _msg: None)
-    t_start = time.perf_counter()
-    timings = {}
-    base = base or Parameters()
-    base_effects = frozenset(base_effects)
-    fitter = Fitter(log, base, quick)
-    notes = list(log.notes)
-    post0 = OutputPost(fitter.outputs, log.time_s)
-    p_base = np.array(base.vector())
-    say("fitting the nominal model")
-    free = fitter.identifiable(base_effects, p_base, post0, NOMINAL_FREE)
+def _select_free(fitter: Fitter, effects, p, post) -> list[FreeParam]:
+    return fitter.identifiable(effects, p, post, NOMINAL_FREE)
+
+
+def _nominal(fitter: Fitter, base_effects, p_base, quick: bool, notes: list[str]) -> tuple[Fit, list[FreeParam]]:
+    """Nominal fit in two stages: the flow equation on the measured flow (it does not depend on
+    temperatures), then the temperature side on all outputs."""
+    post0 = OutputPost(fitter.outputs, fitter.log.time_s)
+    free = _select_free(fitter, base_effects, p_base, post0)
     dropped = [fp.name for fp in NOMINAL_FREE if fp not in free]
     if dropped:
         notes.append(f"nominal parameters not excited by this log, kept fixed: {dropped}")
-    # two stages: the flow equation on the measured flow (it does not depend on temperatures), then the
-    # temperature side on all outputs, so that a temperature-side error cannot bend the flow parameters
     flow_free = [fp for fp in free if fp.name in FLOW_PARAMS]
     rest = [fp for fp in free if fp.name not in FLOW_PARAMS]
-    stage1 = fitter.fit(base_effects, p_base, flow_free, post0, max_nfev=30 if quick else 60,
+    stage1 = fitter.fit(base_effects, p_base, flow_free, post0, max_nfev=8 if quick else 12,
                         only_outputs=("volume_flow_m3s",))
-    nominal = fitter.fit(base_effects, stage1.p, rest, post0, max_nfev=30 if quick else 60)
+    nominal = fitter.fit(base_effects, stage1.p, rest, post0, max_nfev=10 if quick else 15)
     nominal.free = tuple(fp.name for fp in free)
-    timings["nominal_fit_s"] = time.perf_counter() - t_start
-    say("diagnosing the nominal residuals")
-    diag_before = diagnose(fitter, nominal)
-    timings["diagnostics_s"] = time.perf_counter() - t_start - timings["nominal_fit_s"]
+    return nominal, list(free)
+
+
+def check_timing(fitter_log: LogData, base: Parameters, base_effects, notes: list[str]) -> int:
+    """Log timing check (:mod:`.timing`) on the nominal model's flow; corrects ``fitter_log`` in place."""
+    if "volume_flow_m3s" not in fitter_log.outputs:
+        return 0
+    sim = Simulator(fitter_log, base, base_effects, ("volume_flow_m3s",))
+    y, _ = sim.simulate(np.array(base.vector()))
+    s, errors = timing.detect_shift(fitter_log.outputs["volume_flow_m3s"], y[:, 0])
+    notes.append(timing.describe(s, fitter_log.dt_s, errors))
+    timing.correct(fitter_log, s)
+    return s
+
+
+def _output_share(fitter: Fitter, worse: Fit, better: Fit, output: str) -> float:
+    """Share of ``worse``'s held-out structure on ``output`` (scaled cost beyond the noise) that
+    ``better`` removes."""
+    j = fitter.outputs.index(output)
+    c_w, n = fitter.output_costs(worse.y)
+    c_b, _ = fitter.output_costs(better.y)
+    excess = c_w[j] - n[j]
+    return float((c_w[j] - c_b[j]) / excess) if excess > 0.1 * n[j] else 0.0
+
+
+def _bic_change(fitter: Fitter, new: Fit, current: Fit, q: int, output: str = "supply_temp_c") -> float:
+    """Change of the information criterion on the training rows of ``output`` (the candidate's primary
+    output; negative: the new structure is worth its q parameters): n_eff ln(C_new / C_cur) + q ln(n_eff),
+    BIC form (Schwarz). C is the output's scaled training cost floored at its noise expectation (a cost
+    below it carries no evidence); n_eff the effective sample size of its current residual, since an
+    autocorrelated residual would otherwise count every row as independent evidence. The other outputs
+    are guarded by the held-out gate (the total held-out error must fall)."""
+    c_new, n = fitter.output_costs(new.y, "train")
+    c_cur, _ = fitter.output_costs(current.y, "train")
+    j = fitter.outputs.index(output)
+    n_eff = max(st.effective_n((fitter.y_meas[:, j] - current.y[:, j])[fitter.log.train]), 2.0)
+    ratio = max(c_new[j], n[j]) / max(c_cur[j], n[j], 1e-300)
+    return float(n_eff * np.log(ratio) + q * np.log(n_eff))
+
+
+def _holdout_correction(fitter: Fitter, fit: Fit, current: Fit) -> np.ndarray:
+    d = (fit.y - current.y) / fitter.sigma
+    return np.where(np.isfinite(d), d, 0.0)[fitter.log.holdout].ravel()
+
+
+def _score_round(fitter: Fitter, current: Fit, current_free, lib, rnd: int, say, skip=()) -> list[CandidateResult]:
+    """Score every applicable candidate jointly against ``current``."""
+    log = fitter.log
+    structured = fitter.structure(current.y)
+    c_o, n_o = fitter.output_costs(current.y)
+    ratios = c_o / np.maximum(n_o, 1)
+    results, todo = [], []
+    for cand in lib:
+        res = CandidateResult(cand.name, cand.kind, rnd, "skipped", description=cand.description,
+                              source=cand.source, regressor=cand.regressor)
+        results.append(res)
+        reason = cand.applicable(log, current.effects)
+        if cand.kind == "delay" and cand.output in current.post.delays:
+            reason = "already in the model"
+        if cand.kind == "bias" and cand.output in current.post.bias:
+            reason = "already in the model"
+        if cand.kind == "parameter" and any(fp.name in current.free for fp in cand.params):
+            reason = "already in the model"
+        if cand.name in skip:
+            reason = "removed in the backward pass"
+        if reason:
+            res.reason = reason
+            continue
+        todo.append((res, cand))
+    say(f"round {rnd}: scoring {', '.join(c.name for _, c in todo)}")
+    fits = _map_scores(fitter, current, current_free, [c for _, c in todo])
+    for (res, cand), (fit, reason) in zip(todo, fits):
+        if fit is None:
+            res.reason = reason
+            continue
+        res.status = "rejected"
+        res.fit = fit
+        res.params = {k: v for k, v in _new_params(fitter, fit, current).items()
+                      if k in {fp.name for fp in cand.params}}
+        if cand.kind == "delay":
+            res.delay_s = fit.post.delays[cand.output] * log.dt_s
+        if cand.kind == "bias":
+            res.bias = fit.post.bias[cand.output]
+        res.cost_train, res.cost_holdout = fit.cost_train, fit.cost_holdout
+        res.train_reduction = 1.0 - fit.cost_train / current.cost_train
+        res.explained_holdout = (current.cost_holdout - fit.cost_holdout) / structured if structured > 0 else 0.0
+        res.primary_output = _primary(cand, fitter.outputs, ratios)
+        jp = fitter.outputs.index(res.primary_output)
+        c_new, _ = fitter.output_costs(fit.y)
+        excess = c_o[jp] - n_o[jp]
+        res.explained_primary = ((c_o[jp] - c_new[jp]) / excess) if excess > 0.1 * n_o[jp] else float("nan")
+        res.dof = {"delay": 1, "bias": 2}.get(cand.kind, len(res.params) or len(cand.params))
+        res.bic_change = _bic_change(fitter, fit, current, res.dof, res.primary_output)
+    return results
+
+
+def _score_one(fitter: Fitter, current: Fit, current_free, cand: Candidate) -> tuple[Fit | None, str]:
+    scorer = {"model": _score_model, "parameter": _score_model, "delay": _score_delay,
+              "bias": _score_bias}[cand.kind]
+    try:
+        return scorer(fitter, current, list(current_free), cand)
+    except (RuntimeError, np.linalg.LinAlgError, ValueError) as exc:
+        return None, f"fit failed ({exc})"
+
+
+_TASK: Callable[[int], object] | None = None  # the task of the forked workers (inherited, not pickled)
+
+
+def _run_task(i: int):
+    return _TASK(i)
+
+
+def _fork_map(task: Callable[[int], object], n: int) -> list:
+    """``[task(i) for i in range(n)]``, in ``WORKERS`` forked processes where the platform has fork
+    (the tasks are independent fits; the results are the same as in one process)."""
+    global _TASK
+    workers = min(WORKERS, n, os.cpu_count() or 1)
+    if workers < 2 or "fork" not in multiprocessing.get_all_start_methods():
+        return [task(i) for i in range(n)]
+    _TASK = task
+    try:
+        with multiprocessing.get_context("fork").Pool(workers) as pool:
+            return pool.map(_run_task, range(n), chunksize=1)
+    finally:
+        _TASK = None
+
+
+def _slim(fit: Fit | None) -> Fit | None:
+    """A fit without what the caller does not need back from a worker (states, sensitivities)."""
+    if fit is not None:
+        fit.states = None
+        fit.extra.pop("dy_free", None)
+        fit.extra.pop("y_raw", None)
+    return fit
+
+
+def _map_scores(fitter: Fitter, current: Fit, free, cands: list[Candidate]) -> list[tuple[Fit | None, str]]:
+    """Score the candidates side by side (:func:`_fork_map`)."""
+    if "dy_free" not in current.extra:
+        current.extra["dy_free"] = fitter.raw_sensitivity(current.effects, current.p, free, current.terms)
+        current.extra["y_raw"] = fitter.simulator(current.effects, current.terms).simulate(current.p)[0]
+
+    def task(i):
+        fit, reason = _score_one(fitter, current, free, cands[i])
+        return _slim(fit), reason
+    return _fork_map(task, len(cands))
+
+
+def _polish(fitter: Fitter, current: Fit, free, pairs: list, quick: bool) -> list[tuple[Fit, float]]:
+    """Full joint refit of the best screened candidates and their EKF training likelihood, side by side."""
+    def task(i):
+        r, cand = pairs[i]
+        fit = fitter.fit(r.fit.effects, r.fit.p, list(free) + [fp for fp in cand.params], r.fit.post,
+                         max_nfev=6 if quick else 8, terms=current.terms,
+                         bias_outputs=[cand.output] if cand.kind == "bias" else ())
+        if not fit.cost_train < r.fit.cost_train:
+            fit = r.fit
+        return _slim(fit), innovations_nll(fitter, fit)[2]
+    return _fork_map(task, len(pairs))
+
+
+def _gate(r: CandidateResult) -> str:
+    """Why a scored candidate cannot be the forward step ('' if it can)."""
+    if not r.explained_holdout > 0:
+        return "does not lower the held-out error with the nominal parameters refit together with it"
+    need = BIAS_MIN if r.kind == "bias" else FORWARD_MIN
+    if not r.explained_primary >= need:
+        return (f"its primary output {r.primary_output} carries no held-out structure"
+                if not np.isfinite(r.explained_primary) else
+                f"removes {100 * r.explained_primary:.0f} % of the held-out structure of its primary output "
+                f"{r.primary_output} (needs {100 * need:.0f} %)")
+    if not r.bic_change < 0:
+        return f"information criterion on the training rows does not fall (change {r.bic_change:+.1f})"
+    return ""
+
+
+def _without(fitter: Fitter, current: Fit, free: list[FreeParam], cand: Candidate, base: Parameters
+             ) -> tuple[frozenset, np.ndarray, OutputPost, list[FreeParam]]:
+    """The current structure with one kept candidate taken out (its parameters back at the base values)."""
+    p = current.p.copy()
+    base_vec = np.array(base.vector())
+    for fp in cand.params:
+        i = fitter.names.index(fp.name)
+        p[i] = base_vec[i]
+    post = current.post.copy()
+    if cand.kind == "delay":
+        post.delays.pop(cand.output, None)
+    if cand.kind == "bias":
+        post.bias.pop(cand.output, None)
+    names = {fp.name for fp in cand.params}
+    return current.effects - frozenset(cand.effects), p, post, [fp for fp in free if fp.name not in names]
+
+
+def _forward(fitter: Fitter, nominal: Fit, free: list[FreeParam], lib, max_effects: int, quick: bool, say,
+             notes: list[str], first_round: int = 1
+             ) -> tuple[Fit, list[FreeParam], list[CandidateResult], list[list[CandidateResult]]]:
+    """Forward selection on held-out error, the information criterion and the EKF likelihood ratio."""
     current, current_free = nominal, list(free)
     accepted: list[CandidateResult] = []
     rounds: list[list[CandidateResult]] = []
-    lib = library(fitter.outputs)
-    t_cand = time.perf_counter()
-    for rnd in range(1, max_effects + 1):
-        structured = fitter.structure(current.y)
+    for rnd in range(first_round, first_round + max_effects):
         c_o, n_o = fitter.output_costs(current.y)
         ratios = c_o / np.maximum(n_o, 1)
         if not np.any(ratios >= STRUCTURE_MIN):
@@ -242,96 +460,212 @@ def identify(log: LogData, base: Parameters | None = None, base_effects: Iterabl
                          f"{', '.join(f'{o} {r:.2f}' for o, r in zip(fitter.outputs, ratios))}; all below "
                          f"{STRUCTURE_MIN}); no further effect scored")
             break
-        results: list[CandidateResult] = []
-        for cand in lib:
-            res = CandidateResult(cand.name, cand.kind, rnd, "skipped", description=cand.description,
-                                  source=cand.source, regressor=cand.regressor)
-            results.append(res)
-            reason = cand.applicable(log, current.effects)
-            if cand.kind == "delay" and cand.output in current.post.delays:
-                reason = "already in the model"
-            if cand.kind == "bias" and cand.output in current.post.bias:
-                reason = "already in the model"
-            if reason:
-                res.reason = reason
-                continue
-            say(f"round {rnd}: scoring {cand.name}")
-            scorer = {"model": _score_model, "parameter": _score_model, "delay": _score_delay,
-                      "bias": _score_bias}[cand.kind]
-            try:
-                fit, reason = scorer(fitter, current, current_free, cand)
-            except (RuntimeError, np.linalg.LinAlgError, ValueError) as exc:
-                fit, reason = None, f"fit failed ({exc})"
-            if fit is None:
-                res.reason = reason
-                continue
-            res.status = "rejected"
-            res.fit = fit
-            if "screened_out" in fit.extra:
-                res.reason = (f"screened out: with its own parameters alone it removes "
-                              f"{100 * fit.extra['screened_out']:.1f} % of the training structure "
-                              f"(needs {100 * SCREEN_MIN:.0f} %)")
-            res.params = {k: v for k, v in _new_params(fitter, fit, current).items()
-                          if k in {fp.name for fp in cand.params}}
-            if cand.kind == "delay":
-                res.delay_s = fit.post.delays[cand.output] * log.dt_s
-            if cand.kind == "bias":
-                res.bias = fit.post.bias[cand.output]
-            res.cost_train, res.cost_holdout = fit.cost_train, fit.cost_holdout
-            res.train_reduction = 1.0 - fit.cost_train / current.cost_train
-            res.explained_holdout = (current.cost_holdout - fit.cost_holdout) / structured
-            res.primary_output = _primary(cand, fitter.outputs, ratios)
-            jp = fitter.outputs.index(res.primary_output)
-            c_new, _ = fitter.output_costs(fit.y)
-            excess = c_o[jp] - n_o[jp]
-            res.explained_primary = ((c_o[jp] - c_new[jp]) / excess) if excess > 0.1 * n_o[jp] else float("nan")
+        results = _score_round(fitter, current, current_free, lib, rnd, say)
+        rounds.append(results)
         scored = [r for r in results if r.fit is not None]
-        m = max(len(scored), 1)
-        nll_current = None
         for r in scored:
-            if r.reason:
-                continue
-            if r.explained_holdout < EXPLAIN_MIN:
-                r.reason = (f"explains {100 * r.explained_holdout:.0f} % of the held-out structure "
-                            f"(needs {100 * EXPLAIN_MIN:.0f} %)")
-                continue
-            if not r.explained_primary >= EXPLAIN_MIN:
-                r.reason = (f"its primary output {r.primary_output} carries no held-out structure"
-                            if not np.isfinite(r.explained_primary) else
-                            f"explains {100 * r.explained_primary:.0f} % of the held-out structure of its "
-                            f"primary output {r.primary_output} (needs {100 * EXPLAIN_MIN:.0f} %)")
-                continue
-            if nll_current is None:
-                nll_current = innovations_nll(fitter, current)[2]
-            nll = innovations_nll(fitter, r.fit)[2]
-            cand = next(c for c in lib if c.name == r.name)
-            r.dof = {"delay": 1, "bias": 2}.get(cand.kind, len(r.params) or len(cand.params))
+            r.reason = _gate(r)
+        eligible = sorted((r for r in scored if not r.reason), key=lambda r: r.cost_holdout)
+        best = None
+        nll_current = innovations_nll(fitter, current)[2] if eligible else None
+        m = max(len(scored), 1)
+        pairs = [(r, next(c for c in lib if c.name == r.name)) for r in eligible[:POLISH]]
+        for (r, cand), (polished, nll) in zip(pairs, _polish(fitter, current, current_free, pairs, quick)):
+            if polished is not r.fit:
+                r.fit, r.cost_train, r.cost_holdout = polished, polished.cost_train, polished.cost_holdout
+                r.explained_holdout = (current.cost_holdout - polished.cost_holdout) / fitter.structure(current.y)
+                r.explained_primary = _output_share(fitter, current, polished, r.primary_output)
+                r.params = {k: v for k, v in _new_params(fitter, polished, current).items()
+                            if k in {fp.name for fp in cand.params}}
+                if cand.kind == "delay":
+                    r.delay_s = polished.post.delays[cand.output] * fitter.log.dt_s
+                if cand.kind == "bias":
+                    r.bias = polished.post.bias[cand.output]
+            r.bic_change = _bic_change(fitter, r.fit, current, r.dof, r.primary_output)
             r.lr = nll_current - nll
             r.p_value = float(stats.chi2.sf(r.lr, r.dof)) if r.lr > 0 else 1.0
             r.p_threshold = ALPHA / m
             if r.p_value >= r.p_threshold:
                 r.reason = f"not significant on the training rows (p = {r.p_value:.2g} >= {r.p_threshold:.2g})"
-        eligible = [r for r in scored if not r.reason]
-        rounds.append(results)
-        if not eligible:
+                continue
+            r.reason = _gate(r)
+            if not r.reason and (best is None or r.cost_holdout < best.cost_holdout):
+                best = r
+        if best is None:
             break
-        best = min(eligible, key=lambda r: r.cost_holdout)
         best.status = "accepted"
-        best.reason = (f"explains {100 * best.explained_holdout:.0f} % of the held-out structure, "
-                       f"p = {best.p_value:.2g}")
+        best.reason = (f"removes {100 * best.explained_holdout:.0f} % of the held-out structure, information "
+                       f"criterion {best.bic_change:+.1f}, p = {best.p_value:.2g}")
+        d_best = _holdout_correction(fitter, best.fit, current)
         for r in eligible:
-            if r is not best:
+            if r is best or r.reason:
+                continue
+            d = _holdout_correction(fitter, r.fit, current)
+            corr = float(np.dot(d, d_best) / max(np.linalg.norm(d) * np.linalg.norm(d_best), 1e-300))
+            r.same_as = best.name if corr >= SAME_RESIDUAL_CORR else ""
+            if r.same_as:
+                r.reason = (f"explains the same residual as {best.name} (correlation of their held-out corrections "
+                            f"{corr:.2f}); this log cannot tell them apart, {best.name} fits the held-out rows better")
+                notes.append(f"round {rnd}: {r.name} and {best.name} explain the same residual (correlation "
+                             f"{corr:.2f}); kept {best.name}")
+            else:
                 r.reason = f"passed the gates but {best.name} fits the held-out rows better"
         accepted.append(best)
         cand = next(c for c in lib if c.name == best.name)
         current_free = current_free + [fp for fp in cand.params if fp.name in best.params]
-        # polish the accepted structure so that the next round compares against a converged fit
-        current = fitter.fit(best.fit.effects, best.fit.p, current_free, best.fit.post,
-                             max_nfev=20 if quick else 40)
-        if current.cost_train > best.fit.cost_train:
-            current = best.fit
+        current = best.fit
+        if current.states is None:
+            current.states = fitter.simulator(current.effects, current.terms).simulate(current.p)[1]
+        current.free = tuple(fp.name for fp in current_free)
         say(f"round {rnd}: accepted {best.name}")
+    return current, current_free, accepted, rounds
+
+
+def _backward(fitter: Fitter, current: Fit, free: list[FreeParam], accepted: list[CandidateResult], lib,
+              base: Parameters, quick: bool, say, notes: list[str]) -> tuple[Fit, list[FreeParam]]:
+    """Re-test each kept effect with the others in: refit without it; drop it if the held-out error
+    rises by less than FORWARD_MIN of the structure it leaves."""
+    if len(accepted) < 2:
+        return current, free
+    for acc in list(accepted):
+        cand = next(c for c in lib if c.name == acc.name)
+        effects, p, post, free_wo = _without(fitter, current, free, cand, base)
+        say(f"backward pass: re-testing {acc.name}")
+        fit_wo = fitter.fit(effects, p, free_wo, post, max_nfev=SCREEN_NFEV, terms=current.terms)
+        share = _output_share(fitter, fit_wo, current, acc.primary_output or "supply_temp_c")
+        acc.backward_share = float(share)
+        if share < FORWARD_MIN:
+            acc.status = "removed"
+            acc.reason = (f"removed in the backward pass: with the other effects in, taking it out raises the "
+                          f"held-out error of {acc.primary_output} by {100 * share:.0f} % of its structure "
+                          f"(needs {100 * FORWARD_MIN:.0f} %)")
+            notes.append(f"backward pass: {acc.name} removed ({100 * share:.0f} % once the others are in)")
+            accepted.remove(acc)
+            current, free = fit_wo, free_wo
+            current.free = tuple(fp.name for fp in free)
+        else:
+            notes.append(f"backward pass: {acc.name} kept (taking it out costs {100 * share:.0f} % of the held-out "
+                         "structure)")
+    return current, free
+
+
+def _discover(fitter: Fitter, current: Fit, free: list[FreeParam], quick: bool, say, notes: list[str]
+              ) -> tuple[Fit, dict | None]:
+    """Term discovery on the supply temperature when its residual stays structured (:mod:`.discovery`)."""
+    if "supply_temp_c" not in fitter.outputs:
+        return current, None
+    ratios = diagnostics_ratio(fitter, current)
+    if ratios < STRUCTURE_MIN:
+        return current, None
+    say("discovery: sparse regression of the supply residual on physical features")
+    dy = fitter.raw_sensitivity(current.effects, current.p, [fp for fp in free if fp.name not in FLOW_PARAMS],
+                                current.terms)
+    dy = current.post.apply(np.zeros(dy.shape[:2]), dy)[1]
+    chosen, coef, record = discovery.select(fitter, current, dy[:, fitter.outputs.index("supply_temp_c"), :])
+    record["structure_before"] = ratios
+    if not chosen:
+        notes.append("discovery: no prefix of the LARS path lowers the held-out supply error by "
+                     f"{100 * discovery.MIN_STEP_GAIN:.0f} % (LARS path order: {record['path_order'][:5]})")
+        return current, record
+    term = discovery.term_from(chosen, coef)
+    fit = current
+    side = [fp for fp in free if fp.name not in FLOW_PARAMS]  # a supply-air term leaves the flow equation alone
+    for _ in range(DISCOVERY_ALTERNATIONS):  # the whole model with the term, then its coefficients (exact)
+        trial_terms = tuple(t for t in current.terms if t.name != term.name) + (term,)
+        fit = fitter.fit(current.effects, fit.p, side, current.post, max_nfev=4 if quick else 6,
+                         terms=trial_terms)
+        term = discovery.refit_coefficients(fitter, fit, term)
+    trial_terms = tuple(t for t in current.terms if t.name != term.name) + (term,)
+    fit = fitter.evaluate(current.effects, fit.p, current.post, fit.free, terms=trial_terms)
+    gain = _output_share(fitter, current, fit, "supply_temp_c")
+    q = len(term.features)
+    record.update({"term": term.as_dict(), "formula": term.formula(), "words": term.description,
+                   "explained_holdout": gain, "bic_change": _bic_change(fitter, fit, current, q)})
+    if gain < FORWARD_MIN or not record["bic_change"] < 0 or not fit.cost_holdout < current.cost_holdout:
+        record["accepted"] = False
+        notes.append(f"discovery: term {term.formula()} rejected (removes {100 * gain:.0f} % of the held-out "
+                     f"structure, information criterion {record['bic_change']:+.1f})")
+        return current, record
+    record["accepted"] = True
+    fit.free = tuple(fp.name for fp in free)
+    notes.append(f"discovery: added {term.name}: {term.formula()} ({term.description}); removes "
+                 f"{100 * gain:.0f} % of the held-out structure of supply_temp_c")
+    return fit, record
+
+
+def _errors(fitter: Fitter, before: Fit, after_y: np.ndarray) -> dict:
+    out = {}
+    ho = fitter.log.holdout
+    for j, o in enumerate(fitter.outputs):
+        eb = (fitter.y_meas[:, j] - before.y[:, j])[ho]
+        ea = (fitter.y_meas[:, j] - after_y[:, j])[ho]
+        out[o] = {"rms_before": st.rms(eb), "rms_after": st.rms(ea), "max_before": st.max_abs(eb),
+                  "max_after": st.max_abs(ea)}
+    return out
+
+
+def _step_errors(fitter: Fitter, nominal: Fit, accepted, discovered: dict | None, final: Fit) -> list[dict]:
+    """Held-out RMS and max error per output before and after each added effect (in the order added;
+    the last step ends at the final model)."""
+    steps, prev = [], nominal
+    term_added = bool(discovered and discovered.get("accepted"))
+    for i, a in enumerate(accepted):
+        last = i == len(accepted) - 1 and not term_added
+        fit = final if last or a.fit is None else a.fit
+        steps.append({"added": a.name, "holdout": _errors(fitter, prev, fit.y)})
+        prev = fit
+    if term_added:
+        steps.append({"added": f"term {discovered['term']['name']}", "holdout": _errors(fitter, prev, final.y)})
+    return steps
+
+
+def diagnostics_ratio(fitter: Fitter, fit: Fit) -> float:
+    """Held-out scaled cost per sample of the supply temperature."""
+    c, n = fitter.output_costs(fit.y)
+    j = fitter.outputs.index("supply_temp_c")
+    return float(c[j] / max(n[j], 1))
+
+
+def identify(log: LogData, base: Parameters | None = None, base_effects: Iterable[str] = (),
+             quick: bool = False, max_effects: int = 4, progress: Callable[[str], None] | None = None,
+             discover: bool = True) -> IdentificationResult:
+    """Run the whole procedure of the module docstring on a prepared log."""
+    say = progress or (lambda _msg: None)
+    t_start = time.perf_counter()
+    timings = {}
+    base = base or Parameters()
+    base_effects = frozenset(base_effects)
+    notes = list(log.notes)
+    shift_samples = check_timing(log, base, base_effects, notes)
+    fitter = Fitter(log, base, quick)
+    p_base = np.array(base.vector())
+    say("fitting the nominal model")
+    nominal, free = _nominal(fitter, base_effects, p_base, quick, notes)
+    timings["nominal_fit_s"] = time.perf_counter() - t_start
+    say("diagnosing the nominal residuals")
+    diag_before = diagnose(fitter, nominal)
+    timings["diagnostics_s"] = time.perf_counter() - t_start - timings["nominal_fit_s"]
+    lib = library(fitter.outputs)
+    t_cand = time.perf_counter()
+    current, current_free, accepted, rounds = _forward(fitter, nominal, free, lib, max_effects, quick, say, notes)
     timings["candidates_s"] = time.perf_counter() - t_cand
+    t_disc = time.perf_counter()
+    discovered = None
+    if discover:
+        current, discovered = _discover(fitter, current, current_free, quick, say, notes)
+    timings["discovery_s"] = time.perf_counter() - t_disc
+    if discovered and discovered.get("accepted") and len(accepted) < max_effects:
+        # with the term in, effects its residual hid may now show: one more forward pass
+        t_more = time.perf_counter()
+        current, current_free, more, more_rounds = _forward(fitter, current, current_free, lib,
+                                                            max_effects - len(accepted), quick, say, notes,
+                                                            first_round=len(rounds) + 1)
+        accepted += more
+        rounds += more_rounds
+        timings["candidates_s"] += time.perf_counter() - t_more
+    t_back = time.perf_counter()
+    current, current_free = _backward(fitter, current, current_free, accepted, lib, base, quick, say, notes)
+    timings["candidates_s"] += time.perf_counter() - t_back
     final = current
     diag_after = diag_before if final is nominal else diagnose(fitter, final)
     localisation = []
@@ -347,8 +681,13 @@ def identify(log: LogData, base: Parameters | None = None, base_effects: Iterabl
                              "equation or signal term explains it on the held-out rows (R^2 <= 0.1)")
     params, effects, extras = model_outputs(fitter, final, base, diag_after)
     timings["total_s"] = time.perf_counter() - t_start
-    return IdentificationResult(log, fitter, base, base_effects, nominal, final, accepted, rounds, diag_before,
-                                diag_after, localisation, params, effects, extras, notes, timings)
+    res = IdentificationResult(log, fitter, base, base_effects, nominal, final, accepted, rounds, diag_before,
+                               diag_after, localisation, params, effects, extras, notes, timings)
+    res.terms = final.terms
+    res.steps = _step_errors(fitter, nominal, accepted, discovered, final)
+    res.discovery = discovered
+    res.timing_shift_samples = shift_samples
+    return res
 
 
 def model_outputs(fitter: Fitter, final: Fit, base: Parameters, diag: dict) -> tuple[Parameters, tuple, dict]:
@@ -362,6 +701,9 @@ def model_outputs(fitter: Fitter, final: Fit, base: Parameters, diag: dict) -> t
     if chiller and chiller["cycling"]:
         lo_b, hi_b = Parameters.__dataclass_fields__["chiller_band_c"].metadata["range"]
         changes["chiller_band_c"] = float(min(max(chiller["half_band_c"], lo_b), hi_b))
+    if "supply_temp_c" in final.post.delays:
+        lo_d, hi_d = Parameters.__dataclass_fields__["transport_delay_s"].metadata["range"]
+        changes["transport_delay_s"] = float(min(max(final.post.delays["supply_temp_c"] * fitter.log.dt_s, lo_d), hi_d))
     params = base.replace(**changes)
     effects = tuple(e for e in MODEL_EFFECTS if e in final.effects)
     extras = {}

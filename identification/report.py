@@ -18,7 +18,8 @@ from hvac_mpc.models.parameters import Parameters
 from . import localise
 from .diagnostics import regressors
 from .model_file import write_model_file
-from .pipeline import ALPHA, EXPLAIN_MIN, SCREEN_MIN, STRUCTURE_MIN, IdentificationResult
+from .pipeline import (ALPHA, EXPLAIN_MIN, FORWARD_MIN, POLISH, SAME_RESIDUAL_CORR, SCREEN_MIN, STRUCTURE_MIN,
+                       IdentificationResult)
 
 UNITS = {"supply_temp_c": "C", "volume_flow_m3s": "m3/s", "heater_outlet_temp_c": "C", "heater_power_w": "W"}
 PLOT_EXTRA = "pip install 'hvac-mpc[plot]'"
@@ -171,7 +172,8 @@ def _plot_ccf(plt, diag: dict, output: str, out: Path, tag: str) -> str | None:
 def summary(res: IdentificationResult) -> dict:
     """Plain-data summary of a run (the JSON file)."""
     log = res.log
-    diag_keep = ("metrics", "structure_holdout", "structure_train", "whiteness", "steps", "chiller", "ekf_nll_train")
+    diag_keep = ("metrics", "structure_holdout", "structure_train", "whiteness", "steps", "chiller", "ekf_nll_train",
+                 "holdout_tests")
 
     def slim(d: dict) -> dict:
         out = {k: d[k] for k in diag_keep if k in d}
@@ -198,13 +200,18 @@ def summary(res: IdentificationResult) -> dict:
         "parameters_changed": {k: {"base": a, "identified": b}
                                for k, (a, b) in _changed_params(res, res.final).items()},
         "holdout_errors": res.holdout_errors(),
+        "steps": res.steps,
+        "discovered_terms": [dict(t.as_dict(), formula=t.formula()) for t in res.terms],
+        "discovery": res.discovery,
+        "log_checks": {"bad_rows": log.bad_rows, "timing_shift_samples": res.timing_shift_samples,
+                       "timing_shift_s": res.timing_shift_samples * log.dt_s},
         "candidates": [[r.summary() for r in rnd] for rnd in res.rounds],
         "unexplained": [{k: v for k, v in loc.items() if k != "steps"} | {"text": localise.describe(loc)}
                         for loc in res.localisation],
         "diagnostics_before": slim(res.diag_before),
         "diagnostics_after": slim(res.diag_after),
-        "thresholds": {"alpha": ALPHA, "explain_min": EXPLAIN_MIN, "structure_min": STRUCTURE_MIN,
-                       "screen_min": SCREEN_MIN},
+        "thresholds": {"alpha": ALPHA, "forward_min": FORWARD_MIN, "structure_min": STRUCTURE_MIN,
+                       "same_residual_corr": SAME_RESIDUAL_CORR},
         "notes": res.notes,
         "timings_s": res.timings,
     })
@@ -216,7 +223,7 @@ def write_report(res: IdentificationResult, out_dir: str | Path, plots: bool = T
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     files: dict[str, Path] = {}
-    model_path = write_model_file(out / model_name, res.params, res.effects, res.extras)
+    model_path = write_model_file(out / model_name, res.params, res.effects, res.extras, res.terms)
     files["model"] = model_path
     data = summary(res)
     plt = load_pyplot() if plots else None
@@ -267,12 +274,15 @@ def _markdown(res: IdentificationResult, data: dict, model_name: str) -> list[st
             md.append(f"- **{a.name}**: {a.description} ({a.source}); {what}. {a.reason}.")
     else:
         md.append("- No effect of the library was added.")
+    for t in res.terms:
+        md.append(f"- **discovered term {t.name}** (not in the library): {t.description}; `{t.formula()}`.")
     md += ["", f"Effects to enable: `{list(res.effects)}`; model file: `{model_name}` (load with "
            "`hvac_mpc.identification.load_model_file`).", ""]
     if res.extras:
         md.append("Corrections the state model cannot hold (in the model file's [identification] table): "
                   + ", ".join(f"{k} = {_num(v)}" for k, v in res.extras.items()) + ".")
         md.append("")
+    md += _steps_md(res)
     md += ["### Held-out error, before (nominal model fitted) and after", ""]
     rows = []
     for o, e in res.holdout_errors().items():
@@ -286,7 +296,7 @@ def _markdown(res: IdentificationResult, data: dict, model_name: str) -> list[st
         for loc in res.localisation:
             md.append(f"- Held-out error {loc['structure_holdout']:.1f}x the noise variance: "
                       f"{localise.describe(loc)}.")
-        if not res.accepted:
+        if not res.accepted and not res.terms:
             md.append("- No candidate effect is claimed for this residual.")
         md.append("")
     plots = data["plots"]
@@ -301,13 +311,19 @@ def _markdown(res: IdentificationResult, data: dict, model_name: str) -> list[st
            "scaled by its noise level; scipy least_squares with CasADi forward sensitivities).",
            "2. Residuals: free-run simulation error (levels, cross-correlations, binning) and one-step EKF "
            "innovations (whiteness, likelihood ratios).",
-           f"3. Score each applicable candidate effect: start at its null or the best of a small grid, screen "
-           f"with its own parameters (must remove {100 * SCREEN_MIN:.0f} % of the training structure), refit jointly "
-           "with the free parameters on the training rows.",
-           f"4. Keep it only if the held-out rows carry structure (scaled cost >= {STRUCTURE_MIN} per sample), it "
-           f"removes >= {100 * EXPLAIN_MIN:.0f} % of that structure overall and on its primary output, and its "
-           f"EKF likelihood ratio on the training rows is significant (alpha = {ALPHA}, Bonferroni over the round). "
-           "The best such candidate is added; the loop repeats.",
+           "3. Score each applicable candidate effect jointly: from its null (or the best point of a small grid) "
+           "its own parameters and the model's free parameters take one Gauss-Newton step together (the flow "
+           "equation's parameters only for flow-side candidates), evaluated by a free run, so the nominal fit cannot "
+           "absorb the effect before it is scored.",
+           f"4. Forward selection: the {POLISH} best on the held-out rows are refit fully; a candidate is kept only "
+           f"if it lowers the held-out error, removes >= {100 * FORWARD_MIN:.0f} % of the held-out structure of its "
+           "primary output, lowers the information criterion on the training rows (BIC form with the residual's "
+           f"effective sample size) and its EKF likelihood ratio is significant (alpha = {ALPHA}, Bonferroni over "
+           "the round). The best is added; candidates whose held-out corrections correlate with it above "
+           f"{SAME_RESIDUAL_CORR} are reported as explaining the same residual. Then term discovery on the supply "
+           "temperature if its residual stays structured (a sparse LARS path over physical features, the size "
+           "chosen on the held-out rows, the term refit with the whole model), one more forward pass if a term was "
+           "added, and a backward pass that re-tests each kept effect with the others in.",
            "5. Whatever structure remains is located instead of being named: the residual is regressed on each "
            "model equation's drive, on every logged signal (a missing input dependence, e.g. on a column the model "
            "does not use) and on their products; the terms that also hold on the held-out rows name the equation "
@@ -337,6 +353,47 @@ def _markdown(res: IdentificationResult, data: dict, model_name: str) -> list[st
         md += _table(["parameter", "base", "identified"],
                      [[k, a, b] for k, (a, b) in _changed_params(res, res.final).items()])
     md += ["", f"Run time: {res.timings.get('total_s', float('nan')):.1f} s."]
+    return md
+
+
+def _steps_md(res: IdentificationResult) -> list[str]:
+    """Log checks, the discovered term, each added effect with the held-out errors it left, and the
+    residual tests on the held-out rows before and after."""
+    md = ["### Log checks", ""]
+    lines = [n for n in res.notes if n.startswith(("bad rows", "log timing"))]
+    md += [f"- {n}" for n in lines] or ["- no bad rows found"]
+    if not any(n.startswith("bad rows") for n in lines):
+        md.append("- bad rows: none found (no NaN, dropout, duplicated or out-of-order timestamp, stuck sensor)")
+    md.append("")
+    for t in res.terms:
+        md += ["### Discovered term", "", f"- In words: {t.description}.", f"- Formula: `{t.formula()}`.",
+               "- Coefficients: " + ", ".join(f"{f} {c:+.5g} {u}" for f, c, u in
+                                              zip(t.features, t.coefficients, t.as_dict()["units"])) + ".", ""]
+    if res.steps:
+        md += ["### Step by step (held-out rows)", ""]
+        rows = []
+        for st_ in res.steps:
+            for o, e in st_["holdout"].items():
+                rows.append([st_["added"], o, e["rms_before"], e["rms_after"], e["max_before"], e["max_after"]])
+        md += _table(["added", "output", "RMS before", "RMS after", "max before", "max after"], rows)
+        md.append("")
+    md += ["### Residual tests on the held-out rows, before and after", "",
+           "Whiteness: Ljung-Box Q of the EKF one-step innovations (25 lags) against chi2 0.99(25); independence: "
+           "largest cross-correlation of the free-run residual with a command or the inlet temperature over its "
+           "99 % band (lags 0..25, coloured-signal bound) and the joint chi2 test of the worst signal.", ""]
+    rows = []
+    before, after = res.diag_before.get("holdout_tests", {}), res.diag_after.get("holdout_tests", {})
+    for o in before:
+        b, a = before[o], after.get(o, before[o])
+        wb = max(b["ccf"].items(), key=lambda kv: kv[1]["peak_ratio"]) if b["ccf"] else ("-", {})
+        wa = max(a["ccf"].items(), key=lambda kv: kv[1]["peak_ratio"]) if a["ccf"] else ("-", {})
+        rows.append([o, b["ljung_box_q"], a["ljung_box_q"], b["threshold"],
+                     f"{wb[0]} {wb[1].get('peak_ratio', float('nan')):.2f}",
+                     f"{wa[0]} {wa[1].get('peak_ratio', float('nan')):.2f}",
+                     wb[1].get("p_value"), wa[1].get("p_value")])
+    md += _table(["output", "Q before", "Q after", "chi2 0.99", "worst CCF before (peak/band)",
+                  "worst CCF after (peak/band)", "joint p before", "joint p after"], rows)
+    md.append("")
     return md
 
 

@@ -41,11 +41,13 @@ INITIAL_STD = {"motor_rise_c": 0.3, "water_temp_c": 0.5, "heater_temp_c": 3.0, "
 class Simulator:
     """One model structure (effects) over one log; ``outputs`` are the logged outputs to predict."""
 
-    def __init__(self, log: LogData, params: Parameters, effects: Iterable[str], outputs: Sequence[str]):
+    def __init__(self, log: LogData, params: Parameters, effects: Iterable[str], outputs: Sequence[str],
+                 terms: tuple = ()):
         self.log = log
         self.params = params
         self.effects = frozenset(effects)
-        self.model = HvacModel(params, self.effects, dt_s=log.dt_s, substeps=2)
+        self.terms = tuple(terms)
+        self.model = HvacModel(params, self.effects, dt_s=log.dt_s, substeps=2, terms=self.terms)
         self.outputs = tuple(outputs)
         self.names = self.model.param_names
         m = self.model

@@ -21,6 +21,7 @@ import numpy as np
 from hvac_mpc.contract import INPUTS
 
 from . import air, blower, bypass, chiller, heater, sensors, valves
+from .discovered import DiscoveredTerm, terms_at
 from .parameters import Parameters
 
 STATES = ("motor_rise_c", "water_temp_c", "heater_temp_c", "supply_sensor_c")
@@ -113,9 +114,11 @@ class HvacModel:
     """
 
     def __init__(self, params: Parameters | None = None, effects: Iterable[str] = (), dt_s: float = 1.0,
-                 substeps: int = 2):
+                 substeps: int = 2, terms: Iterable[DiscoveredTerm] = ()):
+        """``terms``: discovered terms (models/discovered.py) added to their balances."""
         self.params = params or Parameters()
         self.effects = validate_effects(effects, MODEL_EFFECTS)
+        self.terms = tuple(terms)
         self.dt_s = float(dt_s)
         # the transport delay (Parameters.transport_delay_s) is a chain of equal lags from the mixed air to
         # the thermocouple; its length is structure (fixed here), its time constant a parameter
@@ -178,6 +181,10 @@ class HvacModel:
         if "trapped_air" in e:
             t_mix = t_mix + bypass.trap_release_c(sx[TRAP_STATE], t_mix, a, mass_flow, prm)
         t_supply = t_mix + sd["mix_offset_c"]
+        if self.terms:
+            t_supply = t_supply + terms_at(self.terms, "supply_air", dict(
+                t_mix=t_mix, t_in=t_in, t_blower=t_blower, t_water=sx["water_temp_c"], mass_flow=mass_flow,
+                core_share=1.0 - b, p_el=p_el))
         t_duct = sx[self.delay_states[-1]] if self.delay_states else t_supply
         outlet = valves.split_flows(flow, g)
         return dict(prm=prm, sx=sx, su=su, sd=sd, flow=flow, mass_flow=mass_flow, bypass=b,

@@ -30,6 +30,7 @@ reference is within reach, :mod:`hvac_mpc.mpc.priorities`).
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import math
 import time
@@ -40,6 +41,7 @@ import numpy as np
 
 from hvac_mpc.models import chiller
 from hvac_mpc.models.box import INPUTS, HvacModel
+from hvac_mpc.models.model_file import RefinedModel
 from hvac_mpc.models.parameters import Parameters
 from hvac_mpc.contract import Command, Measurement
 
@@ -169,6 +171,19 @@ class MpcSettings:
         check_number(f"{p}.reach_every_s", self.reach_every_s, 1.0, 3600.0)
 
 
+def _with_model_effects(settings: MpcSettings, model: RefinedModel | None) -> MpcSettings:
+    """Settings whose prediction model also holds the refined model's effects (the PTC power fall stays
+    a constraint where ``ptc_limit`` carries it)."""
+    if model is None:
+        return settings
+    ocp = settings.ocp
+    extra = [e for e in model.effects if e not in ocp.model_effects
+             and not (e == "ptc_power_fall" and ocp.ptc_limit)]
+    if not extra:
+        return settings
+    return dataclasses.replace(settings, ocp=dataclasses.replace(ocp, model_effects=tuple(ocp.model_effects) + tuple(extra)))
+
+
 class MpcController:
     """Receding-horizon controller of all six actuators (Controller protocol).
 
@@ -177,15 +192,18 @@ class MpcController:
     """
 
     def __init__(self, params: Parameters | None = None, settings: MpcSettings | None = None, *,
-                 solver_factory: Callable[[TrackingProblem], Any] | None = None):
+                 solver_factory: Callable[[TrackingProblem], Any] | None = None, model: RefinedModel | None = None):
         """``solver_factory(problem)`` may supply another solver with the interface of
         :class:`RtiOsqpSolver` (``reset``, ``prepare``, ``feedback``, ``fail_next``), e.g. the
-        do-mpc reference of the solve-time benchmark; by default ``settings.solver`` decides."""
-        self.params = params or Parameters()
-        self.settings = settings or MpcSettings()
+        do-mpc reference of the solve-time benchmark; by default ``settings.solver`` decides.
+        ``model``: a refined model (``hvac_mpc.models.model_file.load``): its parameters (unless
+        ``params`` is given), effects and discovered terms enter the prediction and the estimator."""
+        self.params = params or (model.parameters if model is not None else Parameters())
+        self.settings = _with_model_effects(settings or MpcSettings(), model)
+        terms = model.terms if model is not None else ()
         s = self.settings
         self.dt_s = s.dt_s
-        self.problem = TrackingProblem(self.params, s.ocp, s.dt_s)
+        self.problem = TrackingProblem(self.params, s.ocp, s.dt_s, terms=terms)
         self.jit_active = False
         if s.jit:
             self.jit_active = _try_jit(self.problem)
@@ -194,7 +212,8 @@ class MpcController:
         # power fall in its model even where the OCP carries it as a constraint (OcpSpec.ptc_limit)
         ekf_model = self.problem.model
         if s.ocp.ptc_limit and "ptc_power_fall" not in s.ocp.model_effects:
-            ekf_model = HvacModel(self.params, tuple(s.ocp.model_effects) + ("ptc_power_fall",), dt_s=s.dt_s)
+            ekf_model = HvacModel(self.params, tuple(s.ocp.model_effects) + ("ptc_power_fall",), dt_s=s.dt_s,
+                                  terms=terms)
         self.ekf = DisturbanceEkf(ekf_model, s.ekf, s.dt_s, s.water_prediction)
         pb = self.problem
         self.reach = ReachableFlow(pb.model, pb.u_lo_phys, pb.u_hi_phys, pb.heater_max_phys, self.params,

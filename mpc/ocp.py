@@ -248,12 +248,13 @@ class TrackingProblem:
 
     VALVES = (3, 4, 5)  # decision indices of valves m, f, w (openings)
 
-    def __init__(self, params: Parameters | None, spec: OcpSpec, dt_s: float = 1.0):
+    def __init__(self, params: Parameters | None, spec: OcpSpec, dt_s: float = 1.0, terms: tuple = ()):
+        """``terms``: discovered terms of a refined model (models/discovered.py) in the prediction."""
         spec.validate(dt_s)
         self.params = params or Parameters()
         self.spec = spec
         self.dt_s = float(dt_s)
-        self.model = HvacModel(self.params, spec.model_effects, dt_s=dt_s)
+        self.model = HvacModel(self.params, spec.model_effects, dt_s=dt_s, terms=terms)
         self.valve_map = ValveMap(self.params)
         m = self.model
         self.state_names = m.states.names

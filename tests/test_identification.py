@@ -18,7 +18,7 @@ from hvac_mpc.identification import thesis_data as td
 from hvac_mpc.identification import thesis_tables
 from hvac_mpc.identification.generator import simulate_log
 from hvac_mpc.identification.log_data import LogDataError, prepare
-from hvac_mpc.identification.pipeline import identify
+from hvac_mpc.identification.pipeline import DOCUMENTED_EFFECTS, identify
 from hvac_mpc.models import HvacModel, Parameters
 from hvac_mpc.models.measurement_log import LogFormatError, write_log
 
@@ -207,7 +207,8 @@ def test_command_reads_a_lab_log_through_a_column_mapping(tmp_path, capsys):
                "--out", str(out), "--quick", "--no-plots", "--quiet"])
     assert rc == 0
     assert "effects added: none" in capsys.readouterr().out
-    assert load_model_file(out / "model.toml")[1] == ()
+    # the command starts from the documented physics (PTC fall, fan curve, leaks) and adds nothing to it
+    assert load_model_file(out / "model.toml")[1] == DOCUMENTED_EFFECTS
     assert (out / "report.md").exists() and (out / "summary.json").exists()
 
 
@@ -249,11 +250,15 @@ def test_residual_statistics_behave_on_known_series():
 
 @pytest.mark.slow
 def test_two_hour_log_identifies_in_under_five_minutes(tmp_path):
-    cols = simulate_log(("ptc_power_fall", "chiller_hysteresis"), seed=21, duration_s=7200)
+    """Generous wall-time bound (the benchmark is benchmarks/identify_time.py, budget one minute on two
+    cores); the log comes from the independent simulator with three effects, one of them a delay."""
+    from hvac_mpc.mismatch import simulate_log as independent_log
+
     path = tmp_path / "log2h.csv"
-    write_log(path, cols)
+    independent_log(path, "combo_heater_chiller_delay", duration_s=7200, seed=21)
     t0 = time.perf_counter()
-    assert main(["identify", str(path), "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    assert main(["identify", str(path), "--out", str(tmp_path / "out"), "--quiet", "--no-plots"]) == 0
     elapsed = time.perf_counter() - t0
     assert elapsed < 300.0
-    assert "ptc_power_fall" in load_model_file(tmp_path / "out" / "model.toml")[1]
+    params, _ = load_model_file(tmp_path / "out" / "model.toml")
+    assert params.transport_delay_s == pytest.approx(3.0, abs=1.0)  # the variant's 3 s transport delay

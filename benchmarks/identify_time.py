@@ -1,0 +1,82 @@
+"""Wall time of ``hvac-mpc identify`` on 2 h, 1 Hz logs of the independent box, on two cores.
+
+    python -m hvac_mpc.benchmarks.identify_time                       # the default set of variants
+    python -m hvac_mpc.benchmarks.identify_time --variant delay_3s --threads 2 --json out.json
+
+For each variant: a 2 h log is written by :func:`hvac_mpc.mismatch.simulate_log` (seeded), then
+the command's own path runs on it (``log_data.load`` and ``identify`` from the documented effects,
+default mode, as ``hvac-mpc identify`` does), pinned to ``--threads`` cores (Linux affinity). The
+log generation is not timed. Printed per log: wall time, what was added, held-out supply RMS
+before and after. The budget of the issue is one minute per 2 h log on two cores.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from hvac_mpc.identification import log_data
+from hvac_mpc.identification.pipeline import DOCUMENTED_EFFECTS, identify
+from hvac_mpc.mismatch import simulate_log
+from hvac_mpc.mismatch.variants import Variant
+
+#: Logs timed by default: clean, single effects, effects outside the library, several together, shifted.
+DEFAULT_VARIANTS = ("nominal", "delay_3s", "duct_loss", "cooler_literal", "combo_delay_loss_cooler", "shift_1")
+BUDGET_S = 60.0
+
+
+def _variant(name: str):
+    if name.startswith("shift_"):
+        return Variant(log_shift_samples=int(name.split("_", 1)[1]))
+    return name
+
+
+def time_one(name: str, duration_s: float, seed: int, folder: Path) -> dict:
+    """Generate one log (untimed) and time the identification of it."""
+    path = folder / f"{name}.csv"
+    simulate_log(path, _variant(name), duration_s=duration_s, seed=seed)
+    t0 = time.perf_counter()
+    res = identify(log_data.load(path), base_effects=DOCUMENTED_EFFECTS)
+    wall = time.perf_counter() - t0
+    e = res.holdout_errors()["supply_temp_c"]
+    added = [a.name for a in res.accepted] + [f"term {t.formula()}" for t in res.terms]
+    return {"log": name, "wall_s": wall, "added": added, "supply_rms_before": e["rms_before"],
+            "supply_rms_after": e["rms_after"], "timing_shift_samples": res.timing_shift_samples,
+            "timings_s": res.timings}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--variant", action="append", default=None,
+                        help="hvac_mpc.mismatch variant, or shift_N for a log shifted by N samples (repeatable)")
+    parser.add_argument("--duration", type=float, default=7200.0, help="log length, s (default 7200)")
+    parser.add_argument("--seed", type=int, default=5)
+    parser.add_argument("--threads", type=int, default=2, choices=(1, 2), help="cores to use (default 2)")
+    parser.add_argument("--json", type=Path, default=None, help="write the results here")
+    args = parser.parse_args(argv)
+    if hasattr(os, "sched_setaffinity"):
+        os.sched_setaffinity(0, sorted(os.sched_getaffinity(0))[:args.threads])
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in args.variant or DEFAULT_VARIANTS:
+            r = time_one(name, args.duration, args.seed, Path(tmp))
+            rows.append(r)
+            print(f"{name:28s} {r['wall_s']:6.1f} s  added {r['added'] or ['nothing']}  supply RMS "
+                  f"{r['supply_rms_before']:.3f} -> {r['supply_rms_after']:.3f} C"
+                  + (f"  shift {r['timing_shift_samples']} sample(s)" if r["timing_shift_samples"] else ""),
+                  flush=True)
+    worst = max(r["wall_s"] for r in rows)
+    print(f"slowest: {worst:.1f} s on {args.threads} core(s) (budget {BUDGET_S:g} s)")
+    if args.json:
+        args.json.write_text(json.dumps({"threads": args.threads, "duration_s": args.duration, "runs": rows},
+                                        indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,158 @@
+"""Term discovery: a term nobody declared, found by sparse regression on the supply residual.
+
+When the supply temperature's residual stays structured after the candidate library, the
+missing physics is looked for as an additive term in the supply-air energy balance
+(models/discovered.py): ``dT = sum_i c_i f_i`` over the feature vocabulary
+:data:`hvac_mpc.models.discovered.FEATURES` (temperature differences over the mass flow, the core
+path, products with the flow, ...), evaluated along the fitted model's free run.
+
+Because the term enters after mixing, the reading sees it through the thermocouple lag (and the
+supply delay, if one was found), so every feature is passed through the same lag and delay and
+the residual is linear in the coefficients: a sparse linear regression is exact here.
+
+Selection (docs/identification.md, "discovery"): the order in which features enter comes from
+the LARS-lasso path of scikit-learn (``sklearn.linear_model.lars_path``, standardised features,
+training rows); the number of features from the held-out rows: a feature is kept only if it
+lowers the held-out error of the supply temperature by ``MIN_STEP_GAIN`` or more (at most
+``MAX_FEATURES``). Why scikit-learn and not PySINDy: the library here is a fixed set of
+physical features of one equation and the target is a residual, not a derivative; PySINDy would
+add a differentiation and an ODE fit layer that do nothing for this, while ``lars_path`` gives the
+whole sparsity path in one deterministic call (no threshold or penalty to tune). The extra is
+``discovery`` (scikit-learn), imported only when a discovery runs.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from hvac_mpc.models.discovered import FEATURES, DiscoveredTerm
+
+from .fitting import Fit, Fitter
+from .simulator import shift
+
+#: Share of the held-out supply error (sum of squares) each kept feature must remove.
+MIN_STEP_GAIN = 0.05
+#: Features the selection may use (the whole vocabulary but the constant, which is always in).
+CANDIDATES = ("mix", "inlet", "inv_mass_flow", "mix_over_mass_flow", "inlet_minus_mix_over_mass_flow", "core_share",
+              "core_share_x_blower_out", "core_share_x_water", "mass_flow", "mix_x_mass_flow",
+              "heater_power_over_mass_flow")
+#: Most features in one term.
+MAX_FEATURES = 4
+#: Prefixes of the LARS path scored on the held-out rows (a term holds at most this many features).
+MAX_PATH = MAX_FEATURES
+
+
+def _lars_path(x: np.ndarray, y: np.ndarray):
+    try:
+        from sklearn.linear_model import lars_path
+    except ImportError as exc:  # pragma: no cover - depends on the optional extra
+        raise ImportError("term discovery needs scikit-learn: pip install 'hvac-mpc[discovery]'") from exc
+    return lars_path(x, y, method="lasso", max_iter=4 * MAX_FEATURES)
+
+
+def features(fitter: Fitter, fit: Fit) -> dict[str, np.ndarray]:
+    """Every vocabulary feature along the fit's free run (n,), before the sensor."""
+    sim = fitter.simulator(fit.effects, fit.terms)
+    internals = sim.internals(fit.p, fit.states)
+    log = fitter.log
+    water = log.water_temp_c if log.water_temp_c is not None else fit.states[:, sim.model.states.index("water_temp_c")]
+    q = {"t_mix": internals["mix_temp_c"], "t_in": log.inlet_temp_c, "t_blower": internals["blower_out_temp_c"],
+         "t_water": water, "mass_flow": internals["mass_flow_kgs"], "core_share": 1.0 - internals["bypass_fraction"],
+         "p_el": internals["heater_electric_w"]}
+    return {name: np.asarray(spec[2](q), float) * np.ones(log.n) for name, spec in FEATURES.items()}
+
+
+def _lfilter_lag(values: np.ndarray, tau_s: float, dt_s: float) -> np.ndarray:
+    from scipy.signal import lfilter
+    a = np.exp(-dt_s / tau_s)
+    y = lfilter([0.0, 1.0 - a], [1.0, -a], values - values[0]) + values[0]
+    return y
+
+
+def sensor_view(fitter: Fitter, fit: Fit, feats: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Each feature as the supply reading would show it (lag and delay of ``fit``)."""
+    tau = float(fit.p[fitter.names.index("tau_tc_s")])
+    delay = fit.post.delays.get("supply_temp_c", 0)
+    return {k: shift(_lfilter_lag(v, tau, fitter.log.dt_s), delay) for k, v in feats.items()}
+
+
+def select(fitter: Fitter, fit: Fit, dy_free: np.ndarray | None = None) -> tuple[list[str], np.ndarray, dict]:
+    """Sparse choice of features for the supply residual of ``fit``: names, coefficients, the record.
+
+    ``dy_free`` (n x k): the supply reading's sensitivities to the model's free parameters. They
+    are always in the regression (unpenalised, projected out before the LARS path), so the term is
+    chosen with the nominal parameters refit together with it, not on a residual they have bent.
+    """
+    j = fitter.outputs.index("supply_temp_c")
+    resid = fitter.y_meas[:, j] - fit.y[:, j]
+    view = sensor_view(fitter, fit, features(fitter, fit))
+    names = [k for k in view if k in CANDIDATES]
+    x_all = np.column_stack([view[k] for k in names])
+    base = np.column_stack([view["one"]] + ([dy_free] if dy_free is not None and dy_free.size else []))
+    ok = np.isfinite(resid) & np.all(np.isfinite(x_all), axis=1) & np.all(np.isfinite(base), axis=1)
+    tr, ho = ok & fitter.log.train, ok & fitter.log.holdout
+    q, _ = np.linalg.qr(base[tr])
+    x_tr = x_all[tr] - q @ (q.T @ x_all[tr])
+    r_tr = resid[tr] - q @ (q.T @ resid[tr])
+    sd = x_tr.std(axis=0)
+    usable = sd > 1e-9 * np.maximum(np.abs(x_all[tr]).max(axis=0), 1e-300)
+    _, _, coefs = _lars_path(x_tr[:, usable] / sd[usable], r_tr)
+    nonzero = np.abs(coefs) > 0
+    entered = [int(np.argmax(row)) if row.any() else None for row in nonzero]  # path step where each enters
+    idx = sorted((k for k, e in enumerate(entered) if e is not None), key=lambda k: entered[k])
+    order = [names[i] for i in np.flatnonzero(usable)[idx]]
+    record = {"path_order": order, "steps": []}
+    c0, *_ = np.linalg.lstsq(base[tr], resid[tr], rcond=None)
+    sse_start = float(np.sum((resid[ho] - base[ho] @ c0) ** 2))
+    record["holdout_sse_start"] = sse_start
+    fits = []
+    for k in range(1, min(len(order), MAX_PATH) + 1):  # every prefix of the path, scored on the held-out rows
+        a = np.column_stack([view[f] for f in order[:k]] + [base])
+        c, *_ = np.linalg.lstsq(a[tr], resid[tr], rcond=None)
+        sse = float(np.sum((resid[ho] - a[ho] @ c) ** 2))
+        fits.append((order[:k], c[:k + 1], sse))
+        record["steps"].append({"features": order[:k], "holdout_sse": sse})
+    chosen: list[str] = []
+    coef = np.zeros(0)
+    if fits:
+        best = min(sse for _, _, sse in fits)
+        if best <= (1.0 - MIN_STEP_GAIN) * sse_start:
+            # the smallest prefix within MIN_STEP_GAIN of the best improvement
+            limit = best + MIN_STEP_GAIN * (sse_start - best)
+            chosen, coef, _ = next(f for f in fits if f[2] <= limit)
+    return chosen, coef, record
+
+
+def describe_term(chosen: list[str], coef: np.ndarray) -> str:
+    """The term in words (and physically, when it has the form of a heat loss to surroundings)."""
+    words = " plus ".join(FEATURES[f][0] for f in chosen)
+    text = f"an additive term in the supply-air energy balance, linear in {words} and a constant"
+    c = dict(zip(chosen, coef))
+    if set(chosen) >= {"mix_over_mass_flow", "inv_mass_flow"} and c["mix_over_mass_flow"] < 0:
+        ua = -c["mix_over_mass_flow"] * 1007.0
+        t_env = c["inv_mass_flow"] / -c["mix_over_mass_flow"]
+        text += (f"; it has the form of a heat loss from the duct to surroundings at about {t_env:.1f} C with a "
+                 f"conductance UA of about {ua:.2f} W/K (dT = UA/(m_dot c_p) (T_env - T_mix))")
+    if set(chosen) & {"core_share", "core_share_x_blower_out", "core_share_x_water"}:
+        text += "; it acts on the air through the cooler core (an error of the core outlet temperature)"
+    return text
+
+
+def term_from(chosen: list[str], coef: np.ndarray, name: str = "supply_residual_term") -> DiscoveredTerm:
+    """The discovered term (the regression's constant included as feature ``one``)."""
+    feats = tuple(chosen) + ("one",)
+    return DiscoveredTerm(name, "supply_air", feats, tuple(float(c) for c in coef), describe_term(chosen, coef[:-1]))
+
+
+def refit_coefficients(fitter: Fitter, fit: Fit, term: DiscoveredTerm) -> DiscoveredTerm:
+    """Least-squares update of the term's coefficients on the training rows of ``fit`` (which holds the
+    term): the residual is linear in them, so one solve is the exact optimum for fixed parameters."""
+    j = fitter.outputs.index("supply_temp_c")
+    resid = fitter.y_meas[:, j] - fit.y[:, j]
+    view = sensor_view(fitter, fit, features(fitter, fit))
+    a = np.column_stack([view[k] for k in term.features])
+    ok = np.isfinite(resid) & fitter.log.train & np.all(np.isfinite(a), axis=1)
+    dc, *_ = np.linalg.lstsq(a[ok], resid[ok], rcond=None)
+    return DiscoveredTerm(term.name, term.location, term.features,
+                          tuple(float(c + d) for c, d in zip(term.coefficients, dc)),
+                          describe_term(list(term.features[:-1]), np.array(term.coefficients) + dc))

@@ -1,0 +1,82 @@
+"""Log timing check: a constant shift between the commands and the sensor columns.
+
+Row k of a log holds the readings at t_k and the command applied from t_k on, so a blower step
+shows in the volume flow one row later (docs/model.md sec. 4). A logger that writes its sensor
+columns late (or early) by whole samples breaks that. The volume flow follows the blower with no
+dynamics worth a sample (the flow sensor is a pressure tap), so it shows the shift cleanly and
+apart from a transport delay of the temperature, which only moves ``supply_temp_c``.
+
+The check: the nominal model's free-run flow, compared to the measured flow read ``s`` samples
+earlier for s in -MAX_SHIFT..MAX_SHIFT, with an affine correction (gain and offset fitted
+per s by least squares, so a wrong flow gain does not bias it). The shift with the smallest
+error is taken if it beats s = 0 by the factor ``MIN_IMPROVEMENT``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .log_data import LogData
+
+#: Largest shift looked for, samples.
+MAX_SHIFT = 3
+#: Error ratio (s = 0 over best s) needed to declare a shift.
+MIN_IMPROVEMENT = 1.5
+
+
+def _affine_sse(y: np.ndarray, yhat: np.ndarray) -> float:
+    ok = np.isfinite(y) & np.isfinite(yhat)
+    a = np.column_stack([yhat[ok], np.ones(ok.sum())])
+    coef, *_ = np.linalg.lstsq(a, y[ok], rcond=None)
+    r = y[ok] - a @ coef
+    return float(np.mean(r ** 2))
+
+
+def shifted(values: np.ndarray, s: int) -> np.ndarray:
+    """``values`` read ``s`` samples later (s > 0: row k gets row k + s), NaN where it runs out."""
+    out = np.full(len(values), np.nan)
+    if s > 0:
+        out[:-s] = values[s:]
+    elif s < 0:
+        out[-s:] = values[:s]
+    else:
+        out[:] = values
+    return out
+
+
+def detect_shift(measured_flow: np.ndarray, predicted_flow: np.ndarray) -> tuple[int, dict[int, float]]:
+    """Shift s (samples the sensor columns are late; negative = early) and the error per s."""
+    errors = {s: _affine_sse(shifted(measured_flow, s), predicted_flow) for s in range(-MAX_SHIFT, MAX_SHIFT + 1)}
+    best = min(errors, key=errors.get)
+    if best != 0 and errors[0] >= MIN_IMPROVEMENT * errors[best]:
+        return best, errors
+    return 0, errors
+
+
+def correct(log: LogData, s: int) -> None:
+    """Move the sensor columns of ``log`` back by ``s`` samples in place (outputs, water and inlet)."""
+    if s == 0:
+        return
+    for name in list(log.outputs):
+        log.outputs[name] = shifted(log.outputs[name], s)
+    if log.water_temp_c is not None:
+        log.water_temp_c = np.nan_to_num(shifted(log.water_temp_c, s), nan=float(log.water_temp_c[-1 if s > 0 else 0]))
+    log.inlet_temp_c = np.nan_to_num(shifted(log.inlet_temp_c, s), nan=float(log.inlet_temp_c[-1 if s > 0 else 0]))
+    for name in list(log.signals):
+        if name in log.outputs or name in ("water_temp_c", "hvac_inlet_temp_c", "cabin_temp_c",
+                                           "heater_outlet_temp_c", "heater_power_w"):
+            col = shifted(log.signals[name], s)
+            log.signals[name] = np.where(np.isfinite(col), col, log.signals[name])
+    log.timing_shift_samples = s
+
+
+def describe(s: int, dt_s: float, errors: dict[int, float]) -> str:
+    """The finding in words."""
+    ratio = errors[0] / max(errors[s], 1e-300) if s else 1.0
+    if s == 0:
+        return "log timing: sensor columns in step with the commands (no shift between inputs and outputs)"
+    when = "late" if s > 0 else "early"
+    return (f"log timing: the sensor columns are {abs(s)} sample(s) ({abs(s) * dt_s:g} s) {when} against the "
+            f"commands (the flow follows a blower step {1 + s} rows later instead of 1; flow error {ratio:.1f}x "
+            f"smaller once moved back); corrected by moving them {abs(s)} sample(s) "
+            f"{'earlier' if s > 0 else 'later'} before fitting")

@@ -1,0 +1,106 @@
+"""Discovered terms: additive terms found in data, written to the model file, built into the model.
+
+A term is a named linear combination ``sum_i c_i f_i`` of features from :data:`FEATURES` (each a
+physically meaningful function of quantities the model already computes), added to one balance
+(:data:`LOCATIONS`). ``supply_air``: added to the mixed supply air temperature after mixing, i.e. an
+extra heat flow in the supply-air energy balance divided by the air's capacity flow
+(docs/model.md, "discovered terms"). The same feature functions serve numpy (identification) and
+CasADi (the model), so the term the identification fits is the term the controller predicts with.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Callable, Mapping
+
+#: Where a term can be added: name -> (what it changes, unit of the term).
+LOCATIONS = {"supply_air": ("mixed supply air temperature after mixing (supply-air energy balance)", "C")}
+
+
+def _f(description: str, unit: str, fn: Callable[[Mapping[str, Any]], Any]) -> tuple[str, str, Callable]:
+    return description, unit, fn
+
+
+#: Feature vocabulary: name -> (words, unit, function of the quantities ``q``). ``q`` keys:
+#: t_mix (C), t_in (C, inlet), t_blower (C, after the motor), t_water (C), mass_flow (kg/s),
+#: core_share (1 - bypass fraction), p_el (W, heater electric power).
+FEATURES: dict[str, tuple[str, str, Callable]] = {
+    "one": _f("a constant", "1", lambda q: 1.0 + 0.0 * q["t_mix"]),
+    "inv_mass_flow": _f("one over the mass flow", "s/kg", lambda q: 1.0 / q["mass_flow"]),
+    "mix_over_mass_flow": _f("mixed air temperature over the mass flow", "C s/kg",
+                             lambda q: q["t_mix"] / q["mass_flow"]),
+    "inlet_minus_mix_over_mass_flow": _f("inlet minus mixed air temperature over the mass flow", "C s/kg",
+                                         lambda q: (q["t_in"] - q["t_mix"]) / q["mass_flow"]),
+    "core_share": _f("share of the air through the core", "1", lambda q: q["core_share"]),
+    "core_share_x_blower_out": _f("core share times the air temperature entering the core", "C",
+                                  lambda q: q["core_share"] * q["t_blower"]),
+    "core_share_x_water": _f("core share times the water temperature", "C",
+                             lambda q: q["core_share"] * q["t_water"]),
+    "mix": _f("mixed air temperature", "C", lambda q: q["t_mix"]),
+    "inlet": _f("inlet air temperature", "C", lambda q: q["t_in"]),
+    "mass_flow": _f("mass flow", "kg/s", lambda q: q["mass_flow"]),
+    "mix_x_mass_flow": _f("mixed air temperature times the mass flow", "C kg/s",
+                          lambda q: q["t_mix"] * q["mass_flow"]),
+    "heater_power_over_mass_flow": _f("heater electric power over the mass flow", "W s/kg",
+                                      lambda q: q["p_el"] / q["mass_flow"]),
+}
+
+
+def coefficient_unit(feature: str, location: str = "supply_air") -> str:
+    """Unit of a coefficient: the term's unit over the feature's."""
+    term_unit = LOCATIONS[location][1]
+    f_unit = FEATURES[feature][1]
+    return term_unit if f_unit == "1" else f"{term_unit} / ({f_unit})"
+
+
+@dataclass(frozen=True)
+class DiscoveredTerm:
+    """``name``: short identifier; ``location``: key of :data:`LOCATIONS`; ``features`` and
+    ``coefficients``: the linear combination; ``description``: the term in words."""
+
+    name: str
+    location: str
+    features: tuple[str, ...]
+    coefficients: tuple[float, ...]
+    description: str = ""
+
+    def __post_init__(self) -> None:
+        if self.location not in LOCATIONS:
+            raise ValueError(f"discovered term {self.name!r}: location {self.location!r} unknown; "
+                             f"allowed: {list(LOCATIONS)}")
+        unknown = [f for f in self.features if f not in FEATURES]
+        if unknown:
+            raise ValueError(f"discovered term {self.name!r}: feature(s) {unknown} unknown; allowed: {list(FEATURES)}")
+        if len(self.features) != len(self.coefficients):
+            raise ValueError(f"discovered term {self.name!r}: {len(self.features)} features but "
+                             f"{len(self.coefficients)} coefficients")
+        if not all(isinstance(c, (int, float)) and math.isfinite(c) for c in self.coefficients):
+            raise ValueError(f"discovered term {self.name!r}: coefficients must be finite numbers")
+
+    def value(self, q: Mapping[str, Any]) -> Any:
+        """The term for quantities ``q`` (numpy or CasADi)."""
+        total = 0.0
+        for f, c in zip(self.features, self.coefficients):
+            total = total + c * FEATURES[f][2](q)
+        return total
+
+    def formula(self) -> str:
+        """The term as a formula with its coefficients and units."""
+        parts = [f"{c:+.4g} [{coefficient_unit(f, self.location)}] * {f}" for f, c in zip(self.features,
+                                                                                       self.coefficients)]
+        return f"dT_{self.location} = " + " ".join(parts)
+
+    def as_dict(self) -> dict:
+        return {"name": self.name, "location": self.location, "features": list(self.features),
+                "coefficients": [float(c) for c in self.coefficients], "description": self.description,
+                "units": [coefficient_unit(f, self.location) for f in self.features]}
+
+
+def terms_at(terms, location: str, q: Mapping[str, Any]) -> Any:
+    """Sum of the terms added at ``location``."""
+    total = 0.0
+    for t in terms:
+        if t.location == location:
+            total = total + t.value(q)
+    return total

@@ -1,0 +1,183 @@
+"""The data loop on logs of the independent simulator (hvac_mpc.mismatch, a truth that is not the
+model): bad rows, the log timing check, discovered terms in the model and the model file, the
+refined model in the MPC, and identification end to end (slow).
+
+Fast part: about 15 s (short logs, no identification run). Slow part: 30 min logs, identified once
+per session in quick mode.
+"""
+
+import json
+
+import numpy as np
+import pytest
+
+from hvac_mpc.identification import load_model_file, load_refined_model, write_model_file
+from hvac_mpc.identification import timing
+from hvac_mpc.identification.log_data import load
+from hvac_mpc.identification.pipeline import DOCUMENTED_EFFECTS, identify
+from hvac_mpc.identification.simulator import Simulator
+from hvac_mpc.mismatch import simulate_log
+from hvac_mpc.mismatch.variants import Variant
+from hvac_mpc.models import HvacModel, Parameters
+from hvac_mpc.models.discovered import DiscoveredTerm
+from hvac_mpc.models.model_file import ModelFileError, RefinedModel
+from hvac_mpc.mpc.mpc_controller import MpcController
+
+LOSS_TERM = DiscoveredTerm("duct_loss", "supply_air", ("mix_over_mass_flow", "inv_mass_flow", "one"),
+                           (-0.003, 0.072, 0.0), "heat loss to surroundings at 24 C")
+
+
+# ------------------------------------------------------------------ bad rows
+def test_bad_rows_are_found_counted_and_masked(tmp_path):
+    info = simulate_log(tmp_path / "bad.csv", "nominal", duration_s=1200, seed=2, bad_rows=True)
+    inj = info["injected"]
+    log = load(tmp_path / "bad.csv")
+    found = log.bad_rows
+    assert found["non_monotone_timestamps"] == inj["n_non_monotone"]
+    assert found["duplicated_timestamps"] == inj["n_duplicated"]
+    assert found["dropouts"] == 1 and found["dropout_rows"] == inj["dropout"]["n_samples"]
+    assert found["dropout_time_s"] == [inj["dropout"]["start_s"]]
+    assert found["stuck_sensor"]["supply_temp_c"]["rows"] == inj["stuck_supply"]["n_samples"]
+    assert sum(found["empty_sensor_cells"].values()) == inj["n_missing_cells"]
+    # uniform grid again, and nothing of the bad rows is left to fit
+    assert np.allclose(np.diff(log.time_s), 1.0) and log.n == info["samples"]
+    stuck = (log.time_s >= inj["stuck_supply"]["start_s"]) & (log.time_s < inj["stuck_supply"]["start_s"] + 60)
+    assert np.all(np.isnan(log.outputs["supply_temp_c"][stuck]))
+    gap = (log.time_s >= inj["dropout"]["start_s"]) & (log.time_s <= inj["dropout"]["end_s"])
+    assert np.all(np.isnan(log.outputs["volume_flow_m3s"][gap]))
+    assert any("stuck sensor" in n for n in log.notes) and any("dropout" in n for n in log.notes)
+
+
+def test_clean_log_reports_no_bad_rows(tmp_path):
+    simulate_log(tmp_path / "clean.csv", "nominal", duration_s=900, seed=4)
+    log = load(tmp_path / "clean.csv")
+    assert not any(n.startswith("bad rows") for n in log.notes)
+    assert log.bad_rows["masked_rows"] == 0 and log.bad_rows["stuck_sensor"] == {}
+
+
+# ------------------------------------------------------------------ timing
+@pytest.mark.parametrize("shift", [1, -1, 0])
+def test_log_timing_shift_is_detected_and_corrected(tmp_path, shift):
+    simulate_log(tmp_path / "s.csv", Variant(log_shift_samples=shift), duration_s=900, seed=6)
+    log = load(tmp_path / "s.csv")
+    y, _ = Simulator(log, Parameters(), DOCUMENTED_EFFECTS, ("volume_flow_m3s",)).simulate(
+        np.array(Parameters().vector()))
+    found, errors = timing.detect_shift(log.outputs["volume_flow_m3s"], y[:, 0])
+    assert found == shift
+    text = timing.describe(found, 1.0, errors)
+    assert ("late" in text if shift > 0 else "early" in text if shift < 0 else "in step" in text)
+    timing.correct(log, found)
+    again, _ = timing.detect_shift(log.outputs["volume_flow_m3s"], y[:, 0])
+    assert again == 0
+
+
+# ------------------------------------------------------------------ discovered terms and the model file
+def test_discovered_term_enters_the_supply_air_balance():
+    plain, refined = HvacModel(Parameters()), HvacModel(Parameters(), terms=(LOSS_TERM,))
+    u = np.array([100.0, 200.0, 50.0, 100.0, 100.0, 100.0])
+    d = plain.d_vector(20.0, 5.0)
+    x = plain.steady_state(u, d)
+    y0, y1 = plain.y(x, u, d), refined.y(x, u, d)
+    i = plain.outputs.index("supply_air_temp_c")
+    m = y0[plain.outputs.index("mass_flow_kgs")]
+    expected = -0.003 * y0[i] / m + 0.072 / m
+    assert y1[i] - y0[i] == pytest.approx(expected, rel=1e-9)
+    # the flows and the heater do not see a supply-air term
+    assert y1[plain.outputs.index("volume_flow_m3s")] == y0[plain.outputs.index("volume_flow_m3s")]
+
+
+def test_model_file_round_trip_with_terms_and_delay(tmp_path):
+    params = Parameters().replace(transport_delay_s=3.0, fan_k_kg_m7=9.0e4)
+    path = write_model_file(tmp_path / "m.toml", params, ("fan_curve", "ptc_power_fall"), {"note_s": 1.0},
+                            terms=(LOSS_TERM,))
+    refined = load_refined_model(path)
+    assert refined.transport_delay_s == 3.0 and refined.parameters.fan_k_kg_m7 == 9.0e4
+    assert refined.effects == ("ptc_power_fall", "fan_curve") and refined.terms == (LOSS_TERM,)
+    assert "format_version = 2" in path.read_text()
+    p, e = load_model_file(path)  # the public API of version 1 keeps working
+    assert p == refined.parameters and e == refined.effects
+    js = write_model_file(tmp_path / "m.json", params, ("fan_curve",), terms=(LOSS_TERM,))
+    assert load_refined_model(js).terms == (LOSS_TERM,)
+
+
+@pytest.mark.parametrize("edit, field", [
+    ('features = ["mix_over_mass_flow", "inv_mass_flow", "one"]', "model.terms.0.features.1"),
+    ('location = "supply_air"', "model.terms.0.location"),
+    ("format_version = 2", "format_version"),
+    ('effects = ["fan_curve"]', "model.effects.0"),
+])
+def test_bad_model_file_names_the_field(tmp_path, edit, field):
+    path = write_model_file(tmp_path / "m.toml", Parameters(), ("fan_curve",), terms=(LOSS_TERM,))
+    text = path.read_text()
+    broken = {"features": edit.replace("inv_mass_flow", "cabin_magic"), "location": edit.replace("supply_air", "roof"),
+              "format_version = 2": "format_version = 7", "effects": edit.replace("fan_curve", "warp_drive")}
+    key = next(k for k in broken if edit.startswith(k))
+    assert edit in text
+    path.write_text(text.replace(edit, broken[key]))
+    with pytest.raises(ModelFileError, match=field.replace(".", r"\.")):
+        load_refined_model(path)
+
+
+def test_mpc_takes_the_refined_model_without_breaking_its_signature():
+    refined = RefinedModel(Parameters().replace(tau_tc_s=7.0), ("ptc_power_fall", "fan_curve", "motor_asymmetry"),
+                           (LOSS_TERM,))
+    mpc = MpcController(model=refined)
+    assert mpc.problem.model.terms == (LOSS_TERM,) and mpc.ekf.model.terms == (LOSS_TERM,)
+    assert "motor_asymmetry" in mpc.problem.model.effects and mpc.params.tau_tc_s == 7.0
+    assert MpcController().problem.model.terms == ()  # default unchanged
+
+
+# ------------------------------------------------------------------ end to end (slow)
+_RESULTS: dict = {}
+
+
+def identified(tmp_path_factory, variant, seed=11, duration_s=2400.0):
+    """Identification of a 40 min log of ``variant`` (cached per session)."""
+    if variant not in _RESULTS:
+        path = tmp_path_factory.mktemp("logs") / f"{variant}.csv"
+        simulate_log(path, variant, duration_s=duration_s, seed=seed)
+        _RESULTS[variant] = identify(load(path), base_effects=DOCUMENTED_EFFECTS, quick=True)
+    return _RESULTS[variant]
+
+
+@pytest.mark.slow
+def test_clean_log_gets_nothing_added(tmp_path_factory):
+    res = identified(tmp_path_factory, "nominal")
+    assert res.accepted == [] and res.terms == ()
+
+
+@pytest.mark.slow
+def test_delay_is_named_and_halves_the_supply_error(tmp_path_factory):
+    res = identified(tmp_path_factory, "delay_3s")
+    assert [a.name for a in res.accepted] == ["transport_delay:supply_temp_c"]
+    assert res.params.transport_delay_s == pytest.approx(3.0, abs=1.0)
+    e = res.holdout_errors()["supply_temp_c"]
+    assert e["rms_after"] <= 0.5 * e["rms_before"]
+
+
+@pytest.mark.slow
+def test_duct_loss_outside_the_library_is_added_as_a_term(tmp_path_factory, tmp_path):
+    res = identified(tmp_path_factory, "duct_loss")
+    assert len(res.terms) == 1 and res.discovery["accepted"]
+    e = res.holdout_errors()["supply_temp_c"]
+    assert e["rms_after"] <= 0.5 * e["rms_before"]
+    from hvac_mpc.identification.report import write_report
+    files = write_report(res, tmp_path, plots=False)
+    md = files["report"].read_text()
+    assert "Discovered term" in md and "Formula" in md and "Residual tests on the held-out rows" in md
+    summary = json.loads(files["summary"].read_text())
+    assert summary["discovered_terms"][0]["formula"].startswith("dT_supply_air")
+    assert load_refined_model(files["model"]).terms == res.terms
+
+
+@pytest.mark.slow
+def test_mpc_with_the_refined_model_tracks_better_on_the_plant_with_the_effect(tmp_path_factory, tmp_path):
+    from hvac_mpc.benchmarks import scenarios
+    from hvac_mpc.benchmarks.refined_model import compare
+
+    res = identified(tmp_path_factory, "duct_loss")
+    path = write_model_file(tmp_path / "refined.toml", res.params, res.effects, res.extras, res.terms)
+    chosen = scenarios.select(["flow_split_changes"], quick=True)
+    cmp = compare(path, "duct_loss", chosen, seed=0)
+    r = cmp["scenarios"]["flow_split_changes"]
+    assert r["refined"]["temp_iae_cs"] < r["nominal"]["temp_iae_cs"], r
