@@ -169,7 +169,7 @@ def _screen_and_fit(fitter: Fitter, current: Fit, free: list[FreeParam], effects
     take one Gauss-Newton step together (so a nominal refit cannot absorb the effect before it is
     scored); the best candidates are refit fully afterwards (:func:`_forward`). The flow equation's
     parameters join only for a candidate on the flow side (``flow_side``): they were fitted on the
-    measured flow alone, and a temperature-side step must not bend them (docs/identification.md, procedure step 2)."""
+    measured flow alone, and a temperature-side step must not bend them (procedure step 2 of the module docstring)."""
     dy_free = current.extra.get("dy_free")
     if dy_free is None:
         dy_free = fitter.raw_sensitivity(current.effects, current.p, free, current.terms)
