@@ -172,6 +172,7 @@ class Daemon:
         self.state = "starting"
         self.exit_code = 0
         self.latest: dict[str, Any] | None = None
+        self._out_of_reach: dict[str, float] = {}  # references the controller reports out of reach
         self._last_tick_wall = time.monotonic()
         self._started_wall = time.monotonic()
         self.counters: dict[str, Any] = {
@@ -358,7 +359,8 @@ class Daemon:
                    "degraded": self.degraded(), "unsafe": self.cfg.safety.unsafe_overrides(),
                    "tick_time_bounds_s": list(TICK_TIME_BUCKETS_S),
                    "mode_history": [h.as_dict() for h in list(self.mode_history)[-20:]],
-                   "model": self.models.status()}
+                   "model": self.models.status(),
+                   "out_of_reach": dict(self._out_of_reach)}
         injected: dict[str, int] = dict(self.injected)
         for obj in (self.backend, self.chain.controllers[0][1]):
             injected.update(getattr(obj, "injected", {}))
@@ -666,10 +668,12 @@ class Daemon:
         sample.update({"interlock": reasons, "sensor_faults": dict(status.faults) if status else None,
                        "stale": bool(status.stale) if status else None, "events": events,
                        "connected": self.connected, "heater_estimate_c": round(self.estimator.temp_c, 3),
-                       "solver_status": stats.get("status"), "inner_fallback": stats.get("fallback")})
+                       "solver_status": stats.get("status"), "inner_fallback": stats.get("fallback"),
+                       "out_of_reach": dict(stats.get("out_of_reach") or {})})
         with self._lock:
             self.latest = {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
                            for k, v in sample.items()}
+            self._out_of_reach = sample["out_of_reach"]
             self.counters["ticks"] += 1
         if self.tick_hook is not None:
             self.tick_hook(self, sample)

@@ -250,3 +250,22 @@ def test_suite_summary_names_the_worst_cell_and_judges_the_checks():
     assert checks["no fallback storm"] and checks["no constraint violation (MPC)"]
     assert not checks["flow out of reach: steady supply temperature within 0.3 C"]
     assert checks["flow out of reach: reported in steady state (where not reached)"]
+
+
+@pytest.mark.slow
+def test_daemon_status_names_an_unreachable_flow_reference(tmp_path):
+    from hvac_mpc.daemon.config import config_from_mapping
+    from hvac_mpc.daemon.loop import Daemon
+
+    cfg = config_from_mapping({
+        "loop": {"speedup": "max", "max_ticks": 40, "deadline_s": 30.0},
+        "log": {"path": str(tmp_path / "log.csv"), "fsync": False}, "api": {"enabled": False},
+        "controller": {"name": "mpc"}, "backend": {"simulated": {"inlet_temp_c": 32.0}},
+        "safety": {"cooldown_max_s": 5.0, "cooldown_min_s": 1.0},
+        "reference": {"supply_temp_c": 18.0, "volume_flow_m3s": 200 * M3H}})
+    seen = []
+    daemon = Daemon(cfg, tick_hook=lambda d, sample: seen.append(d.status()["out_of_reach"]))
+    daemon.run()
+    reported = [s for s in seen if s]
+    assert reported and set(reported[-1]) == {"volume_flow_m3s"}
+    assert 0.0 < reported[-1]["volume_flow_m3s"] < 200 * M3H
