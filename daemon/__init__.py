@@ -1,7 +1,7 @@
 """The controller daemon: the MPC (or the thesis baseline) running for real, safe under faults.
 
 Run it with ``hvac-mpc daemon --config daemon.toml`` (``--example-config`` prints a commented
-configuration). Modules, one job each:
+configuration; docs/real-box.md describes it). Modules, one job each:
 
 * :mod:`.config`      the TOML configuration, validated key by key;
 * :mod:`.loop`        the fixed-rate loop, shutdown sequence and log (:class:`.loop.Daemon`);

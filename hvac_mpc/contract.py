@@ -50,7 +50,7 @@ class Command:
 
 @dataclass
 class Measurement:
-    """One sample of the box's sensors (names and units of the measurement log, docs/model.md).
+    """One sample of the box's sensors (names and units of the measurement log, docs/model.md sec. 4).
 
     Optional signals are ``None`` when the box does not measure them.
     """

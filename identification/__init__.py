@@ -1,5 +1,7 @@
 """Refining the model from measured data: residuals, diagnostics, candidate effects, refit.
 
+The procedure and its statistics: docs/identification.md.
+
 - :func:`load_model_file` reads the model file ``hvac-mpc identify`` writes: ``(Parameters, effects)``.
 - :func:`~hvac_mpc.identification.pipeline.identify` runs the procedure on a prepared log
   (:func:`~hvac_mpc.identification.log_data.load`).

@@ -182,14 +182,16 @@ GENERIC_CANDIDATES = (
 def delay_candidates(outputs) -> tuple[Candidate, ...]:
     """Transport delay on each logged temperature or flow output (integer samples)."""
     return tuple(Candidate(f"transport_delay:{o}", "delay", f"{o} reading late by a transport delay",
-                           "generic (research notes sec. 5.3)", output=o, signature=(o,), regressor=f"d_{o}")
+                           "generic (docs/identification.md, 'The loop')", output=o, signature=(o,),
+                           regressor=f"d_{o}")
                  for o in outputs if o != "heater_power_w")
 
 
 def bias_candidates(outputs) -> tuple[Candidate, ...]:
     """Offset and linear drift on each logged output."""
     return tuple(Candidate(f"output_bias:{o}", "bias", f"{o} reading offset with a linear drift",
-                           "generic (research notes sec. 5.3)", output=o, signature=(o,), regressor="time_s")
+                           "generic (docs/identification.md, 'The loop')", output=o, signature=(o,),
+                           regressor="time_s")
                  for o in outputs)
 
 

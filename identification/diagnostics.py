@@ -3,7 +3,7 @@ every logged signal and derived regressor, residual binned by operating variable
 asymmetry, chiller cycling.
 
 Free-run (simulation) errors are used for levels, cross-correlations and binning; the EKF
-one-step innovations for the whiteness test (research notes sec. 0, item 1). The structure
+one-step innovations for the whiteness test (docs/identification.md, statistics). The structure
 statistics use the training rows only; levels are given for training and held-out rows.
 """
 

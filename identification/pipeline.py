@@ -136,7 +136,7 @@ def _grid_start(fitter: Fitter, effects, p: np.ndarray, post: OutputPost, cand: 
 def _screen_and_fit(fitter: Fitter, current: Fit, free: list[FreeParam], effects, p0: np.ndarray,
                     own: list[FreeParam], post: OutputPost, bias_outputs=()) -> tuple[Fit | None, str]:
     """Screen with the candidate's own parameters only (cheap); refit jointly if it removes any
-    of the training structure (research notes sec. 3.2: screen, then refit the promising few)."""
+    of the training structure (docs/identification.md, 'The loop': screen, then refit the promising few)."""
     screen = fitter.fit(effects, p0, own, post, bias_outputs=bias_outputs, max_nfev=8) if (own or bias_outputs) \
         else fitter.evaluate(effects, p0, post)
     excess = fitter.structure(current.y, "train")

@@ -48,13 +48,13 @@ PTC_ZERO_C = 165.0               # thesis 2.3: temperature limited at ~165 C (po
 THERMOCOUPLE_TAU_S = 5.73        # thesis 5.4.1: tau_TC = 5.73 s (sensor and mixing)
 FLOW_SENSOR_C = 0.0097           # thesis 2.4: V = C sqrt(dp) sqrt(1.2/rho), C in m3/s per sqrt(Pa)
 FLOW_SENSOR_RHO_REF = 1.2        # thesis 2.4
-NOISE_SUPPLY_C = 0.05            # brief / design: thermocouple noise (std, degC)
-NOISE_FLOW_M3S = 2e-4            # brief: volume-flow sensor noise (std)
-NOISE_INLET_C = 0.05             # brief: inlet temperature noise (std)
+NOISE_SUPPLY_C = 0.05            # ASSUMPTION: thermocouple noise (std, degC)
+NOISE_FLOW_M3S = 2e-4            # ASSUMPTION: volume-flow sensor noise (std)
+NOISE_INLET_C = 0.05             # ASSUMPTION: inlet temperature noise (std)
 NOISE_OTHER_C = 0.05             # ASSUMPTION: water, heater outlet and cabin thermocouples as the supply one
 
 # ---------------------------------------------------------------- environment defaults
-CABIN_TEMP_C = 24.0              # ASSUMPTION (brief): cabin air around the duct
+CABIN_TEMP_C = 24.0              # ASSUMPTION: cabin air around the duct
 SUBSTEP_S = 0.25                 # integration substep (s); every update is an exact or implicit solution
 
 # ---------------------------------------------------------------- valve network tables (thesis 4.5.2)

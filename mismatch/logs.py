@@ -28,9 +28,9 @@ COLUMNS = ("time_s",) + INPUTS + ("hvac_inlet_temp_c", "volume_flow_m3s", "suppl
                                   "water_temp_c", "chiller_setpoint_c", "heater_outlet_temp_c", "cabin_temp_c")
 EXCITATIONS = ("steps",)
 
-HOLD_S = (20, 300)                 # brief: hold times of the steps
+HOLD_S = (20, 300)                 # ASSUMPTION: hold times of the steps (s)
 PHASE_S = (900, 1800)              # ASSUMPTION: length of a cooling or heating phase
-COOLING_SETPOINT_C = 5.0           # brief: chiller at 5 C while cooling
+COOLING_SETPOINT_C = 5.0           # docs/model.md sec. 1: chiller at 5 C while cooling
 HEATING_SETPOINT_C = 20.0          # ASSUMPTION: chiller set point while heating (water ramps up)
 HEATING_MIN_BLOWER_W = 80.0        # ASSUMPTION: heater only with flow (~0.015 m3/s at least)
 HEATING_HEATER_W = (40.0, k.HEATER_MAX_W)

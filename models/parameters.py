@@ -22,9 +22,11 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Mapping
 
+from hvac_mpc.validation import InvalidValue, check_fields, finite_in
+
 
 def _p(default: float, source: str, lo: float = -math.inf, hi: float = math.inf) -> Any:
-    return field(default=default, metadata={"source": source, "range": (lo, hi)})
+    return field(default=default, metadata={"source": source, "range": (lo, hi), "check": finite_in(lo, hi)})
 
 
 @dataclass(frozen=True)
@@ -120,18 +122,12 @@ class Parameters:
         metadata={"source": "thesis table 5 (R_w, valves m and f closed)"})
 
     def __post_init__(self) -> None:
+        check_fields(self, prefix="parameter ")
         for f in fields(self):
-            value = getattr(self, f.name)
             if f.name.endswith("_table"):
-                _check_table(f.name, value)
-                continue
-            lo, hi = f.metadata["range"]
-            if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value):
-                raise ValueError(f"parameter {f.name}: expected a finite number, got {value!r}")
-            if not lo <= value <= hi:
-                raise ValueError(f"parameter {f.name} = {value} is outside the allowed range [{lo}, {hi}]")
+                _check_table(f.name, getattr(self, f.name))
         if self.ptc_zero_c <= self.ptc_knee_c:
-            raise ValueError("parameter ptc_zero_c must be above ptc_knee_c")
+            raise InvalidValue(f"parameter ptc_zero_c = {self.ptc_zero_c} must be above ptc_knee_c = {self.ptc_knee_c}")
 
     # ------------------------------------------------------------------------------
     @classmethod
@@ -206,11 +202,11 @@ def _check_table(name: str, table: Any) -> None:
     try:
         rows = [(float(a), float(r)) for a, r in table]
     except (TypeError, ValueError) as exc:
-        raise ValueError(f"parameter {name}: expected rows of (angle_pct, resistance_kg_m7)") from exc
+        raise InvalidValue(f"parameter {name}: expected rows of (angle_pct, resistance_kg_m7)") from exc
     if len(rows) < 4:
-        raise ValueError(f"parameter {name}: needs at least 4 rows, got {len(rows)}")
+        raise InvalidValue(f"parameter {name}: needs at least 4 rows, got {len(rows)}")
     angles = [a for a, _ in rows]
     if angles != sorted(angles) or len(set(angles)) != len(angles) or angles[0] < 0 or angles[-1] > 100:
-        raise ValueError(f"parameter {name}: angles must increase strictly within [0, 100] %")
+        raise InvalidValue(f"parameter {name}: angles must increase strictly within [0, 100] %")
     if any(r <= 0 for _, r in rows):
-        raise ValueError(f"parameter {name}: resistances must be positive")
+        raise InvalidValue(f"parameter {name}: resistances must be positive")

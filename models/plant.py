@@ -22,7 +22,7 @@ from hvac_mpc.contract import Command, Measurement
 from .box import INPUT_LOWER, INPUTS, MODEL_EFFECTS, HvacModel, input_upper, validate_effects
 from .parameters import Parameters
 
-#: All non-ideal effects of the plant, each switchable by name (issue: the simulated plant).
+#: All non-ideal effects of the plant, each switchable by name (docs/model.md sec. 1).
 PLANT_EFFECTS = ("ptc_power_fall", "chiller_hysteresis", "motor_asymmetry", "bypass_flow",
                  "trapped_air", "sensor_noise", "fan_curve", "valve_leakage")
 

@@ -310,7 +310,7 @@ class BaselineController:
 
     def _start(self, m: Measurement, flow_ok: bool) -> None:
         """First sample: preset the flow integrator to the power the nominal blower curve gives for
-        the measured flow (bumpless start; ASSUMPTION, docs/model.md blower curve)."""
+        the measured flow (bumpless start; ASSUMPTION, docs/model.md sec. 1, blower curve)."""
         if flow_ok and m.volume_flow_m3s > 0:
             power_w = m.volume_flow_m3s / self.params.flow_per_watt_m3s_per_w
             self._flow.reset(power_w / self.gains.blower_w_per_v)

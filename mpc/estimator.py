@@ -11,7 +11,8 @@ Measurements (each used when present and finite): thermocouple ``supply_temp_c``
 Offset-free tracking: the MPC predicts with the estimated offsets, and at rest the filter
 makes the model reproduce the measured supply temperature and flow exactly, so the
 controller's steady state has no error in the measured outputs (Pannocchia and Rawlings'
-disturbance-model argument: as many integrating disturbances as tracked measured outputs).
+disturbance-model argument: as many integrating disturbances as tracked measured outputs;
+docs/architecture.md, 'One control step').
 
 Chiller water (``water_prediction``): ``"hold"`` treats the water temperature as a random walk
 (the chiller's two-point switching is unknown to the model, thesis sec. 2.2); ``"setpoint"``
