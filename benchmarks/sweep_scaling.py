@@ -99,6 +99,9 @@ def measure(n: int, workers: int, max_duration_s: float, folder: Path, rounds: i
             "serial_s": elapsed["serial"], "cluster_s": elapsed["cluster"],
             "serial_runs_per_s": s_rate, "cluster_runs_per_s": c_rate, "ratio": c_rate / s_rate,
             "serial_cpu_s_per_run": cpu["serial"] / len(runs), "cluster_cpu_s_per_run": cpu["cluster"] / len(runs),
+            # what the ratio would be with one free core per worker (not measured: an estimate that
+            # leaves out the scheduler's and the nannies' CPU)
+            "cpu_bound_ratio_estimate": workers * cpu["serial"] / cpu["cluster"],
             "failed": failed, "results_differ": mismatched, "load_average_1min": load,
             "cpu_count": os.cpu_count(), "platform": f"{platform.system()} {platform.machine()}",
             "python": platform.python_version()}
@@ -128,7 +131,8 @@ def main(argv: list[str] | None = None) -> int:
           f"({res['serial_s']:.1f} s), {res['workers']} workers {res['cluster_runs_per_s']:.2f} runs/s "
           f"({res['cluster_s']:.1f} s), ratio {res['ratio']:.2f}; failed {res['failed']}, "
           f"differing results {len(res['results_differ'])}; CPU s per run serial {res['serial_cpu_s_per_run']:.3f}, "
-          f"workers {res['cluster_cpu_s_per_run']:.3f}; 1-min load average "
+          f"workers {res['cluster_cpu_s_per_run']:.3f} (ratio with a free core per worker, estimated from CPU "
+          f"time: {res['cpu_bound_ratio_estimate']:.2f}); 1-min load average "
           f"{min(res['load_average_1min']):.1f}-{max(res['load_average_1min']):.1f} on {res['cpu_count']} cores")
     return 0 if not res["failed"] and not res["results_differ"] else 1
 

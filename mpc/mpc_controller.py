@@ -172,16 +172,13 @@ class MpcSettings:
 
 
 def _with_model_effects(settings: MpcSettings, model: RefinedModel | None) -> MpcSettings:
-    """Settings whose prediction model also holds the refined model's effects (the PTC power fall stays
-    a constraint where ``ptc_limit`` carries it)."""
+    """Settings whose prediction model holds exactly the refined model's effects, the structure its
+    parameters were identified with (the PTC power fall stays a constraint where ``ptc_limit`` carries it)."""
     if model is None:
         return settings
     ocp = settings.ocp
-    extra = [e for e in model.effects if e not in ocp.model_effects
-             and not (e == "ptc_power_fall" and ocp.ptc_limit)]
-    if not extra:
-        return settings
-    return dataclasses.replace(settings, ocp=dataclasses.replace(ocp, model_effects=tuple(ocp.model_effects) + tuple(extra)))
+    effects = tuple(e for e in model.effects if not (e == "ptc_power_fall" and ocp.ptc_limit))
+    return dataclasses.replace(settings, ocp=dataclasses.replace(ocp, model_effects=effects))
 
 
 class MpcController:

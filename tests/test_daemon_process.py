@@ -125,7 +125,7 @@ def test_daemon_process_over_modbus_survives_server_stop_and_restart(tmp_path, c
         s = wait_plant_time(port, 120.0, proc)
         assert s["connected"] and s["heater_cmd_w"] > 0, s  # heating through the fieldbus
         server.stop()
-        t_stop = sample(port)["time_s"]
+        t_stop = server.history[-1][0]  # the plant's last written sample (the daemon's log may lag it)
         wait_for(lambda: not _request(port, "GET", "/status")[1]["connected"], 30, "the link loss", proc)
         t_lost = sample(port)["time_s"]  # the link is known lost from here at the latest
         s = wait_plant_time(port, t_lost + 41.0, proc)
