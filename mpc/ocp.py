@@ -36,6 +36,7 @@ without large overshoot. At rest air and reading agree, so offset-free tracking 
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field, fields
 from typing import Any
@@ -43,6 +44,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
+from hvac_mpc.validation import Check, InvalidValue, finite_in
 from hvac_mpc.models import heater
 from hvac_mpc.models.box import INPUT_LOWER, INPUTS, MODEL_EFFECTS, HvacModel, input_upper, rk4
 from hvac_mpc.models.parameters import Parameters
@@ -70,20 +72,22 @@ INPUT_SCALING = {"blower_power_w": (165.0, 135.0), "heater_cmd_w": (120.0, 120.0
                  "valve_w_pct": (50.0, 50.0)}
 
 
-class InvalidSettings(ValueError):
+class InvalidSettings(InvalidValue):
     """A setting is out of range or malformed; the message names the field and the allowed range."""
+
+
+@functools.lru_cache(maxsize=None)
+def _number_check(lo: float, hi: float, integer: bool, lo_open: bool) -> Check:
+    return finite_in(lo, hi, integer=integer, lo_open=lo_open)
 
 
 def check_number(name: str, value: Any, lo: float, hi: float, *, integer: bool = False,
                  lo_open: bool = False) -> None:
-    """Raise :class:`InvalidSettings` unless ``value`` is a finite number (integer) in the range."""
-    kind = "an integer" if integer else "a finite number"
-    ok = (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-          and (not integer or float(value).is_integer()))
-    inside = ok and (lo < value if lo_open else lo <= value) and value <= hi
-    if not inside:
-        left = "(" if lo_open else "["
-        raise InvalidSettings(f"{name} = {value!r} must be {kind} in {left}{lo}, {hi}]")
+    """Raise :class:`InvalidSettings` unless ``value`` is a finite number (integer) in the range
+    (the project's one validation mechanism, :mod:`hvac_mpc.validation`)."""
+    if integer and isinstance(value, float) and value.is_integer():
+        value = int(value)  # 100.0 iterations are 100
+    _number_check(float(lo), float(hi), integer, lo_open)(name, value, InvalidSettings)
 
 
 @dataclass(frozen=True)
