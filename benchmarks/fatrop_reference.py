@@ -25,7 +25,7 @@ import time
 import casadi as ca
 import numpy as np
 
-from hvac_mpc.mpc.ocp import STAGE_OUTPUTS, TrackingProblem, shift_maps
+from hvac_mpc.mpc.ocp import STAGE_OUTPUTS, TrackingProblem, shift_maps, shift_nodes
 from hvac_mpc.mpc.rti_osqp import SolveResult
 
 
@@ -108,10 +108,8 @@ class FatropSolver:
         """Shift the previous solution one sample (the warm start)."""
         t0 = time.perf_counter()
         if self.XA is not None:
-            N, nx = self.pb.N, self.pb.nx
-            X = self.XA[:, :nx]
-            w1 = self._w1[:, None]
-            Xs = X[self._i0] * (1 - w1) + X[np.minimum(self._i0 + 1, N)] * w1
+            nx = self.pb.nx
+            Xs = shift_nodes(self.XA[:, :nx], self._i0, self._w1)
             V = self.V[self._j]
             XA = np.concatenate([Xs, np.vstack([u_prev, V[:, :-1]]), np.append(0.0, V[:, -1])[:, None]], axis=1)
             XA[0, :nx] = x_pred

@@ -18,7 +18,7 @@ import casadi as ca
 import numpy as np
 
 from .codegen import CodegenReport, compiled_nlpsol
-from .ocp import TrackingProblem, shift_maps
+from .ocp import TrackingProblem, shift_maps, shift_nodes
 from .rti_osqp import SolveResult
 
 
@@ -99,7 +99,7 @@ class IpoptReferenceSolver:
             X = self.w[:self.iu0].reshape(N + 1, nx)
             U = self.w[self.iu0:self.is0].reshape(N, nu)
             S = self.w[self.is0:]
-            Xs = X[self._i0] * (1 - self._w1[:, None]) + X[np.minimum(self._i0 + 1, N)] * self._w1[:, None]
+            Xs = shift_nodes(X, self._i0, self._w1)
             Xs[0] = x_pred
             self.w = np.concatenate([Xs.ravel(), U[self._j].ravel(), S[np.minimum(self._j, N - 1)]])
         return time.perf_counter() - t0

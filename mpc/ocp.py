@@ -587,3 +587,9 @@ def shift_maps(t_nodes: np.ndarray, shift_s: float) -> tuple[np.ndarray, np.ndar
     j = np.clip(np.searchsorted(t_nodes, t_nodes[:-1] + shift_s, side="right") - 1, 0, N - 1)
     return i0, np.clip(w1, 0.0, 1.0), j
 
+
+def shift_nodes(X: np.ndarray, i0: np.ndarray, w1: np.ndarray) -> np.ndarray:
+    """Node trajectory ``X`` ((N+1) x n) moved forward with the maps of :func:`shift_maps`."""
+    w = w1[:, None]
+    return X[i0] * (1.0 - w) + X[np.minimum(i0 + 1, len(X) - 1)] * w
+

@@ -30,7 +30,7 @@ from hvac_mpc.models.box import DISTURBANCES, INPUTS
 
 from .casadi_eval import BufferedFunction
 from .codegen import CodegenReport, compiled
-from .ocp import STAGE_OUTPUTS, TRACKED, TrackingProblem, shift_maps
+from .ocp import STAGE_OUTPUTS, TRACKED, TrackingProblem, shift_maps, shift_nodes
 
 #: Rows of the stage outputs (``STAGE_OUTPUTS``) by signal: the tracked temperature, the total
 #: flow, the outlet flows and the electric heater power (the energy residual's heater part).
@@ -397,8 +397,7 @@ class RtiOsqpSolver:
         return self.X is not None
 
     def _shifted(self, x_first: np.ndarray):
-        w1 = self._w1[:, None]
-        X = self.X[self._i0] * (1.0 - w1) + self.X[np.minimum(self._i0 + 1, self.pb.N)] * w1
+        X = shift_nodes(self.X, self._i0, self._w1)
         X[0] = x_first
         U = self.U[self._j]
         S = self.S[np.minimum(self._j, self.pb.N - 1)]
