@@ -29,6 +29,9 @@ from typing import Any, Callable, Iterable, Mapping
 from hvac_mpc.models.measurement_log import COLUMNS, LogFormatError, cell_text, repair_tail, schema_columns
 
 LOG = logging.getLogger("hvac_mpc.daemon")
+#: The step after the tail repair's own (:data:`~hvac_mpc.models.measurement_log.REPAIR_STEPS`):
+#: the log open for appending again.
+REOPENED = "reopened"
 INDEX_COLUMNS = ("segment", "first_time_s", "last_time_s", "first_utc", "last_utc", "rows")
 
 
@@ -74,12 +77,15 @@ class DurableLog:
     """Append-only CSV log with in-place tail repair, rotation, an index and a degraded mode.
 
     ``inject``: called before every physical write (fault injection: it may raise ``OSError``).
+    ``repair_step``: called with each step of the tail repair at start (the names of
+    :data:`~hvac_mpc.models.measurement_log.REPAIR_STEPS`, then ``reopened`` once the file is open
+    for appending), so a test can kill the process exactly between two steps.
     """
 
     def __init__(self, path: str | Path, columns: Iterable[str] = COLUMNS, *, fsync: bool = True,
                  rotate_bytes: int = 0, rotate_daily: bool = False, buffer_rows: int = 86400,
                  retry_s: float = 5.0, wall_clock: Callable[[], float] = time.time,
-                 inject: Callable[[], None] | None = None):
+                 inject: Callable[[], None] | None = None, repair_step: Callable[[str], None] | None = None):
         self.path = Path(path)
         self.columns = schema_columns(columns)
         self.fsync = fsync
@@ -88,6 +94,7 @@ class DurableLog:
         self.retry_s = retry_s
         self.wall_clock = wall_clock
         self.inject = inject
+        self.repair_step = repair_step
         self.index_path = self.path.with_name(self.path.stem + ".index.csv")
         self._buffer: deque[tuple[bytes, dict[str, str]]] = deque(maxlen=buffer_rows)
         self.counters = {"rows_written": 0, "rows_dropped": 0, "write_errors": 0, "rotations": 0,
@@ -106,7 +113,7 @@ class DurableLog:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._reconcile_index()
         if self.path.exists() and self.path.stat().st_size > 0:
-            self.counters["tail_bytes_repaired"] += repair_tail(self.path, fsync=self.fsync)
+            self.counters["tail_bytes_repaired"] += repair_tail(self.path, fsync=self.fsync, step=self.repair_step)
         header = _first_line(self.path) if self.path.exists() else b""
         if header and header.rstrip(b"\r\n") != _csv_line(self.columns).rstrip(b"\n"):
             LOG.warning("log %s has another header: kept as a segment, a new file begins", self.path)
@@ -114,6 +121,8 @@ class DurableLog:
             header = b""
         self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
         self._committed = os.fstat(self._fd).st_size
+        if self.repair_step is not None:
+            self.repair_step(REOPENED)
         if not header:
             self._physical_write(_csv_line(self.columns))
         else:

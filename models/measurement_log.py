@@ -14,7 +14,7 @@ import csv
 import math
 import os
 from pathlib import Path
-from typing import Any, Iterable, Mapping
+from typing import Any, Callable, Iterable, Mapping
 
 import numpy as np
 
@@ -107,13 +107,25 @@ class LogWriter:
         self.close()
 
 
-def repair_tail(path: str | Path, fsync: bool = True, chunk_bytes: int = 65536) -> int:
+#: The steps of :func:`repair_tail`, in order, as passed to its ``step`` callback: the file is open
+#: and nothing read (``begin``), the last newline found (``found``), the file cut there
+#: (``truncated``), the cut on disk (``synced``). ``truncated`` and ``synced`` only when a torn row
+#: was found.
+REPAIR_STEPS = ("begin", "found", "truncated", "synced")
+
+
+def repair_tail(path: str | Path, fsync: bool = True, chunk_bytes: int = 65536,
+                step: Callable[[str], None] | None = None) -> int:
     """Drop a last line cut short by a crash (no trailing newline), in place; returns the bytes removed.
 
     Reads backwards from the end to the last newline and truncates the file there (one
     ``ftruncate``, then fsync): committed rows are never rewritten, so a crash during the repair
-    loses nothing but the torn row, whatever the size of the log."""
+    loses nothing but the torn row, whatever the size of the log. ``step`` (optional) is called
+    with each name of :data:`REPAIR_STEPS` as the repair passes it (tests stop or kill the process
+    exactly there)."""
+    mark = step or (lambda name: None)
     with open(path, "r+b") as fh:
+        mark("begin")
         size = fh.seek(0, os.SEEK_END)
         pos = size
         keep = 0
@@ -122,18 +134,22 @@ def repair_tail(path: str | Path, fsync: bool = True, chunk_bytes: int = 65536) 
             fh.seek(start)
             block = fh.read(pos - start)
             if pos == size and block.endswith(b"\n"):
+                mark("found")
                 return 0
             i = block.rfind(b"\n")
             if i >= 0:
                 keep = start + i + 1
                 break
             pos = start
+        mark("found")
         if keep == size:
             return 0
         fh.truncate(keep)
         fh.flush()
+        mark("truncated")
         if fsync:
             os.fsync(fh.fileno())
+        mark("synced")
     return size - keep
 
 

@@ -108,17 +108,9 @@ GOOD = {"actuators": {
 
 
 def _with(path: tuple, value) -> dict:
-    import copy
+    from hvac_mpc.benchmarks.daemon_campaign import with_changed
 
-    data = copy.deepcopy(GOOD)
-    d = data
-    for k in path[:-1]:
-        d = d[k]
-    if value is None:
-        del d[path[-1]]
-    else:
-        d[path[-1]] = value
-    return data
+    return with_changed(GOOD, path, value)
 
 
 @pytest.mark.parametrize("data, expected", [

@@ -114,6 +114,41 @@ def test_tail_repair_is_in_place_and_keeps_every_committed_byte(tmp_path):
     assert list(read_log(path)["time_s"]) == [float(k) for k in range(51)]
 
 
+def test_tail_repair_reports_each_step_with_the_file_as_it_is_there(tmp_path):
+    from hvac_mpc.daemon.log_writer import REOPENED
+    from hvac_mpc.models.measurement_log import REPAIR_STEPS
+
+    path = tmp_path / "log.csv"
+    with DurableLog(path, fsync=False) as log:
+        for row in _rows(20):
+            log.write(row)
+    committed = path.stat().st_size
+    with path.open("ab") as fh:
+        fh.write(b"20.0,100.0,0.0,1")
+    seen = []
+    DurableLog(path, repair_step=lambda name: seen.append((name, path.stat().st_size))).close()
+    torn = committed + len(b"20.0,100.0,0.0,1")
+    assert seen == [("begin", torn), ("found", torn), ("truncated", committed), ("synced", committed),
+                    (REOPENED, committed)]
+    assert [name for name, _ in seen] == [*REPAIR_STEPS, REOPENED]
+    seen.clear()
+    DurableLog(path, repair_step=lambda name: seen.append(name)).close()  # nothing torn: nothing cut
+    assert seen == ["begin", "found", REOPENED] and path.stat().st_size == committed
+
+
+def test_sigkill_at_every_step_of_the_tail_repair_and_at_random_loses_no_committed_byte(tmp_path):
+    """A small log here (fast); the fault campaign does the same on a 300 MB log."""
+    from hvac_mpc.benchmarks.repair_kills import STEPS, kill_during_repair
+
+    log = tmp_path / "big.csv"
+    rep = kill_during_repair(log, size_mb=4.0, rounds=2, random_kills=4, seed=1)
+    assert rep.lost == [], rep.lost
+    assert rep.step_kills == {s: 2 for s in STEPS} and rep.random_kills == 4
+    assert rep.restarts == 2 * len(STEPS) + 4 + 1 and rep.size_bytes == rep.committed_bytes >= 4 * 2**20
+    assert 0.0 < rep.repair_window_ms < 5000.0
+    assert not log.exists()  # cleaned up
+
+
 def test_rotation_by_size_and_day_keeps_an_index_and_every_row(tmp_path):
     path = tmp_path / "log.csv"
     with DurableLog(path, fsync=False, rotate_bytes=2000) as log:
