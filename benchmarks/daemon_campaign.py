@@ -1612,7 +1612,7 @@ def format_report(result: dict[str, Any]) -> str:
     lines.append("  injected (fault-ticks): " + ", ".join(f"{k} {v}" for k, v in sorted(c["injected_fault_ticks"].items())))
     for o in result["outcomes"]:
         flag = "ok  " if o.ok else "FAIL"
-        lines.append(f"  {flag} {o.name:<40} exit={o.exit_code!s:<5} detected={o.detected:<4} {o.notes[:70]}"
+        lines.append(f"  {flag} {o.name:<40} exit={o.exit_code!s:<5} detected={o.detected:<4} {o.notes[:300]}"
                      + ("" if o.ok else f"  <- {o.violations[:3]}"))
     return "\n".join(lines)
 
