@@ -231,9 +231,12 @@ def controller_scenarios(workdir: Path, controller: str = "mpc") -> list[Outcome
                           reference={"supply_temp_c": 18.0, "volume_flow_m3s": 0.03},
                           extra={"loop": {"speedup": 50.0}})
         else:
+            # the primary returns reset (a cold start): the real loop's budget, half its 1 s period,
+            # so the return does not hang on the machine's load (the campaign runs side by side)
             end = 100.0
             cfg = _config(workdir, name, controller, [{"target": "controller", "kind": kind, "start_s": 40.0,
-                                                       "end_s": end, **extra}], ticks=170)
+                                                       "end_s": end, **extra}], ticks=170,
+                          extra={"loop": {"deadline_s": 0.5}})
         d, code, samples = _run_inprocess(cfg)
         st = d.status()
         o = Outcome(name, "controller", code, rows=len(samples), injected=st["injected_faults"])
@@ -1424,8 +1427,8 @@ def opcua_link_faults(workdir: Path, speedup: float = 25.0) -> Outcome:
         if not (s["connected"] and s["controller"] == "mpc" and s["heater_cmd_w"] > 0
                 and s["supply_temp_c"] > samples[0]["supply_temp_c"] + 4.0):
             v.append(f"not heating through OPC UA after 60 s: {s['supply_temp_c']:.1f} C, {s['heater_cmd_w']:.0f} W")
-        if abs(server.command.heater_cmd_w - s["heater_cmd_w"]) > 1e-6 and s["time_s"] == last()["time_s"]:
-            v.append("the device does not apply the daemon's heater command")
+        if not any(abs(server.command.heater_cmd_w - x["heater_cmd_w"]) < 1e-6 for x in samples[-3:]):
+            v.append("the device's heater command is none of the last ones the daemon logged")
         notes.append(f"supply {samples[0]['supply_temp_c']:.1f} -> {s['supply_temp_c']:.1f} C in 60 s")
         server.stop()  # link loss
         wait_for(lambda: not daemon.connected, 10, "the link loss")

@@ -145,14 +145,14 @@ class KillReport:
     step_kills: dict[str, int] = field(default_factory=dict)  # step -> kills exactly there
     random_kills: int = 0
     random_in_repair: int = 0  # random kills that landed between the first step and the reopen
-    repair_window_ms: float = 0.0  # first step to reopen, one uninterrupted start
+    repair_window_ms: float = 0.0  # first step to reopen, median of three uninterrupted starts
     restarts: int = 0
     lost: list[str] = field(default_factory=list)  # committed bytes changed: must stay empty
 
     def summary(self) -> str:
         return (f"{sum(self.step_kills.values())} kills at the repair's steps ({', '.join(self.step_kills)}) and "
-                f"{self.random_kills} at random moments ({self.random_in_repair} inside the repair, "
-                f"{self.repair_window_ms:.1f} ms long) on a {self.size_bytes / 2**20:.0f} MB log; "
+                f"{self.random_kills} at random moments ({self.random_in_repair} inside the repair, which "
+                f"takes {self.repair_window_ms:.1f} ms) on a {self.size_bytes / 2**20:.0f} MB log; "
                 f"{self.restarts} restarts, committed bytes changed {len(self.lost)} times")
 
 
@@ -173,15 +173,17 @@ def kill_during_repair(log: Path, size_mb: float = 300.0, rounds: int = 1, rando
         tail = max(0, rep.committed_bytes - TAIL_CHECK_BYTES)
         digests = (prefix_digest(log, rep.committed_bytes), prefix_digest(log, rep.committed_bytes, tail))
         inode = log.stat().st_ino
-        plan = ["time"] + [s for _ in range(rounds) for s in STEPS] + ["random"] * random_kills
+        plan = ["time"] * 3 + [s for _ in range(rounds) for s in STEPS] + ["random"] * random_kills
+        windows = []
         for aim in plan:
             with log.open("ab") as fh:  # the crash's torn row
                 fh.write(TORN_ROW)
-            if aim == "time":  # one uninterrupted start: how long the repair window is
+            if aim == "time":  # uninterrupted starts: how long the repair window is (the median of 3)
                 steps = dict(forker.trial(log))
-                rep.repair_window_ms = (steps[REOPENED] - steps["begin"]) * 1e3
-            elif aim == "random":
-                steps = dict(forker.trial(log, delay_s=rng.uniform(0.0, 2.0 * rep.repair_window_ms / 1e3)))
+                windows.append((steps[REOPENED] - steps["begin"]) * 1e3)
+                rep.repair_window_ms = sorted(windows)[len(windows) // 2]
+            elif aim == "random":  # the kill lands up to one window after the child's first step
+                steps = dict(forker.trial(log, delay_s=rng.uniform(0.0, rep.repair_window_ms / 1e3)))
                 rep.random_kills += 1
                 rep.random_in_repair += int(REOPENED not in steps)
             else:
