@@ -194,13 +194,14 @@ class DisturbanceEkf:
 
     def use_functions(self, predict_fn, update_fn) -> None:
         """Evaluate the time and measurement updates with these functions (the same signatures as
-        ``predict_fn`` / ``update_fn``, e.g. generated C of them, :mod:`hvac_mpc.mpc.codegen`)."""
-        self._predict = BufferedFunction(predict_fn)
-        self._update = BufferedFunction(update_fn)
+        ``predict_fn`` / ``update_fn``, e.g. generated C of them, :mod:`hvac_mpc.mpc.codegen`).
+        ``p``, ``Q`` and ``R_diag`` are read here, once: call again after changing them."""
+        self._predict = BufferedFunction(predict_fn, fixed={4: self.p, 5: self.Q})
+        self._update = BufferedFunction(update_fn, fixed={6: self.p, 7: self.R_diag})
 
     def predict(self, u: np.ndarray, setpoint_c: float) -> None:
         """Time update over one sample with the command that was applied."""
-        zn, Pt = self._predict(self.z, self.P, u, setpoint_c, self.p, self.Q)
+        zn, Pt = self._predict(self.z, self.P, u, setpoint_c)
         self.z, self.P = zn, Pt.T  # buffers are column-major
 
     def readings(self, measurement: Measurement) -> tuple[np.ndarray, np.ndarray]:
@@ -214,7 +215,7 @@ class DisturbanceEkf:
         values, ok = self.readings(measurement)
         if not ok.any():
             return 0
-        zn, Pt = self._update(self.z, self.P, values, ok, u, setpoint_c, self.p, self.R_diag)
+        zn, Pt = self._update(self.z, self.P, values, ok, u, setpoint_c)
         self.z, self.P = zn, Pt.T
         return int(ok.sum())
 

@@ -289,11 +289,14 @@ class TrackingProblem:
         self.u_lo, self.u_hi = self.scale_u(self.u_lo_phys), self.scale_u(self.u_hi_phys)
         self._u_lo_tiled = np.tile(self.u_lo, (self.N, 1))
         self._u_hi_tiled = np.tile(self.u_hi, (self.N, 1))
+        self._a_travel = None  # set below, once the rate limits are known
         self.rate_phys = np.array([spec.rate_blower_w_per_s, spec.rate_heater_w_per_s]
                                   + [spec.rate_valve_pct_per_s] * 4)
         self.rate = self.rate_phys / self.u_sc  # meaningful for the non-valve decisions only
         self.i_heater = self.state_names.index("heater_temp_c")
         self.i_valve_a = INPUTS.index("valve_a_pct")
+        # the farthest valve a can close by each node (scaled), for the cap of input_bounds
+        self._a_travel = self.rate_phys[self.i_valve_a] * self.t_nodes[1:] / self.u_sc[self.i_valve_a]
         self.i_heater_cmd = INPUTS.index("heater_cmd_w")
         hmax = spec.heater_temp_max_c if spec.heater_temp_max_c is not None else self.params.heater_temp_max_c
         self.heater_max_phys = float(hmax)
@@ -389,7 +392,7 @@ class TrackingProblem:
         hi = self._u_hi_tiled.copy()
         ia = self.i_valve_a
         cap = (min(cap_a_pct, 100.0) - self.u_off[ia]) / self.u_sc[ia]
-        reachable = (u_prev_phys[ia] - self.rate_phys[ia] * self.t_nodes[1:] - self.u_off[ia]) / self.u_sc[ia]
+        reachable = (u_prev_phys[ia] - self.u_off[ia]) / self.u_sc[ia] - self._a_travel
         hi[:, ia] = np.minimum(hi[:, ia], np.maximum(cap, reachable))
         first = self.scale_u(np.stack(self.command_bounds(u_prev_phys, cap_a_pct, heater_temp_c)))
         lo[0] = np.maximum(lo[0], first[0])

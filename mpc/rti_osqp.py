@@ -146,8 +146,10 @@ class RtiOsqpSolver:
         self._build_qp_functions()
         self.codegen = CodegenReport()
         wrap = (lambda f: compiled(f, self.codegen)) if codegen else (lambda f: f)
-        self._qp_data = BufferedFunction(wrap(self.qp_data))
-        self._qp_gradient = BufferedFunction(wrap(self.qp_gradient))
+        # constant inputs filled once: P0, A0 and p of the QP data, q0, lm and w_du of the gradient
+        self._qp_data = BufferedFunction(wrap(self.qp_data), fixed={4: self._P_const, 5: self._A_const, 6: self._p})
+        self._qp_gradient = BufferedFunction(wrap(self.qp_gradient),
+                                             fixed={7: self._q_const, 8: self._lm_all, 9: pb.w_du})
         self._sw_key = None
         self.fail_next = 0  # steps to fail on purpose (tests of the fallback chain)
         self._osqp_settings = dict(eps_abs=eps, eps_rel=eps, max_iter=int(max_iter), polishing=False,
@@ -398,7 +400,7 @@ class RtiOsqpSolver:
         key = w_y.tobytes()
         if key != self._sw_key:
             self._sw, self._sw_key = self._stage_weights(w_y), key
-        Px, Ax, e_dyn, gw2, c_base, y = self._qp_data(X, U, d, self._sw, self._P_const, self._A_const, self._p)
+        Px, Ax, e_dyn, gw2, c_base, y = self._qp_data(X, U, d, self._sw)
         return Px, Ax, dict(e_dyn=e_dyn, gw2=gw2, c_base=c_base, y=y)
 
     def reset(self) -> None:
@@ -506,12 +508,11 @@ class RtiOsqpSolver:
                 z = None
                 break
             z = np.array(x)
-            if not np.all(np.isfinite(z)):
+            if not np.isfinite(z).all():
                 status = "non-finite solution"
                 z = None
                 break
-            step = float(np.max(np.abs(z - self._z_lin)))
-            if step < self.sqp_tol:
+            if it + 1 < max_qps and float(np.abs(z - self._z_lin).max()) < self.sqp_tol:
                 break
         feedback = time.perf_counter() - t0 - prep
         if z is None:
@@ -549,8 +550,7 @@ class RtiOsqpSolver:
         data = pr["data"]
         dd = d[D_OFFSETS] - pr["d"][D_OFFSETS]
         return self._qp_gradient(data["gw2"], data["c_base"], data["y"], ref, dd,
-                                 self._z_lin[self.iu0:self.is0], u_prev, self._q_const, self._lm_all,
-                                 self.pb.w_du)[0]
+                                 self._z_lin[self.iu0:self.is0], u_prev)[0]
 
 
 class _OsqpCore:
