@@ -5,12 +5,16 @@ sparsity is fixed at construction; every step only values change:
 
 * **preparation** (:meth:`RtiOsqpSolver.prepare`, before the next measurement): shift the last
   solution one sample along the non-uniform stage grid, linearise all stages at it with one
-  mapped CasADi call, write the new values into ``P`` (Gauss-Newton Hessian of the least-squares
-  residuals) and ``A`` (dynamics Jacobians) with ``OSQP.update(Px=..., Ax=...)`` (one numeric
-  refactorisation), and the dynamics right-hand sides into ``l``/``u``;
+  call of ``hvac_qp_data`` (generated C by default, the model parameters an input), write the
+  new values into ``P`` (Gauss-Newton Hessian of the least-squares residuals) and ``A``
+  (dynamics Jacobians) in OSQP (one numeric refactorisation), and the dynamics right-hand sides
+  into ``l``/``u``;
 * **feedback** (:meth:`RtiOsqpSolver.feedback`, when the estimate arrives): insert the estimated
-  state, the input bounds and the reference / disturbance-estimate changes into ``q``, ``l``,
-  ``u`` (no refactorisation) and solve, warm-started from the shifted trajectory.
+  state, the input bounds and the reference / disturbance-estimate changes into ``q`` (one call
+  of ``hvac_qp_gradient``), ``l``, ``u`` (no refactorisation) and solve, warm-started from the
+  shifted trajectory (the duals from the last solve).
+
+docs/architecture.md, 'One control step', lists what runs as generated C and what in Python.
 
 With ``sqp_max_iter > 1`` the feedback re-linearises at the new iterate and solves again until
 the step is below ``sqp_tol`` (a Gauss-Newton SQP to a tolerance).
