@@ -1,16 +1,20 @@
 """Generated C for the hot path: built on first use into the cache, loaded afterwards, the same
-results as CasADi's interpreter, and the interpreter when no compiler is there.
+results as CasADi's interpreter (also for other model parameters, which are inputs of the
+generated code), and the interpreter when no compiler is there.
 
-Budget: about 15 s on a loaded two-core machine (one build of the QP data and the estimator's
-functions into an empty cache folder, two short closed loops).
+Budget: about 35 s on a loaded two-core machine (one build of the QP data and the estimator's
+functions into an empty cache folder, four short closed loops); the slow test builds the
+estimator's update three times (about 10 s).
 """
 
 import casadi as ca
 import numpy as np
+import pytest
 
 from hvac_mpc.benchmarks import solve_time
-from hvac_mpc.models import Environment, Parameters, SimulatedPlant
+from hvac_mpc.models import Environment, HvacModel, Parameters, SimulatedPlant
 from hvac_mpc.mpc import codegen
+from hvac_mpc.mpc.estimator import DisturbanceEkf
 from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
 from hvac_mpc.mpc.ocp import OcpSpec, Weights
 
@@ -99,3 +103,22 @@ def test_cache_folder_follows_the_environment(tmp_path, monkeypatch):
     monkeypatch.delenv(codegen.CACHE_ENV)
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
     assert codegen.cache_dir() == tmp_path / "xdg" / "hvac-mpc"
+
+
+@pytest.mark.slow
+def test_a_change_of_structure_builds_anew_and_a_change_of_parameters_does_not(tmp_path, monkeypatch):
+    monkeypatch.setenv(codegen.CACHE_ENV, str(tmp_path))
+    monkeypatch.setenv(codegen.SWITCH_ENV, "1")
+
+    def outcome(params=None, effects=("fan_curve", "valve_leakage", "bypass_flow")):
+        ekf = DisturbanceEkf(HvacModel(params or Parameters(), effects))
+        report = codegen.CodegenReport()
+        codegen.compiled(ekf.update_fn, report)
+        return report.outcomes["ekf_update"]
+
+    assert outcome() == "built"
+    assert outcome() == "cached"
+    assert outcome(Parameters(tau_tc_s=7.5, heater_power_max_w=200.0)) == "cached"
+    assert outcome(effects=("fan_curve", "valve_leakage", "trapped_air")) == "built"  # one more state
+    assert outcome(Parameters(transport_delay_s=2.0)) == "built"  # delay lags are states
+    assert len(list(tmp_path.glob("ekf_update_*.so"))) == 3
