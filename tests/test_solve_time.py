@@ -69,7 +69,7 @@ def test_benchmark_runs_all_contenders_side_by_side_and_writes_json(tmp_path, ca
     for r in data["results"]:
         assert isinstance(r["settings"]["compiled"], bool)
     rti = data["results"][0]
-    assert rti["settings"]["qp_solver"] == "osqp" and rti["settings"]["compiled"] is True
+    assert rti["settings"]["qp_solver"] == "osqp" and rti["settings"]["compiled"] is True, rti["codegen"]
     assert data["results"][1]["settings"]["compiled"] is False  # IPOPT interpreted without --jit
     # per-step suboptimality against converged IPOPT from the same state, after the cold start
     so = rti["suboptimality"]
