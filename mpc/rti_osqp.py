@@ -495,8 +495,10 @@ class RtiOsqpSolver:
             q = self._q(ref, d, u_prev)
             self._core.update_vectors(q, self.l, self.u)
             # primal: the shifted plan; dual: OSQP keeps the last QP's multipliers in its workspace
-            # (measured on the solve-time loop: 5935 OSQP iterations in 240 steps, against 7585
-            # with the multipliers shifted like the plan and 7790 with zero multipliers)
+            # (measured on the solve-time loop when this was chosen: 5935 OSQP iterations in 240
+            # steps, against 7585 with the multipliers shifted like the plan and 7790 with zero
+            # multipliers; 6225 with the model parameters as inputs of the generated code, whose
+            # round-off moves the loop from step ~124 on)
             self._core.warm_start(self._z_lin)
             if time_limit_s > 0:
                 remaining = time_limit_s - (time.perf_counter() - t0)
