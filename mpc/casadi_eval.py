@@ -16,10 +16,12 @@ class BufferedFunction:
     """Evaluate ``fn`` (dense inputs; outputs densified) into numpy buffers.
 
     ``f(*args)`` copies the arguments in, evaluates, and returns copies of the results,
-    each of shape (cols, rows) (a column vector comes back flat).
+    each of shape (cols, rows) (a column vector comes back flat). ``fixed`` (input index ->
+    value) fills inputs that stay the same from call to call once; ``f(*args)`` then takes the
+    other inputs, in order.
     """
 
-    def __init__(self, fn: ca.Function):
+    def __init__(self, fn: ca.Function, fixed: dict[int, object] | None = None):
         dense = all(fn.sparsity_in(i).is_dense() for i in range(fn.n_in())) and \
             all(fn.sparsity_out(i).is_dense() for i in range(fn.n_out()))
         if dense:
@@ -34,13 +36,17 @@ class BufferedFunction:
             self._buf.set_arg(i, memoryview(arr))
         for i, arr in enumerate(self._res):
             self._buf.set_res(i, memoryview(arr))
+        fixed = fixed or {}
+        for i, value in fixed.items():
+            self._args[i][...] = value
+        self._free = [a for i, a in enumerate(self._args) if i not in fixed]
 
     @staticmethod
     def _shape(rows: int, cols: int) -> tuple[int, ...]:
         return (rows,) if cols == 1 else (cols, rows)
 
     def __call__(self, *args) -> list[np.ndarray]:
-        for buf, value in zip(self._args, args):
+        for buf, value in zip(self._free, args):
             buf[...] = value
         self._eval()
         return [r.copy() for r in self._res]

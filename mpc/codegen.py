@@ -126,20 +126,6 @@ def _build(fn: ca.Function, folder: Path, lib: Path) -> None:
         os.replace(out, lib)  # two processes building at once both end with a whole file
 
 
-def compile_buffered(owner, attributes: tuple[str, ...], report: CodegenReport | None = None) -> None:
-    """Replace ``owner.<attribute>`` (a :class:`~.casadi_eval.BufferedFunction`) by the same
-    function as generated C, for each attribute named (a hook for objects that build their own
-    CasADi functions, e.g. the estimator)."""
-    from .casadi_eval import BufferedFunction
-    for name in attributes:
-        current = getattr(owner, name, None)
-        if not isinstance(current, BufferedFunction):  # the owner changed: leave it interpreted
-            if report is not None:
-                report.outcomes[f"{type(owner).__name__}.{name}"] = "interpreted: not a BufferedFunction"
-            continue
-        setattr(owner, name, BufferedFunction(compiled(current.fn, report)))
-
-
 def compiled_nlpsol(name: str, plugin: str, nlp: dict, opts: dict, report: CodegenReport | None = None,
                     flags: tuple[str, ...] = ("-O1", "-fPIC", "-shared")) -> ca.Function:
     """``casadi.nlpsol(name, plugin, nlp, opts)`` with the NLP's functions (objective, constraints

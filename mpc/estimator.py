@@ -104,7 +104,10 @@ class DisturbanceEkf:
         z = ca.SX.sym("z", self.nz)
         u = ca.SX.sym("u", len(m.inputs))
         sp = ca.SX.sym("setpoint")
-        p = ca.DM(m.p_default)
+        # the model parameters are an input (HvacModel.p_default order): generated code of these
+        # functions serves every parameter set of one model structure (docs/architecture.md)
+        p = ca.SX.sym("p", len(m.p_default))
+        self.p = np.array(m.p_default, float)
         d = self._d(z, sp)
         x = z[:nx]
         xk = rk4(m.ode, x, u, d, p, self.dt_s, 2)
@@ -112,8 +115,44 @@ class DisturbanceEkf:
         y = m.output(x, u, d, p)
         meas = ca.vertcat(x[self.i_sensor], y[m.outputs.index("volume_flow_m3s")], x[self.i_water], z[nx + 2],
                           y[m.outputs.index("heater_outlet_temp_c")])
-        self.f = BufferedFunction(ca.Function("ekf_f", [z, u, sp], [zn, ca.jacobian(zn, z)]))
-        self.h = BufferedFunction(ca.Function("ekf_h", [z, u, sp], [meas, ca.jacobian(meas, z)]))
+        self.f_p = ca.Function("ekf_f", [z, u, sp, p], [zn, ca.jacobian(zn, z)])
+        self.h_p = ca.Function("ekf_h", [z, u, sp, p], [meas, ca.jacobian(meas, z)])
+        self.f = BufferedFunction(self.f_p)
+        self.h = BufferedFunction(self.h_p)
+        self.predict_fn = self._predict_function()
+        self.update_fn = self._update_function()
+        self.use_functions(self.predict_fn, self.update_fn)
+
+    def _predict_function(self) -> ca.Function:
+        """(z, P, u, setpoint, p, Q) -> (z+, P+): the time update of :meth:`predict` as one function."""
+        nz = self.nz
+        z, P = ca.SX.sym("z", nz), ca.SX.sym("P", nz, nz)
+        u, sp = ca.SX.sym("u", len(self.model.inputs)), ca.SX.sym("setpoint")
+        p, Q = ca.SX.sym("p", len(self.p)), ca.SX.sym("Q", nz, nz)
+        zn, F = self.f_p(z, u, sp, p)
+        return ca.Function("ekf_predict", [z, P, u, sp, p, Q], [zn, ca.mtimes([F, P, F.T]) + Q],
+                           ["z", "P", "u", "setpoint", "p", "Q"], ["z_next", "P_next"])
+
+    def _update_function(self) -> ca.Function:
+        """(z, P, y, ok, u, setpoint, p, R) -> (z+, P+): the measurement update of :meth:`update`
+        (Joseph form) with the readings where ``ok`` is 1. A reading left out has its row of H and
+        its innovation zeroed and a unit variance, so it adds an uncoupled identity block to S and
+        a zero column to K: the same update as with the used readings alone."""
+        nz, nm = self.nz, len(MEASURED)
+        z, P = ca.SX.sym("z", nz), ca.SX.sym("P", nz, nz)
+        y, ok = ca.SX.sym("y", nm), ca.SX.sym("ok", nm)
+        u, sp = ca.SX.sym("u", len(self.model.inputs)), ca.SX.sym("setpoint")
+        p, R = ca.SX.sym("p", len(self.p)), ca.SX.sym("R", nm)
+        hz, H = self.h_p(z, u, sp, p)
+        H = ca.diag(ok) @ H
+        innov = ok * (y - hz)
+        Rm = ca.diag(ok * R + (1 - ok))
+        S = H @ P @ H.T + Rm
+        K = ca.solve(S, H @ P).T
+        IKH = ca.DM.eye(nz) - K @ H
+        Pn = IKH @ P @ IKH.T + K @ ca.diag(ok * R) @ K.T
+        return ca.Function("ekf_update", [z, P, y, ok, u, sp, p, R], [z + K @ innov, 0.5 * (Pn + Pn.T)],
+                           ["z", "P", "y", "ok", "u", "setpoint", "p", "R"], ["z_next", "P_next"])
 
     # ------------------------------------------------------------------ interface
     @property
@@ -153,29 +192,31 @@ class DisturbanceEkf:
         sd = [p0[n] for n in m.states.names] + [0.5, 2e-3, 0.1]
         self.P = np.diag(np.square(sd))
 
+    def use_functions(self, predict_fn, update_fn) -> None:
+        """Evaluate the time and measurement updates with these functions (the same signatures as
+        ``predict_fn`` / ``update_fn``, e.g. generated C of them, :mod:`hvac_mpc.mpc.codegen`).
+        ``p``, ``Q`` and ``R_diag`` are read here, once: call again after changing them."""
+        self._predict = BufferedFunction(predict_fn, fixed={4: self.p, 5: self.Q})
+        self._update = BufferedFunction(update_fn, fixed={6: self.p, 7: self.R_diag})
+
     def predict(self, u: np.ndarray, setpoint_c: float) -> None:
         """Time update over one sample with the command that was applied."""
-        zn, Ft = self.f(self.z, u, setpoint_c)
-        F = Ft.T  # buffers are column-major
-        self.z = zn
-        self.P = F @ self.P @ F.T + self.Q
+        zn, Pt = self._predict(self.z, self.P, u, setpoint_c)
+        self.z, self.P = zn, Pt.T  # buffers are column-major
+
+    def readings(self, measurement: Measurement) -> tuple[np.ndarray, np.ndarray]:
+        """The measured values (order ``MEASURED``, 0 where unused) and which are used (finite and enabled)."""
+        values = np.array([_finite(getattr(measurement, n, None), np.nan) for n in MEASURED])
+        ok = np.isfinite(values) & self.use
+        return np.where(ok, values, 0.0), ok
 
     def update(self, measurement: Measurement, u: np.ndarray, setpoint_c: float) -> int:
         """Measurement update with the finite readings; returns how many were used."""
-        values = np.array([_finite(getattr(measurement, n, None), np.nan) for n in MEASURED])
-        ok = np.isfinite(values) & self.use
+        values, ok = self.readings(measurement)
         if not ok.any():
             return 0
-        hz, Ht = self.h(self.z, u, setpoint_c)
-        hz = hz[ok]
-        H = Ht.T[ok]
-        innov = values[ok] - hz
-        S = H @ self.P @ H.T + np.diag(self.R_diag[ok])
-        K = np.linalg.solve(S, H @ self.P).T
-        self.z = self.z + K @ innov
-        IKH = np.eye(self.nz) - K @ H
-        self.P = IKH @ self.P @ IKH.T + K @ np.diag(self.R_diag[ok]) @ K.T  # Joseph form
-        self.P = 0.5 * (self.P + self.P.T)
+        zn, Pt = self._update(self.z, self.P, values, ok, u, setpoint_c)
+        self.z, self.P = zn, Pt.T
         return int(ok.sum())
 
     # ------------------------------------------------------------------ views
@@ -196,7 +237,7 @@ class DisturbanceEkf:
         return float(self.z[self.nx + 2])
 
     def healthy(self) -> bool:
-        return self.z is not None and bool(np.all(np.isfinite(self.z)) and np.all(np.isfinite(self.P)))
+        return self.z is not None and bool(np.isfinite(self.z).all() and np.isfinite(self.P).all())
 
 
 def _finite(value, default: float) -> float:

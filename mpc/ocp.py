@@ -246,7 +246,8 @@ class TrackingProblem:
     ``u_lo``/``u_hi``; ``rate_phys`` (W/s, %/s); ``heater_row_coef``/``heater_row_bound`` (soft
     heater row in degC); ``y_scale`` residual scales; ``w_du`` scaled move weights;
     ``energy_grad_u`` (W per scaled decision). CasADi functions: ``stages`` (one stage function
-    per RK4 substep count, evaluated over the horizon by ``horizon`` in :meth:`linearise`),
+    per RK4 substep count, evaluated over the horizon by ``horizon`` in :meth:`linearise`;
+    ``stages_p`` the same with the model parameters as a last input ``p``),
     ``F_by_substeps`` (x_next only), ``Y`` (outputs only), ``theta`` (valve angles of a decision).
     """
 
@@ -280,16 +281,22 @@ class TrackingProblem:
         self.u_sc = np.array([INPUT_SCALING[n][1] for n in INPUTS])
         self.valve_mask = np.zeros(self.nu, bool)
         self.valve_mask[list(self.VALVES)] = True
+        self._valve_cols = list(self.VALVES)  # in the order of VALVE_NAMES
         self.u_off[self.valve_mask] = 0.5  # openings v in [0, 1]
         self.u_sc[self.valve_mask] = 0.5
         self.u_lo_phys = np.array([INPUT_LOWER[n] for n in INPUTS])
         self.u_hi_phys = np.array([input_upper(self.params)[n] for n in INPUTS])
         self.u_lo, self.u_hi = self.scale_u(self.u_lo_phys), self.scale_u(self.u_hi_phys)
+        self._u_lo_tiled = np.tile(self.u_lo, (self.N, 1))
+        self._u_hi_tiled = np.tile(self.u_hi, (self.N, 1))
+        self._a_travel = None  # set below, once the rate limits are known
         self.rate_phys = np.array([spec.rate_blower_w_per_s, spec.rate_heater_w_per_s]
                                   + [spec.rate_valve_pct_per_s] * 4)
         self.rate = self.rate_phys / self.u_sc  # meaningful for the non-valve decisions only
         self.i_heater = self.state_names.index("heater_temp_c")
         self.i_valve_a = INPUTS.index("valve_a_pct")
+        # the farthest valve a can close by each node (scaled), for the cap of input_bounds
+        self._a_travel = self.rate_phys[self.i_valve_a] * self.t_nodes[1:] / self.u_sc[self.i_valve_a]
         self.i_heater_cmd = INPUTS.index("heater_cmd_w")
         hmax = spec.heater_temp_max_c if spec.heater_temp_max_c is not None else self.params.heater_temp_max_c
         self.heater_max_phys = float(hmax)
@@ -334,15 +341,13 @@ class TrackingProblem:
     def scale_u(self, u_phys):
         """Actuator commands (..., 6) in W and % -> scaled decisions (valve angles to openings)."""
         u = np.array(u_phys, float)
-        for j, name in zip(self.VALVES, VALVE_NAMES):
-            u[..., j] = self.valve_map.opening(name, u[..., j])
+        u[..., self._valve_cols] = self.valve_map.openings(u[..., self._valve_cols])
         return (u - self.u_off) / self.u_sc
 
     def unscale_u(self, u):
         """Scaled decisions (..., 6) -> actuator commands in W and % (openings to angles)."""
         out = np.asarray(u, float) * self.u_sc + self.u_off
-        for j, name in zip(self.VALVES, VALVE_NAMES):
-            out[..., j] = self.valve_map.angle(name, out[..., j])
+        out[..., self._valve_cols] = self.valve_map.angles(out[..., self._valve_cols])
         return out
 
     def placeholder_state(self) -> np.ndarray:
@@ -366,11 +371,12 @@ class TrackingProblem:
         valve a cap (never tighter than valve a can follow from ``u_prev_phys``) and, with
         ``ptc_limit`` and a heater temperature, the PTC's available power (never tighter than the
         heater command can follow)."""
-        lo = np.maximum(self.u_lo_phys, u_prev_phys - self.rate_phys * self.dt_s)
-        hi = np.minimum(self.u_hi_phys, u_prev_phys + self.rate_phys * self.dt_s)
+        step = self.rate_phys * self.dt_s
+        lo = np.maximum(self.u_lo_phys, u_prev_phys - step)
+        hi = np.minimum(self.u_hi_phys, u_prev_phys + step)
         ia = self.i_valve_a
-        hi[ia] = min(hi[ia], max(cap_a_pct, u_prev_phys[ia] - self.rate_phys[ia] * self.dt_s))
-        if self.ptc_limit and heater_temp_c is not None and np.isfinite(heater_temp_c):
+        hi[ia] = min(hi[ia], max(cap_a_pct, u_prev_phys[ia] - step[ia]))
+        if self.ptc_limit and heater_temp_c is not None and math.isfinite(heater_temp_c):
             ih = self.i_heater_cmd
             hi[ih] = min(hi[ih], max(self.ptc_available_w(heater_temp_c), lo[ih]))
         lo = np.minimum(lo, hi)
@@ -382,15 +388,15 @@ class TrackingProblem:
         exactly (the opening is monotone in the angle), the first stage's PTC limit (later stages
         carry it as a row of the problem), and the valve a cap, which tightens stage by stage no
         faster than valve a may move, so the bounds always hold a feasible point."""
-        lo = np.tile(self.u_lo, (self.N, 1))
-        hi = np.tile(self.u_hi, (self.N, 1))
+        lo = self._u_lo_tiled.copy()
+        hi = self._u_hi_tiled.copy()
         ia = self.i_valve_a
         cap = (min(cap_a_pct, 100.0) - self.u_off[ia]) / self.u_sc[ia]
-        reachable = (u_prev_phys[ia] - self.rate_phys[ia] * self.t_nodes[1:] - self.u_off[ia]) / self.u_sc[ia]
+        reachable = (u_prev_phys[ia] - self.u_off[ia]) / self.u_sc[ia] - self._a_travel
         hi[:, ia] = np.minimum(hi[:, ia], np.maximum(cap, reachable))
-        lo0, hi0 = self.command_bounds(u_prev_phys, cap_a_pct, heater_temp_c)
-        lo[0] = np.maximum(lo[0], self.scale_u(lo0))
-        hi[0] = np.minimum(hi[0], self.scale_u(hi0))
+        first = self.scale_u(np.stack(self.command_bounds(u_prev_phys, cap_a_pct, heater_temp_c)))
+        lo[0] = np.maximum(lo[0], first[0])
+        hi[0] = np.minimum(hi[0], first[1])
         lo[0] = np.minimum(lo[0], hi[0])
         return lo, hi
 
@@ -422,13 +428,22 @@ class TrackingProblem:
 
     # ------------------------------------------------------------------ CasADi
     def _stage_function(self, substeps: int) -> ca.Function:
-        """One stage (x, u, d, dt) -> stacked [x_next, vec A, vec B, y, vec C, vec D] with RK4 substeps."""
+        """One stage (x, u, d, dt) -> stacked [x_next, vec A, vec B, y, vec C, vec D] with RK4 substeps,
+        at the problem's parameters (:meth:`_stage_function_p` with ``p`` fixed)."""
+        f = self.stages_p[substeps]
+        xs, us, d, dt = ca.SX.sym("x", self.nx), ca.SX.sym("u", self.nu), ca.SX.sym("d", self.nd), ca.SX.sym("dt")
+        return ca.Function(f"stage{substeps}", [xs, us, d, dt], [f(xs, us, d, dt, ca.DM(self.model.p_default))],
+                           ["x", "u", "d", "dt"], ["out"])
+
+    def _stage_function_p(self, substeps: int) -> ca.Function:
+        """:meth:`_stage_function` with the model parameters ``p`` (``HvacModel.p_default`` order) as
+        an input, so generated code built from it serves every parameter set of one structure."""
         m, nx, nu = self.model, self.nx, self.nu
         xs = ca.SX.sym("x", nx)
         us = ca.SX.sym("u", nu)
         d = ca.SX.sym("d", self.nd)
         dt = ca.SX.sym("dt")
-        p = ca.DM(m.p_default)
+        p = ca.SX.sym("p", len(m.p_default))
         x_off, x_sc = ca.DM(self.x_off), ca.DM(self.x_sc)
         u_phys = self._command_expr(us)
         x_phys = x_off + x_sc * xs
@@ -443,7 +458,7 @@ class TrackingProblem:
         y = ca.vertcat(temp, *[y_all[m.outputs.index(n)] for n in STAGE_OUTPUTS[1:]])
         out = ca.densify(ca.vertcat(xn, ca.vec(ca.jacobian(xn, xs)), ca.vec(ca.jacobian(xn, us)), y,
                                     ca.vec(ca.jacobian(y, xs)), ca.vec(ca.jacobian(y, us))))
-        return ca.Function(f"stage{substeps}", [xs, us, d, dt], [out], ["x", "u", "d", "dt"], ["out"])
+        return ca.Function(f"stage{substeps}_p", [xs, us, d, dt, p], [out], ["x", "u", "d", "dt", "p"], ["out"])
 
     def _command_expr(self, us):
         """Actuator commands (W, %) of scaled decisions, symbolically (valve openings -> angles)."""
@@ -465,6 +480,7 @@ class TrackingProblem:
         # needs outputs, so one substep
         ns = [max(1, int(math.ceil(dt / self.max_substep_s - 1e-9))) for dt in self.dt] + [1]
         self.stage_substeps = np.array(ns)
+        self.stages_p = {n: self._stage_function_p(n) for n in sorted(set(ns))}
         self.stages = {n: self._stage_function(n) for n in sorted(set(ns))}
         groups, start = [], 0
         for k in range(1, len(ns) + 1):

@@ -5,12 +5,16 @@ sparsity is fixed at construction; every step only values change:
 
 * **preparation** (:meth:`RtiOsqpSolver.prepare`, before the next measurement): shift the last
   solution one sample along the non-uniform stage grid, linearise all stages at it with one
-  mapped CasADi call, write the new values into ``P`` (Gauss-Newton Hessian of the least-squares
-  residuals) and ``A`` (dynamics Jacobians) with ``OSQP.update(Px=..., Ax=...)`` (one numeric
-  refactorisation), and the dynamics right-hand sides into ``l``/``u``;
+  call of ``hvac_qp_data`` (generated C by default, the model parameters an input), write the
+  new values into ``P`` (Gauss-Newton Hessian of the least-squares residuals) and ``A``
+  (dynamics Jacobians) in OSQP (one numeric refactorisation), and the dynamics right-hand sides
+  into ``l``/``u``;
 * **feedback** (:meth:`RtiOsqpSolver.feedback`, when the estimate arrives): insert the estimated
-  state, the input bounds and the reference / disturbance-estimate changes into ``q``, ``l``,
-  ``u`` (no refactorisation) and solve, warm-started from the shifted trajectory.
+  state, the input bounds and the reference / disturbance-estimate changes into ``q`` (one call
+  of ``hvac_qp_gradient``), ``l``, ``u`` (no refactorisation) and solve, warm-started from the
+  shifted trajectory (the duals from the last solve).
+
+docs/architecture.md, 'One control step', lists what runs as generated C and what in Python.
 
 With ``sqp_max_iter > 1`` the feedback re-linearises at the new iterate and solves again until
 the step is below ``sqp_tol`` (a Gauss-Newton SQP to a tolerance).
@@ -140,13 +144,16 @@ class RtiOsqpSolver:
         self.iu0 = (N + 1) * nx
         self.is0 = self.iu0 + N * nu
         self._lm_all = np.tile(self.lm, N)
+        self._p = np.array(pb.model.p_default, float)  # model parameters: an input of the QP data
         self._build_pattern()
         self._i0, self._w1, self._j = shift_maps(pb.t_nodes, pb.dt_s)
         self._build_qp_functions()
         self.codegen = CodegenReport()
         wrap = (lambda f: compiled(f, self.codegen)) if codegen else (lambda f: f)
-        self._qp_data = BufferedFunction(wrap(self.qp_data))
-        self._qp_gradient = BufferedFunction(wrap(self.qp_gradient))
+        # constant inputs filled once: P0, A0 and p of the QP data, q0, lm and w_du of the gradient
+        self._qp_data = BufferedFunction(wrap(self.qp_data), fixed={4: self._P_const, 5: self._A_const, 6: self._p})
+        self._qp_gradient = BufferedFunction(wrap(self.qp_gradient),
+                                             fixed={7: self._q_const, 8: self._lm_all, 9: pb.w_du})
         self._sw_key = None
         self.fail_next = 0  # steps to fail on purpose (tests of the fallback chain)
         self._osqp_settings = dict(eps_abs=eps, eps_rel=eps, max_iter=int(max_iter), polishing=False,
@@ -271,33 +278,44 @@ class RtiOsqpSolver:
         w_y = pb.w_y_full
         Px, Ax, _ = self._matrices(X, U, d, w_y)
         self.solver = osqp.OSQP()
+        inf = self.solver.constant("OSQP_INFTY")
+        # OSQP's infinity in place of inf, as its Python interface would put it on every update
+        np.clip(self.l, -inf, inf, out=self.l)
+        np.clip(self.u, -inf, inf, out=self.u)
         self.solver.setup(self.P.matrix(Px), np.zeros(self.n), self.A.matrix(Ax), self.l.copy(), self.u.copy(),
                           **self._osqp_settings)
+        self._core = _OsqpCore(self.solver)
+        self._workspace_used = False
+        self._time_limit = None
 
     # ------------------------------------------------------------------ numerics
     def _build_qp_functions(self) -> None:
         """The QP data as two CasADi functions (generated C when ``codegen``, see :mod:`.codegen`).
 
-        ``qp_data(X, U, d, SW, P0) -> (Px, Ax, e_dyn, Gw2, c_base, y)`` linearises every stage and
-        returns the CSC values of P (``P0`` its constant part) and A as OSQP stores them;
+        ``qp_data(X, U, d, SW, P0, A0, p) -> (Px, Ax, e_dyn, Gw2, c_base, y)`` linearises every stage
+        at the model parameters ``p`` and returns the CSC values of P and A as OSQP stores them
+        (``P0``, ``A0`` their constant parts);
         ``qp_gradient(Gw2, c_base, y, ref, dd, u_lin, u_prev, q0, lm, w_du) -> q`` the gradient for
         the reference, the disturbance-estimate change ``dd`` since the linearisation (mixed-air
         and flow offsets), the linearisation inputs and the last applied input. Weights enter as
-        inputs (``SW``, ``P0``, ``q0``, ``lm``, ``w_du``), so the generated code depends on the
-        model, the horizon and the scaling only.
+        inputs (``SW``, ``P0``, ``A0``, ``q0``, ``lm``, ``w_du``), and so do the model parameters
+        (``p``): the generated code depends on the model's structure (effects, discovered terms,
+        valve tables, delay states), the horizon and the scaling only.
         """
         pb, N, nx, nu, ny = self.pb, self.pb.N, self.pb.nx, self.pb.nu, self.pb.ny
         nz, nr = self.nz_stage, ny + 1
         ntri = len(self._triu[0])
-        stage_fns = {n: self._stage_qp_function(f) for n, f in pb.stages.items()}
+        stage_fns = {n: self._stage_qp_function(f) for n, f in pb.stages_p.items()}
         X = ca.MX.sym("X", nx, N + 1)
         U = ca.MX.sym("U", nu, N)
         d = ca.MX.sym("d", pb.nd)
         SW = ca.MX.sym("SW", nr, N + 1)
         P0 = ca.MX.sym("P0", self.P.nnz)
+        A0 = ca.MX.sym("A0", self.A.nnz)
+        p = ca.MX.sym("p", len(pb.model.p_default))
         Ue = ca.horzcat(U, U[:, N - 1])
         dt = np.append(pb.dt, pb.dt[-1])
-        parts = [stage_fns[n].map(b - a, "serial")(X[:, a:b], Ue[:, a:b], d, ca.DM(dt[None, a:b]), SW[:, a:b])
+        parts = [stage_fns[n].map(b - a, "serial")(X[:, a:b], Ue[:, a:b], d, ca.DM(dt[None, a:b]), SW[:, a:b], p)
                  for a, b, n in pb.groups]
         e_dyn = ca.horzcat(*[p[0] for p in parts])[:, :N]
         ab = ca.horzcat(*[p[1] for p in parts])[:, :N]
@@ -308,9 +326,10 @@ class RtiOsqpSolver:
         m_p = _selection(self.P.slot[self._P_var.ravel()], self.P.nnz)
         m_a = _selection(self._A_var_slots, self.A.nnz)
         Px = P0 + ca.mtimes(m_p, ca.vec(htri))
-        Ax = ca.DM(self._A_const) + ca.mtimes(m_a, ca.vec(ab))
-        self.qp_data = ca.Function("hvac_qp_data", [X, U, d, SW, P0], [Px, Ax, ca.vec(e_dyn), gw2, c_base, y],
-                                   ["X", "U", "d", "SW", "P0"], ["Px", "Ax", "e_dyn", "Gw2", "c_base", "y"])
+        Ax = A0 + ca.mtimes(m_a, ca.vec(ab))
+        self.qp_data = ca.Function("hvac_qp_data", [X, U, d, SW, P0, A0, p], [Px, Ax, ca.vec(e_dyn), gw2, c_base, y],
+                                   ["X", "U", "d", "SW", "P0", "A0", "p"],
+                                   ["Px", "Ax", "e_dyn", "Gw2", "c_base", "y"])
         # gradient
         G2 = ca.SX.sym("Gw2", nr * nz, N + 1)
         C = ca.SX.sym("c_base", nr, N + 1)
@@ -348,7 +367,8 @@ class RtiOsqpSolver:
         pb, nx, nu, ny = self.pb, self.pb.nx, self.pb.nu, self.pb.ny
         x, u, d, dt = ca.SX.sym("x", nx), ca.SX.sym("u", nu), ca.SX.sym("d", pb.nd), ca.SX.sym("dt")
         sw = ca.SX.sym("sw", ny + 1)
-        out = stage(x, u, d, dt)
+        p = ca.SX.sym("p", len(pb.model.p_default))
+        out = stage(x, u, d, dt, p)
         sl = pb.out_slices
         xn = out[sl["xn"]]
         A = ca.reshape(out[sl["A"]], nx, nx)
@@ -367,7 +387,7 @@ class RtiOsqpSolver:
         outs = [xn - ca.mtimes(AB, z), ca.vec(-AB.T), htri, ca.vec(gw2), r - ca.mtimes(G, z), y]
         # common subexpressions computed once (the Jacobians repeat much of the model): about
         # 40 % fewer operations, the same values
-        return ca.Function(f"qp_{stage.name()}", [x, u, d, dt, sw], ca.cse(outs))
+        return ca.Function(f"qp_{stage.name()}", [x, u, d, dt, sw, p], ca.cse(outs))
 
     def _stage_weights(self, w_y: np.ndarray) -> np.ndarray:
         """Weights of the residuals per stage (N + 1, ny + 1): dt_k w_y / s^2, the terminal
@@ -384,13 +404,22 @@ class RtiOsqpSolver:
         key = w_y.tobytes()
         if key != self._sw_key:
             self._sw, self._sw_key = self._stage_weights(w_y), key
-        Px, Ax, e_dyn, gw2, c_base, y = self._qp_data(X, U, d, self._sw, self._P_const)
+        Px, Ax, e_dyn, gw2, c_base, y = self._qp_data(X, U, d, self._sw)
         return Px, Ax, dict(e_dyn=e_dyn, gw2=gw2, c_base=c_base, y=y)
 
     def reset(self) -> None:
-        """Forget the trajectory (cold start at the next step)."""
+        """Forget the trajectory and OSQP's workspace (cold start at the next step): a fresh
+        workspace holds no multipliers, step size or factorisation of the run before, so a reset
+        controller answers as a new one does."""
         self.X = self.U = self.S = None
         self._prepared = None
+        if getattr(self, "_workspace_used", False):
+            self._setup_osqp()
+
+    @property
+    def clean(self) -> bool:
+        """True when OSQP's workspace has not been used since it was set up (or reset)."""
+        return not self._workspace_used
 
     @property
     def has_trajectory(self) -> bool:
@@ -406,7 +435,8 @@ class RtiOsqpSolver:
     def _load(self, X, U, S, d, ref, w_y, u_prev) -> None:
         """Write the linearisation at (X, U) into OSQP (values only)."""
         Px, Ax, data = self._matrices(X, U, d, w_y)
-        self.solver.update(Px=Px, Ax=Ax)
+        self._core.update_matrices(Px, Ax)
+        self._workspace_used = True
         self.l[self._r_dyn_flat] = data["e_dyn"]
         self.u[self._r_dyn_flat] = data["e_dyn"]
         self._prepared = dict(data=data, d=d.copy(), w_y=w_y.copy(), ref=np.array(ref, float))
@@ -463,31 +493,32 @@ class RtiOsqpSolver:
             if it > 0:
                 prep += self._relinearise(z, x0, d, ref, w_y, u_prev)
             q = self._q(ref, d, u_prev)
-            self.solver.update(q=q, l=self.l, u=self.u)
+            self._core.update_vectors(q, self.l, self.u)
             # primal: the shifted plan; dual: OSQP keeps the last QP's multipliers in its workspace
-            # (measured on the solve-time loop: 5935 OSQP iterations in 240 steps, against 7585
-            # with the multipliers shifted like the plan and 7790 with zero multipliers)
-            self.solver.warm_start(x=self._z_lin)
+            # (measured on the solve-time loop when this was chosen: 5935 OSQP iterations in 240
+            # steps, against 7585 with the multipliers shifted like the plan and 7790 with zero
+            # multipliers; 6225 with the model parameters as inputs of the generated code, whose
+            # round-off moves the loop from step ~124 on)
+            self._core.warm_start(self._z_lin)
             if time_limit_s > 0:
                 remaining = time_limit_s - (time.perf_counter() - t0)
                 if remaining <= 0:
                     status = "deadline"
                     break
-                self.solver.update_settings(time_limit=remaining)
-            res = self.solver.solve(raise_error=False)
+                self._limit_time(remaining, time_limit_s)
+            info, x = self._core.solve()
             solves += 1
-            iterations += int(res.info.iter)
-            status = str(res.info.status)
-            if res.info.status_val not in (1, 2):  # solved, solved inaccurate
+            iterations += int(info.iter)
+            status = str(info.status)
+            if info.status_val not in (1, 2):  # solved, solved inaccurate
                 z = None
                 break
-            z = np.array(res.x)
-            if not np.all(np.isfinite(z)):
+            z = np.array(x)
+            if not np.isfinite(z).all():
                 status = "non-finite solution"
                 z = None
                 break
-            step = float(np.max(np.abs(z - self._z_lin)))
-            if step < self.sqp_tol:
+            if it + 1 < max_qps and float(np.abs(z - self._z_lin).max()) < self.sqp_tol:
                 break
         feedback = time.perf_counter() - t0 - prep
         if z is None:
@@ -500,6 +531,14 @@ class RtiOsqpSolver:
         return SolveResult(True, status, X=X.copy(), U=U.copy(), S=S.copy(), iterations=iterations,
                            qp_solves=solves, prep_time_s=prep, feedback_time_s=feedback,
                            extra={"cold_start": cold})
+
+    def _limit_time(self, remaining_s: float, budget_s: float) -> None:
+        """OSQP's time limit: what remains of the feedback budget, set again only when it has shrunk
+        by more than a tenth of the budget since it was last set (each setting is a call into OSQP;
+        the controller checks the whole feedback time against its deadline anyway)."""
+        if self._time_limit is None or abs(self._time_limit - remaining_s) > 0.1 * budget_s:
+            self.solver.update_settings(time_limit=remaining_s)
+            self._time_limit = remaining_s
 
     def _relinearise(self, z, x0, d, ref, w_y, u_prev) -> float:
         t0 = time.perf_counter()
@@ -517,8 +556,44 @@ class RtiOsqpSolver:
         data = pr["data"]
         dd = d[D_OFFSETS] - pr["d"][D_OFFSETS]
         return self._qp_gradient(data["gw2"], data["c_base"], data["y"], ref, dd,
-                                 self._z_lin[self.iu0:self.is0], u_prev, self._q_const, self._lm_all,
-                                 self.pb.w_du)[0]
+                                 self._z_lin[self.iu0:self.is0], u_prev)[0]
+
+
+class _OsqpCore:
+    """The calls of the RTI into OSQP, made on the compiled solver object of OSQP's Python interface
+    (osqp >= 1.0, ``OSQP._solver``) when it is there: the interface's own ``update`` and ``solve``
+    add per call what the RTI does not need (bounds clamped to OSQP's infinity again, a copy for
+    its derivative cache, a namespace of the whole info), about a third of the QP's own time on
+    this problem. Without that object the public interface is used."""
+
+    def __init__(self, wrapper: osqp.OSQP):
+        self.wrapper = wrapper
+        self.core = getattr(wrapper, "_solver", None)
+
+    def update_matrices(self, Px: np.ndarray, Ax: np.ndarray) -> None:
+        if self.core is None:
+            self.wrapper.update(Px=Px, Ax=Ax)
+        else:
+            self.core.update_data_mat(P_x=Px, P_i=None, A_x=Ax, A_i=None)
+
+    def update_vectors(self, q: np.ndarray, l: np.ndarray, u: np.ndarray) -> None:
+        """``l``, ``u`` already within OSQP's infinity."""
+        if self.core is None:
+            self.wrapper.update(q=q, l=l, u=u)
+        else:
+            self.core.update_data_vec(q=q, l=l, u=u)
+
+    def warm_start(self, x: np.ndarray) -> None:
+        """Primal warm start; the duals stay those of the last solve (see ``feedback``)."""
+        (self.core or self.wrapper).warm_start(x, None)
+
+    def solve(self):
+        """Solve; returns OSQP's info (``iter``, ``status``, ``status_val``) and the primal solution."""
+        if self.core is None:
+            res = self.wrapper.solve(raise_error=False)
+            return res.info, res.x
+        self.core.solve()
+        return self.core.info, self.core.solution.x
 
 
 def _selection(slots: np.ndarray, size: int) -> ca.DM:

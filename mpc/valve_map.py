@@ -46,6 +46,15 @@ class ValveMap:
             self._pchip[name] = pchip
             self._v_tab[name] = v_fine
             self._t_tab[name] = np.clip(np.maximum.accumulate(pchip(v_fine)), 0.0, 100.0)
+        # the three tables side by side, each shifted by its own offset, so that one np.interp call
+        # converts all three valves (the controller's hot path, docs/architecture.md 'One control step')
+        self._offset = np.arange(len(VALVE_NAMES), dtype=float)
+        self._v_stack = np.concatenate([v_fine + 2.0 * i for i in range(len(VALVE_NAMES))])
+        t_ends = [np.append(self._t_tab[n], 100.0) if self._t_tab[n][-1] < 100.0 else self._t_tab[n]
+                  for n in VALVE_NAMES]
+        self._t_stack = np.concatenate([t + 200.0 * i for i, t in enumerate(t_ends)])
+        self._v_of_t = np.concatenate([np.append(v_fine, 1.0)[:len(t)] for t in t_ends])
+        self._t_of_v = np.concatenate([self._t_tab[n] for n in VALVE_NAMES])
 
     def theta_expr(self, name: str, v, margin: float = 0.05):
         """theta(v) in % as a CasADi expression of the opening v.
@@ -86,6 +95,16 @@ class ValveMap:
     def angle(self, name: str, v) -> np.ndarray:
         """theta(v) in % (the B-spline, tabulated)."""
         return np.interp(np.clip(v, 0.0, 1.0), self._v_tab[name], self._t_tab[name])
+
+    def angles(self, v) -> np.ndarray:
+        """theta(v) in % of valves m, f, w at once: ``v`` (..., 3) -> (..., 3); equals :meth:`angle`."""
+        x = np.minimum(np.maximum(v, 0.0), 1.0) + 2.0 * self._offset  # np.clip: ~10 us on 3 values
+        return np.interp(x, self._v_stack, self._t_of_v)
+
+    def openings(self, theta_pct) -> np.ndarray:
+        """v(theta) of valves m, f, w at once: ``theta_pct`` (..., 3) -> (..., 3); equals :meth:`opening`."""
+        x = np.minimum(np.maximum(theta_pct, 0.0), 100.0) + 200.0 * self._offset
+        return np.interp(x, self._t_stack, self._v_of_t)
 
     def opening(self, name: str, theta_pct) -> np.ndarray:
         """v(theta), the inverse of :meth:`angle` (tabulated)."""

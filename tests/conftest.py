@@ -4,6 +4,10 @@ import os
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("MPLBACKEND", "Agg")
+# The MPC's hot path runs as generated C by default, built once per model structure (5-30 s each).
+# The suite builds many structures (horizons, effects, delays), so it runs CasADi's interpreter on
+# the same functions; tests/test_codegen.py switches the compiler on and checks both agree.
+os.environ.setdefault("HVAC_MPC_CODEGEN", "0")
 
 
 import pytest  # noqa: E402

@@ -1,22 +1,27 @@
 """Generated C for the hot path: built on first use into the cache, loaded afterwards, the same
-results as CasADi's interpreter, and the interpreter when no compiler is there.
+results as CasADi's interpreter (also for other model parameters, which are inputs of the
+generated code), and the interpreter when no compiler is there.
 
-Budget: about 15 s on a loaded two-core machine (one build of the QP data and the estimator's
-functions into an empty cache folder, two short closed loops).
+Budget: about 35 s on a loaded two-core machine (one build of the QP data and the estimator's
+functions into an empty cache folder, four short closed loops); the slow test builds the
+estimator's update three times (about 10 s).
 """
 
 import casadi as ca
 import numpy as np
+import pytest
 
 from hvac_mpc.benchmarks import solve_time
-from hvac_mpc.models import Environment, SimulatedPlant
+from hvac_mpc.models import Environment, HvacModel, Parameters, SimulatedPlant
 from hvac_mpc.mpc import codegen
+from hvac_mpc.mpc.estimator import DisturbanceEkf
 from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
 from hvac_mpc.mpc.ocp import OcpSpec, Weights
 
 
-def _commands(settings: MpcSettings, steps: int) -> tuple[np.ndarray, MpcController]:
-    ctrl = MpcController(settings=settings)
+def _commands(settings: MpcSettings, steps: int, params: Parameters | None = None
+              ) -> tuple[np.ndarray, MpcController]:
+    ctrl = MpcController(params, settings)
     plant = SimulatedPlant(seed=3, environment=Environment(solve_time.INLET_C, 5.0))
     plant.settle(solve_time.INITIAL)
     ctrl.reset(plant.command)
@@ -33,6 +38,7 @@ def _commands(settings: MpcSettings, steps: int) -> tuple[np.ndarray, MpcControl
 
 def test_compiled_and_interpreted_closed_loops_give_the_same_commands_from_an_empty_cache(tmp_path, monkeypatch):
     monkeypatch.setenv(codegen.CACHE_ENV, str(tmp_path))
+    monkeypatch.setenv(codegen.SWITCH_ENV, "1")
     compiled_cmds, ctrl = _commands(MpcSettings(codegen=True), 34)
     assert ctrl.codegen.active
     assert set(ctrl.codegen.outcomes.values()) == {"built"}
@@ -43,6 +49,15 @@ def test_compiled_and_interpreted_closed_loops_give_the_same_commands_from_an_em
     # a second controller with the same model loads the shared objects instead of building them
     again = MpcController(settings=MpcSettings(codegen=True))
     assert set(again.codegen.outcomes.values()) == {"cached"}
+    # so does a controller with other model parameters (inputs of the generated code), with the
+    # interpreter's results for those parameters
+    other = Parameters(tau_tc_s=7.5, heater_power_max_w=200.0, blower_power_max_w=280.0)
+    other_cmds, other_ctrl = _commands(MpcSettings(codegen=True), 12, other)
+    assert set(other_ctrl.codegen.outcomes.values()) == {"cached"}
+    assert len(list(tmp_path.glob("*.so"))) == len(ctrl.codegen.outcomes)
+    other_vm, _ = _commands(MpcSettings(codegen=False), 12, other)
+    assert np.allclose(other_cmds, other_vm, rtol=0.0, atol=1e-9)
+    assert not np.allclose(other_cmds, compiled_cmds[:12], rtol=0.0, atol=1e-3)
 
 
 def test_weights_are_inputs_of_the_generated_code_and_the_model_is_part_of_its_key(tmp_path, monkeypatch):
@@ -52,14 +67,22 @@ def test_weights_are_inputs_of_the_generated_code_and_the_model_is_part_of_its_k
         weights=Weights(move_blower_per_w2=1e-3, slack_l1_per_c=9.0)))).solver
     other_model = MpcController(settings=MpcSettings(codegen=False, ocp=OcpSpec(
         model_effects=("fan_curve", "valve_leakage")))).solver
+    other_params = MpcController(Parameters(tau_tc_s=7.5, heater_power_max_w=200.0),
+                                 MpcSettings(codegen=False))
     key = codegen.structure_key
     assert key(base.qp_data) == key(reweighted.qp_data)
     assert key(base.qp_gradient) == key(reweighted.qp_gradient)
     assert key(base.qp_data) != key(other_model.qp_data)
+    # model parameters are inputs too: another parameter set of the same structure builds nothing new
+    assert key(base.qp_data) == key(other_params.solver.qp_data)
+    base_ekf = MpcController(settings=MpcSettings(codegen=False)).ekf
+    for name in ("update_fn", "predict_fn"):
+        assert key(getattr(base_ekf, name)) == key(getattr(other_params.ekf, name))
 
 
 def test_without_a_compiler_the_interpreter_runs_the_same_function(tmp_path, monkeypatch):
     monkeypatch.setenv(codegen.CACHE_ENV, str(tmp_path))
+    monkeypatch.setenv(codegen.SWITCH_ENV, "1")
     monkeypatch.setattr(codegen, "compiler", lambda: None)
     x = ca.SX.sym("x", 2)
     fn = ca.Function("hvac_test_square", [x], [x * x])
@@ -80,3 +103,22 @@ def test_cache_folder_follows_the_environment(tmp_path, monkeypatch):
     monkeypatch.delenv(codegen.CACHE_ENV)
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
     assert codegen.cache_dir() == tmp_path / "xdg" / "hvac-mpc"
+
+
+@pytest.mark.slow
+def test_a_change_of_structure_builds_anew_and_a_change_of_parameters_does_not(tmp_path, monkeypatch):
+    monkeypatch.setenv(codegen.CACHE_ENV, str(tmp_path))
+    monkeypatch.setenv(codegen.SWITCH_ENV, "1")
+
+    def outcome(params=None, effects=("fan_curve", "valve_leakage", "bypass_flow")):
+        ekf = DisturbanceEkf(HvacModel(params or Parameters(), effects))
+        report = codegen.CodegenReport()
+        codegen.compiled(ekf.update_fn, report)
+        return report.outcomes["ekf_update"]
+
+    assert outcome() == "built"
+    assert outcome() == "cached"
+    assert outcome(Parameters(tau_tc_s=7.5, heater_power_max_w=200.0)) == "cached"
+    assert outcome(effects=("fan_curve", "valve_leakage", "trapped_air")) == "built"  # one more state
+    assert outcome(Parameters(transport_delay_s=2.0)) == "built"  # delay lags are states
+    assert len(list(tmp_path.glob("ekf_update_*.so"))) == 3

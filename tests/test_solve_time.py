@@ -12,6 +12,7 @@ from hvac_mpc.benchmarks import solve_time
 from hvac_mpc.cli import main
 from hvac_mpc.models import Environment, SimulatedPlant
 from hvac_mpc.contract import Command
+from hvac_mpc.mpc import codegen
 from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
 
 
@@ -46,7 +47,9 @@ def test_rti_step_time_p99_under_100_ms_with_one_qp_per_step_between_reference_c
 
 
 @pytest.mark.slow
-def test_benchmark_runs_all_contenders_side_by_side_and_writes_json(tmp_path, capsys):
+def test_benchmark_runs_all_contenders_side_by_side_and_writes_json(tmp_path, capsys, monkeypatch):
+    # the RTI as it runs by default: generated C (built into the user's cache on the first run)
+    monkeypatch.setenv(codegen.SWITCH_ENV, "1")
     out = tmp_path / "solve_time.json"
     assert main(["solve-time", "--steps", "4", "--json", str(out)]) == 0
     data = json.loads(out.read_text())
@@ -66,7 +69,7 @@ def test_benchmark_runs_all_contenders_side_by_side_and_writes_json(tmp_path, ca
     for r in data["results"]:
         assert isinstance(r["settings"]["compiled"], bool)
     rti = data["results"][0]
-    assert rti["settings"]["qp_solver"] == "osqp" and rti["settings"]["compiled"] is True
+    assert rti["settings"]["qp_solver"] == "osqp" and rti["settings"]["compiled"] is True, rti["codegen"]
     assert data["results"][1]["settings"]["compiled"] is False  # IPOPT interpreted without --jit
     # per-step suboptimality against converged IPOPT from the same state, after the cold start
     so = rti["suboptimality"]
@@ -77,6 +80,10 @@ def test_benchmark_runs_all_contenders_side_by_side_and_writes_json(tmp_path, ca
     # fixing the first move can only cost (up to IPOPT's tolerance)
     assert so["decision"]["min_pct"] > -0.1
     assert data["results"][0]["median_ratio_vs_rti"] == pytest.approx(1.0)
+    figures = data["figures"]
+    assert set(figures["ratios"]) == set(names[1:])
+    assert figures["met"]["decision_median_pct"] == (so["decision"]["median_pct"] <= 1.0)
+    assert figures["rti"]["cpu_median_ms"] > 0 and rti["settings"]["estimator_compiled"] is True
     assert data["results"][0]["max_qp_solves"] <= MpcSettings().cold_start_qps
     table = capsys.readouterr().out
     assert "median ms" in table and "rti" in table and "ipopt" in table

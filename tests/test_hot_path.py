@@ -1,0 +1,96 @@
+"""The controller's hot path: the estimator's updates as one CasADi function each, the valve
+conversions of all three valves in one call, and a reset that starts from a clean solver.
+
+Budget: about 5 s on a loaded two-core machine (two short closed loops, interpreted).
+"""
+
+import numpy as np
+
+from hvac_mpc.benchmarks import solve_time
+from hvac_mpc.contract import Measurement
+from hvac_mpc.models import Environment, Parameters, SimulatedPlant
+from hvac_mpc.mpc.estimator import MEASURED
+from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
+from hvac_mpc.mpc.valve_map import VALVE_NAMES, ValveMap
+
+
+def _textbook_update(ekf, values, ok, u, setpoint):
+    """The Joseph-form update on the used readings only (numpy, no masking)."""
+    hz, Ht = ekf.h(ekf.z, u, setpoint, ekf.p)
+    H = Ht.T[ok]
+    R = np.diag(ekf.R_diag[ok])
+    S = H @ ekf.P @ H.T + R
+    K = np.linalg.solve(S, H @ ekf.P).T
+    z = ekf.z + K @ (values[ok] - hz[ok])
+    IKH = np.eye(ekf.nz) - K @ H
+    P = IKH @ ekf.P @ IKH.T + K @ R @ K.T
+    return z, 0.5 * (P + P.T)
+
+
+def test_estimator_update_with_missing_readings_equals_the_update_on_the_used_ones():
+    ctrl = MpcController(settings=MpcSettings(codegen=False))
+    ekf = ctrl.ekf
+    u = solve_time.INITIAL.vector()
+    first = Measurement(0.0, 18.0, 0.03, 26.0, water_temp_c=6.0, heater_outlet_temp_c=20.0)
+    ekf.initialise(first, u, 5.0)
+    ekf.predict(u, 5.0)
+    rng = np.random.default_rng(4)
+    ekf.P = ekf.P + 0.01 * np.diag(rng.uniform(size=ekf.nz))  # not diagonal-dominated by the start
+    for missing in ((), ("water_temp_c",), ("heater_outlet_temp_c", "volume_flow_m3s"), ("supply_temp_c",)):
+        readings = dict(supply_temp_c=18.4, volume_flow_m3s=0.031, hvac_inlet_temp_c=25.7, water_temp_c=6.3,
+                        heater_outlet_temp_c=19.0)
+        for name in missing:
+            readings[name] = float("nan")
+        m = Measurement(1.0, readings["supply_temp_c"], readings["volume_flow_m3s"], readings["hvac_inlet_temp_c"],
+                        water_temp_c=readings["water_temp_c"], heater_outlet_temp_c=readings["heater_outlet_temp_c"])
+        values, ok = ekf.readings(m)
+        assert {n for n, used in zip(MEASURED, ok) if not used} == set(missing)
+        z_ref, P_ref = _textbook_update(ekf, values, ok, u, 5.0)
+        z0, P0 = ekf.z.copy(), ekf.P.copy()
+        assert ekf.update(m, u, 5.0) == 5 - len(missing)
+        assert np.allclose(ekf.z, z_ref, rtol=1e-10, atol=1e-12)
+        assert np.allclose(ekf.P, P_ref, rtol=1e-9, atol=1e-14)
+        assert not np.allclose(ekf.z, z0)
+        ekf.z, ekf.P = z0, P0
+
+
+def test_three_valves_convert_in_one_call_as_each_does_alone():
+    vm = ValveMap(Parameters())
+    rng = np.random.default_rng(0)
+    v = np.vstack([rng.uniform(-0.1, 1.1, (500, 3)), [[0, 0, 0], [1, 1, 1], [0.5, 0.0, 1.0]]])
+    theta = np.vstack([rng.uniform(-5, 105, (500, 3)), [[0, 0, 0], [100, 100, 100], [50, 0, 100]]])
+    one_by_one = np.stack([vm.angle(n, v[:, i]) for i, n in enumerate(VALVE_NAMES)], axis=-1)
+    assert np.allclose(vm.angles(v), one_by_one, rtol=0.0, atol=1e-9)
+    one_by_one = np.stack([vm.opening(n, theta[:, i]) for i, n in enumerate(VALVE_NAMES)], axis=-1)
+    assert np.allclose(vm.openings(theta), one_by_one, rtol=0.0, atol=1e-12)
+
+
+def _run(ctrl, plant, start_k, steps):
+    out = []
+    for k in range(start_k, start_k + steps):
+        res = ctrl.step(plant.read(), solve_time.reference_at(float(k)))
+        plant.apply(res.command)
+        plant.advance()
+        out.append((res.command.vector(), res.stats["iterations"], res.stats["qp_solves"]))
+    return out
+
+
+def test_a_reset_controller_answers_exactly_as_a_new_one():
+    settings = MpcSettings(codegen=False)
+    used = MpcController(settings=settings)
+    plant = SimulatedPlant(seed=5, environment=Environment(solve_time.INLET_C, 5.0))
+    plant.settle(solve_time.INITIAL)
+    used.reset(plant.command)
+    _run(used, plant, 20, 15)  # warm: OSQP's workspace holds multipliers and a step size of this run
+    assert not used.solver.clean
+    fresh = MpcController(settings=settings)
+    runs = []
+    for ctrl in (used, fresh):
+        plant = SimulatedPlant(seed=6, environment=Environment(solve_time.INLET_C, 5.0))
+        plant.settle(solve_time.INITIAL)
+        ctrl.reset(plant.command)
+        assert ctrl.solver.clean
+        runs.append(_run(ctrl, plant, 0, 12))
+    for (cmd_a, it_a, qp_a), (cmd_b, it_b, qp_b) in zip(*runs):
+        assert np.array_equal(cmd_a, cmd_b)
+        assert (it_a, qp_a) == (it_b, qp_b)
