@@ -177,11 +177,16 @@ def test_reachable_flow_names_an_unreachable_total_flow():
     assert reach.check(x, u, d, 18.0, 60 * M3H, 100.0, 1.0).out_of_reach == {}
 
 
+@functools.lru_cache(maxsize=1)
+def _default_problem():
+    return MpcController(Parameters(), MpcSettings()).problem
+
+
 def _reach_setup(flow_offset_m3h: float = 0.0, outlets=(100.0, 24.0, 40.0)):
     """The MPC's model at rest at full blower (32 C inlet, water 5 C) with a flow offset, and a
     fresh ReachableFlow on it."""
     params = Parameters()
-    pb = MpcController(params, MpcSettings()).problem
+    pb = _default_problem()
     u = np.array([300.0, 0.0, 57.0, *outlets])
     d = np.array(pb.model.d_vector(32.0, 5.0), float).ravel()
     d[pb.model.disturbances.index("flow_offset_m3s")] = flow_offset_m3h * M3H
