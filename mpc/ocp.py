@@ -233,6 +233,37 @@ def trap_cap_pct(heater_temp_c: float, heater_in_c: float, heater_cmd_w: float, 
     return params.trap_threshold_pct - spec.trap_margin_pct if warm else 100.0
 
 
+class HeaterOffBound:
+    """Upper bound of the heater body temperature from what was commanded, for the trapped-air guard.
+
+    The estimator's heater temperature is not measured on every box: where the thermocouple reading
+    is all it has, it may move the heater body to explain a supply-temperature error (measured in the
+    cabin pull-down: 31.6 C estimated against 14.9 C true, the heater off since the start), and the
+    guard then holds valve a at its cap for nothing. A heater body without power can
+    only relax towards the air reaching it, with its time constant (thesis sec. 4.3-4.4,
+    :func:`hvac_mpc.models.heater.time_constant_s`), so while the heater is off the guard uses the
+    lesser of the estimate and that relaxation from the estimate at switch-off. While the heater is on
+    the estimate stands (docs/robustness.md sec. 1).
+    """
+
+    def __init__(self, params: Parameters, dt_s: float):
+        self.params = params
+        self.dt_s = float(dt_s)
+        self.reset()
+
+    def reset(self) -> None:
+        self.bound_c: float | None = None
+
+    def update(self, heater_est_c: float, heater_in_c: float, heater_cmd_w: float, mass_flow_kgs: float) -> float:
+        """The heater temperature the guard should use (degC), after one sample under ``heater_cmd_w``."""
+        if self.bound_c is None or heater_cmd_w > 1.0 or not math.isfinite(self.bound_c):
+            self.bound_c = float(heater_est_c)
+        else:
+            tau = float(heater.time_constant_s(max(float(mass_flow_kgs), 1e-3), self.params))
+            self.bound_c = heater_in_c + (self.bound_c - heater_in_c) * math.exp(-self.dt_s / tau)
+        return min(float(heater_est_c), self.bound_c)
+
+
 class TrackingProblem:
     """The scaled discrete OCP data shared by all solvers (built once per controller).
 

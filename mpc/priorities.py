@@ -13,6 +13,13 @@ stage of a two-stage (lexicographic) scheme (docs/robustness.md sec. 1):
 2. the MPC then tracks ``min(reference, reachable)`` (outlet flows scaled alike) and reports the
    shortfall in ``stats["out_of_reach"]``.
 
+Once a flow reference is found out of reach it stays so (latched on the flow reference alone, not on
+the temperature reference) until the flow is really delivered: the model's reachable flow moves with
+the estimator's offsets, which absorb whatever the box does differently (docs/robustness.md sec. 1),
+so a new temperature reference must not bring the same flow back into a trade against temperature.
+The box itself can say so too: the blower at full power for ``saturated_s`` with the flow still
+below the reference latches the reference even where the model thinks it reachable.
+
 The problem is only solved when the flow reference is high enough to be in doubt (above
 ``check_fraction`` of the blower's nominal open flow, and above 90 % of what full blower power with
 open outlets would give at the present valve a and heater) and then every ``every_s`` seconds,
@@ -47,8 +54,9 @@ class ReachableFlow:
 
     def __init__(self, model: HvacModel, u_lo: np.ndarray, u_hi: np.ndarray, heater_temp_max_c: float,
                  params: Parameters, every_s: float = 10.0, check_fraction: float = 0.6, margin: float = 0.02,
-                 temp_tolerance_c: float = 0.2, max_iter: int = 60):
+                 temp_tolerance_c: float = 0.2, max_iter: int = 60, saturated_s: float = 5.0):
         self.model = model
+        self.saturated_s = float(saturated_s)
         self.every_s = float(every_s)
         self.margin = float(margin)
         self.temp_tolerance_c = float(temp_tolerance_c)
@@ -85,7 +93,8 @@ class ReachableFlow:
         self._age_s = np.inf
         self._last = Reach(None, {})
         self._key: tuple | None = None
-        self._latched: tuple | None = None
+        self._latched: float | None = None  # the flow reference (m3/s) held out of reach
+        self._saturated_for_s = 0.0
 
     def check(self, x: np.ndarray, u: np.ndarray, d: np.ndarray, temp_ref_c: float, flow_ref_m3s: float,
               a_cap_pct: float, dt_s: float) -> Reach:
@@ -108,6 +117,7 @@ class ReachableFlow:
             return self._last
         key = (round(temp_ref_c, 6), round(flow_ref_m3s, 9))
         self._age_s += dt_s
+        self._note_saturation(u, flow_ref_m3s, flow_now, dt_s)
         if key == self._key and self._age_s < self.every_s:
             return self._limit(flow_ref_m3s, flow_now)
         self._key, self._age_s = key, 0.0
@@ -128,19 +138,29 @@ class ReachableFlow:
         self._temp_error = temp - temp_ref_c
         return self._limit(flow_ref_m3s, flow_now)
 
+    def _note_saturation(self, u: np.ndarray, flow_ref_m3s: float, flow_now_m3s: float, dt_s: float) -> None:
+        """Count how long the blower has been at full power with the flow short of the reference; past
+        ``saturated_s`` the box has shown the reference out of reach, whatever the model says."""
+        full = u[self.i_blower] >= self.u_hi[self.i_blower] - 1.0
+        short = flow_now_m3s < (1.0 - self.margin) * flow_ref_m3s
+        self._saturated_for_s = self._saturated_for_s + dt_s if (full and short) else 0.0
+        if self._saturated_for_s >= self.saturated_s:
+            self._latched = round(flow_ref_m3s, 9)
+
     def _limit(self, flow_ref_m3s: float, flow_now_m3s: float) -> Reach:
-        """Out of reach once the model says so, latched for this reference (the model's reachable flow
-        moves with the estimator's offsets; a reference must not flip back into a trade of temperature
-        for flow) until the flow is actually there. Shortfall: the reference less what is delivered
-        now or reachable, whichever is less."""
+        """Out of reach once the model or the box says so, latched for this flow reference whatever the
+        temperature reference does (the model's reachable flow moves with the estimator's offsets; a
+        reference must not flip back into a trade of temperature for flow) until the flow is actually
+        there. Shortfall: the reference less what is delivered now or reachable, whichever is less."""
         if self._w is None:
             return self._last
         reach: dict = {}
         track = None
-        if flow_now_m3s >= flow_ref_m3s:
+        flow_key = round(flow_ref_m3s, 9)
+        if flow_now_m3s >= flow_ref_m3s or (self._latched is not None and self._latched != flow_key):
             self._latched = None
-        if flow_ref_m3s > self._reachable or self._latched == self._key:
-            self._latched = self._key
+        if flow_ref_m3s > self._reachable or self._latched == flow_key:
+            self._latched = flow_key
             reach["volume_flow_m3s"] = float(max(0.0, flow_ref_m3s - min(self._reachable, flow_now_m3s)))
             track = float(min(self._reachable, flow_ref_m3s) * (1.0 - self.margin))
         if abs(self._temp_error) > self.temp_tolerance_c:
