@@ -14,6 +14,16 @@ controller's steady state has no error in the measured outputs (Pannocchia and R
 disturbance-model argument: as many integrating disturbances as tracked measured outputs;
 docs/architecture.md, 'One control step').
 
+Dead time (``EkfSettings.dead_time_max_s``): the thermocouple may see the mixed air later than
+the model says (a transport delay the parameters do not name). The filter keeps the last
+``dead_time_max_s`` samples of the model's undelayed thermocouple state as states of its own
+(a shift register: each is a copy of the one before), and compares the reading with the entry
+of the estimated dead time, which :class:`~.dead_time.DeadTimeEstimator` picks online from the
+same readings. The model states, and so the MPC's prediction, stay undelayed: the controller
+steers the response it will see a dead time later (a Smith predictor in state-space form), and
+the mixed-air offset integrates only what the delayed comparison leaves, not the delay itself.
+With an estimate of 0 the filter is the plain one. docs/robustness.md sec. 2.
+
 Chiller water (``water_prediction``): ``"hold"`` treats the water temperature as a random walk
 (the chiller's two-point switching is unknown to the model, thesis sec. 2.2); ``"setpoint"``
 lets it ramp towards the chiller set point as in the model (thesis sec. 4.2).
@@ -30,8 +40,11 @@ from hvac_mpc.models.box import HvacModel, rk4
 from hvac_mpc.contract import Measurement
 
 from .casadi_eval import BufferedFunction
+from .dead_time import DeadTimeEstimator
 from .ocp import InvalidSettings, check_number
 
+#: Process noise of the history entries (degC per sample): exact copies, a floor for the numerics.
+HIST_Q_C = 1e-4
 #: Measurement names in the order of the filter's measurement vector.
 MEASURED = ("supply_temp_c", "volume_flow_m3s", "water_temp_c", "hvac_inlet_temp_c", "heater_outlet_temp_c")
 
@@ -42,6 +55,11 @@ class EkfSettings:
     the simulated plant; measurement noise matches the plant's sensor-noise parameters.
 
     ``use_heater_outlet`` uses the heater outlet thermocouple when the measurement carries it.
+    ``dead_time_max_s``: longest dead time of the thermocouple beyond the model's that the filter
+    estimates and honours (s, whole samples; 0 turns the dead-time handling off);
+    ``dead_time_window_s``: the estimate's window (forgetting time, s); ``dead_time_excitation_c``:
+    the least spread (1 sigma, degC) of the predicted reading over the window for the estimate
+    to move (module docstring; ASSUMPTIONS tuned on the independent simulator's variants).
     """
 
     q_motor_c: float = 0.01
@@ -58,6 +76,9 @@ class EkfSettings:
     r_inlet_c: float = 0.05
     r_heater_outlet_c: float = 0.2
     use_heater_outlet: bool = True
+    dead_time_max_s: float = 6.0
+    dead_time_window_s: float = 60.0
+    dead_time_excitation_c: float = 0.2
 
     def validate(self, prefix: str = "ekf") -> None:
         for f in fields(self):
@@ -66,7 +87,11 @@ class EkfSettings:
                 if not isinstance(value, bool):
                     raise InvalidSettings(f"{prefix}.use_heater_outlet must be True or False")
                 continue
-            check_number(f"{prefix}.{f.name}", value, 0.0, 100.0, lo_open=True)
+            if f.name == "dead_time_max_s":
+                check_number(f"{prefix}.{f.name}", value, 0.0, 30.0)
+                continue
+            check_number(f"{prefix}.{f.name}", value, 0.0, 100.0 if f.name != "dead_time_window_s" else 3600.0,
+                         lo_open=True)
 
 
 class DisturbanceEkf:
@@ -79,7 +104,9 @@ class DisturbanceEkf:
         self.dt_s = float(dt_s)
         self.hold_water = water_prediction == "hold"
         self.nx = len(model.states)
-        self.nz = self.nx + 3
+        self.nc = self.nx + 3  # model states and disturbance states
+        self.n_hist = int(round(s.dead_time_max_s / self.dt_s))
+        self.nz = self.nc + self.n_hist  # ... and the history of the undelayed thermocouple state
         names = model.states.names
         self.i_water = names.index("water_temp_c")
         self.i_sensor = names.index("supply_sensor_c")
@@ -87,7 +114,10 @@ class DisturbanceEkf:
                    "supply_sensor_c": s.q_sensor_c, "trap_air_temp_c": s.q_trap_c}
         q_state.update({n: s.q_sensor_c for n in model.delay_states})
         q = [q_state[n] for n in names] + [s.q_mix_offset_c, s.q_flow_offset_m3s, s.q_inlet_c]
+        q += [HIST_Q_C] * self.n_hist
         self.Q = np.diag(np.square(q))
+        self.dead_time = DeadTimeEstimator(self.n_hist, model.params.tau_tc_s, self.dt_s, s.dead_time_window_s,
+                                           s.dead_time_excitation_c)
         self.R_diag = np.square([s.r_supply_c, s.r_flow_m3s, s.r_water_c, s.r_inlet_c, s.r_heater_outlet_c])
         self.use = np.array([True, True, True, True, s.use_heater_outlet])
         self._build()
@@ -101,7 +131,7 @@ class DisturbanceEkf:
 
     def _build(self) -> None:
         m, nx = self.model, self.nx
-        z = ca.SX.sym("z", self.nz)
+        z = ca.SX.sym("z", self.nc)
         u = ca.SX.sym("u", len(m.inputs))
         sp = ca.SX.sym("setpoint")
         p = ca.DM(m.p_default)
@@ -114,6 +144,9 @@ class DisturbanceEkf:
                           y[m.outputs.index("heater_outlet_temp_c")])
         self.f = BufferedFunction(ca.Function("ekf_f", [z, u, sp], [zn, ca.jacobian(zn, z)]))
         self.h = BufferedFunction(ca.Function("ekf_h", [z, u, sp], [meas, ca.jacobian(meas, z)]))
+        # the model's mixed air without the offset state, for the dead-time estimate
+        air = y[m.outputs.index("supply_air_temp_c")] - z[nx]
+        self.air = BufferedFunction(ca.Function("ekf_air", [z, u, sp], [air]))
 
     # ------------------------------------------------------------------ interface
     @property
@@ -123,6 +156,12 @@ class DisturbanceEkf:
     def reset(self) -> None:
         self.z = None
         self.P = None
+        self.dead_time.reset()
+
+    @property
+    def dead_time_s(self) -> float:
+        """The dead time of the thermocouple beyond the model's that the filter honours now (s)."""
+        return self.dead_time.seconds
 
     def initialise(self, measurement: Measurement, u: np.ndarray, setpoint_c: float) -> None:
         """Start at the model's rest state for the current command, matched to the first readings."""
@@ -146,18 +185,26 @@ class DisturbanceEkf:
         x[self.i_sensor] = supply
         for n in m.delay_states:
             x[m.states.index(n)] = supply
-        self.z = np.concatenate([x, [mix, flow - y["volume_flow_m3s"], inlet]])
+        self.z = np.concatenate([x, [mix, flow - y["volume_flow_m3s"], inlet], np.full(self.n_hist, supply)])
         p0 = {"motor_rise_c": 0.5, "water_temp_c": 0.2, "heater_temp_c": 5.0, "supply_sensor_c": 0.1,
               "trap_air_temp_c": 5.0}
         p0.update({n: 0.1 for n in m.delay_states})
-        sd = [p0[n] for n in m.states.names] + [0.5, 2e-3, 0.1]
+        sd = [p0[n] for n in m.states.names] + [0.5, 2e-3, 0.1] + [0.1] * self.n_hist
         self.P = np.diag(np.square(sd))
+        self.dead_time.reset()
 
     def predict(self, u: np.ndarray, setpoint_c: float) -> None:
         """Time update over one sample with the command that was applied."""
-        zn, Ft = self.f(self.z, u, setpoint_c)
-        F = Ft.T  # buffers are column-major
-        self.z = zn
+        nc, z = self.nc, self.z
+        zn, Ft = self.f(z[:nc], u, setpoint_c)
+        F = np.zeros((self.nz, self.nz))
+        F[:nc, :nc] = Ft.T  # buffers are column-major
+        if self.n_hist:
+            # shift register: the newest entry is the thermocouple state now, the others move on
+            F[nc, self.i_sensor] = 1.0
+            F[nc + 1:, nc:-1] = np.eye(self.n_hist - 1)
+            self.dead_time.push_air(float(np.ravel(self.air(z[:nc], u, setpoint_c)[0])[0]))
+        self.z = np.concatenate([zn, [z[self.i_sensor]], z[nc:-1]]) if self.n_hist else zn
         self.P = F @ self.P @ F.T + self.Q
 
     def update(self, measurement: Measurement, u: np.ndarray, setpoint_c: float) -> int:
@@ -166,9 +213,23 @@ class DisturbanceEkf:
         ok = np.isfinite(values) & self.use
         if not ok.any():
             return 0
-        hz, Ht = self.h(self.z, u, setpoint_c)
+        nc = self.nc
+        hz, Ht = self.h(self.z[:nc], u, setpoint_c)
+        H = np.zeros((len(MEASURED), self.nz))
+        H[:, :nc] = Ht.T
+        if self.n_hist and ok[0]:
+            # the reading is the undelayed thermocouple state of the estimated dead time ago
+            lag = self.dead_time.observe(values[0])
+            if lag > 0:
+                # entry j of the register (0 = now) between the two samples around the dead time
+                j0 = int(np.floor(lag))
+                w1 = lag - j0
+                H[0] = 0.0
+                for j, w in ((j0, 1.0 - w1), (min(j0 + 1, self.n_hist), w1)):
+                    H[0, self.i_sensor if j == 0 else nc + j - 1] += w
+                hz[0] = H[0] @ self.z
         hz = hz[ok]
-        H = Ht.T[ok]
+        H = H[ok]
         innov = values[ok] - hz
         S = H @ self.P @ H.T + np.diag(self.R_diag[ok])
         K = np.linalg.solve(S, H @ self.P).T
