@@ -2,17 +2,20 @@
 
 A bank of candidate delays D = 0, 1/2, 1, ..., ``max_steps`` samples. Each candidate passes the
 model's mixed-air temperature (the estimator's model, without its offset state), delayed by D
-samples (linear interpolation between samples), through the thermocouple's first-order lag (tau from the parameters), and is ranked by
-how well it explains the thermocouple reading over a sliding window (exponential forgetting):
-the residual of the least-squares fit ``reading ~ gain * candidate + offset``. The fitted gain
-and offset keep a gain error of the model (a cooler fit, a duct loss) and a slow offset from
-deciding the delay: only the timing of the response does. docs/robustness.md sec. 2.
+samples (linear interpolation between samples), through the thermocouple's first-order lag (tau
+from the parameters), and is ranked by how well its change from sample to sample explains the
+change of the thermocouple reading over a sliding window (exponential forgetting): the residual
+of the least-squares fit ``d reading ~ gain * d candidate``. Changes, not levels, so that an
+offset and a slow drift (a cabin warming the inlet air) decide nothing, and a fitted gain so that
+a gain error of the model (a cooler fit, a duct loss) does not either: only the timing of a
+response does. docs/robustness.md sec. 2.1.
 
-The estimate moves only when the window holds a response (the candidates' variance over the
-window above ``min_excitation_c`` squared) and another candidate explains the reading clearly
-better than the current one (residual below ``switch_ratio`` times the current one's); while
-nothing moves it stays where it is. Of candidates that explain the reading about equally
-(within ``TIE_RATIO``) the shortest is taken. Pure numpy, no model code: the estimator feeds it.
+The estimate moves only when the window holds a response (the root mean square of the candidates'
+changes over the window above ``min_excitation_c`` per sample) and another candidate explains the
+reading clearly better than the current one (residual below ``switch_ratio`` times the current
+one's); while nothing moves it stays where it is. Of candidates that explain the reading about
+equally (within ``TIE_RATIO``) the shortest is taken. Pure numpy, no model code: the estimator
+feeds it.
 """
 
 from __future__ import annotations
@@ -39,7 +42,7 @@ class DeadTimeEstimator:
     SUBDIVISION = 2
 
     def __init__(self, max_steps: int, sensor_tau_s: float, dt_s: float = 1.0, window_s: float = 60.0,
-                 min_excitation_c: float = 0.2, switch_ratio: float = 0.7):
+                 min_excitation_c: float = 0.05, switch_ratio: float = 0.7):
         self.max_steps = int(max_steps)
         self.dt_s = float(dt_s)
         self.lag = math.exp(-self.dt_s / float(sensor_tau_s))  # exact first-order lag over one sample
@@ -57,10 +60,10 @@ class DeadTimeEstimator:
         self._best = 0
         self._air = None  # model air, newest first (max_steps + 1 samples)
         self._pred = np.zeros(n)  # each candidate's predicted reading for the next sample
+        self._last_pred = None  # ... and for the sample before
+        self._last_reading = None
         self._w = 0.0
-        self._sy = 0.0
         self._syy = 0.0
-        self._ss = np.zeros(n)
         self._sss = np.zeros(n)
         self._ssy = np.zeros(n)
         self.residuals = np.full(n, np.nan)
@@ -80,7 +83,9 @@ class DeadTimeEstimator:
         if self._air is None:
             self._air = np.full(self.max_steps + 1, air_c)
             self._pred[:] = air_c
+            self._last_pred = self._pred.copy()
         else:
+            self._last_pred = self._pred.copy()
             self._air = np.roll(self._air, 1)
             self._air[0] = air_c
         delayed = (1.0 - self._w1) * self._air[self._i0] + self._w1 * self._air[self._i1]
@@ -90,22 +95,21 @@ class DeadTimeEstimator:
         """Score every candidate on a thermocouple reading; returns the estimate (samples)."""
         if self._air is None or not math.isfinite(reading_c):
             return self.steps
-        f, s, y = self.forget, self._pred, float(reading_c)
+        y, last = float(reading_c), self._last_reading
+        self._last_reading = y
+        if last is None:
+            return self.steps
+        f, ds, dy = self.forget, self._pred - self._last_pred, y - last
         self._w = f * self._w + 1.0
-        self._sy = f * self._sy + y
-        self._syy = f * self._syy + y * y
-        self._ss = f * self._ss + s
-        self._sss = f * self._sss + s * s
-        self._ssy = f * self._ssy + s * y
-        w = self._w
-        var_s = self._sss - self._ss ** 2 / w
-        cov = self._ssy - self._ss * self._sy / w
-        var_y = self._syy - self._sy ** 2 / w
-        if np.min(var_s) / w < self.min_var:
+        self._syy = f * self._syy + dy * dy
+        self._sss = f * self._sss + ds * ds
+        self._ssy = f * self._ssy + ds * dy
+        w, sss, ssy = self._w, self._sss, self._ssy
+        if np.min(sss) / w < self.min_var:
             self.residuals[:] = np.nan
             return self.steps
         # least-squares gain per candidate; a response of the wrong sign explains nothing
-        res = np.where(cov > 0.0, var_y - cov ** 2 / var_s, var_y)
+        res = np.where(ssy > 0.0, self._syy - ssy ** 2 / sss, self._syy)
         self.residuals = res / w
         # the shortest candidate within TIE_RATIO of the best: a loop that rang on a wrong dead time
         # leaves data that longer candidates explain about as well

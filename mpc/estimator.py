@@ -59,8 +59,8 @@ class EkfSettings:
     ``dead_time_max_s``: longest dead time of the thermocouple beyond the model's that the filter
     estimates and honours (s, whole samples; 0 turns the dead-time handling off);
     ``dead_time_window_s``: the estimate's window (forgetting time, s); ``dead_time_excitation_c``:
-    the least spread (1 sigma, degC) of the predicted reading over the window for the estimate
-    to move; ``dead_time_min_s``: the shortest estimate the measurement model honours (below it
+    the least root mean square change per sample of the predicted reading over the window for the
+    estimate to move (degC); ``dead_time_min_s``: the shortest estimate the measurement model honours (below it
     the thermocouple state's process noise absorbs the delay, as in the plain filter: honouring
     1 s made the 1 s delay's proband sequence worse, 0.91 -> 1.00 of the baseline's IAE). Module
     docstring; ASSUMPTIONS tuned on the independent simulator's variants.
@@ -82,7 +82,7 @@ class EkfSettings:
     use_heater_outlet: bool = True
     dead_time_max_s: float = 6.0
     dead_time_window_s: float = 60.0
-    dead_time_excitation_c: float = 0.2
+    dead_time_excitation_c: float = 0.05
     dead_time_min_s: float = 1.5
 
     def validate(self, prefix: str = "ekf") -> None:
