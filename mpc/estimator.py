@@ -149,8 +149,9 @@ class DisturbanceEkf:
                           y[m.outputs.index("heater_outlet_temp_c")])
         self.f = BufferedFunction(ca.Function("ekf_f", [z, u, sp], [zn, ca.jacobian(zn, z)]))
         self.h = BufferedFunction(ca.Function("ekf_h", [z, u, sp], [meas, ca.jacobian(meas, z)]))
-        # the model's mixed air without the offset state, for the dead-time estimate
-        air = y[m.outputs.index("supply_air_temp_c")] - z[nx]
+        # the model's air at the thermocouple (after the model's own transport delay, if its parameters
+        # set one) without the offset state, for the dead time beyond the model's
+        air = y[m.outputs.index("duct_air_temp_c")] - z[nx]
         self.air = BufferedFunction(ca.Function("ekf_air", [z, u, sp], [air]))
 
     # ------------------------------------------------------------------ interface
