@@ -25,7 +25,8 @@ Stats of a step: ``step_time_s`` (the whole step), ``feedback_time_s`` (measurem
 ``qp_solves``, ``cold_start``, ``status``, ``fallback``, ``mode`` ("heating" while the heater is commanded,
 else "cooling"), ``solver``, ``valve_a_cap_pct``, ``mix_offset_c``, ``flow_offset_m3s``, ``out_of_reach``
 (reference name -> shortfall in its unit, e.g. ``{"volume_flow_m3s": 0.004}``; empty when every
-reference is within reach, :mod:`hvac_mpc.mpc.priorities`).
+reference is within reach, :mod:`hvac_mpc.mpc.priorities`), ``dead_time_s`` (the thermocouple's
+dead time beyond the model's that the estimator has found and honours, :mod:`hvac_mpc.mpc.estimator`).
 """
 
 from __future__ import annotations
@@ -482,6 +483,7 @@ class MpcController:
         if healthy if healthy is not None else self.ekf.healthy():
             stats["mix_offset_c"] = self.ekf.mix_offset_c
             stats["flow_offset_m3s"] = self.ekf.flow_offset_m3s
+            stats["dead_time_s"] = self.ekf.dead_time_s
         return stats
 
 

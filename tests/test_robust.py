@@ -274,8 +274,9 @@ def test_mpc_told_of_a_3_s_delay_holds_a_cooling_step_on_the_delayed_box():
                                      plant_factory=plant)
     iae_told = r["mpc"]["figures"]["temp_iae_cs"]
     iae_unaware = unaware["scenarios"][sc.name]["mpc"]["figures"]["temp_iae_cs"]
-    # told of the delay, the MPC stops chasing it (the unaware one overshoots and rings) ...
-    assert iae_told <= 0.6 * iae_unaware
+    # told of the delay, the MPC does as well as when its estimator finds the dead time itself (the
+    # estimate then is the dead time beyond the model's, none here, so the two are not added up) ...
+    assert abs(iae_told - iae_unaware) <= 0.15 * iae_unaware
     # ... and comes within 10 % of the baseline's IAE (1.07 measured: the baseline's valves jump, the
     # MPC's move at most 20 %/s; README, Robustness)
     assert r["ratios"]["temp_iae_cs"] <= 1.1

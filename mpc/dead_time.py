@@ -1,0 +1,120 @@
+"""Online estimate of a dead time between the model's mixed air and the supply thermocouple.
+
+A bank of candidate delays D = 0, 1/2, 1, ..., ``max_steps`` samples. Each candidate passes the
+model's mixed-air temperature (the estimator's model, without its offset state), delayed by D
+samples (linear interpolation between samples), through the thermocouple's first-order lag (tau
+from the parameters), and is ranked by how well its change from sample to sample explains the
+change of the thermocouple reading over a sliding window (exponential forgetting): the residual
+of the least-squares fit ``d reading ~ gain * d candidate``. Changes, not levels, so that an
+offset and a slow drift (a cabin warming the inlet air) decide nothing, and a fitted gain so that
+a gain error of the model (a cooler fit, a duct loss) does not either: only the timing of a
+response does. docs/robustness.md sec. 2.1.
+
+The estimate moves only when the window holds a response (the root mean square of the candidates'
+changes over the window above ``min_excitation_c`` per sample) and another candidate explains the
+reading clearly better than the current one (residual below ``switch_ratio`` times the current
+one's); while nothing moves it stays where it is. Of candidates that explain the reading about
+equally (within ``TIE_RATIO``) the shortest is taken. Pure numpy, no model code: the estimator
+feeds it.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+#: Candidates whose residual is within this factor of the least count as explaining the reading
+#: equally; the shortest of them is taken.
+TIE_RATIO = 1.1
+
+
+class DeadTimeEstimator:
+    """Rank candidate dead times 0..``max_steps`` samples (in half samples) by the thermocouple
+    prediction error.
+
+    Per sample: :meth:`push_air` with the model's mixed air over the coming sample (degC), then,
+    one sample later, :meth:`observe` with the thermocouple reading (degC). ``steps`` is the
+    current estimate in samples (a multiple of 1/2), ``seconds`` in s.
+    """
+
+    #: Candidates per sample.
+    SUBDIVISION = 2
+
+    def __init__(self, max_steps: int, sensor_tau_s: float, dt_s: float = 1.0, window_s: float = 60.0,
+                 min_excitation_c: float = 0.05, switch_ratio: float = 0.7):
+        self.max_steps = int(max_steps)
+        self.dt_s = float(dt_s)
+        self.lag = math.exp(-self.dt_s / float(sensor_tau_s))  # exact first-order lag over one sample
+        self.forget = math.exp(-self.dt_s / float(window_s))
+        self.min_var = float(min_excitation_c) ** 2
+        self.switch_ratio = float(switch_ratio)
+        self.reset()
+
+    def reset(self) -> None:
+        n = self.SUBDIVISION * self.max_steps + 1
+        self.candidates = np.arange(n) / self.SUBDIVISION  # samples
+        self._i0 = np.floor(self.candidates).astype(int)
+        self._w1 = self.candidates - self._i0
+        self._i1 = np.minimum(self._i0 + 1, self.max_steps)
+        self._best = 0
+        self._air = None  # model air, newest first (max_steps + 1 samples)
+        self._pred = np.zeros(n)  # each candidate's predicted reading for the next sample
+        self._last_pred = None  # ... and for the sample before
+        self._last_reading = None
+        self._w = 0.0
+        self._syy = 0.0
+        self._sss = np.zeros(n)
+        self._ssy = np.zeros(n)
+        self.residuals = np.full(n, np.nan)
+
+    @property
+    def steps(self) -> float:
+        return float(self.candidates[self._best])
+
+    @property
+    def seconds(self) -> float:
+        return self.steps * self.dt_s
+
+    def push_air(self, air_c: float) -> None:
+        """The model's mixed-air temperature held over the coming sample (degC)."""
+        if not math.isfinite(air_c):
+            return
+        if self._air is None:
+            self._air = np.full(self.max_steps + 1, air_c)
+            self._pred[:] = air_c
+            self._last_pred = self._pred.copy()
+        else:
+            self._last_pred = self._pred.copy()
+            self._air = np.roll(self._air, 1)
+            self._air[0] = air_c
+        delayed = (1.0 - self._w1) * self._air[self._i0] + self._w1 * self._air[self._i1]
+        self._pred = self.lag * self._pred + (1.0 - self.lag) * delayed
+
+    def observe(self, reading_c: float) -> float:
+        """Score every candidate on a thermocouple reading; returns the estimate (samples)."""
+        if self._air is None or not math.isfinite(reading_c):
+            return self.steps
+        y, last = float(reading_c), self._last_reading
+        self._last_reading = y
+        if last is None:
+            return self.steps
+        f, ds, dy = self.forget, self._pred - self._last_pred, y - last
+        self._w = f * self._w + 1.0
+        self._syy = f * self._syy + dy * dy
+        self._sss = f * self._sss + ds * ds
+        self._ssy = f * self._ssy + ds * dy
+        w, sss, ssy = self._w, self._sss, self._ssy
+        if np.min(sss) / w < self.min_var:
+            self.residuals[:] = np.nan
+            return self.steps
+        # least-squares gain per candidate; a response of the wrong sign explains nothing
+        res = np.where(ssy > 0.0, self._syy - ssy ** 2 / sss, self._syy)
+        self.residuals = res / w
+        # the shortest candidate within TIE_RATIO of the best: a loop that rang on a wrong dead time
+        # leaves data that longer candidates explain about as well
+        best = int(np.flatnonzero(res <= TIE_RATIO * res.min())[0])
+        cur = self._best
+        if res[best] < self.switch_ratio * res[cur] or (best < cur and res[best] <= res[cur]):
+            self._best = best
+        return self.steps
