@@ -36,6 +36,8 @@ import numpy as np
 from hvac_mpc.models.box import HvacModel
 from hvac_mpc.models.parameters import Parameters
 
+from .casadi_eval import BufferedFunction
+
 #: Temperature error weight of the steady-state problem, per degC^2, against flow in units of FLOW_UNIT_M3S.
 TEMP_WEIGHT_PER_C2 = 1e3
 FLOW_UNIT_M3S = 0.01
@@ -80,7 +82,7 @@ class ReachableFlow:
         opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.max_iter": int(max_iter), "ipopt.tol": 1e-6,
                 "ipopt.sb": "yes"}
         self.solver = ca.nlpsol("reachable_flow", "ipopt", nlp, opts)
-        self.out = ca.Function("reach_out", [x, u, d], [flow, temp])
+        self.out = BufferedFunction(ca.Function("reach_out", [x, u, d], [flow, temp]))  # numpy in and out
         self.lbx = np.concatenate([np.full(nx, -np.inf), u_lo])
         self.ubx = np.concatenate([np.full(nx, np.inf), u_hi])
         self.lbg = np.concatenate([np.zeros(nx), [-np.inf, -np.inf]])
@@ -106,13 +108,13 @@ class ReachableFlow:
         if flow_ref_m3s < self.check_flow_m3s:
             self.reset()
             return self._last
-        flow_now = float(self.out(x, u, d)[0])
+        flow_now = float(self.out(x, u, d)[0][0])
         # plainly within reach: the blower at full power with the outlets open gives the reference
         # with headroom without moving valve a or the heater (so without touching the temperature)
         u_full = np.array(u, float)
         u_full[self.i_blower] = self.u_hi[self.i_blower]
         u_full[self.i_outlets] = self.u_hi[self.i_outlets]
-        if flow_ref_m3s <= self.headroom * float(self.out(x, u_full, d)[0]):
+        if flow_ref_m3s <= self.headroom * float(self.out(x, u_full, d)[0][0]):
             self.reset()
             return self._last
         key = (round(temp_ref_c, 6), round(flow_ref_m3s, 9))
@@ -126,7 +128,7 @@ class ReachableFlow:
             sol = self.solver(x0=w0, p=np.concatenate([d, [temp_ref_c, a_cap_pct]]), lbx=self.lbx, ubx=self.ubx,
                               lbg=self.lbg, ubg=self.ubg)
             w = np.asarray(sol["x"]).ravel()
-            flow, temp = (float(v) for v in self.out(w[:self.nx], w[self.nx:], d))
+            flow, temp = (float(v[0]) for v in self.out(w[:self.nx], w[self.nx:], d))
         except Exception:  # noqa: BLE001 - no answer: track the reference as it is
             self._last = Reach(None, {})
             return self._last
