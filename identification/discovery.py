@@ -36,6 +36,9 @@ MIN_STEP_GAIN = 0.05
 CANDIDATES = ("mix", "inlet", "inv_mass_flow", "mix_over_mass_flow", "inlet_minus_mix_over_mass_flow", "core_share",
               "core_share_x_blower_out", "core_share_x_water", "mass_flow", "mix_x_mass_flow",
               "heater_power_over_mass_flow")
+#: Features offered only when the log carries the cabin temperature (without it they are a combination of
+#: ``inv_mass_flow`` and ``mix_over_mass_flow`` at the assumed ``Parameters.cabin_temp_c``).
+CABIN_CANDIDATES = ("cabin_minus_mix_over_mass_flow",)
 #: Most features in one term.
 MAX_FEATURES = 4
 #: Prefixes of the LARS path scored on the held-out rows (a term holds at most this many features).
@@ -58,7 +61,8 @@ def features(fitter: Fitter, fit: Fit) -> dict[str, np.ndarray]:
     water = log.water_temp_c if log.water_temp_c is not None else fit.states[:, sim.model.states.index("water_temp_c")]
     q = {"t_mix": internals["mix_temp_c"], "t_in": log.inlet_temp_c, "t_blower": internals["blower_out_temp_c"],
          "t_water": water, "mass_flow": internals["mass_flow_kgs"], "core_share": 1.0 - internals["bypass_fraction"],
-         "p_el": internals["heater_electric_w"]}
+         "p_el": internals["heater_electric_w"],
+         "t_cabin": log.cabin_temp_c if log.cabin_temp_c is not None else fit.p[fitter.names.index("cabin_temp_c")]}
     return {name: np.asarray(spec[2](q), float) * np.ones(log.n) for name, spec in FEATURES.items()}
 
 
@@ -86,7 +90,7 @@ def select(fitter: Fitter, fit: Fit, dy_free: np.ndarray | None = None) -> tuple
     j = fitter.outputs.index("supply_temp_c")
     resid = fitter.y_meas[:, j] - fit.y[:, j]
     view = sensor_view(fitter, fit, features(fitter, fit))
-    names = [k for k in view if k in CANDIDATES]
+    names = [k for k in view if k in CANDIDATES or (k in CABIN_CANDIDATES and fitter.log.cabin_temp_c is not None)]
     x_all = np.column_stack([view[k] for k in names])
     base = np.column_stack([view["one"]] + ([dy_free] if dy_free is not None and dy_free.size else []))
     ok = np.isfinite(resid) & np.all(np.isfinite(x_all), axis=1) & np.all(np.isfinite(base), axis=1)
@@ -133,6 +137,10 @@ def describe_term(chosen: list[str], coef: np.ndarray) -> str:
         t_env = c["inv_mass_flow"] / -c["mix_over_mass_flow"]
         text += (f"; it has the form of a heat loss from the duct to surroundings at about {t_env:.1f} C with a "
                  f"conductance UA of about {ua:.2f} W/K (dT = UA/(m_dot c_p) (T_env - T_mix))")
+    if c.get("cabin_minus_mix_over_mass_flow", 0.0) > 0:
+        ua = c["cabin_minus_mix_over_mass_flow"] * 1007.0
+        text += (f"; it has the form of heat exchange between the duct and the cabin with a conductance UA of "
+                 f"about {ua:.2f} W/K (dT = UA/(m_dot c_p) (T_cabin - T_mix), T_cabin the logged cabin temperature)")
     if set(chosen) & {"core_share", "core_share_x_blower_out", "core_share_x_water"}:
         text += "; it acts on the air through the cooler core (an error of the core outlet temperature)"
     return text

@@ -40,7 +40,7 @@ class LogDataError(ValueError):
 @dataclass
 class LogData:
     """Arrays of one log. ``u`` and ``u_prev`` are (n, 6) in model input order; ``inlet_temp_c``,
-    ``chiller_setpoint_c`` (n,); ``water_temp_c`` (n,) smoothed or ``None`` when not logged;
+    ``chiller_setpoint_c`` (n,); ``water_temp_c`` and ``cabin_temp_c`` (n,) smoothed or ``None`` when not logged;
     ``outputs`` maps logged model outputs to (n,) arrays (NaN where missing); ``signals`` holds
     every numeric column; ``train`` and ``holdout`` are boolean masks."""
 
@@ -59,6 +59,7 @@ class LogData:
     source: str = ""
     bad_rows: dict = field(default_factory=dict)
     timing_shift_samples: int = 0
+    cabin_temp_c: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -147,6 +148,12 @@ def prepare(columns: Mapping[str, np.ndarray], holdout_fraction: float = 1 / 3, 
                      f"{WATER_SMOOTHING_S:g} s) in place of the modelled chiller")
     else:
         notes.append("water_temp_c not logged: the model's chiller ramp towards the set point is used")
+    cabin = None
+    if "cabin_temp_c" in columns and np.mean(np.isfinite(np.asarray(columns["cabin_temp_c"], float))) >= 0.9:
+        width = max(1, int(round(WATER_SMOOTHING_S / dt)))
+        cabin = _moving_average(_interp_nans(np.asarray(columns["cabin_temp_c"], float)), width)
+        notes.append("cabin_temp_c logged: offered to term discovery (smoothed over "
+                     f"{WATER_SMOOTHING_S:g} s)")
     outputs = {}
     for name in MODEL_OUTPUTS:
         if name in columns:
@@ -168,7 +175,8 @@ def prepare(columns: Mapping[str, np.ndarray], holdout_fraction: float = 1 / 3, 
     idx = np.arange(n)
     train = (idx >= burn) & (idx < n_train_end)
     holdout = idx >= n_train_end
-    return LogData(t, dt, u, u_prev, inlet, sp, water, outputs, signals, train, holdout, notes, source, bad_rows)
+    return LogData(t, dt, u, u_prev, inlet, sp, water, outputs, signals, train, holdout, notes, source, bad_rows,
+                   cabin_temp_c=cabin)
 
 
 def load(path: str | Path, mapping: Mapping[str, str] | None = None, holdout_fraction: float = 1 / 3) -> LogData:

@@ -184,7 +184,7 @@ class HvacModel:
         if self.terms:
             t_supply = t_supply + terms_at(self.terms, "supply_air", dict(
                 t_mix=t_mix, t_in=t_in, t_blower=t_blower, t_water=sx["water_temp_c"], mass_flow=mass_flow,
-                core_share=1.0 - b, p_el=p_el))
+                core_share=1.0 - b, p_el=p_el, t_cabin=prm.cabin_temp_c))
         t_duct = sx[self.delay_states[-1]] if self.delay_states else t_supply
         outlet = valves.split_flows(flow, g)
         return dict(prm=prm, sx=sx, su=su, sd=sd, flow=flow, mass_flow=mass_flow, bypass=b,

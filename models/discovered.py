@@ -24,7 +24,8 @@ def _f(description: str, unit: str, fn: Callable[[Mapping[str, Any]], Any]) -> t
 
 #: Feature vocabulary: name -> (words, unit, function of the quantities ``q``). ``q`` keys:
 #: t_mix (C), t_in (C, inlet), t_blower (C, after the motor), t_water (C), mass_flow (kg/s),
-#: core_share (1 - bypass fraction), p_el (W, heater electric power).
+#: core_share (1 - bypass fraction), p_el (W, heater electric power), t_cabin (C, cabin air: the logged
+#: cabin temperature in identification, ``Parameters.cabin_temp_c`` in the model).
 FEATURES: dict[str, tuple[str, str, Callable]] = {
     "one": _f("a constant", "1", lambda q: 1.0 + 0.0 * q["t_mix"]),
     "inv_mass_flow": _f("one over the mass flow", "s/kg", lambda q: 1.0 / q["mass_flow"]),
@@ -44,6 +45,8 @@ FEATURES: dict[str, tuple[str, str, Callable]] = {
                           lambda q: q["t_mix"] * q["mass_flow"]),
     "heater_power_over_mass_flow": _f("heater electric power over the mass flow", "W s/kg",
                                       lambda q: q["p_el"] / q["mass_flow"]),
+    "cabin_minus_mix_over_mass_flow": _f("cabin minus mixed air temperature over the mass flow", "C s/kg",
+                                         lambda q: (q["t_cabin"] - q["t_mix"]) / q["mass_flow"]),
 }
 
 

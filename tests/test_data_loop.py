@@ -86,6 +86,42 @@ def test_discovered_term_enters_the_supply_air_balance():
     assert y1[plain.outputs.index("volume_flow_m3s")] == y0[plain.outputs.index("volume_flow_m3s")]
 
 
+CABIN_TERM = DiscoveredTerm("duct_cabin", "supply_air", ("cabin_minus_mix_over_mass_flow",), (0.003,),
+                            "duct-to-cabin exchange")
+
+
+def test_cabin_term_uses_the_logged_cabin_temperature_and_the_parameter_in_the_model(tmp_path):
+    simulate_log(tmp_path / "c.csv", "duct_loss", duration_s=700, seed=3)
+    log = load(tmp_path / "c.csv")
+    assert log.cabin_temp_c is not None and abs(np.median(log.cabin_temp_c) - 24.0) < 0.05
+    p = np.array(Parameters().vector())
+    j = ("supply_temp_c",)
+    y0 = Simulator(log, Parameters(), DOCUMENTED_EFFECTS, j, (CABIN_TERM,)).simulate(p)[0][:, 0]
+    log.cabin_temp_c = log.cabin_temp_c + 5.0  # a warmer cabin warms the supply air, more at low flow
+    y1, states = Simulator(log, Parameters(), DOCUMENTED_EFFECTS, j, (CABIN_TERM,)).simulate(p)
+    rise = (y1[:, 0] - y0)[200:]
+    assert np.all(rise > 0) and np.ptp(rise) > 0.1
+    # the model (the controller's) takes the cabin temperature from Parameters.cabin_temp_c
+    model = HvacModel(Parameters().replace(cabin_temp_c=30.0), terms=(CABIN_TERM,))
+    u, d = np.array([100.0, 0.0, 50.0, 100.0, 100.0, 100.0]), model.d_vector(20.0, 5.0)
+    x = model.steady_state(u, d)
+    y = model.outputs.dict(model.y(x, u, d))
+    plain = HvacModel(Parameters()).outputs.dict(HvacModel(Parameters()).y(x, u, d))
+    assert y["supply_air_temp_c"] - plain["supply_air_temp_c"] == pytest.approx(
+        0.003 * (30.0 - plain["supply_air_temp_c"]) / y["mass_flow_kgs"], rel=1e-6)
+
+
+def test_chiller_band_is_read_where_the_water_cycles_not_on_set_point_ramps(tmp_path):
+    from hvac_mpc.identification.diagnostics import chiller_cycling
+    from hvac_mpc.identification.fitting import Fitter
+
+    simulate_log(tmp_path / "w.csv", "nominal", duration_s=3600, seed=5)  # set point 5 C and 20 C phases
+    log = load(tmp_path / "w.csv")
+    assert np.ptp(log.chiller_setpoint_c) == 15.0
+    band = chiller_cycling(Fitter(log, Parameters()))
+    assert band["cycling"] and band["half_band_c"] == pytest.approx(1.0, abs=0.15)  # the box's +-1 C
+
+
 def test_model_file_round_trip_with_terms_and_delay(tmp_path):
     params = Parameters().replace(transport_delay_s=3.0, fan_k_kg_m7=9.0e4)
     path = write_model_file(tmp_path / "m.toml", params, ("fan_curve", "ptc_power_fall"), {"note_s": 1.0},
