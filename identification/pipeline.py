@@ -562,15 +562,20 @@ def _discover(fitter: Fitter, current: Fit, free: list[FreeParam], quick: bool, 
     dy = fitter.raw_sensitivity(current.effects, current.p, [fp for fp in free if fp.name not in FLOW_PARAMS],
                                 current.terms)
     dy = current.post.apply(np.zeros(dy.shape[:2]), dy)[1]
-    chosen, coef, record = discovery.select(fitter, current, dy[:, fitter.outputs.index("supply_temp_c"), :])
+    dy_supply = dy[:, fitter.outputs.index("supply_temp_c"), :]
+    # both places (after mixing; at the cooler core's outlet, before the split): the better held-out error wins
+    tried = [discovery.select(fitter, current, dy_supply, location) for location in discovery.TERM_NAMES]
+    chosen, coef, record = min(tried, key=lambda t: t[2]["holdout_sse_best"])
+    record["other_locations"] = [{"location": r["location"], "path_order": r["path_order"],
+                                  "holdout_sse_best": r["holdout_sse_best"]} for _, _, r in tried if r is not record]
     record["structure_before"] = ratios
     if not chosen:
         notes.append("discovery: no prefix of the LARS path lowers the held-out supply error by "
                      f"{100 * discovery.MIN_STEP_GAIN:.0f} % (LARS path order: {record['path_order'][:5]})")
         return current, record
-    term = discovery.term_from(chosen, coef)
+    term = discovery.term_from(chosen, coef, location=record["location"])
     fit = current
-    side = [fp for fp in free if fp.name not in FLOW_PARAMS]  # a supply-air term leaves the flow equation alone
+    side = [fp for fp in free if fp.name not in FLOW_PARAMS]  # a temperature term leaves the flow equation alone
     for _ in range(DISCOVERY_ALTERNATIONS):  # the whole model with the term, then its coefficients (exact)
         trial_terms = tuple(t for t in current.terms if t.name != term.name) + (term,)
         fit = fitter.fit(current.effects, fit.p, side, current.post, max_nfev=4 if quick else 6,

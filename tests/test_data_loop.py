@@ -86,6 +86,32 @@ def test_discovered_term_enters_the_supply_air_balance():
     assert y1[plain.outputs.index("volume_flow_m3s")] == y0[plain.outputs.index("volume_flow_m3s")]
 
 
+def test_cooler_outlet_term_acts_before_the_split_and_reaches_the_heater():
+    """A term at the core outlet that turns the effectiveness form into the thesis's literal fit
+    (0.7564 T_w + 6.312 whatever the inlet air): the air leaving the heater (heater off) follows it, the
+    supply air gets it through the core share only, the flows do not see it."""
+    prm = Parameters()
+    literal = DiscoveredTerm("cooler_literal", "cooler_out", ("core_in", "one"),
+                             (-(1.0 - prm.cooler_slope), prm.cooler_offset_c), "literal cooler fit")
+    plain, refined = HvacModel(prm), HvacModel(prm, terms=(literal,))
+    u = np.array([100.0, 0.0, 50.0, 100.0, 100.0, 100.0])  # heater off: heater outlet = core outlet at rest
+    outs = []
+    for t_in in (15.0, 30.0):
+        d = plain.d_vector(t_in, 5.0)
+        x0, x1 = plain.steady_state(u, d), refined.steady_state(u, d)
+        y0, y1 = plain.outputs.dict(plain.y(x0, u, d)), refined.outputs.dict(refined.y(x1, u, d))
+        water = x1[refined.states.index("water_temp_c")]
+        assert y1["heater_outlet_temp_c"] == pytest.approx(prm.cooler_slope * water + prm.cooler_offset_c, abs=1e-6)
+        assert y1["volume_flow_m3s"] == y0["volume_flow_m3s"]
+        core = y1["supply_air_temp_c"] - y0["supply_air_temp_c"]
+        shift = y1["heater_outlet_temp_c"] - y0["heater_outlet_temp_c"]
+        assert 0.0 < core / shift < 1.0  # the bypass air does not pass the core
+        outs.append(y1["heater_outlet_temp_c"])
+    assert outs[0] == pytest.approx(outs[1], abs=1e-6)  # independent of the inlet air
+    with pytest.raises(ValueError, match="cooler outlet"):
+        DiscoveredTerm("bad", "cooler_out", ("mix", "one"), (1.0, 0.0))
+
+
 CABIN_TERM = DiscoveredTerm("duct_cabin", "supply_air", ("cabin_minus_mix_over_mass_flow",), (0.003,),
                             "duct-to-cabin exchange")
 
