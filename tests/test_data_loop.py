@@ -233,6 +233,19 @@ def test_duct_loss_outside_the_library_is_added_as_a_term(tmp_path_factory, tmp_
 
 
 @pytest.mark.slow
+def test_literal_cooler_fit_is_added_as_a_term_at_the_core_outlet(tmp_path_factory):
+    """The box's core outlet does not depend on the inlet air (0.7564 T_w + 6.312): discovery puts the term
+    before the split between heater path and bypass and finds the missing slope on the core inlet air."""
+    res = identified(tmp_path_factory, "cooler_literal")
+    cooler = [t for t in res.terms if t.location == "cooler_out"]
+    assert len(cooler) == 1 and res.discovery["accepted"]
+    c = dict(zip(cooler[0].features, cooler[0].coefficients))
+    assert c.get("core_in") == pytest.approx(-(1.0 - Parameters().cooler_slope), abs=0.05)
+    e = res.holdout_errors()["supply_temp_c"]
+    assert e["rms_after"] <= 0.5 * e["rms_before"]
+
+
+@pytest.mark.slow
 def test_mpc_with_the_refined_model_tracks_better_on_the_plant_with_the_effect(tmp_path_factory, tmp_path):
     from hvac_mpc.benchmarks import scenarios
     from hvac_mpc.benchmarks.refined_model import compare
