@@ -4,10 +4,11 @@ A term is a named linear combination ``sum_i c_i f_i`` of features from :data:`F
 physically meaningful function of quantities the model already computes), added to one balance
 (:data:`LOCATIONS`). ``supply_air``: added to the mixed supply air temperature after mixing, i.e. an
 extra heat flow in the supply-air energy balance divided by the air's capacity flow
-(docs/model.md, "discovered terms"). ``cooler_out``: added to the air leaving the cooler core, before the
-split between the heater path and the bypass, so it also changes the air entering the heater
-(docs/identification.md, "discovery"); its features are the ones known there (:data:`COOLER_OUT_FEATURES`). The same feature functions serve numpy (identification) and
-CasADi (the model), so the term the identification fits is the term the controller predicts with.
+(docs/model.md, "discovered terms"). ``cooler_out``: added to the air leaving the cooler core, before
+the split between the heater path and the bypass, so it also changes the air entering the heater
+(docs/identification.md, "A term at the cooler core's outlet"); its features are the ones known there
+(:data:`COOLER_OUT_FEATURES`). The same feature functions serve numpy (identification) and CasADi
+(the model), so the term the identification fits is the term the controller predicts with.
 """
 
 from __future__ import annotations
