@@ -30,7 +30,7 @@ def closed_loop_iae(scenario: Scenario, controller, variant: str, seed: int, dt_
                        initial_command=scenario.initial_command)
     controller.reset(scenario.initial_command)
     n = int(round(scenario.duration_s / dt_s))
-    err_tc, err_air = [], []
+    err_tc, err_air, err_flow = [], [], []
     for k in range(n):
         t = k * dt_s
         r = scenario.reference_at(t)
@@ -39,12 +39,15 @@ def closed_loop_iae(scenario: Scenario, controller, variant: str, seed: int, dt_
         if t >= scenario.metrics_start_s and r.supply_temp_c is not None:
             err_tc.append(abs(y["supply_temp_c"] - r.supply_temp_c))
             err_air.append(abs(y["supply_air_temp_c"] - r.supply_temp_c))
+        if t >= scenario.metrics_start_s and r.volume_flow_m3s is not None:
+            err_flow.append(abs(y["volume_flow_m3s"] - r.volume_flow_m3s))
         result = controller.step(m, r)
         u = np.asarray(result.command.vector(), float)
         if np.all(np.isfinite(u)):
             plant.apply(u)
         plant.advance()
-    return {"temp_iae_cs": float(np.sum(err_tc) * dt_s), "air_temp_iae_cs": float(np.sum(err_air) * dt_s)}
+    return {"temp_iae_cs": float(np.sum(err_tc) * dt_s), "air_temp_iae_cs": float(np.sum(err_air) * dt_s),
+            "flow_iae_m3": float(np.sum(err_flow) * dt_s)}
 
 
 def compare(model_path: str | Path, variant: str, scenarios: Sequence[Scenario], seed: int = 0) -> dict:
@@ -59,7 +62,8 @@ def compare(model_path: str | Path, variant: str, scenarios: Sequence[Scenario],
         better = closed_loop_iae(sc, MpcController(settings=settings, model=refined), variant, seed)
         out["scenarios"][sc.name] = {"nominal": nominal, "refined": better,
                                      "ratio": better["temp_iae_cs"] / max(nominal["temp_iae_cs"], 1e-12)}
-    total = {k: {f: sum(r[k][f] for r in out["scenarios"].values()) for f in ("temp_iae_cs", "air_temp_iae_cs")}
+    total = {k: {f: sum(r[k][f] for r in out["scenarios"].values())
+                 for f in ("temp_iae_cs", "air_temp_iae_cs", "flow_iae_m3")}
              for k in ("nominal", "refined")}
     out["total"] = dict(total, ratio=total["refined"]["temp_iae_cs"] / max(total["nominal"]["temp_iae_cs"], 1e-12))
     return out
@@ -72,11 +76,14 @@ def markdown(cmp: dict) -> list[str]:
              f"{len(cmp['terms'])} discovered term(s), transport delay {cmp['transport_delay_s']:g} s) against the "
              f"MPC with the nominal model, both on the independent box variant `{cmp['plant_variant']}` "
              f"(hvac_mpc.mismatch), seed {cmp['seed']}; temperature IAE on the noise-free thermocouple reading.", "",
-             "| scenario | IAE nominal (C s) | IAE refined (C s) | refined / nominal | air IAE nominal | air IAE refined |",
-             "|---|---|---|---|---|---|"]
+             "| scenario | IAE nominal (C s) | IAE refined (C s) | refined / nominal | air IAE nominal | air IAE refined "
+             "| flow IAE nominal (m3) | flow IAE refined (m3) |",
+             "|---|---|---|---|---|---|---|---|"]
     for name, r in list(cmp["scenarios"].items()) + [("all scenarios", cmp["total"])]:
         lines.append(f"| {name} | {r['nominal']['temp_iae_cs']:.1f} | {r['refined']['temp_iae_cs']:.1f} | "
-                     f"{r['ratio']:.3f} | {r['nominal']['air_temp_iae_cs']:.1f} | {r['refined']['air_temp_iae_cs']:.1f} |")
+                     f"{r['ratio']:.3f} | {r['nominal']['air_temp_iae_cs']:.1f} | {r['refined']['air_temp_iae_cs']:.1f} | "
+                     f"{r['nominal'].get('flow_iae_m3', float('nan')):.2f} | "
+                     f"{r['refined'].get('flow_iae_m3', float('nan')):.2f} |")
     return lines
 
 

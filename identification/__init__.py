@@ -7,7 +7,7 @@ The procedure and its statistics: docs/identification.md.
   validated (the format is :mod:`hvac_mpc.models.model_file`).
 - :func:`~hvac_mpc.identification.pipeline.identify` runs the procedure on a prepared log
   (:func:`~hvac_mpc.identification.log_data.load`).
-- :func:`~hvac_mpc.identification.generator.simulate_log` makes logs with the simulated plant.
+- logs to check it against come from the independent simulator, :func:`hvac_mpc.mismatch.simulate_log`.
 - :mod:`~hvac_mpc.identification.thesis_tables` runs the loop on the thesis's tables 3-6.
 """
 

@@ -172,6 +172,18 @@ def diagnose(fitter: Fitter, fit: Fit, top: int = 8) -> dict:
     return out
 
 
+def _cycling_rows(setpoint_c: np.ndarray, dev: np.ndarray) -> np.ndarray:
+    """Rows where the water cycles about its set point: after the set point last changed, from the first
+    crossing of the set point on (the ramp towards a new set point is not the band)."""
+    rows = np.zeros(len(dev), bool)
+    starts = np.concatenate([[0], np.flatnonzero(np.diff(setpoint_c) != 0) + 1, [len(dev)]])
+    for a, b in zip(starts[:-1], starts[1:]):
+        cross = np.flatnonzero(np.diff(np.sign(dev[a:b])) != 0)
+        if len(cross):
+            rows[a + cross[0] + 1:b] = True
+    return rows
+
+
 def chiller_cycling(fitter: Fitter) -> dict | None:
     """Chiller two-point cycling seen in the logged water temperature (thesis sec. 2.2, 4.2).
 
@@ -183,7 +195,11 @@ def chiller_cycling(fitter: Fitter) -> dict | None:
     if log.water_temp_c is None:
         return None
     dev = log.water_temp_c - log.chiller_setpoint_c
-    lo, hi = np.percentile(dev[log.train | log.holdout], [1, 99])
+    rows = (log.train | log.holdout) & _cycling_rows(log.chiller_setpoint_c, dev)
+    if rows.sum() < 60:
+        return None
+    dev = dev[rows]
+    lo, hi = np.percentile(dev, [1, 99])
     half = 0.5 * float(hi - lo)
     crossings = int(np.sum(np.diff(np.sign(dev - np.median(dev))) != 0))
     return {"band_low_c": float(lo), "band_high_c": float(hi), "half_band_c": half,

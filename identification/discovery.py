@@ -10,6 +10,15 @@ Because the term enters after mixing, the reading sees it through the thermocoup
 supply delay, if one was found), so every feature is passed through the same lag and delay and
 the residual is linear in the coefficients: a sparse linear regression is exact here.
 
+A term can also sit at the cooler core's outlet (location ``cooler_out``: the air leaving the core,
+before the split between heater path and bypass), where it changes the air entering the heater too.
+There the reading sees a feature through the heater's air node and body and the mixing, so each
+feature's view is its response through the model itself: the fit's free run with a small probe term
+``c f`` at the core outlet, minus the run without it, over ``c`` (the model is linear in the core outlet
+but for the PTC curve, so this is the regression's exact column up to that curvature; the whole-model
+refit afterwards takes the rest). Discovery runs the selection at both places and keeps the place whose
+best term lowers the held-out error more.
+
 Selection (docs/identification.md, "discovery"): the order in which features enter comes from
 the LARS-lasso path of scikit-learn (``sklearn.linear_model.lars_path``, standardised features,
 training rows); the number of features from the held-out rows: a feature is kept only if it
@@ -25,7 +34,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from hvac_mpc.models.discovered import FEATURES, DiscoveredTerm
+from hvac_mpc.models.discovered import FEATURES, LOCATIONS, DiscoveredTerm
 
 from .fitting import Fit, Fitter
 from .simulator import shift
@@ -36,6 +45,16 @@ MIN_STEP_GAIN = 0.05
 CANDIDATES = ("mix", "inlet", "inv_mass_flow", "mix_over_mass_flow", "inlet_minus_mix_over_mass_flow", "core_share",
               "core_share_x_blower_out", "core_share_x_water", "mass_flow", "mix_x_mass_flow",
               "heater_power_over_mass_flow")
+#: Features offered only when the log carries the cabin temperature (without it they are a combination of
+#: ``inv_mass_flow`` and ``mix_over_mass_flow`` at the assumed ``Parameters.cabin_temp_c``).
+CABIN_CANDIDATES = ("cabin_minus_mix_over_mass_flow",)
+#: Features the selection may use at the cooler outlet (the constant is always in). Not ``water`` nor
+#: ``core_in_minus_water``: with the cooler's effectiveness free, a step of it is the direction T_w - T_core_in,
+#: so they add nothing to the span; offered anyway, the selection hands part of the correction to that step,
+#: which the whole-model refit does not follow (cooler_literal seed 17: 0.215 C with ``water``, 0.061 without).
+COOLER_CANDIDATES = ("core_in", "mass_flow", "core_in_minus_water_x_mass_flow")
+#: Probe coefficient per feature unit for the cooler-outlet views: about 0.2 C at the core outlet.
+PROBE = {"1": 0.2, "C": 0.01, "kg/s": 4.0, "C kg/s": 0.2}
 #: Most features in one term.
 MAX_FEATURES = 4
 #: Prefixes of the LARS path scored on the held-out rows (a term holds at most this many features).
@@ -47,7 +66,12 @@ def _lars_path(x: np.ndarray, y: np.ndarray):
         from sklearn.linear_model import lars_path
     except ImportError as exc:  # pragma: no cover - depends on the optional extra
         raise ImportError("term discovery needs scikit-learn: pip install 'hvac-mpc[discovery]'") from exc
-    return lars_path(x, y, method="lasso", max_iter=4 * MAX_FEATURES)
+    import warnings
+
+    from sklearn.exceptions import ConvergenceWarning
+    with warnings.catch_warnings():  # collinear features (core inlet and water temperature) drop out of the path
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        return lars_path(x, y, method="lasso", max_iter=4 * MAX_FEATURES)
 
 
 def features(fitter: Fitter, fit: Fit) -> dict[str, np.ndarray]:
@@ -58,7 +82,8 @@ def features(fitter: Fitter, fit: Fit) -> dict[str, np.ndarray]:
     water = log.water_temp_c if log.water_temp_c is not None else fit.states[:, sim.model.states.index("water_temp_c")]
     q = {"t_mix": internals["mix_temp_c"], "t_in": log.inlet_temp_c, "t_blower": internals["blower_out_temp_c"],
          "t_water": water, "mass_flow": internals["mass_flow_kgs"], "core_share": 1.0 - internals["bypass_fraction"],
-         "p_el": internals["heater_electric_w"]}
+         "p_el": internals["heater_electric_w"],
+         "t_cabin": log.cabin_temp_c if log.cabin_temp_c is not None else fit.p[fitter.names.index("cabin_temp_c")]}
     return {name: np.asarray(spec[2](q), float) * np.ones(log.n) for name, spec in FEATURES.items()}
 
 
@@ -76,7 +101,34 @@ def sensor_view(fitter: Fitter, fit: Fit, feats: dict[str, np.ndarray]) -> dict[
     return {k: shift(_lfilter_lag(v, tau, fitter.log.dt_s), delay) for k, v in feats.items()}
 
 
-def select(fitter: Fitter, fit: Fit, dy_free: np.ndarray | None = None) -> tuple[list[str], np.ndarray, dict]:
+def cooler_view(fitter: Fitter, fit: Fit, names=COOLER_CANDIDATES + ("one",)) -> dict[str, np.ndarray]:
+    """Each cooler-outlet feature as the supply reading shows it: response per unit coefficient (n,)."""
+    j = fitter.outputs.index("supply_temp_c")
+    y0 = fitter.simulator(fit.effects, fit.terms).simulate(fit.p)[0][:, j]
+    out = {}
+    for f in names:
+        c = PROBE[FEATURES[f][1]]
+        probe = DiscoveredTerm("probe_" + f, "cooler_out", (f,), (c,))
+        y = fitter.simulator(fit.effects, fit.terms + (probe,)).simulate(fit.p)[0][:, j]
+        out[f] = shift((y - y0) / c, fit.post.delays.get("supply_temp_c", 0))
+    return out
+
+
+def views(fitter: Fitter, fit: Fit, location: str, names=None) -> dict[str, np.ndarray]:
+    """The features of ``location`` as the supply reading shows them (linear in the coefficients)."""
+    if location == "cooler_out":
+        return cooler_view(fitter, fit) if names is None else cooler_view(fitter, fit, tuple(names))
+    return sensor_view(fitter, fit, features(fitter, fit))
+
+
+def _candidates(fitter: Fitter, location: str) -> tuple[str, ...]:
+    if location == "cooler_out":
+        return COOLER_CANDIDATES
+    return CANDIDATES + (CABIN_CANDIDATES if fitter.log.cabin_temp_c is not None else ())
+
+
+def select(fitter: Fitter, fit: Fit, dy_free: np.ndarray | None = None, location: str = "supply_air"
+           ) -> tuple[list[str], np.ndarray, dict]:
     """Sparse choice of features for the supply residual of ``fit``: names, coefficients, the record.
 
     ``dy_free`` (n x k): the supply reading's sensitivities to the model's free parameters. They
@@ -85,8 +137,9 @@ def select(fitter: Fitter, fit: Fit, dy_free: np.ndarray | None = None) -> tuple
     """
     j = fitter.outputs.index("supply_temp_c")
     resid = fitter.y_meas[:, j] - fit.y[:, j]
-    view = sensor_view(fitter, fit, features(fitter, fit))
-    names = [k for k in view if k in CANDIDATES]
+    view = views(fitter, fit, location)
+    allowed = _candidates(fitter, location)
+    names = [k for k in view if k in allowed]
     x_all = np.column_stack([view[k] for k in names])
     base = np.column_stack([view["one"]] + ([dy_free] if dy_free is not None and dy_free.size else []))
     ok = np.isfinite(resid) & np.all(np.isfinite(x_all), axis=1) & np.all(np.isfinite(base), axis=1)
@@ -101,7 +154,7 @@ def select(fitter: Fitter, fit: Fit, dy_free: np.ndarray | None = None) -> tuple
     entered = [int(np.argmax(row)) if row.any() else None for row in nonzero]  # path step where each enters
     idx = sorted((k for k, e in enumerate(entered) if e is not None), key=lambda k: entered[k])
     order = [names[i] for i in np.flatnonzero(usable)[idx]]
-    record = {"path_order": order, "steps": []}
+    record = {"location": location, "path_order": order, "steps": []}
     c0, *_ = np.linalg.lstsq(base[tr], resid[tr], rcond=None)
     sse_start = float(np.sum((resid[ho] - base[ho] @ c0) ** 2))
     record["holdout_sse_start"] = sse_start
@@ -114,6 +167,7 @@ def select(fitter: Fitter, fit: Fit, dy_free: np.ndarray | None = None) -> tuple
         record["steps"].append({"features": order[:k], "holdout_sse": sse})
     chosen: list[str] = []
     coef = np.zeros(0)
+    record["holdout_sse_best"] = min((sse for _, _, sse in fits), default=sse_start)
     if fits:
         best = min(sse for _, _, sse in fits)
         if best <= (1.0 - MIN_STEP_GAIN) * sse_start:
@@ -123,9 +177,17 @@ def select(fitter: Fitter, fit: Fit, dy_free: np.ndarray | None = None) -> tuple
     return chosen, coef, record
 
 
-def describe_term(chosen: list[str], coef: np.ndarray) -> str:
+def describe_term(chosen: list[str], coef: np.ndarray, location: str = "supply_air") -> str:
     """The term in words (and physically, when it has the form of a heat loss to surroundings)."""
     words = " plus ".join(FEATURES[f][0] for f in chosen)
+    if location == "cooler_out":
+        text = f"an additive term on the {LOCATIONS[location][0]}, linear in {words} and a constant"
+        c = dict(zip(chosen, coef))
+        if "core_in" in c:
+            text += (f"; the core outlet follows the air entering the core with {c['core_in']:+.3f} C/C more than "
+                     "the effectiveness form (a slope near -(1 - effectiveness) means an outlet that does not "
+                     "depend on the inlet air)")
+        return text
     text = f"an additive term in the supply-air energy balance, linear in {words} and a constant"
     c = dict(zip(chosen, coef))
     if set(chosen) >= {"mix_over_mass_flow", "inv_mass_flow"} and c["mix_over_mass_flow"] < 0:
@@ -133,15 +195,25 @@ def describe_term(chosen: list[str], coef: np.ndarray) -> str:
         t_env = c["inv_mass_flow"] / -c["mix_over_mass_flow"]
         text += (f"; it has the form of a heat loss from the duct to surroundings at about {t_env:.1f} C with a "
                  f"conductance UA of about {ua:.2f} W/K (dT = UA/(m_dot c_p) (T_env - T_mix))")
+    if c.get("cabin_minus_mix_over_mass_flow", 0.0) > 0:
+        ua = c["cabin_minus_mix_over_mass_flow"] * 1007.0
+        text += (f"; it has the form of heat exchange between the duct and the cabin with a conductance UA of "
+                 f"about {ua:.2f} W/K (dT = UA/(m_dot c_p) (T_cabin - T_mix), T_cabin the logged cabin temperature)")
     if set(chosen) & {"core_share", "core_share_x_blower_out", "core_share_x_water"}:
         text += "; it acts on the air through the cooler core (an error of the core outlet temperature)"
     return text
 
 
-def term_from(chosen: list[str], coef: np.ndarray, name: str = "supply_residual_term") -> DiscoveredTerm:
+#: Name of the discovered term per location.
+TERM_NAMES = {"supply_air": "supply_residual_term", "cooler_out": "cooler_outlet_term"}
+
+
+def term_from(chosen: list[str], coef: np.ndarray, name: str | None = None, location: str = "supply_air"
+              ) -> DiscoveredTerm:
     """The discovered term (the regression's constant included as feature ``one``)."""
     feats = tuple(chosen) + ("one",)
-    return DiscoveredTerm(name, "supply_air", feats, tuple(float(c) for c in coef), describe_term(chosen, coef[:-1]))
+    return DiscoveredTerm(name or TERM_NAMES[location], location, feats, tuple(float(c) for c in coef),
+                          describe_term(chosen, coef[:-1], location))
 
 
 def refit_coefficients(fitter: Fitter, fit: Fit, term: DiscoveredTerm) -> DiscoveredTerm:
@@ -149,10 +221,10 @@ def refit_coefficients(fitter: Fitter, fit: Fit, term: DiscoveredTerm) -> Discov
     term): the residual is linear in them, so one solve is the exact optimum for fixed parameters."""
     j = fitter.outputs.index("supply_temp_c")
     resid = fitter.y_meas[:, j] - fit.y[:, j]
-    view = sensor_view(fitter, fit, features(fitter, fit))
+    view = views(fitter, fit, term.location, term.features)
     a = np.column_stack([view[k] for k in term.features])
     ok = np.isfinite(resid) & fitter.log.train & np.all(np.isfinite(a), axis=1)
     dc, *_ = np.linalg.lstsq(a[ok], resid[ok], rcond=None)
     return DiscoveredTerm(term.name, term.location, term.features,
                           tuple(float(c + d) for c, d in zip(term.coefficients, dc)),
-                          describe_term(list(term.features[:-1]), np.array(term.coefficients) + dc))
+                          describe_term(list(term.features[:-1]), np.array(term.coefficients) + dc, term.location))

@@ -40,7 +40,7 @@ class LogDataError(ValueError):
 @dataclass
 class LogData:
     """Arrays of one log. ``u`` and ``u_prev`` are (n, 6) in model input order; ``inlet_temp_c``,
-    ``chiller_setpoint_c`` (n,); ``water_temp_c`` (n,) smoothed or ``None`` when not logged;
+    ``chiller_setpoint_c`` (n,); ``water_temp_c`` and ``cabin_temp_c`` (n,) smoothed or ``None`` when not logged;
     ``outputs`` maps logged model outputs to (n,) arrays (NaN where missing); ``signals`` holds
     every numeric column; ``train`` and ``holdout`` are boolean masks."""
 
@@ -59,6 +59,7 @@ class LogData:
     source: str = ""
     bad_rows: dict = field(default_factory=dict)
     timing_shift_samples: int = 0
+    cabin_temp_c: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -86,6 +87,15 @@ def _moving_average(values: np.ndarray, width: int) -> np.ndarray:
     pad = width // 2
     padded = np.concatenate([np.full(pad, values[0]), values, np.full(width - 1 - pad, values[-1])])
     return np.convolve(padded, np.ones(width) / width, mode="valid")
+
+
+def _smoothed(columns: Mapping[str, np.ndarray], name: str, dt: float) -> np.ndarray | None:
+    """An optional temperature column, gaps filled and smoothed over WATER_SMOOTHING_S; ``None`` when it
+    is missing or empty in more than 10 % of the rows."""
+    if name not in columns or np.mean(np.isfinite(np.asarray(columns[name], float))) < 0.9:
+        return None
+    width = max(1, int(round(WATER_SMOOTHING_S / dt)))
+    return _moving_average(_interp_nans(np.asarray(columns[name], float)), width)
 
 
 def prepare(columns: Mapping[str, np.ndarray], holdout_fraction: float = 1 / 3, source: str = "") -> LogData:
@@ -139,14 +149,13 @@ def prepare(columns: Mapping[str, np.ndarray], holdout_fraction: float = 1 / 3, 
         notes.append(f"chiller_setpoint_c not logged: {DEFAULT_CHILLER_SETPOINT_C} C assumed (docs/model.md sec. 1)")
     else:
         sp = _interp_nans(sp)
-    water = None
-    if "water_temp_c" in columns and np.mean(np.isfinite(np.asarray(columns["water_temp_c"], float))) >= 0.9:
-        width = max(1, int(round(WATER_SMOOTHING_S / dt)))
-        water = _moving_average(_interp_nans(np.asarray(columns["water_temp_c"], float)), width)
-        notes.append("water_temp_c logged: used as a measured disturbance (smoothed over "
-                     f"{WATER_SMOOTHING_S:g} s) in place of the modelled chiller")
-    else:
-        notes.append("water_temp_c not logged: the model's chiller ramp towards the set point is used")
+    water = _smoothed(columns, "water_temp_c", dt)
+    notes.append(f"water_temp_c logged: used as a measured disturbance (smoothed over {WATER_SMOOTHING_S:g} s) in "
+                 "place of the modelled chiller" if water is not None else
+                 "water_temp_c not logged: the model's chiller ramp towards the set point is used")
+    cabin = _smoothed(columns, "cabin_temp_c", dt)
+    if cabin is not None:
+        notes.append(f"cabin_temp_c logged: offered to term discovery (smoothed over {WATER_SMOOTHING_S:g} s)")
     outputs = {}
     for name in MODEL_OUTPUTS:
         if name in columns:
@@ -168,7 +177,8 @@ def prepare(columns: Mapping[str, np.ndarray], holdout_fraction: float = 1 / 3, 
     idx = np.arange(n)
     train = (idx >= burn) & (idx < n_train_end)
     holdout = idx >= n_train_end
-    return LogData(t, dt, u, u_prev, inlet, sp, water, outputs, signals, train, holdout, notes, source, bad_rows)
+    return LogData(t, dt, u, u_prev, inlet, sp, water, outputs, signals, train, holdout, notes, source, bad_rows,
+                   cabin_temp_c=cabin)
 
 
 def load(path: str | Path, mapping: Mapping[str, str] | None = None, holdout_fraction: float = 1 / 3) -> LogData:

@@ -39,6 +39,7 @@ from hvac_mpc.models.parameters import Parameters
 from . import discovery, localise, timing
 from . import statistics as st
 from .candidates import Candidate, library
+from .discovery import CABIN_CANDIDATES
 from .diagnostics import diagnose, innovations_nll
 from .fitting import FLOW_PARAMS, NOMINAL_FREE, Fit, Fitter, FreeParam
 from .log_data import LogData
@@ -561,15 +562,20 @@ def _discover(fitter: Fitter, current: Fit, free: list[FreeParam], quick: bool, 
     dy = fitter.raw_sensitivity(current.effects, current.p, [fp for fp in free if fp.name not in FLOW_PARAMS],
                                 current.terms)
     dy = current.post.apply(np.zeros(dy.shape[:2]), dy)[1]
-    chosen, coef, record = discovery.select(fitter, current, dy[:, fitter.outputs.index("supply_temp_c"), :])
+    dy_supply = dy[:, fitter.outputs.index("supply_temp_c"), :]
+    # both places (after mixing; at the cooler core's outlet, before the split): the better held-out error wins
+    tried = [discovery.select(fitter, current, dy_supply, location) for location in discovery.TERM_NAMES]
+    chosen, coef, record = min(tried, key=lambda t: t[2]["holdout_sse_best"])
+    record["other_locations"] = [{"location": r["location"], "path_order": r["path_order"],
+                                  "holdout_sse_best": r["holdout_sse_best"]} for _, _, r in tried if r is not record]
     record["structure_before"] = ratios
     if not chosen:
         notes.append("discovery: no prefix of the LARS path lowers the held-out supply error by "
                      f"{100 * discovery.MIN_STEP_GAIN:.0f} % (LARS path order: {record['path_order'][:5]})")
         return current, record
-    term = discovery.term_from(chosen, coef)
+    term = discovery.term_from(chosen, coef, location=record["location"])
     fit = current
-    side = [fp for fp in free if fp.name not in FLOW_PARAMS]  # a supply-air term leaves the flow equation alone
+    side = [fp for fp in free if fp.name not in FLOW_PARAMS]  # a temperature term leaves the flow equation alone
     for _ in range(DISCOVERY_ALTERNATIONS):  # the whole model with the term, then its coefficients (exact)
         trial_terms = tuple(t for t in current.terms if t.name != term.name) + (term,)
         fit = fitter.fit(current.effects, fit.p, side, current.post, max_nfev=4 if quick else 6,
@@ -626,13 +632,44 @@ def diagnostics_ratio(fitter: Fitter, fit: Fit) -> float:
     return float(c[j] / max(n[j], 1))
 
 
+def cpu_seconds() -> float:
+    """CPU seconds of this process and of its finished child processes (the forked scoring workers)."""
+    own = time.process_time()
+    try:
+        import resource  # POSIX only
+    except ImportError:  # pragma: no cover - without it the workers' time is not counted
+        return own
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own + children.ru_utime + children.ru_stime
+
+
+class _Clock:
+    """Wall and CPU time per part of the run (``<part>_s`` wall, ``<part>_cpu_s`` CPU, ``total_s``, ``total_cpu_s``).
+
+    CPU time counts this process and its forked workers; on a shared machine it is the honest measure
+    (wall time grows with the other jobs' load)."""
+
+    def __init__(self) -> None:
+        self.t0, self.c0 = time.perf_counter(), cpu_seconds()
+        self.t, self.c = self.t0, self.c0
+        self.parts: dict[str, float] = {}
+
+    def lap(self, part: str) -> None:
+        t, c = time.perf_counter(), cpu_seconds()
+        self.parts[f"{part}_s"] = self.parts.get(f"{part}_s", 0.0) + t - self.t
+        self.parts[f"{part}_cpu_s"] = self.parts.get(f"{part}_cpu_s", 0.0) + c - self.c
+        self.t, self.c = t, c
+
+    def totals(self) -> dict[str, float]:
+        return dict(self.parts, total_s=self.t - self.t0, total_cpu_s=self.c - self.c0)
+
+
 def identify(log: LogData, base: Parameters | None = None, base_effects: Iterable[str] = (),
              quick: bool = False, max_effects: int = 4, progress: Callable[[str], None] | None = None,
              discover: bool = True) -> IdentificationResult:
     """Run the whole procedure of the module docstring on a prepared log."""
     say = progress or (lambda _msg: None)
-    t_start = time.perf_counter()
-    timings = {}
+    clock = _Clock()
     base = base or Parameters()
     base_effects = frozenset(base_effects)
     notes = list(log.notes)
@@ -641,31 +678,26 @@ def identify(log: LogData, base: Parameters | None = None, base_effects: Iterabl
     p_base = np.array(base.vector())
     say("fitting the nominal model")
     nominal, free = _nominal(fitter, base_effects, p_base, quick, notes)
-    timings["nominal_fit_s"] = time.perf_counter() - t_start
+    clock.lap("nominal_fit")
     say("diagnosing the nominal residuals")
     diag_before = diagnose(fitter, nominal)
-    timings["diagnostics_s"] = time.perf_counter() - t_start - timings["nominal_fit_s"]
+    clock.lap("diagnostics")
     lib = library(fitter.outputs)
-    t_cand = time.perf_counter()
     current, current_free, accepted, rounds = _forward(fitter, nominal, free, lib, max_effects, quick, say, notes)
-    timings["candidates_s"] = time.perf_counter() - t_cand
-    t_disc = time.perf_counter()
+    clock.lap("candidates")
     discovered = None
     if discover:
         current, discovered = _discover(fitter, current, current_free, quick, say, notes)
-    timings["discovery_s"] = time.perf_counter() - t_disc
+    clock.lap("discovery")
     if discovered and discovered.get("accepted") and len(accepted) < max_effects:
         # with the term in, effects its residual hid may now show: one more forward pass
-        t_more = time.perf_counter()
         current, current_free, more, more_rounds = _forward(fitter, current, current_free, lib,
                                                             max_effects - len(accepted), quick, say, notes,
                                                             first_round=len(rounds) + 1)
         accepted += more
         rounds += more_rounds
-        timings["candidates_s"] += time.perf_counter() - t_more
-    t_back = time.perf_counter()
     current, current_free = _backward(fitter, current, current_free, accepted, lib, base, quick, say, notes)
-    timings["candidates_s"] += time.perf_counter() - t_back
+    clock.lap("candidates")
     final = current
     diag_after = diag_before if final is nominal else diagnose(fitter, final)
     localisation = []
@@ -680,7 +712,8 @@ def identify(log: LogData, base: Parameters | None = None, base_effects: Iterabl
                 notes.append(f"{o}: held-out error {after_struct[o]:.2f}x the estimated noise variance, but no "
                              "equation or signal term explains it on the held-out rows (R^2 <= 0.1)")
     params, effects, extras = model_outputs(fitter, final, base, diag_after)
-    timings["total_s"] = time.perf_counter() - t_start
+    clock.lap("final_diagnostics")
+    timings = clock.totals()
     res = IdentificationResult(log, fitter, base, base_effects, nominal, final, accepted, rounds, diag_before,
                                diag_after, localisation, params, effects, extras, notes, timings)
     res.terms = final.terms
@@ -704,6 +737,11 @@ def model_outputs(fitter: Fitter, final: Fit, base: Parameters, diag: dict) -> t
     if "supply_temp_c" in final.post.delays:
         lo_d, hi_d = Parameters.__dataclass_fields__["transport_delay_s"].metadata["range"]
         changes["transport_delay_s"] = float(min(max(final.post.delays["supply_temp_c"] * fitter.log.dt_s, lo_d), hi_d))
+    cabin = fitter.log.cabin_temp_c
+    if cabin is not None and any(f in CABIN_CANDIDATES for t in final.terms for f in t.features):
+        # a controller without a cabin reading predicts with the logged cabin temperature's median
+        lo_c, hi_c = Parameters.__dataclass_fields__["cabin_temp_c"].metadata["range"]
+        changes["cabin_temp_c"] = float(min(max(np.median(cabin), lo_c), hi_c))
     params = base.replace(**changes)
     effects = tuple(e for e in MODEL_EFFECTS if e in final.effects)
     extras = {}

@@ -62,8 +62,13 @@ class Simulator:
         d[:, m.disturbances.index("inlet_temp_c")] = log.inlet_temp_c
         d[:, m.disturbances.index("chiller_setpoint_c")] = log.chiller_setpoint_c
         self._d = d
-        # z_k = [u_k, u_{k-1}, d_k, water_k, flag]
-        self.z = np.hstack([log.u, log.u_prev, d, water[:, None], np.full((n, 1), self._flag)]).T.copy()
+        cabin = log.cabin_temp_c
+        self._cabin_flag = 0.0 if cabin is None else 1.0
+        cabin = np.zeros(n) if cabin is None else cabin
+        self._ic = self.names.index("cabin_temp_c")
+        # z_k = [u_k, u_{k-1}, d_k, water_k, flag, cabin_k, cabin flag]
+        self.z = np.hstack([log.u, log.u_prev, d, water[:, None], np.full((n, 1), self._flag), cabin[:, None],
+                            np.full((n, 1), self._cabin_flag)]).T.copy()
         self.nz = self.z.shape[0]
         self._build()
         self._aug_cache: dict[tuple, ca.Function] = {}
@@ -77,6 +82,13 @@ class Simulator:
         nu, nd = self.nu, self.nd
         return z[:nu], z[nu:2 * nu], z[2 * nu:2 * nu + nd], z[2 * nu + nd], z[2 * nu + nd + 1]
 
+    def _params(self, z, p):
+        """The parameter vector with the logged cabin temperature in place of ``cabin_temp_c`` (when logged)."""
+        e = np.zeros(self.np)
+        e[self._ic] = 1.0
+        cabin, flag = z[self.nz - 2], z[self.nz - 1]
+        return p + ca.DM(e) * (flag * (cabin - p[self._ic]))
+
     def _override(self, x, z):
         _, _, _, w, flag = self._split_z(z)
         e = np.zeros(self.nx)
@@ -88,22 +100,23 @@ class Simulator:
         x, z, p = self._sym()
         u, up, d, _, _ = self._split_z(z)
         xe = self._override(x, z)
-        x_next = m.step(xe, u, d, p)
-        y_all = m.output(xe, up, d, p)
+        pz = self._params(z, p)
+        x_next = m.step(xe, u, d, pz)
+        y_all = m.output(xe, up, d, pz)
         y = ca.vertcat(*[y_all[i] for i in self._y_idx])
         self.f_step = ca.Function("f_step", [x, z, p], [x_next])
         self.f_y = ca.Function("f_y", [x, z, p], [y])
         self.f_step_y = ca.Function("f_step_y", [x, z, p], [x_next, y])
         self.f_sim = self.f_step_y.mapaccum("f_sim", self.log.n, [0], [0])
         # steady state at the first row: ode = 0 (water state pinned to the logged value)
-        xdot = m.ode(xe, u, d, p)
+        xdot = m.ode(xe, u, d, pz)
         e = np.zeros(self.nx)
         e[self._iw] = 1.0
         _, _, _, w, flag = self._split_z(z)
         g = xdot + ca.DM(e) * (flag * (x[self._iw] - w) - flag * xdot[self._iw])
         self.f_g = ca.Function("f_g", [x, z, p], [g, ca.jacobian(g, x), ca.jacobian(g, p)])
         # internals for diagnostics
-        q = m.algebraic(xe, up, d, p)
+        q = m.algebraic(xe, up, d, pz)
         b = q["bypass"]
         internals = {
             "heater_temp_c": q["sx"]["heater_temp_c"], "mass_flow_kgs": q["mass_flow"], "bypass_fraction": b,

@@ -54,7 +54,7 @@ def detect_shift(measured_flow: np.ndarray, predicted_flow: np.ndarray) -> tuple
 
 
 def correct(log: LogData, s: int) -> None:
-    """Move the sensor columns of ``log`` back by ``s`` samples in place (outputs, water and inlet)."""
+    """Move the sensor columns of ``log`` back by ``s`` samples in place (outputs, water, inlet and cabin)."""
     if s == 0:
         return
     for name in list(log.outputs):
@@ -62,6 +62,8 @@ def correct(log: LogData, s: int) -> None:
     if log.water_temp_c is not None:
         log.water_temp_c = np.nan_to_num(shifted(log.water_temp_c, s), nan=float(log.water_temp_c[-1 if s > 0 else 0]))
     log.inlet_temp_c = np.nan_to_num(shifted(log.inlet_temp_c, s), nan=float(log.inlet_temp_c[-1 if s > 0 else 0]))
+    if log.cabin_temp_c is not None:
+        log.cabin_temp_c = np.nan_to_num(shifted(log.cabin_temp_c, s), nan=float(log.cabin_temp_c[-1 if s > 0 else 0]))
     for name in list(log.signals):
         if name in log.outputs or name in ("water_temp_c", "hvac_inlet_temp_c", "cabin_temp_c",
                                            "heater_outlet_temp_c", "heater_power_w"):

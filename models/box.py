@@ -174,6 +174,9 @@ class HvacModel:
 
         t_blower = t_in + sx["motor_rise_c"]
         t_cooler = chiller.cooler_outlet_c(t_blower, sx["water_temp_c"], prm)
+        if self.terms:  # discovered terms on the air leaving the core, before the split (models/discovered.py)
+            t_cooler = t_cooler + terms_at(self.terms, "cooler_out", dict(
+                t_in=t_in, t_blower=t_blower, t_water=sx["water_temp_c"], mass_flow=mass_flow, core_share=1.0 - b))
         p_el = heater.electric_power_w(su["heater_cmd_w"], sx["heater_temp_c"], prm, ptc="ptc_power_fall" in e)
         core_flow = (1.0 - b) * mass_flow
         t_heater_out = heater.air_outlet_c(sx["heater_temp_c"], t_cooler, core_flow, prm)
@@ -184,7 +187,7 @@ class HvacModel:
         if self.terms:
             t_supply = t_supply + terms_at(self.terms, "supply_air", dict(
                 t_mix=t_mix, t_in=t_in, t_blower=t_blower, t_water=sx["water_temp_c"], mass_flow=mass_flow,
-                core_share=1.0 - b, p_el=p_el))
+                core_share=1.0 - b, p_el=p_el, t_cabin=prm.cabin_temp_c))
         t_duct = sx[self.delay_states[-1]] if self.delay_states else t_supply
         outlet = valves.split_flows(flow, g)
         return dict(prm=prm, sx=sx, su=su, sd=sd, flow=flow, mass_flow=mass_flow, bypass=b,

@@ -4,8 +4,11 @@ A term is a named linear combination ``sum_i c_i f_i`` of features from :data:`F
 physically meaningful function of quantities the model already computes), added to one balance
 (:data:`LOCATIONS`). ``supply_air``: added to the mixed supply air temperature after mixing, i.e. an
 extra heat flow in the supply-air energy balance divided by the air's capacity flow
-(docs/model.md, "discovered terms"). The same feature functions serve numpy (identification) and
-CasADi (the model), so the term the identification fits is the term the controller predicts with.
+(docs/model.md, "discovered terms"). ``cooler_out``: added to the air leaving the cooler core, before
+the split between the heater path and the bypass, so it also changes the air entering the heater
+(docs/identification.md, "A term at the cooler core's outlet"); its features are the ones known there
+(:data:`COOLER_OUT_FEATURES`). The same feature functions serve numpy (identification) and CasADi
+(the model), so the term the identification fits is the term the controller predicts with.
 """
 
 from __future__ import annotations
@@ -15,7 +18,9 @@ from dataclasses import dataclass
 from typing import Any, Callable, Mapping
 
 #: Where a term can be added: name -> (what it changes, unit of the term).
-LOCATIONS = {"supply_air": ("mixed supply air temperature after mixing (supply-air energy balance)", "C")}
+LOCATIONS = {"supply_air": ("mixed supply air temperature after mixing (supply-air energy balance)", "C"),
+             "cooler_out": ("air temperature leaving the cooler core, before the split between heater path and "
+                            "bypass (cooler energy balance)", "C")}
 
 
 def _f(description: str, unit: str, fn: Callable[[Mapping[str, Any]], Any]) -> tuple[str, str, Callable]:
@@ -23,10 +28,11 @@ def _f(description: str, unit: str, fn: Callable[[Mapping[str, Any]], Any]) -> t
 
 
 #: Feature vocabulary: name -> (words, unit, function of the quantities ``q``). ``q`` keys:
-#: t_mix (C), t_in (C, inlet), t_blower (C, after the motor), t_water (C), mass_flow (kg/s),
-#: core_share (1 - bypass fraction), p_el (W, heater electric power).
+#: t_mix (C, not at ``cooler_out``), t_in (C, inlet), t_blower (C, after the motor), t_water (C), mass_flow (kg/s),
+#: core_share (1 - bypass fraction), p_el (W, heater electric power), t_cabin (C, cabin air: the logged
+#: cabin temperature in identification, ``Parameters.cabin_temp_c`` in the model).
 FEATURES: dict[str, tuple[str, str, Callable]] = {
-    "one": _f("a constant", "1", lambda q: 1.0 + 0.0 * q["t_mix"]),
+    "one": _f("a constant", "1", lambda q: 1.0 + 0.0 * q["t_in"]),
     "inv_mass_flow": _f("one over the mass flow", "s/kg", lambda q: 1.0 / q["mass_flow"]),
     "mix_over_mass_flow": _f("mixed air temperature over the mass flow", "C s/kg",
                              lambda q: q["t_mix"] / q["mass_flow"]),
@@ -44,7 +50,20 @@ FEATURES: dict[str, tuple[str, str, Callable]] = {
                           lambda q: q["t_mix"] * q["mass_flow"]),
     "heater_power_over_mass_flow": _f("heater electric power over the mass flow", "W s/kg",
                                       lambda q: q["p_el"] / q["mass_flow"]),
+    "cabin_minus_mix_over_mass_flow": _f("cabin minus mixed air temperature over the mass flow", "C s/kg",
+                                         lambda q: (q["t_cabin"] - q["t_mix"]) / q["mass_flow"]),
+    "core_in": _f("air temperature entering the cooler core (inlet plus motor rise)", "C", lambda q: q["t_blower"]),
+    "water": _f("water temperature", "C", lambda q: q["t_water"]),
+    "core_in_minus_water": _f("core inlet air minus water temperature", "C",
+                              lambda q: q["t_blower"] - q["t_water"]),
+    "core_in_minus_water_x_mass_flow": _f("core inlet air minus water temperature times the mass flow", "C kg/s",
+                                          lambda q: (q["t_blower"] - q["t_water"]) * q["mass_flow"]),
 }
+
+#: Features a ``cooler_out`` term may use: functions of the quantities known before the cooler core's outlet
+#: (t_in, t_blower, t_water, mass_flow, core_share).
+COOLER_OUT_FEATURES = ("one", "inlet", "core_in", "water", "core_in_minus_water", "mass_flow",
+                       "core_in_minus_water_x_mass_flow", "core_share")
 
 
 def coefficient_unit(feature: str, location: str = "supply_air") -> str:
@@ -72,6 +91,10 @@ class DiscoveredTerm:
         unknown = [f for f in self.features if f not in FEATURES]
         if unknown:
             raise ValueError(f"discovered term {self.name!r}: feature(s) {unknown} unknown; allowed: {list(FEATURES)}")
+        misplaced = [f for f in self.features if self.location == "cooler_out" and f not in COOLER_OUT_FEATURES]
+        if misplaced:
+            raise ValueError(f"discovered term {self.name!r}: feature(s) {misplaced} not known at the cooler outlet; "
+                             f"allowed there: {list(COOLER_OUT_FEATURES)}")
         if len(self.features) != len(self.coefficients):
             raise ValueError(f"discovered term {self.name!r}: {len(self.features)} features but "
                              f"{len(self.coefficients)} coefficients")

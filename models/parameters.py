@@ -81,6 +81,10 @@ class Parameters:
     transport_delay_s: float = _p(
         0.0, "ASSUMPTION dead time from the mixing point to the supply sensor; 0 in the thesis model, "
         "set from a parameter file or by identification", 0.0, 10.0)
+    cabin_temp_c: float = _p(
+        24.0, "ASSUMPTION cabin air around the supply duct, used only by a discovered term on the cabin "
+        "temperature (models/discovered.py); identification sets it to the logged cabin temperature's median",
+        -30.0, 60.0)
 
     # --- fan curve (plant effect 'fan_curve') ----------------------------------------
     fan_k_kg_m7: float = _p(
