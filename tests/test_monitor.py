@@ -135,3 +135,29 @@ def test_model_routes_of_the_api_load_refuse_and_roll_back(tmp_path):
     hashes = dict(zip(read_log(tmp_path / "log.csv")["time_s"], read_log(tmp_path / "log.csv")["model_hash"]))
     assert hashes[4.0] == BUILTIN_HASH and hashes[10.0] == model_hash(good) and hashes[20.0] == BUILTIN_HASH
     assert [e["action"] for e in daemon.status()["model"]["events"]] == ["load", "rollback"]
+
+
+def test_monitor_settings_come_from_the_daemon_configuration(tmp_path):
+    import dataclasses
+
+    from hvac_mpc.daemon.config import ConfigError, MonitorConfig
+
+    # the configuration's defaults are the monitor's
+    assert MonitorConfig().settings() == MonitorSettings()
+    assert set(MonitorConfig.model_fields) == {f.name for f in dataclasses.fields(MonitorSettings)}
+    data = {"loop": {"speedup": "max", "max_ticks": 80, "deadline_s": 30.0},
+            "log": {"path": str(tmp_path / "log.csv"), "fsync": False}, "api": {"enabled": False},
+            "controller": {"name": "baseline"}, "safety": {"cooldown_max_s": 5.0, "cooldown_min_s": 1.0},
+            "monitor": {"horizon_s": 20.0, "every_s": 5.0, "bound_supply_temp_c": 1e-3, "degraded_after": 2}}
+    daemon = Daemon(config_from_mapping(data))
+    daemon.run()
+    model = daemon.status()["model"]
+    # used: a 20 s window every 5 s, and a bound no real box meets makes the model degraded
+    assert model["horizon_s"] == 20.0 and model["bounds"]["supply_temp_c"] == 1e-3
+    assert model["evaluations"] >= 10 and model["state"] == "degraded"
+    for bad, named in ((("horizon_s", 1.0), "monitor.horizon_s = 1.0 is outside the allowed range [5.0, 3600.0]"),
+                       (("degraded_after", 0), "monitor.degraded_after = 0 is outside the allowed range [1, 1000]"),
+                       (("bound_volume_flow_m3s", "x"), "monitor.bound_volume_flow_m3s"),
+                       (("window_s", 5.0), "monitor.window_s: unknown key")):
+        with pytest.raises(ConfigError, match=named.replace("[", r"\[").replace("]", r"\]").replace(".", r"\.")):
+            config_from_mapping({"monitor": {bad[0]: bad[1]}})
