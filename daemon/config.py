@@ -410,8 +410,8 @@ class SafetyConfig(_Section):
 
 class MonitorConfig(_Section):
     """``[monitor]``: the model monitor's window, cadence and residual bounds (:class:`.monitor.MonitorSettings`;
-    docs/real-box.md, model monitoring). The bounds are ASSUMPTIONS: well above the sensor noise (0.05 C,
-    2e-4 m3/s) and above the error a 5-10 % parameter spread gives."""
+    docs/real-box.md, model monitoring). The default bounds are the monitor's ASSUMPTIONS
+    (:data:`.monitor.DEFAULT_BOUNDS`); a lab sets them from a run of its box."""
 
     horizon_s: float = _f(60.0, "free-run window of the horizon residual", 5.0, 3600.0)
     every_s: float = _f(10.0, "time between two horizon evaluations", 1.0, 3600.0)
