@@ -131,9 +131,12 @@ unsafe = false                # true allows min_flow_m3s = 0 and no interlock se
 [monitor]               # model monitor (docs/real-box.md, model monitoring)
 horizon_s = 60.0        # free-run window of the horizon residual
 every_s = 10.0          # one horizon evaluation this often
-bound_supply_temp_c = 1.0           # horizon RMS bounds (ASSUMPTIONS)
-bound_volume_flow_m3s = 0.005
-bound_heater_outlet_temp_c = 5.0
+bound_supply_temp_c = 4.6           # horizon RMS bounds (measured: 1.25 x healthy maximum)
+bound_volume_flow_m3s = 0.016
+bound_heater_outlet_temp_c = 26.0
+bound_one_step_supply_temp_c = 0.8  # one-step RMS bounds over the window (the same way)
+bound_one_step_volume_flow_m3s = 0.016
+bound_one_step_heater_outlet_temp_c = 26.0
 degraded_after = 3      # evaluations in a row beyond a bound -> "degraded"
 
 [reference]
@@ -410,15 +413,21 @@ class SafetyConfig(_Section):
 
 class MonitorConfig(_Section):
     """``[monitor]``: the model monitor's window, cadence and residual bounds (:class:`.monitor.MonitorSettings`;
-    docs/real-box.md, model monitoring). The default bounds are the monitor's ASSUMPTIONS
-    (:data:`.monitor.DEFAULT_BOUNDS`); a lab sets them from a run of its box."""
+    docs/real-box.md, model monitoring). The default bounds are 1.25 times the largest residual a healthy
+    simulated box gave (:data:`.monitor.DEFAULT_BOUNDS`); a lab sets them from a run of its box."""
 
     horizon_s: float = _f(60.0, "free-run window of the horizon residual", 5.0, 3600.0)
     every_s: float = _f(10.0, "time between two horizon evaluations", 1.0, 3600.0)
-    bound_supply_temp_c: float = _f(1.0, "bound on the supply temperature's horizon RMS residual", 1e-3, 100.0)
-    bound_volume_flow_m3s: float = _f(0.005, "bound on the volume flow's horizon RMS residual", 1e-6, 1.0)
-    bound_heater_outlet_temp_c: float = _f(5.0, "bound on the heater outlet temperature's horizon RMS residual",
+    bound_supply_temp_c: float = _f(4.6, "bound on the supply temperature's horizon RMS residual", 1e-3, 100.0)
+    bound_volume_flow_m3s: float = _f(0.016, "bound on the volume flow's horizon RMS residual", 1e-6, 1.0)
+    bound_heater_outlet_temp_c: float = _f(26.0, "bound on the heater outlet temperature's horizon RMS residual",
                                            1e-3, 100.0)
+    bound_one_step_supply_temp_c: float = _f(0.8, "bound on the supply temperature's one-step RMS residual over "
+                                                  "the window", 1e-3, 100.0)
+    bound_one_step_volume_flow_m3s: float = _f(0.016, "bound on the volume flow's one-step RMS residual over the "
+                                                      "window", 1e-6, 1.0)
+    bound_one_step_heater_outlet_temp_c: float = _f(26.0, "bound on the heater outlet temperature's one-step RMS "
+                                                          "residual over the window", 1e-3, 100.0)
     degraded_after: int = _f(3, "evaluations in a row beyond a bound before 'degraded' (and within before 'ok')",
                              1, 1000)
 
