@@ -214,9 +214,9 @@ class ModelMonitor:
         self.evaluations += 1
         self.horizon_rms_history.append((time_s, dict(self.horizon_rms)))
         self.one_step_rms_history.append((time_s, dict(self.one_step_window_rms)))
-        del self.one_step_rms_history[:-1000]
         if len(self.horizon_rms_history) > 1000:
             del self.horizon_rms_history[:500]
+            del self.one_step_rms_history[:500]
         if self.score() > 1.0:
             self._beyond += 1
             self._within = 0
