@@ -607,7 +607,6 @@ class Daemon:
         elif m is None:
             mode = "disconnected"
             cmd = safe_command(s)
-            self._ramp.arm()
             self.counters["disconnected_ticks"] += 1
         else:
             cm, unusable = self._sanitised(m, status)
@@ -617,7 +616,6 @@ class Daemon:
                 events.append("sensors:" + ",".join(unusable))
                 self.counters["safe_ticks"] += 1
                 self.chain.reset()
-                self._ramp.arm()  # bumpless when the sensors return: ramp from the readings (docs/real-box.md)
             elif op_mode == "safe-stop":
                 mode = used = "safe-stop"
                 cmd = safe_command(s, blower_w=max(self._last_cmd.blower_power_w, s.safe_blower_w))

@@ -2,7 +2,6 @@
 through the API over the real Modbus server with the reference changed between the switches."""
 
 import logging
-import math
 
 import pytest
 
@@ -78,44 +77,3 @@ def test_mode_switches_over_modbus_are_bumpless_with_the_reference_changed_betwe
     off = mode_transfer.run(tmp_path, ramp=False, seed=5)
     print(mode_transfer.format_result(off))
     assert off["switches"][2]["max_dT_10s_c"] > 2.0 and off["switches"][2]["max_step_over_limit"] <= 1.0 + 1e-9
-
-
-def test_after_a_safety_reset_the_controller_ramps_from_the_readings_to_the_reference_in_force(tmp_path):
-    """The supply sensor reads NaN for 15 s (safe command, controller reset) while the reference moves:
-    when it reads again, the working reference starts at that reading and ramps at
-    ``safety.transfer_ramp_c_per_s``, as after a mode switch; with the ramp off it is the reference at once."""
-    from hvac_mpc.daemon.config import config_from_mapping
-    from hvac_mpc.daemon.loop import Daemon
-
-    def run(ramp_c_per_s, ticks):
-        cfg = config_from_mapping({
-            "loop": {"speedup": "max", "max_ticks": ticks, "deadline_s": 30.0},
-            "log": {"path": str(tmp_path / f"log{ramp_c_per_s}.csv"), "fsync": False}, "api": {"enabled": False},
-            "controller": {"name": "baseline"}, "reference": {"supply_temp_c": 20.0, "volume_flow_m3s": 0.03},
-            "safety": {"cooldown_max_s": 2.0, "cooldown_min_s": 1.0, "transfer_ramp_c_per_s": ramp_c_per_s,
-                       "transfer_ramp_m3s_per_s": 0.0005 if ramp_c_per_s else 0.0},
-            "faults": [{"target": "sensor", "kind": "nan", "signal": "supply_temp_c", "start_s": 20.0,
-                        "end_s": 35.0}]})
-        samples = []
-
-        def hook(d, sample):
-            if sample["time_s"] == 25.0:
-                d.set_reference(Reference(16.0, 0.03))
-            samples.append(sample)
-
-        Daemon(cfg, tick_hook=hook).run()
-        return {s["time_s"]: s for s in samples}
-
-    ramped = run(0.03, 70)
-    assert ramped[30.0]["mode"] == "safe" and ramped[30.0]["working_reference"] is None
-    back = ramped[35.0]
-    assert back["mode"] != "safe" and back["ref_supply_temp_c"] == 16.0
-    gap = 16.0 - back["supply_temp_c"]
-    assert abs(gap) > 2.0  # the safe command has moved the box away from the reference in force
-    work = [ramped[t]["working_reference"]["supply_temp_c"] for t in (35.0, 36.0, 55.0, 69.0)]
-    assert work[0] == back["supply_temp_c"]  # starts at the reading of the return
-    step = math.copysign(0.03, gap)
-    assert work[1] == pytest.approx(work[0] + step) and work[2] == pytest.approx(work[0] + 20 * step)
-    assert work[3] == pytest.approx(work[0] + 34 * step)  # still on its way
-    at_once = run(0.0, 40)
-    assert at_once[35.0]["mode"] != "safe" and at_once[35.0]["working_reference"] is None
