@@ -106,11 +106,7 @@ def test_daemon_controls_the_plant_over_opcua_through_outage_bad_values_and_safe
             del server.sensor_override[signal]
             t1 = rec.last["time_s"]
             wait_until(lambda: rec.last["time_s"] >= t1 + 20, 20, "recovery", thread)
-            last = rec.last
-            assert last["mode"] not in ("disconnected", "safe") and not last["sensor_faults"]
-            # after the safety reset the MPC tracks a working reference ramping up from the readings
-            # (docs/real-box.md, operator modes), so it may hold the heater off for a while
-            assert last["heater_cmd_w"] > 0 or last["working_reference"]["supply_temp_c"] < 27.0, last
+            assert rec.last["heater_cmd_w"] > 0 and not rec.last["sensor_faults"]
         # 5. safe stop: heater off, blower on until cooled, then the blower to its minimum
         t_stop = rec.last["time_s"]
         daemon.request_stop("test")
