@@ -1068,102 +1068,21 @@ def bad_calibration_files(workdir: Path) -> list[Outcome]:
     return results
 
 
-def _steps_within_rates(samples: list[dict], t_switch: float, window_s: float, safety: SafetyConfig,
-                        dt_s: float = 1.0) -> list[str]:
-    rates = {"blower_power_w": safety.rate_blower_w_per_s, "heater_cmd_w": safety.rate_heater_w_per_s}
-    by_t = {s["time_s"]: s for s in samples}
-    out = []
-    for t in np.arange(t_switch + dt_s, t_switch + window_s + dt_s / 2, dt_s):
-        a, b = by_t.get(t - dt_s), by_t.get(t)
-        if a is None or b is None:
-            continue
-        for name in ("blower_power_w", "heater_cmd_w", "valve_a_pct", "valve_m_pct", "valve_f_pct", "valve_w_pct"):
-            lim = rates.get(name, safety.rate_valve_pct_per_s) * dt_s
-            if abs(b[name] - a[name]) > lim + 1e-6:
-                out.append(f"t = {t:.0f} s: {name} moved {abs(b[name] - a[name]):.1f} (limit {lim:.0f})")
-    return out
-
-
 def mode_switches_over_modbus(workdir: Path) -> Outcome:
     """MPC -> PID -> manual -> MPC through the API on the simulated plant behind the real Modbus
-    server, the reference held across each switch and changed between them: no actuator faster
-    than its rate limit at a switch, the supply temperature within 0.5 C of its value at the
-    switch for the next 10 s; in manual, heater on at low flow is refused and logged."""
-    from hvac_mpc.daemon.modbus_sim import PlantModbusServer
-    from hvac_mpc.models.plant import SimulatedPlant
+    server (:mod:`.mode_transfer`): the reference held across each switch and changed between them,
+    the last time in manual; no actuator faster than its rate limit after a switch, the supply
+    temperature within 0.5 C of its value at the switch for the next 10 s; in manual, heater on at
+    starved flow refused and logged."""
+    from . import mode_transfer
 
-    port = free_port()
-    server = PlantModbusServer(SimulatedPlant(seed=5), port=port).start()
-    switches = {250.0: "auto-pid", 500.0: "manual", 750.0: "auto-mpc"}
-    state: dict[str, Any] = {"answers": {}}
-
-    def hook(d, sample):
-        t = sample["time_s"]
-        token = state.setdefault("token", token_path(d.cfg).read_text().strip())
-        port_ = d.api.port
-
-        def put(path, body):
-            return _request(port_, "PUT", path, json.dumps(body).encode(), token=token)
-
-        if t in switches and t < 700:
-            state["answers"][t] = put("/mode", {"mode": switches[t]})
-        elif 700.0 <= t and "back" not in state and (
-                abs(sample["supply_temp_c"] - sample["ref_supply_temp_c"]) <= 0.2 or t >= 850.0):
-            # the operator hands back to the MPC once the box has settled near the reference again
-            state["back"] = t
-            switches[t] = switches.pop(750.0)
-            state["answers"][t] = put("/mode", {"mode": "auto-mpc"})
-        elif t == 350.0:
-            put("/reference", {"supply_temp_c": 17.0, "volume_flow_m3s": 0.035})  # changed between switches
-        elif t == 500.0 + 20:
-            state["held"] = {k: sample[k] for k in ("blower_power_w", "valve_m_pct", "valve_f_pct", "valve_w_pct",
-                                                     "heater_cmd_w", "valve_a_pct")}
-            state["answers"]["low_flow"] = put("/manual", {"blower_power_w": 30.0, "valve_m_pct": 0.0,
-                                                           "valve_f_pct": 0.0, "valve_w_pct": 0.0,
-                                                           "heater_cmd_w": 0.0})
-        elif t == 500.0 + 50:
-            state["answers"]["heater_at_low_flow"] = put("/manual", {"heater_cmd_w": 200.0})
-            state["flow_at_refusal"] = sample["volume_flow_m3s"]
-        elif t == 500.0 + 60:
-            state["answers"]["restore_flow"] = put("/manual", {k: v for k, v in state["held"].items()
-                                                               if k != "heater_cmd_w"})
-        elif t == 500.0 + 80:
-            state["answers"]["restore_heater"] = put("/manual", {"heater_cmd_w": state["held"]["heater_cmd_w"]})
-
-    cfg = _config(workdir, "mode_switches", "mpc", [], ticks=900 + 40,
-                  reference={"supply_temp_c": 20.0, "volume_flow_m3s": 0.03},
-                  extra={"backend": {"kind": "modbus", "modbus": {"port": port, "timeout_s": 0.5}},
-                         "api": {"enabled": True, "port": 0}, "loop": {"deadline_s": 0.5}})
-    try:
-        d, code, samples = _run_inprocess(cfg, hook)
-    finally:
-        server.stop()
-    o = Outcome("modes_mpc_pid_manual_mpc_over_modbus", "modes", code, rows=len(samples))
-    o.violations = check_log(cfg.log.path, cfg.safety)
-    by_t = {s["time_s"]: s for s in samples}
-    worst = {}
-    for ts, mode in switches.items():
-        answer = state["answers"].get(ts, (0, None))
-        if answer[0] != 200:
-            o.violations.append(f"switch to {mode} at {ts:.0f} s answered {answer}")
-        o.violations += _steps_within_rates(samples, ts, 30.0, cfg.safety)
-        t0 = by_t[ts]["supply_temp_c"]
-        dev = max(abs(by_t[ts + k]["supply_temp_c"] - t0) for k in range(1, 11))
-        worst[mode] = dev
-        if dev > 0.5:
-            o.violations.append(f"supply temperature moved {dev:.2f} C within 10 s of the switch to {mode}")
-    refused = state["answers"].get("heater_at_low_flow", (0, {}))
-    if refused[0] != 409 or "heater refused" not in str(refused[1]):
-        o.violations.append(f"heater at low flow answered {refused}")
-    if any(by_t[t]["heater_cmd_w"] > 0 for t in np.arange(550.0, 561.0)):
-        o.violations.append("heater on after the refusal while the manual setting starved the flow")
-    history = [h["to"] for h in d.status()["mode_history"]]
-    if history != ["auto-pid", "manual", "auto-mpc"] or d.counters["manual_refused"] != 1:
-        o.violations.append(f"mode history {history}, refused {d.counters['manual_refused']}")
-    o.detected = int(refused[0] == 409)
-    o.notes = ("max |dT| 10 s after switch: " + ", ".join(f"{m} {v:.2f} C" for m, v in worst.items())
-               + f"; back to MPC at {state.get('back', float('nan')):.0f} s"
-               + f"; refused at flow {state.get('flow_at_refusal', float('nan')):.4f} m3/s")
+    r = mode_transfer.run(workdir)
+    o = Outcome("modes_mpc_pid_manual_mpc_over_modbus", "modes", r["exit_code"], rows=r["rows"])
+    o.violations = r["violations"] + check_log(r["log"], r["safety"])
+    o.detected = int(r["refusal_answer"][0] == 409)
+    o.notes = ("max |dT| 10 s after switch: " + ", ".join(f"{s['to']} {s['max_dT_10s_c']:.2f} C (gap "
+                                                          f"{s['gap_c']:+.1f} C)" for s in r["switches"])
+               + f"; refused at flow {r['refused_flow_m3s']:.4f} m3/s")
     return o
 
 

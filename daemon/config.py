@@ -12,6 +12,7 @@ Sections (all optional; defaults below)::
     [calibration] file (raw device signals, docs/fieldbus.md); [systemd] enabled, stall_s, ping_interval_s
     [safety]      interlock limits, sensor checks, rate limits, cool-down and reconnect timing,
                   ``unsafe`` (the explicit, logged override of the safety bounds)
+    [monitor]     the model monitor: horizon_s, every_s, residual bounds, degraded_after
     [reference]   the initial reference (fields of :class:`hvac_mpc.contract.Reference`)
     [[faults]]    fault injection (tests, commissioning): target, kind, start_s, end_s, signal, value,
                   delay_s; see :data:`FAULT_KINDS`
@@ -123,7 +124,20 @@ rate_blower_w_per_s = 60.0    # manual mode and the transfer after a mode switch
 rate_heater_w_per_s = 60.0
 rate_valve_pct_per_s = 20.0
 transfer_s = 30.0
+transfer_ramp_c_per_s = 0.03      # after a switch: reference ramps from the reading (0 = at once)
+transfer_ramp_m3s_per_s = 0.0005
 unsafe = false                # true allows min_flow_m3s = 0 and no interlock sensor (logged)
+
+[monitor]               # model monitor (docs/real-box.md, model monitoring)
+horizon_s = 60.0        # free-run window of the horizon residual
+every_s = 10.0          # one horizon evaluation this often
+bound_supply_temp_c = 4.6           # horizon RMS bounds (measured: 1.25 x healthy maximum)
+bound_volume_flow_m3s = 0.016
+bound_heater_outlet_temp_c = 26.0
+bound_one_step_supply_temp_c = 0.8  # one-step RMS bounds over the window (the same way)
+bound_one_step_volume_flow_m3s = 0.016
+bound_one_step_heater_outlet_temp_c = 26.0
+degraded_after = 3      # evaluations in a row beyond a bound -> "degraded"
 
 [reference]
 supply_temp_c = 20.0
@@ -352,6 +366,13 @@ class SafetyConfig(_Section):
     rate_valve_pct_per_s: float = _f(20.0, "valve rate limit in manual mode and at a mode switch", 0.5, 100.0)
     transfer_s: float = _f(30.0, "after a switch to an automatic mode the command is rate-limited this long",
                            0.0, 600.0)
+    transfer_ramp_c_per_s: float = _f(
+        0.03, "ASSUMPTION after a switch to an automatic mode the controller's supply temperature reference "
+              "starts at the reading and ramps to the reference in force at this rate (1.8 C/min: 0.3 C in "
+              "the 10 s after a switch); 0 = the reference at once", 0.0, 10.0)
+    transfer_ramp_m3s_per_s: float = _f(
+        0.0005, "ASSUMPTION the same ramp for the volume flow reference (0.03 m3/s per min); 0 = at once",
+        0.0, 1.0)
     unsafe: bool = _f(False, "allow min_flow_m3s = 0 and an empty interlock_sensors (logged at every start)")
 
     @field_validator("sensor_ranges")
@@ -388,6 +409,33 @@ class SafetyConfig(_Section):
         if not self.interlock_sensors:
             out.append("interlock_sensors = []")
         return out
+
+
+class MonitorConfig(_Section):
+    """``[monitor]``: the model monitor's window, cadence and residual bounds (:class:`.monitor.MonitorSettings`;
+    docs/real-box.md, model monitoring). The default bounds are 1.25 times the largest residual a healthy
+    simulated box gave (:data:`.monitor.DEFAULT_BOUNDS`); a lab sets them from a run of its box."""
+
+    horizon_s: float = _f(60.0, "free-run window of the horizon residual", 5.0, 3600.0)
+    every_s: float = _f(10.0, "time between two horizon evaluations", 1.0, 3600.0)
+    bound_supply_temp_c: float = _f(4.6, "bound on the supply temperature's horizon RMS residual", 1e-3, 100.0)
+    bound_volume_flow_m3s: float = _f(0.016, "bound on the volume flow's horizon RMS residual", 1e-6, 1.0)
+    bound_heater_outlet_temp_c: float = _f(26.0, "bound on the heater outlet temperature's horizon RMS residual",
+                                           1e-3, 100.0)
+    bound_one_step_supply_temp_c: float = _f(0.8, "bound on the supply temperature's one-step RMS residual over "
+                                                  "the window", 1e-3, 100.0)
+    bound_one_step_volume_flow_m3s: float = _f(0.016, "bound on the volume flow's one-step RMS residual over the "
+                                                      "window", 1e-6, 1.0)
+    bound_one_step_heater_outlet_temp_c: float = _f(26.0, "bound on the heater outlet temperature's one-step RMS "
+                                                          "residual over the window", 1e-3, 100.0)
+    degraded_after: int = _f(3, "evaluations in a row beyond a bound before 'degraded' (and within before 'ok')",
+                             1, 1000)
+
+    def settings(self):
+        """The :class:`hvac_mpc.daemon.monitor.MonitorSettings` of this section."""
+        from .monitor import MonitorSettings
+
+        return MonitorSettings(**self.model_dump())
 
 
 FAULT_KINDS = {
@@ -443,6 +491,7 @@ class DaemonConfig(_Section):
     base_dir: str = "."
     systemd: SystemdConfig = Field(default_factory=SystemdConfig)
     calibration: CalibrationConfig = Field(default_factory=CalibrationConfig)
+    monitor: MonitorConfig = Field(default_factory=MonitorConfig)
 
     @field_validator("reference", mode="before")
     @classmethod

@@ -50,7 +50,8 @@ from .backends import BackendError, IoBackend, make_backend
 from .config import SENSOR_FIELDS, DaemonConfig, resolve
 from .controllers import ControllerChain, FaultInjectingController, load_controller
 from .log_writer import DurableLog, utc_now_iso
-from .modes import AUTO_CONTROLLERS, MODES, ModeChange, ModeError, heater_refusal, initial_mode, rate_limited
+from .modes import (AUTO_CONTROLLERS, MODES, ModeChange, ModeError, ReferenceRamp, heater_refusal, initial_mode,
+                    rate_limited)
 from .monitor import ModelInForce, ModelLoadError, ModelSlots, MonitorSettings, read_model
 from .safety import HeaterEstimator, HeaterInterlock, SensorMonitor, SensorStatus, safe_command
 from .watchdog import start_watchdog
@@ -114,10 +115,11 @@ class Daemon:
                  tick_hook: Callable[["Daemon", dict], None] | None = None,
                  initial_command: Command | None = None, monitor: MonitorSettings | None = None):
         """``initial_command``: the command in force on the box when the daemon starts (default: the
-        safe command); ``monitor``: settings of the model monitor (:mod:`.monitor`)."""
+        safe command); ``monitor``: settings of the model monitor (:mod:`.monitor`; default: the
+        configuration's ``[monitor]``)."""
         self.cfg = config
         self.dt = config.loop.period_s
-        self.monitor_settings = monitor or MonitorSettings()
+        self.monitor_settings = monitor or config.monitor.settings()
         pfile, mfile = config.controller.parameters_file, config.controller.model_file
         self.refined = load_refined_model(resolve(config, mfile)) if mfile else None
         source = mfile or pfile
@@ -154,6 +156,7 @@ class Daemon:
         self._switched = False
         self._manual_target: Command | None = None
         self._transfer_until_s = -math.inf
+        self._ramp = ReferenceRamp(config.safety.transfer_ramp_c_per_s, config.safety.transfer_ramp_m3s_per_s)
         self.mode_history: deque[ModeChange] = deque(maxlen=200)
         if config.safety.unsafe_overrides():
             LOG.warning("UNSAFE configuration (safety.unsafe = true): %s", ", ".join(config.safety.unsafe_overrides()))
@@ -620,7 +623,8 @@ class Daemon:
                 mode = used = "manual"
                 cmd = rate_limited(manual_target, self._last_cmd, s, self.dt)
             else:
-                outcome = self.chain.step(cm, ref, self._last_cmd)
+                working = self._ramp.working(cm, ref, self.dt)  # bumpless: ramps after a switch
+                outcome = self.chain.step(cm, working, self._last_cmd)
                 events += outcome.events
                 stats = outcome.stats
                 self.counters["max_step_time_s"] = max(self.counters["max_step_time_s"], outcome.step_time_s)
@@ -669,7 +673,8 @@ class Daemon:
                        "stale": bool(status.stale) if status else None, "events": events,
                        "connected": self.connected, "heater_estimate_c": round(self.estimator.temp_c, 3),
                        "solver_status": stats.get("status"), "inner_fallback": stats.get("fallback"),
-                       "out_of_reach": dict(stats.get("out_of_reach") or {})})
+                       "out_of_reach": dict(stats.get("out_of_reach") or {}),
+                       "working_reference": self._ramp.status()})
         with self._lock:
             self.latest = {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
                            for k, v in sample.items()}
@@ -681,11 +686,16 @@ class Daemon:
 
     def _switch_to(self, op_mode: str) -> None:
         """Apply a mode switch in the loop thread: the new chain is reset (its controller starts
-        from the command in force) and the transfer window begins."""
+        from the command in force), the transfer window begins and, into an automatic mode, the
+        reference ramp from the readings (:class:`.modes.ReferenceRamp`)."""
         if op_mode in self.chains:
             self.chain = self.chains[op_mode]
             self.chain.reset()
         self._transfer_until_s = self.time_s + self.cfg.safety.transfer_s
+        if op_mode in AUTO_CONTROLLERS or op_mode == "auto":
+            self._ramp.arm()
+        else:
+            self._ramp.cancel()
 
     def _count_stats(self, stats: dict[str, Any]) -> None:
         """Count the controller's own solver statuses and fallbacks (bounded number of keys)."""

@@ -11,19 +11,25 @@ Modes (switched at runtime through the authenticated API, ``PUT /mode``, or ``hv
 Bumpless transfer: the controller switched in is reset with the command in force (the baseline
 presets its integrators from it, the MPC starts its rate limits and warm start from it and its
 estimator from the next measurement), and for ``safety.transfer_s`` after the switch every
-actuator is rate-limited (``safety.rate_*``) from the command in force. In manual mode the
-operator's setting is approached at the same rates. The interlock and every safety bound act in
-every mode; a manual heater command the interlock would refuse is refused at once with the reason.
+actuator is rate-limited (``safety.rate_*``) from the command in force. The reference may have
+changed while the box was in another mode, so the controller switched in does not get it at once:
+its working reference starts at the readings of the switch (supply temperature, volume flow) and
+ramps to the reference in force at ``safety.transfer_ramp_c_per_s`` and
+``transfer_ramp_m3s_per_s`` (:class:`ReferenceRamp`; docs/real-box.md, operator modes). In manual
+mode the operator's setting is approached at the same actuator rates. The interlock and every
+safety bound act in every mode; a manual heater command the interlock would refuse is refused at
+once with the reason.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, replace
 from typing import Any, Literal, Mapping
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from hvac_mpc.contract import INPUTS, Command
+from hvac_mpc.contract import INPUTS, REFERENCE_RANGES, Command, Measurement, Reference
 from hvac_mpc.validation import describe_error
 
 from .config import SafetyConfig
@@ -137,3 +143,75 @@ class ModeChange:
 
     def as_dict(self) -> dict[str, Any]:
         return {"utc": self.utc, "time_s": self.time_s, "from": self.old, "to": self.new, "client": self.client}
+
+
+def _toward(value: float, target: float, step: float) -> float:
+    return min(max(target, value - step), value + step)
+
+
+class ReferenceRamp:
+    """The working reference of a controller switched in (setpoint tracking with a ramp).
+
+    ``arm()`` at a switch into an automatic mode; the next ``working()`` starts the ramp at that
+    sample's readings (supply temperature and volume flow, clipped to the reference ranges) and
+    each call moves it towards the reference in force by at most ``rate * dt_s``, the outlet
+    flows in the target's shares of the working total. When it has reached the target the ramp
+    ends and the target passes through unchanged. A rate of 0 switches the ramp off (the
+    reference in force at once)."""
+
+    def __init__(self, rate_c_per_s: float, rate_m3s_per_s: float):
+        self.rate_c_per_s = float(rate_c_per_s)
+        self.rate_m3s_per_s = float(rate_m3s_per_s)
+        self._armed = False
+        self._temp_c: float | None = None
+        self._flow_m3s: float | None = None
+
+    @property
+    def active(self) -> bool:
+        return self._temp_c is not None
+
+    def arm(self) -> None:
+        """A switch into an automatic mode: the next working reference starts at the readings."""
+        self._armed = self.rate_c_per_s > 0.0 or self.rate_m3s_per_s > 0.0
+        self._temp_c = self._flow_m3s = None
+
+    def cancel(self) -> None:
+        """Leave the ramp (a switch to manual or safe-stop)."""
+        self._armed = False
+        self._temp_c = self._flow_m3s = None
+
+    def working(self, m: Measurement, target: Reference, dt_s: float) -> Reference:
+        """The reference the controller gets this sample (``target`` once the ramp has ended)."""
+        if self._armed:
+            self._armed = False
+            self._temp_c = _start(m.supply_temp_c, target.supply_temp_c, "supply_temp_c", self.rate_c_per_s)
+            self._flow_m3s = _start(m.volume_flow_m3s, target.volume_flow_m3s, "volume_flow_m3s",
+                                    self.rate_m3s_per_s)
+            step_c = step_f = 0.0  # the first sample holds the readings of the switch
+        else:
+            step_c, step_f = self.rate_c_per_s * dt_s, self.rate_m3s_per_s * dt_s
+        if self._temp_c is None or self._flow_m3s is None:
+            return target
+        self._temp_c = _toward(self._temp_c, target.supply_temp_c, step_c)
+        self._flow_m3s = _toward(self._flow_m3s, target.volume_flow_m3s, step_f)
+        if self._temp_c == target.supply_temp_c and self._flow_m3s == target.volume_flow_m3s:
+            self._temp_c = self._flow_m3s = None
+            return target
+        split = target.split
+        if split is None:
+            return replace(target, supply_temp_c=self._temp_c, volume_flow_m3s=self._flow_m3s)
+        return Reference.from_split(self._temp_c, self._flow_m3s, split)
+
+    def status(self) -> dict[str, Any] | None:
+        """The working values while the ramp runs (None otherwise)."""
+        if self._temp_c is None:
+            return None
+        return {"supply_temp_c": self._temp_c, "volume_flow_m3s": self._flow_m3s}
+
+
+def _start(reading: float | None, target: float, name: str, rate: float) -> float:
+    """Where a ramp starts: the reading (in the reference's range), or the target without a ramp."""
+    if rate <= 0.0 or reading is None or not math.isfinite(reading):
+        return target
+    lo, hi = REFERENCE_RANGES[name]
+    return min(max(float(reading), lo), hi)

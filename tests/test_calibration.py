@@ -27,6 +27,14 @@ def test_thesis_table_1_round_trip_both_directions():
         for pct in (0.0, 12.5, 50.0, 87.3, 100.0):  # through the fieldbus counts and back
             assert abs(m.from_count(m.to_count(pct)) - pct) <= m.eng_per_count(pct)
     assert [n for n in TABLE_1 if cal.actuators[n].reversed] == ["valve_w_pct"]
+    # the same through the Modbus holding registers the daemon writes and the device decodes: 0 % and
+    # 100 % are table 1's duty cycles to the count (1e-5), and decode back to 0 % and 100 %
+    for name, (open_, closed) in TABLE_1.items():
+        i = INPUTS.index(name)
+        for pct, duty in ((100.0, open_), (0.0, closed)):
+            regs = encode_command(Command(**{name: pct}), 0, cal)
+            assert regs[i] == round(duty / 1e-5)
+            assert getattr(decode_command(regs, cal)[0], name) == pytest.approx(pct, abs=1e-9)
     # a raw signal rises with the opening for a, m, f and falls for w
     assert cal.actuators["valve_w_pct"].to_raw(25.0) > cal.actuators["valve_w_pct"].to_raw(75.0)
     assert cal.actuators["valve_m_pct"].to_raw(25.0) < cal.actuators["valve_m_pct"].to_raw(75.0)

@@ -16,7 +16,6 @@ from hvac_mpc.contract import INPUTS, Command, Measurement, Reference
 from hvac_mpc.daemon.excitation import ExcitationController, ExcitationSpec, InvalidExcitation, targets
 from hvac_mpc.daemon.loop import Daemon
 from hvac_mpc.daemon.monitor import BUILTIN_HASH, model_hash
-from hvac_mpc.identification import identify, write_model_file
 from hvac_mpc.identification.log_data import load
 from hvac_mpc.mismatch import make_plant
 from hvac_mpc.models.measurement_log import COLUMNS, LogWriter, read_log
@@ -113,55 +112,78 @@ def test_two_experiments_and_a_report_give_the_bench_ratios(tmp_path, capsys):
     for c, log in zip(("baseline", "mpc"), logs):
         applied = np.column_stack([read_log(log)[a][:150] for a in INPUTS])
         np.testing.assert_allclose(applied, traces[name][c].applied, atol=1e-9)
-    # ratios: energy exactly, temperature IAE within the noise band the report states
-    assert rep["ratios"]["energy_wh"] == pytest.approx(ref["ratios"]["energy_wh"], rel=1e-9)
-    lo, hi = rep["ratio_noise"]["temp_iae_cs"]
-    assert lo <= ref["ratios"]["temp_iae_cs"] <= hi
+    with capsys.disabled():
+        print("\nratio MPC / baseline: report (noise band it states) | bench")
+        for k, v in rep["ratios"].items():
+            print(f"  {k}: {v} ({rep['ratio_noise'].get(k)}) | {ref['ratios'][k]}")
+    # ratios of the commands (no sensor noise in them): exactly the bench's
+    for k in ("energy_wh", "blower_wh", "travel_mean"):
+        assert rep["ratios"][k] == pytest.approx(ref["ratios"][k], rel=1e-9), k
+    # ratios of the readings: the bench's within the noise band the report states, or the report says
+    # that the noise leaves the ratio without a band
+    text = (tmp_path / "report" / "report.md").read_text()
+    for fig, band in rep["ratio_noise"].items():
+        if band is None:
+            assert f"ratio {fig}" in text and "no noise band" in text
+        else:
+            assert band[0] <= ref["ratios"][fig] <= band[1], (fig, band, ref["ratios"][fig])
+    assert rep["ratio_noise"]["temp_iae_cs"] is not None
     assert abs(rep["ratios"]["temp_iae_cs"] - ref["ratios"]["temp_iae_cs"]) < 0.1
     assert [c["status"] for c in rep["criteria"]][0] == [c["status"] for c in ref["criteria"]][0]
-    assert "noise band" in (tmp_path / "report" / "report.md").read_text()
 
 
 @pytest.mark.slow
-def test_excitation_identify_and_runtime_load_halve_the_online_residual(tmp_path):
-    """Excitation on the independent box with a weaker blower -> identify on the daemon's log ->
-    the model loaded while the daemon runs: the monitor's flow residual falls by more than half."""
-    def excitation_run(log, seed, ticks, hook=None):
-        cfg = experiment_config({}, tmp_path, log, EXCITATION_CONTROLLER,
-                                {"kind": "steps", "seed": seed, "duration_s": float(ticks)}, ticks,
-                                {"supply_temp_c": 20.0, "volume_flow_m3s": 0.03}, simulated=True)
-        plant = make_plant("blower_weak", seed=seed, inlet_temp_c=28.0, chiller_setpoint_c=5.0,
-                           initial_command=Command(150.0, 0.0, 50.0, 100.0, 100.0, 100.0))
-        d = Daemon(cfg, backend=PlantBackend(plant), tick_hook=hook, initial_command=plant.command)
-        d.run()
-        return d
-
+def test_excitation_identify_and_runtime_load_halve_the_online_residual(tmp_path, capsys):
+    """The issue's check: ``hvac-mpc experiment --excitation`` on the independent box with a weaker
+    blower (hvac_mpc.mismatch: the effect in the box's own equations) -> ``hvac-mpc identify`` on the
+    daemon's log as it is -> the model loaded while a daemon runs: the monitor's online flow
+    residual falls by at least half, and the log rows show the change of model hash."""
     first = tmp_path / "excitation.csv"
-    excitation_run(first, 1, 1200)
-    data = load(first)  # the daemon's log as it is: text columns, shutdown rows
+    assert cli.main(["experiment", "--excitation", "steps", "--plant", "blower_weak", "--seed", "1",
+                     "--duration", "1200", "--log", str(first)]) == 0
+    data = load(first)  # what identify reads: the daemon's log with its text columns and shutdown rows
     assert data.n >= 1200 and "volume_flow_m3s" in data.outputs
-    res = identify(data, quick=True)
-    err = res.holdout_errors()["volume_flow_m3s"]
-    assert err["rms_after"] <= 0.5 * err["rms_before"]
-    model = write_model_file(tmp_path / "model.toml", res.params, res.effects, res.extras)
-    before, after = [], []
+    out = tmp_path / "identified"
+    assert cli.main(["identify", str(first), "--quick", "--no-plots", "--quiet", "--out", str(out)]) == 0
+    err = json.loads((out / "summary.json").read_text())["holdout_errors"]["volume_flow_m3s"]
+    model = out / "model.toml"
+    capsys.readouterr()
+    seen: dict = {"before": [], "after": [], "one_before": [], "one_after": []}
 
     def hook(d, sample):
-        rms = d.status()["model"]["horizon_rms"]["volume_flow_m3s"]
+        st = d.status()["model"]
+        rms, one = st["horizon_rms"]["volume_flow_m3s"], st["one_step_rms"]["volume_flow_m3s"]
         if sample["time_s"] == 300.0:
+            seen["state_before"] = st["state"]
             d.load_model(model, client="lab")
         elif 120.0 <= sample["time_s"] < 300.0 and rms is not None:
-            before.append(rms)
+            seen["before"].append(rms)
+            seen["one_before"].append(one)
         elif sample["time_s"] >= 420.0 and rms is not None:
-            after.append(rms)
+            seen["after"].append(rms)
+            seen["one_after"].append(one)
+            seen["state_after"] = st["state"]
 
-    second = tmp_path / "second.csv"
-    excitation_run(second, 2, 600, hook)
-    assert len(before) > 100 and len(after) > 100
-    print(f"flow horizon RMS: {np.mean(before):.5f} m3/s before, {np.mean(after):.5f} m3/s after the load")
-    assert np.mean(after) <= 0.5 * np.mean(before), (np.mean(before), np.mean(after))
-    log = read_log(second)
+    cfg = experiment_config({}, tmp_path, tmp_path / "second.csv", EXCITATION_CONTROLLER,
+                            {"kind": "steps", "seed": 2, "duration_s": 600.0}, 600,
+                            {"supply_temp_c": 20.0, "volume_flow_m3s": 0.03}, simulated=True)
+    plant = make_plant("blower_weak", seed=2, inlet_temp_c=28.0, chiller_setpoint_c=5.0,
+                       initial_command=Command(150.0, 0.0, 50.0, 100.0, 100.0, 100.0))
+    d = Daemon(cfg, backend=PlantBackend(plant), tick_hook=hook, initial_command=plant.command)
+    d.run()
+    before, after = np.mean(seen["before"]), np.mean(seen["after"])
+    one_before, one_after = np.mean(seen["one_before"]), np.mean(seen["one_after"])
+    with capsys.disabled():
+        print(f"\nidentify hold-out flow RMS {err['rms_before']:.5f} -> {err['rms_after']:.5f} m3/s; online flow "
+              f"residual, horizon RMS {before:.5f} -> {after:.5f} m3/s ({after / before:.2f}), one-step RMS "
+              f"{one_before:.5f} -> {one_after:.5f} m3/s ({one_after / one_before:.2f}); monitor "
+              f"{seen['state_before']} -> {seen['state_after']}")
+    assert len(seen["before"]) > 100 and len(seen["after"]) > 100
+    assert after <= 0.5 * before, (before, after)
+    assert one_after < one_before
+    log = read_log(tmp_path / "second.csv")
     h = model_hash(model)
+    assert h != BUILTIN_HASH and d.status()["model"]["events"][0]["to_hash"] == h
     assert set(log["model_hash"][log["time_s"] <= 300.0]) == {BUILTIN_HASH}
     assert set(log["model_hash"][log["time_s"] >= 301.0]) == {h}
     assert math.isfinite(np.nanmean(log["volume_flow_m3s"]))

@@ -135,3 +135,64 @@ def test_model_routes_of_the_api_load_refuse_and_roll_back(tmp_path):
     hashes = dict(zip(read_log(tmp_path / "log.csv")["time_s"], read_log(tmp_path / "log.csv")["model_hash"]))
     assert hashes[4.0] == BUILTIN_HASH and hashes[10.0] == model_hash(good) and hashes[20.0] == BUILTIN_HASH
     assert [e["action"] for e in daemon.status()["model"]["events"]] == ["load", "rollback"]
+
+
+def test_monitor_settings_come_from_the_daemon_configuration(tmp_path):
+    import dataclasses
+
+    from hvac_mpc.daemon.config import ConfigError, MonitorConfig
+
+    # the configuration's defaults are the monitor's
+    assert MonitorConfig().settings() == MonitorSettings()
+    assert set(MonitorConfig.model_fields) == {f.name for f in dataclasses.fields(MonitorSettings)}
+    data = {"loop": {"speedup": "max", "max_ticks": 80, "deadline_s": 30.0},
+            "log": {"path": str(tmp_path / "log.csv"), "fsync": False}, "api": {"enabled": False},
+            "controller": {"name": "baseline"}, "safety": {"cooldown_max_s": 5.0, "cooldown_min_s": 1.0},
+            "monitor": {"horizon_s": 20.0, "every_s": 5.0, "bound_supply_temp_c": 1e-3, "degraded_after": 2}}
+    daemon = Daemon(config_from_mapping(data))
+    daemon.run()
+    model = daemon.status()["model"]
+    # used: a 20 s window every 5 s, and a bound no real box meets makes the model degraded
+    assert model["horizon_s"] == 20.0 and model["bounds"]["supply_temp_c"] == 1e-3
+    assert model["evaluations"] >= 10 and model["state"] == "degraded"
+    for bad, named in ((("horizon_s", 1.0), "monitor.horizon_s = 1.0 is outside the allowed range [5.0, 3600.0]"),
+                       (("degraded_after", 0), "monitor.degraded_after = 0 is outside the allowed range [1, 1000]"),
+                       (("bound_volume_flow_m3s", "x"), "monitor.bound_volume_flow_m3s"),
+                       (("window_s", 5.0), "monitor.window_s: unknown key")):
+        with pytest.raises(ConfigError, match=named.replace("[", r"\[").replace("]", r"\]").replace(".", r"\.")):
+            config_from_mapping({"monitor": {bad[0]: bad[1]}})
+
+
+def test_default_bounds_keep_the_independent_nominal_box_ok_and_flag_a_failing_blower():
+    """Open-loop steps on the independent box (hvac_mpc.mismatch), default bounds (docs/real-box.md, model
+    monitoring): the nominal box stays ``ok`` on every evaluation; a blower giving half its flow per watt
+    (its own equations) is flagged through the volume flow, within 100 s."""
+    from hvac_mpc.mismatch import Variant
+
+    healthy = run_monitor(ModelMonitor(), "nominal")
+    assert healthy.evaluations >= 30 and healthy.state == "ok"
+    b, b1 = healthy.settings.bounds, healthy.settings.one_step_bounds
+    assert all(h[o] < b[o] for _, h in healthy.horizon_rms_history for o in b)
+    assert all(h[o] < b1[o] for _, h in healthy.one_step_rms_history for o in b1)
+    failing = run_monitor(ModelMonitor(), Variant(blower_gain_scale=0.5))
+    assert failing.state == "degraded" and failing.scores()["volume_flow_m3s"] > 1.0
+    first = next(t for t, h in failing.horizon_rms_history if h["volume_flow_m3s"] > b["volume_flow_m3s"])
+    assert first <= 100.0
+    assert failing.status()["one_step_bounds"] == b1 and failing.status()["one_step_window_rms"]["volume_flow_m3s"] > 0
+
+
+@pytest.mark.slow
+def test_default_bounds_keep_the_bench_plant_ok_through_a_closed_loop_scenario():
+    """The false alarm the old bounds gave: the daemon runs the baseline on the bench's own plant (parameters
+    perturbed 5-10 %, all plant effects, noise) through summer_cooling_steps; with the default bounds the
+    monitor never leaves ``ok`` (the old ones, supply 1 C and flow 0.005 m3/s horizon RMS, went
+    ``degraded`` at 81 s)."""
+    import logging
+
+    from hvac_mpc.benchmarks.monitor_bounds import run_one
+
+    logging.getLogger("hvac_mpc.daemon").setLevel(logging.ERROR)
+    r = run_one("bench", "summer_cooling_steps", "baseline", seed=0)
+    assert r["evaluations"] >= 70 and r["degraded_at_s"] is None and all(
+        s["first_beyond_s"] is None for s in r["signals"].values()), r["signals"]
+    assert r["signals"]["volume_flow_m3s"]["horizon_rms_max"] > 0.005  # beyond the old bound
