@@ -37,6 +37,7 @@ from hvac_mpc.contract import REFERENCE_RANGES, InvalidReference, Reference
 from hvac_mpc.models.plant import PLANT_EFFECTS
 
 from .calibration import CalibrationConfig
+from .monitor import MonitorSettings
 from .opcua import OpcUaConfig
 from .plugins import CONTROLLER_GROUP, registered_controllers
 from .watchdog import SystemdConfig
@@ -411,30 +412,39 @@ class SafetyConfig(_Section):
         return out
 
 
+#: The monitor's own defaults (one place: :class:`.monitor.MonitorSettings`).
+_MS = MonitorSettings
+
+
 class MonitorConfig(_Section):
     """``[monitor]``: the model monitor's window, cadence and residual bounds (:class:`.monitor.MonitorSettings`;
     docs/real-box.md, model monitoring). The default bounds are 1.25 times the largest residual a healthy
     simulated box gave (:data:`.monitor.DEFAULT_BOUNDS`); a lab sets them from a run of its box."""
 
-    horizon_s: float = _f(60.0, "free-run window of the horizon residual", 5.0, 3600.0)
-    every_s: float = _f(10.0, "time between two horizon evaluations", 1.0, 3600.0)
-    bound_supply_temp_c: float = _f(4.6, "bound on the supply temperature's horizon RMS residual", 1e-3, 100.0)
-    bound_volume_flow_m3s: float = _f(0.016, "bound on the volume flow's horizon RMS residual", 1e-6, 1.0)
-    bound_heater_outlet_temp_c: float = _f(26.0, "bound on the heater outlet temperature's horizon RMS residual",
+    horizon_s: float = _f(_MS.horizon_s, "free-run window of the horizon residual", 5.0, 3600.0)
+    every_s: float = _f(_MS.every_s, "time between two horizon evaluations", 1.0, 3600.0)
+    bound_supply_temp_c: float = _f(_MS.bound_supply_temp_c,
+                                    "bound on the supply temperature's horizon RMS residual", 1e-3, 100.0)
+    bound_volume_flow_m3s: float = _f(_MS.bound_volume_flow_m3s,
+                                      "bound on the volume flow's horizon RMS residual", 1e-6, 1.0)
+    bound_heater_outlet_temp_c: float = _f(_MS.bound_heater_outlet_temp_c,
+                                           "bound on the heater outlet temperature's horizon RMS residual",
                                            1e-3, 100.0)
-    bound_one_step_supply_temp_c: float = _f(0.8, "bound on the supply temperature's one-step RMS residual over "
-                                                  "the window", 1e-3, 100.0)
-    bound_one_step_volume_flow_m3s: float = _f(0.016, "bound on the volume flow's one-step RMS residual over the "
-                                                      "window", 1e-6, 1.0)
-    bound_one_step_heater_outlet_temp_c: float = _f(26.0, "bound on the heater outlet temperature's one-step RMS "
-                                                          "residual over the window", 1e-3, 100.0)
-    degraded_after: int = _f(3, "evaluations in a row beyond a bound before 'degraded' (and within before 'ok')",
+    bound_one_step_supply_temp_c: float = _f(_MS.bound_one_step_supply_temp_c,
+                                             "bound on the supply temperature's one-step RMS residual over the "
+                                             "window", 1e-3, 100.0)
+    bound_one_step_volume_flow_m3s: float = _f(_MS.bound_one_step_volume_flow_m3s,
+                                               "bound on the volume flow's one-step RMS residual over the window",
+                                               1e-6, 1.0)
+    bound_one_step_heater_outlet_temp_c: float = _f(_MS.bound_one_step_heater_outlet_temp_c,
+                                                    "bound on the heater outlet temperature's one-step RMS "
+                                                    "residual over the window", 1e-3, 100.0)
+    degraded_after: int = _f(_MS.degraded_after,
+                             "evaluations in a row beyond a bound before 'degraded' (and within before 'ok')",
                              1, 1000)
 
-    def settings(self):
+    def settings(self) -> MonitorSettings:
         """The :class:`hvac_mpc.daemon.monitor.MonitorSettings` of this section."""
-        from .monitor import MonitorSettings
-
         return MonitorSettings(**self.model_dump())
 
 

@@ -163,7 +163,6 @@ class DisturbanceEkf:
         air = y[m.outputs.index("duct_air_temp_c")] - zc[nx]
         self.f_p = ca.Function("ekf_f", [z, u, sp, p], [zn, ca.jacobian(zn, z), air])
         self.h_p = ca.Function("ekf_h", [z, u, sp, p, c], [meas, ca.jacobian(meas, z)])
-        self.f = BufferedFunction(self.f_p)
         self.h = BufferedFunction(self.h_p, fixed={4: self.c_now})
         self.predict_fn = self._predict_function()
         self.update_fn = self._update_function()
@@ -221,8 +220,8 @@ class DisturbanceEkf:
     def initialise(self, measurement: Measurement, u: np.ndarray, setpoint_c: float) -> None:
         """Start at the model's rest state for the current command, matched to the first readings."""
         m = self.model
-        inlet = _finite(measurement.hvac_inlet_temp_c, 25.0)
-        water = _finite(measurement.water_temp_c, setpoint_c)
+        inlet = finite_or(measurement.hvac_inlet_temp_c, 25.0)
+        water = finite_or(measurement.water_temp_c, setpoint_c)
         target = water if self.hold_water else setpoint_c
         d = m.d_vector(inlet, target)
         try:
@@ -234,8 +233,8 @@ class DisturbanceEkf:
             x[m.states.index("motor_rise_c")] = 0.5
         x[self.i_water] = water
         y = m.outputs.dict(m.y(x, u, d))
-        supply = _finite(measurement.supply_temp_c, y["supply_temp_c"])
-        flow = _finite(measurement.volume_flow_m3s, y["volume_flow_m3s"])
+        supply = finite_or(measurement.supply_temp_c, y["supply_temp_c"])
+        flow = finite_or(measurement.volume_flow_m3s, y["volume_flow_m3s"])
         mix = supply - y["supply_air_temp_c"]
         x[self.i_sensor] = supply
         for n in m.delay_states:
@@ -264,7 +263,7 @@ class DisturbanceEkf:
 
     def readings(self, measurement: Measurement) -> tuple[np.ndarray, np.ndarray]:
         """The measured values (order ``MEASURED``, 0 where unused) and which are used (finite and enabled)."""
-        values = np.array([_finite(getattr(measurement, n, None), np.nan) for n in MEASURED])
+        values = np.array([finite_or(getattr(measurement, n, None), np.nan) for n in MEASURED])
         ok = np.isfinite(values) & self.use
         return np.where(ok, values, 0.0), ok
 
@@ -314,7 +313,8 @@ class DisturbanceEkf:
         return self.z is not None and bool(np.all(np.isfinite(self.z)) and np.all(np.isfinite(self.P)))
 
 
-def _finite(value, default: float) -> float:
+def finite_or(value, default: float) -> float:
+    """``value`` as a float when it is a finite number, else ``default``."""
     try:
         v = float(value)
     except (TypeError, ValueError):

@@ -48,7 +48,7 @@ from hvac_mpc.contract import Command, Measurement
 
 from hvac_mpc.contract import StepResult
 from .codegen import CodegenReport, compiled
-from .estimator import DisturbanceEkf, EkfSettings
+from .estimator import DisturbanceEkf, EkfSettings, finite_or
 from .priorities import ReachableFlow
 from .ocp import HeaterOffBound, InvalidSettings, OcpSpec, TrackingProblem, check_number, trap_cap_pct
 from hvac_mpc.contract import InvalidReference, Reference
@@ -414,8 +414,7 @@ class MpcController:
         t_blower = e.inlet_temp_c + x[m.states.index("motor_rise_c")]
         heater_in = float(chiller.cooler_outlet_c(t_blower, x[e.i_water], self.params))
         cmd = float(self.u_prev[self.problem.i_heater_cmd])
-        flow = getattr(measurement, "volume_flow_m3s", None)
-        flow = float(flow) if flow is not None and math.isfinite(float(flow)) else 0.0
+        flow = finite_or(getattr(measurement, "volume_flow_m3s", None), 0.0)
         mass_flow = float(air.density_kgm3(e.inlet_temp_c, self.params)) * max(flow, 0.0)
         heater = self.heater_bound.update(float(x[m.states.index("heater_temp_c")]), heater_in, cmd, mass_flow)
         return trap_cap_pct(heater, heater_in, cmd, self.params, self.settings.ocp)

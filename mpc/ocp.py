@@ -320,7 +320,6 @@ class TrackingProblem:
         self.u_lo, self.u_hi = self.scale_u(self.u_lo_phys), self.scale_u(self.u_hi_phys)
         self._u_lo_tiled = np.tile(self.u_lo, (self.N, 1))
         self._u_hi_tiled = np.tile(self.u_hi, (self.N, 1))
-        self._a_travel = None  # set below, once the rate limits are known
         self.rate_phys = np.array([spec.rate_blower_w_per_s, spec.rate_heater_w_per_s]
                                   + [spec.rate_valve_pct_per_s] * 4)
         self.rate = self.rate_phys / self.u_sc  # meaningful for the non-valve decisions only
