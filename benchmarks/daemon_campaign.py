@@ -42,6 +42,8 @@ from hvac_mpc.daemon.config import DEFAULT_SENSOR_RANGES, DaemonConfig, SafetyCo
 from hvac_mpc.daemon.loop import Daemon
 from hvac_mpc.daemon.server import token_path
 
+from .ports import free_port
+
 HEATING_REFERENCE = {"supply_temp_c": 32.0, "volume_flow_m3s": 0.02}
 SENSOR_SIGNALS = ("volume_flow_m3s", "supply_temp_c", "heater_outlet_temp_c", "hvac_inlet_temp_c")
 SENSOR_KINDS = ("nan", "stuck", "out_of_range", "missing")
@@ -278,12 +280,6 @@ def backend_scenarios(workdir: Path, controller: str = "baseline") -> list[Outco
     out.append(fatal_error(workdir, controller))
     out.append(repeated_fatal_error(workdir, controller))
     return out
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def modbus_outage(workdir: Path, controller: str = "baseline") -> Outcome:

@@ -18,7 +18,6 @@ import argparse
 import json
 import logging
 import math
-import socket
 import sys
 import tempfile
 from pathlib import Path
@@ -29,6 +28,8 @@ from hvac_mpc.daemon.config import SafetyConfig, config_from_mapping
 from hvac_mpc.daemon.ctl import request
 from hvac_mpc.daemon.loop import Daemon
 from hvac_mpc.daemon.server import token_path
+
+from .ports import free_port
 
 
 #: Daemon time (s) of each switch and the mode it asks for.
@@ -74,9 +75,7 @@ def run(workdir: str | Path, ramp: bool = True, seed: int = 5, safety: dict | No
     log = workdir / f"mode_transfer{'' if ramp else '_no_ramp'}.csv"
     for p in (log, log.with_suffix(".token")):
         p.unlink(missing_ok=True)
-    with socket.socket() as sock:  # a free port for the Modbus server
-        sock.bind(("127.0.0.1", 0))
-        port = sock.getsockname()[1]
+    port = free_port()  # for the Modbus server
     # heartbeat timeout: a load-tolerant 30 s of wall time (the plant runs in lockstep with the daemon)
     server = PlantModbusServer(SimulatedPlant(seed=seed), port=port, heartbeat_timeout_s=30.0).start()
     safety = {"reconnect_initial_s": 2.0, "reconnect_max_s": 8.0, **(safety or {})}
