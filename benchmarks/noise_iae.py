@@ -3,7 +3,7 @@
 The bench scores the plant's noise-free signals; a log holds readings y_m = y + n with white sensor
 noise n. Scored on y_m, an IAE grows by up to N sigma sqrt(2/pi) dt, which for the volume flow
 (sigma 4e-4 m3/s against errors of 1e-4 m3/s) is most of the figure. This module estimates the IAE
-of y from the log alone (docs/real-box.md, "Reports from logs: noise"):
+of y from the log alone (docs/real-box.md, 'Reports from logs'):
 
 1. **Clean the reading.** y_hat = fit + A_W(y_m - fit): ``fit`` is a least-squares regression of
    the reading on the applied commands, each lagged 1..``lags`` samples (plus a constant), over
@@ -27,7 +27,7 @@ of y from the log alone (docs/real-box.md, "Reports from logs: noise"):
    percentile, the noise floor). A cleaned IAE below it is not resolved: the error may be zero, so
    the band starts at 0 (the bias correction cannot be trusted where the error is far below the
    noise: the bootstrap's truth, y_hat, still carries some noise). A ratio whose baseline figure is
-   not resolved gets no band.
+   not resolved gets a one-sided band (its MPC figure resolved) or none.
 
 What it cannot see: a noise that is not white, or a true error faster than W samples that the
 commands do not explain (the supply temperature's sharp transients lose a few percent to A_W).
@@ -158,11 +158,18 @@ def estimate_iae(reading, reference, dt_s: float, start: int, commands=None, cle
 def ratio_band(mpc: Mapping, baseline: Mapping) -> tuple[float, tuple[float, float]] | None:
     """MPC / baseline of two :func:`estimate_iae` results and its 95 % band (paired replicates, basic
     bootstrap interval). An MPC figure the log does not resolve (``resolved`` False: its cleaned IAE
-    within what the cleaned noise alone gives) may be 0, so the band starts at 0. None when the
-    baseline's figure is not resolved, or its estimate or a replicate's is not positive."""
+    within what the cleaned noise alone gives) may be 0, so the band starts at 0. A baseline figure
+    it does not resolve may be 0 too: with a resolved MPC figure the band is one-sided, from the
+    MPC's lowest over the baseline's highest IAE to infinity. None when neither is resolved, or
+    the baseline's estimate or a replicate's is not positive."""
     em, eb = mpc["cleaned"], baseline["cleaned"]
     bm, bb = mpc["bias"], baseline["bias"]
-    if eb - bb <= 0 or eb <= 0 or not baseline["resolved"]:
+    if not baseline["resolved"]:
+        if not mpc["resolved"] or baseline["band"][1] <= 0:
+            return None
+        rho = (em - bm) / (eb - bb) if eb - bb > 0 else math.inf
+        return max(rho, 0.0), (mpc["band"][0] / baseline["band"][1], math.inf)
+    if eb - bb <= 0 or eb <= 0:
         return None
     rho = (em - bm) / (eb - bb)
     den = eb + baseline["errors"] - bb

@@ -37,23 +37,13 @@ from hvac_mpc.models.measurement_log import LogFormatError, read_log
 from hvac_mpc.models.parameters import Parameters
 
 from . import criteria, metrics, noise_iae, report
+from .noise_iae import second_difference_sigma as noise_sigma
 from .simulate import REFERENCE_FIELDS, TRUTH_FIELDS, Trace, actuator_bounds
 
 #: Modes of rows that are not part of the run (the daemon's shutdown and outages).
 NOT_SCORED_MODES = ("shutdown", "stopped")
 #: Readings whose noise the report estimates, with the IAE figure each one feeds.
 NOISY = {"supply_temp_c": "temp_iae_cs", "volume_flow_m3s": "flow_iae_m3"}
-
-
-def noise_sigma(values: np.ndarray) -> float:
-    """White-noise standard deviation of a sampled signal from its second differences."""
-    v = np.asarray(values, float)
-    v = v[np.isfinite(v)]
-    if v.size < 4:
-        return math.nan
-    d2 = np.diff(v, 2)
-    mad = np.median(np.abs(d2 - np.median(d2)))  # robust: steps do not count
-    return float(1.4826 * mad / math.sqrt(6.0))
 
 
 def _sidecar(path: Path) -> dict:
@@ -270,8 +260,12 @@ def _noise_aware_row(fig: str, v: Mapping) -> str:
         how = f" (commands lagged 1-{m['command_lags']} samples, window {m['window_samples']} samples)"
     else:
         how = f" (window {m['window_samples']} samples)"
-    band = (f"{v['ratio']:.2f} [{v['band'][0]:.2f}, {v['band'][1]:.2f}]" if v["band"] else
-            "no band: the baseline's figure is below the noise floor")
+    if not v["band"]:
+        band = "no band: neither figure is above the noise floor"
+    elif math.isinf(v["band"][1]):
+        band = f"at least {v['band'][0]:.2f} (the baseline's figure is below the noise floor)"
+    else:
+        band = f"{v['ratio']:.2f} [{v['band'][0]:.2f}, {v['band'][1]:.2f}]"
     return f"| {fig}{how} | {sig} | {one(v['baseline'])} | {one(v['mpc'])} | {band} |"
 
 
@@ -317,6 +311,7 @@ def run(args: argparse.Namespace) -> int:
                   + (f" (noise band {band[0]:.2f}-{band[1]:.2f})" if band else "")
                   + f", flow IAE {report._fmt_ratio(r['flow_iae_m3'])}, energy {report._fmt_ratio(r['energy_wh'])}")
             na = "; ".join(f"{fig} {v['ratio']:.2f} [{v['band'][0]:.2f}, {v['band'][1]:.2f}]"
+                           if math.isfinite(v["band"][1]) else f"{fig} at least {v['band'][0]:.2f}"
                            for fig, v in sc["noise_aware"].items() if v["band"])
             print(f"{name}: noise-aware ratios (95 % band): {na or 'none resolved'}")
         else:

@@ -80,7 +80,7 @@ def test_commands_recover_the_error_feedback_makes_of_the_noise():
     assert smoothed["estimate"] < 0.9 * true  # a smoothing alone loses the jitter
 
 
-def test_pure_noise_is_not_resolved_and_gives_no_ratio_band():
+def test_pure_noise_is_not_resolved_and_opens_its_ratio_band():
     rng = np.random.default_rng(1)
     ref = np.full(300, 0.03)
     noise_only = estimate_iae(ref + 4e-4 * rng.standard_normal(300), ref, 1.0, 0, cleaning=Cleaning(0, 9))
@@ -88,7 +88,9 @@ def test_pure_noise_is_not_resolved_and_gives_no_ratio_band():
     assert noise_only["raw"] > 0.25 * 300 * 4e-4  # what a report from the raw reading would score
     signal = estimate_iae(ref + 2e-3 + 4e-4 * rng.standard_normal(300), ref, 1.0, 0, cleaning=Cleaning(0, 9))
     assert signal["resolved"] and signal["band"][0] <= 300 * 2e-3 <= signal["band"][1]
-    assert ratio_band(signal, noise_only) is None
+    assert ratio_band(noise_only, noise_only) is None
+    _, (lo, hi) = ratio_band(signal, noise_only)  # the baseline may be 0: one-sided
+    assert hi == math.inf and 1.0 < lo < signal["band"][0] / (0.5 * noise_only["noise_floor"])
     rho, (lo, hi) = ratio_band(noise_only, signal)
     assert lo == 0.0 and rho < hi < 0.2
 
