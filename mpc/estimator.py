@@ -329,7 +329,7 @@ class DisturbanceEkf:
         return float(self.z[self.nx + 2])
 
     def healthy(self) -> bool:
-        return self.z is not None and bool(np.all(np.isfinite(self.z)) and np.all(np.isfinite(self.P)))
+        return self.z is not None and bool(np.isfinite(self.z).all() and np.isfinite(self.P).all())
 
 
 def finite_or(value, default: float) -> float:
