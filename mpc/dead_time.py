@@ -86,7 +86,7 @@ class DeadTimeEstimator:
             self._last_pred = self._pred.copy()
         else:
             self._last_pred = self._pred.copy()
-            self._air = np.roll(self._air, 1)
+            self._air[1:] = self._air[:-1]  # newest first (numpy copies overlapping slices correctly)
             self._air[0] = air_c
         delayed = (1.0 - self._w1) * self._air[self._i0] + self._w1 * self._air[self._i1]
         self._pred = self.lag * self._pred + (1.0 - self.lag) * delayed

@@ -251,13 +251,32 @@ class DisturbanceEkf:
         """Evaluate the time and measurement updates with these functions (the same signatures as
         ``predict_fn`` / ``update_fn``, e.g. generated C of them, :mod:`hvac_mpc.mpc.codegen`).
         ``p``, ``Q`` and ``R_diag`` are read here, once: call again after changing them."""
+        self._predict_in_use = predict_fn
         self._predict = BufferedFunction(predict_fn, fixed={4: self.p, 5: self.Q})
         self._update = BufferedFunction(update_fn, fixed={7: self.p, 8: self.R_diag})
 
+    def prediction_function(self) -> tuple[ca.Function, dict[int, np.ndarray]]:
+        """The time update in use, ``(z, P, u, setpoint, p, Q) -> (z+, P+, air)``, and its fixed
+        inputs (index -> value): for a caller that fuses it with more work into one call (the MPC's
+        preparation, :meth:`~.rti_osqp.RtiOsqpSolver.use_prediction`), which then hands the results to
+        :meth:`accept_prediction`."""
+        return self._predict_in_use, {4: self.p, 5: self.Q}
+
+    def model_state(self, z):
+        """The model states within a filter state ``z`` (numpy or CasADi)."""
+        return z[:self.nx]
+
+    def disturbance(self, z, setpoint):
+        """The prediction model's disturbances (``DISTURBANCES`` order) from a filter state (CasADi)."""
+        return self._d(z, setpoint)
+
     def predict(self, u: np.ndarray, setpoint_c: float) -> None:
         """Time update over one sample with the command that was applied."""
-        zn, Pt, air = self._predict(self.z, self.P, u, setpoint_c)
-        self.z, self.P = zn, Pt.T  # buffers are column-major
+        self.accept_prediction(*self._predict(self.z, self.P, u, setpoint_c))
+
+    def accept_prediction(self, z_next: np.ndarray, P_next_t: np.ndarray, air: np.ndarray) -> None:
+        """Take the time update's results (as the time-update function returns them, ``P`` column-major)."""
+        self.z, self.P = z_next, P_next_t.T  # buffers are column-major
         if self.n_hist:
             self.dead_time.push_air(float(air[0]))
 
@@ -310,7 +329,7 @@ class DisturbanceEkf:
         return float(self.z[self.nx + 2])
 
     def healthy(self) -> bool:
-        return self.z is not None and bool(np.all(np.isfinite(self.z)) and np.all(np.isfinite(self.P)))
+        return self.z is not None and bool(np.isfinite(self.z).all() and np.isfinite(self.P).all())
 
 
 def finite_or(value, default: float) -> float:

@@ -228,6 +228,8 @@ class MpcController:
         if s.codegen:
             self.ekf.use_functions(compiled(self.ekf.predict_fn, self.codegen),
                                    compiled(self.ekf.update_fn, self.codegen))
+        if hasattr(self.solver, "use_prediction"):
+            self.solver.use_prediction(self.ekf)  # prediction and QP data in one call
         self._baseline = None
         self.reset()
 
@@ -370,10 +372,14 @@ class MpcController:
         u_cmd = np.minimum(np.maximum(u_cmd, lo), hi)
         self.u_prev = u_cmd
         # --- prediction and preparation of the next step
-        self.ekf.predict(u_cmd, setpoint)
         prep_time = sol.prep_time_s
         self._prepared_for_next = False
-        if sol.ok:
+        if sol.ok and getattr(self.solver, "fused_prediction", False):
+            prep_time += self.solver.prepare_predicted(u_cmd, setpoint, self._scaled_prev(), y_ref, w_y)
+            self._prepared_for_next = True
+        else:
+            self.ekf.predict(u_cmd, setpoint)
+        if sol.ok and not self._prepared_for_next:
             prep_time += self.solver.prepare(pb.scale_x(self.ekf.x), self._scaled_prev(), self._disturbance(setpoint),
                                              y_ref, w_y)
             self._prepared_for_next = True

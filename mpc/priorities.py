@@ -22,8 +22,12 @@ below the reference latches the reference even where the model thinks it reachab
 
 The problem is only solved when the flow reference is high enough to be in doubt (above
 ``check_fraction`` of the blower's nominal open flow, and above 90 % of what full blower power with
-open outlets would give at the present valve a and heater) and then every ``every_s`` seconds,
-warm started; IPOPT with an iteration cap (deterministic).
+open outlets would give at the present valve a and heater): on a change of the references, and
+then every ``every_s`` seconds if its other inputs (the estimator's disturbances, the valve a cap)
+have moved by more than :data:`MATERIAL_CHANGE` since the last solve; warm started; IPOPT with an
+iteration cap (deterministic). A re-solve costs 5-15 ms (about 25 IPOPT iterations); inputs that
+have not moved would give the same answer, so the check skips it and keeps the solve off most
+steps (docs/robustness.md sec. 1).
 """
 
 from __future__ import annotations
@@ -41,6 +45,14 @@ from .casadi_eval import BufferedFunction
 #: Temperature error weight of the steady-state problem, per degC^2, against flow in units of FLOW_UNIT_M3S.
 TEMP_WEIGHT_PER_C2 = 1e3
 FLOW_UNIT_M3S = 0.01
+#: Smallest change of an input of the steady-state problem that makes a periodic re-solve worth its
+#: time, in the order of the problem's parameters: the model's disturbances (inlet temperature
+#: degC, chiller water target degC, mixed-air offset degC, flow offset m3/s) and the valve a cap
+#: (%). ASSUMPTION: 0.3 degC moves the reachable flow by about 0.08 L/s (0.27 L/s per degC of the
+#: temperature reference, measured on the solve-time scenario at 50 L/s; the mixed-air offset acts as
+#: much, the inlet and water temperatures through the cooler less), a flow offset of 0.2 L/s by as
+#: much; both far below the 2 % tracking margin (``margin``, about 1 L/s at 50 L/s).
+MATERIAL_CHANGE = np.array([0.3, 0.3, 0.3, 2e-4, 1.0])
 
 
 @dataclass
@@ -95,6 +107,7 @@ class ReachableFlow:
         self._age_s = np.inf
         self._last = Reach(None, {})
         self._key: tuple | None = None
+        self._inputs: np.ndarray | None = None  # disturbances and valve a cap of the last solve
         self._latched: float | None = None  # the flow reference (m3/s) held out of reach
         self._saturated_for_s = 0.0
 
@@ -120,9 +133,12 @@ class ReachableFlow:
         key = (round(temp_ref_c, 6), round(flow_ref_m3s, 9))
         self._age_s += dt_s
         self._note_saturation(u, flow_ref_m3s, flow_now, dt_s)
-        if key == self._key and self._age_s < self.every_s:
+        inputs = np.append(d, a_cap_pct)
+        if key == self._key and (self._age_s < self.every_s or not self._moved(inputs)):
+            if self._age_s >= self.every_s:
+                self._age_s = 0.0  # looked again: nothing moved
             return self._limit(flow_ref_m3s, flow_now)
-        self._key, self._age_s = key, 0.0
+        self._key, self._age_s, self._inputs = key, 0.0, inputs
         w0 = self._w if self._w is not None else np.concatenate([x, u])
         try:
             sol = self.solver(x0=w0, p=np.concatenate([d, [temp_ref_c, a_cap_pct]]), lbx=self.lbx, ubx=self.ubx,
@@ -139,6 +155,10 @@ class ReachableFlow:
         self._reachable = flow
         self._temp_error = temp - temp_ref_c
         return self._limit(flow_ref_m3s, flow_now)
+
+    def _moved(self, inputs: np.ndarray) -> bool:
+        """True when an input has moved by :data:`MATERIAL_CHANGE` or more since the last solve."""
+        return self._inputs is None or bool(np.any(np.abs(inputs - self._inputs) >= MATERIAL_CHANGE))
 
     def _note_saturation(self, u: np.ndarray, flow_ref_m3s: float, flow_now_m3s: float, dt_s: float) -> None:
         """Count how long the blower has been at full power with the flow short of the reference; past

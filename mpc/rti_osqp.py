@@ -399,13 +399,59 @@ class RtiOsqpSolver:
         sw[:, pb.ny] = np.append(pb.dt, 0.0) * pb.energy_weight / pb.energy_scale_w ** 2
         return sw
 
-    def _matrices(self, X, U, d, w_y):
-        """Linearise at (X, U) and return P and A data plus the stage data for q and l/u."""
+    def _weights(self, w_y: np.ndarray) -> np.ndarray:
+        """Stage weights for ``w_y``, computed again only when ``w_y`` changes."""
         key = w_y.tobytes()
         if key != self._sw_key:
             self._sw, self._sw_key = self._stage_weights(w_y), key
-        Px, Ax, e_dyn, gw2, c_base, y = self._qp_data(X, U, d, self._sw)
+        return self._sw
+
+    def _matrices(self, X, U, d, w_y):
+        """Linearise at (X, U) and return P and A data plus the stage data for q and l/u."""
+        Px, Ax, e_dyn, gw2, c_base, y = self._qp_data(X, U, d, self._weights(w_y))
         return Px, Ax, dict(e_dyn=e_dyn, gw2=gw2, c_base=c_base, y=y)
+
+    def use_prediction(self, ekf) -> None:
+        """Fuse the estimator's time update with the QP data into one call of the preparation
+        (:meth:`prepare_predicted`): the predicted state becomes the first node, its disturbance
+        estimates the QP's ``d``. ``ekf`` is a :class:`~.estimator.DisturbanceEkf` (any state size);
+        its functions in use (generated C or not) and ``qp_data`` in use are called inside one CasADi
+        function, so the values are those of the two calls one after the other."""
+        pb, N, nx = self.pb, self.pb.N, self.pb.nx
+        predict, fixed = ekf.prediction_function()
+        args = predict.mx_in()
+        z, sp = args[0], args[3]
+        zn, Pn, air = predict.call(args)
+        x0 = (ekf.model_state(zn) - ca.DM(pb.x_off)) / ca.DM(pb.x_sc)
+        d = ekf.disturbance(zn, sp)
+        X1, U, SW = ca.MX.sym("X1", nx, N), ca.MX.sym("U", pb.nu, N), ca.MX.sym("SW", pb.ny + 1, N + 1)
+        data = self._qp_data.fn.call([ca.horzcat(x0, X1), U, d, SW, self._P_const, self._A_const, self._p])
+        fn = ca.Function("hvac_predict_qp_data", [*args, X1, U, SW], [zn, Pn, air, x0, d, *data])
+        self._predict_qp = BufferedFunction(fn, fixed=fixed)
+        self._ekf = ekf
+
+    @property
+    def fused_prediction(self) -> bool:
+        """True when :meth:`prepare_predicted` can prepare the next QP now (a trajectory to shift)."""
+        return getattr(self, "_predict_qp", None) is not None and self.X is not None
+
+    def prepare_predicted(self, u_cmd: np.ndarray, setpoint_c: float, u_prev: np.ndarray, ref: np.ndarray,
+                          w_y: np.ndarray) -> float:
+        """The estimator's time update with the command ``u_cmd`` (physical) and :meth:`prepare` at
+        its prediction, in one call (:meth:`use_prediction`). Returns the wall time (s)."""
+        t0 = time.perf_counter()
+        ekf = self._ekf
+        X = shift_nodes(self.X, self._i0, self._w1)
+        U = self.U[self._j]
+        U[0] = u_prev
+        S = self.S[np.minimum(self._j, self.pb.N - 1)]
+        zn, Pt, air, x0, d, Px, Ax, e_dyn, gw2, c_base, y = self._predict_qp(
+            ekf.z, ekf.P, u_cmd, setpoint_c, X[1:], U, self._weights(w_y))
+        ekf.accept_prediction(zn, Pt, air)
+        X[0] = x0
+        self.X, self.U, self.S = X, U, S
+        self._write(X, U, S, d, ref, w_y, Px, Ax, dict(e_dyn=e_dyn, gw2=gw2, c_base=c_base, y=y))
+        return time.perf_counter() - t0
 
     def reset(self) -> None:
         """Forget the trajectory and OSQP's workspace (cold start at the next step): a fresh
@@ -435,6 +481,10 @@ class RtiOsqpSolver:
     def _load(self, X, U, S, d, ref, w_y, u_prev) -> None:
         """Write the linearisation at (X, U) into OSQP (values only)."""
         Px, Ax, data = self._matrices(X, U, d, w_y)
+        self._write(X, U, S, d, ref, w_y, Px, Ax, data)
+
+    def _write(self, X, U, S, d, ref, w_y, Px, Ax, data) -> None:
+        """Put a linearisation's values into OSQP and keep what the feedback needs."""
         self._core.update_matrices(Px, Ax)
         self._workspace_used = True
         self.l[self._r_dyn_flat] = data["e_dyn"]

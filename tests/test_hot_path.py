@@ -94,3 +94,57 @@ def test_a_reset_controller_answers_exactly_as_a_new_one():
     for (cmd_a, it_a, qp_a), (cmd_b, it_b, qp_b) in zip(*runs):
         assert np.array_equal(cmd_a, cmd_b)
         assert (it_a, qp_a) == (it_b, qp_b)
+
+
+def test_a_step_makes_one_qp_and_three_calls_into_generated_code_with_one_qp_per_reference_change():
+    """Deterministic counts of the hot path (docs/architecture.md, 'One control step'): with
+    ``reference_change_qps=1`` one QP per step after the cold start, the reference change at 30 s
+    included; per step three calls from Python into generated code (the estimator's measurement
+    update, the QP gradient, and the estimator's time update fused with the next QP's data), the
+    commands those of the separate calls; a generous time bound."""
+    from hvac_mpc.mpc.casadi_eval import BufferedFunction
+
+    def run(fused: bool):
+        ctrl = MpcController(settings=MpcSettings(codegen=False, reference_change_qps=1))
+        if not fused:
+            ctrl.solver._predict_qp = None  # the estimator's prediction and the QP data apart
+        hot = {id(f): name for name, f in (
+            ("ekf_update", ctrl.ekf._update), ("ekf_predict", ctrl.ekf._predict), ("qp_gradient", ctrl.solver._qp_gradient),
+            ("qp_data", ctrl.solver._qp_data), ("predict_qp_data", ctrl.solver._predict_qp))}
+        calls: list[str] = []
+        original = BufferedFunction.__call__
+
+        def counted(self, *args):
+            if id(self) in hot:
+                calls.append(hot[id(self)])
+            return original(self, *args)
+
+        plant = SimulatedPlant(seed=7, environment=Environment(solve_time.INLET_C, 5.0))
+        plant.settle(solve_time.INITIAL)
+        ctrl.reset(plant.command)
+        per_step, solves, times, commands = [], [], [], []
+        BufferedFunction.__call__ = counted
+        try:
+            for k in range(34):
+                calls.clear()
+                res = ctrl.step(plant.read(), solve_time.reference_at(float(k)))
+                plant.apply(res.command)
+                plant.advance()
+                assert res.stats["fallback"] is None
+                per_step.append(sorted(calls))
+                solves.append(res.stats["qp_solves"])
+                times.append(res.stats["step_time_s"])
+                commands.append(res.command.vector())
+        finally:
+            BufferedFunction.__call__ = original
+        return ctrl, per_step, solves, times, np.array(commands)
+
+    ctrl, per_step, solves, times, commands = run(fused=True)
+    assert solve_time.reference_at(30.0) != solve_time.reference_at(29.0)
+    assert 1 <= solves[0] <= ctrl.settings.cold_start_qps
+    assert solves[1:] == [1] * 33
+    assert all(c == ["ekf_update", "predict_qp_data", "qp_gradient"] for c in per_step[1:])
+    assert np.median(times[1:]) < 0.05  # interpreted, on a loaded two-core machine: about 2-5 ms
+    _, apart, _, _, commands_apart = run(fused=False)
+    assert all(c == ["ekf_predict", "ekf_update", "qp_data", "qp_gradient"] for c in apart[1:])
+    assert np.array_equal(commands, commands_apart)

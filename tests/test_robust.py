@@ -355,3 +355,33 @@ def test_flow_out_of_reach_on_a_weak_blower_keeps_the_temperature_as_well_as_the
     assert steady["steady_samples_reported"] > 0 and not steady["flow_reached"]
     assert cell["ratios"]["temp_iae_cs"] <= 1.0
     assert cell["mpc"]["figures"]["fallbacks"] == 0
+
+
+def test_reachable_flow_is_solved_again_only_when_its_inputs_have_moved_materially():
+    from hvac_mpc.mpc.priorities import MATERIAL_CHANGE
+
+    reach, x, u, d = _reach_setup()
+    solves = []
+    solver = reach.solver
+
+    def counted(**kwargs):
+        solves.append(kwargs["p"])
+        return solver(**kwargs)
+
+    reach.solver = counted
+    ref = 200 * M3H
+    first = reach.check(x, u, d, 18.0, ref, 100.0, 1.0)
+    assert len(solves) == 1 and "volume_flow_m3s" in first.out_of_reach
+    # 25 s with inputs moving less than MATERIAL_CHANGE: the answer stands, nothing solved
+    small = d + 0.5 * MATERIAL_CHANGE[:-1]
+    answers = [reach.check(x, u, small, 18.0, ref, 100.0, 1.0) for _ in range(25)]
+    assert len(solves) == 1 and all(a.flow_m3s == first.flow_m3s for a in answers)
+    # the flow offset moves by more than its threshold: solved again at the next periodic check
+    moved = d.copy()
+    moved[3] += 2.0 * MATERIAL_CHANGE[3]
+    for _ in range(int(reach.every_s)):
+        reach.check(x, u, moved, 18.0, ref, 100.0, 1.0)
+    assert len(solves) == 2 and solves[-1][3] == moved[3]
+    # a new temperature reference is solved at once, whatever the inputs
+    reach.check(x, u, moved, 17.0, ref, 100.0, 1.0)
+    assert len(solves) == 3
