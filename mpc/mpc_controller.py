@@ -180,13 +180,27 @@ class MpcSettings:
 
 
 def _with_model_effects(settings: MpcSettings, model: RefinedModel | None) -> MpcSettings:
-    """Settings whose prediction model holds exactly the refined model's effects, the structure its
-    parameters were identified with (the PTC power fall stays a constraint where ``ptc_limit`` carries it)."""
+    """Settings whose prediction model holds the refined model's effects, the structure its parameters were
+    identified with, and the controller's own effects as configured (``RefinedModel.prediction_effects``; the
+    PTC power fall stays a constraint where ``ptc_limit`` carries it)."""
     if model is None:
         return settings
     ocp = settings.ocp
-    effects = tuple(e for e in model.effects if not (e == "ptc_power_fall" and ocp.ptc_limit))
+    effects = tuple(e for e in model.prediction_effects(ocp.model_effects)
+                    if not (e == "ptc_power_fall" and ocp.ptc_limit))
     return dataclasses.replace(settings, ocp=dataclasses.replace(ocp, model_effects=effects))
+
+
+def _delay_to_estimator(settings: MpcSettings, params: Parameters) -> tuple[MpcSettings, Parameters]:
+    """A model file's transport delay as the estimator's starting dead time rather than a lag chain in the
+    model, where the estimator handles dead times that long (``EkfSettings.dead_time_max_s``): the delay the log
+    showed and the one the readings show are then one estimate (docs/identification.md, "The refined model in
+    the controller"). Longer delays stay in the model."""
+    delay_s = round(params.transport_delay_s / settings.dt_s) * settings.dt_s
+    if not 0.0 < delay_s <= settings.ekf.dead_time_max_s:
+        return settings, params
+    ekf = dataclasses.replace(settings.ekf, dead_time_initial_s=float(delay_s))
+    return dataclasses.replace(settings, ekf=ekf), params.replace(transport_delay_s=0.0)
 
 
 class MpcController:
@@ -205,6 +219,8 @@ class MpcController:
         ``params`` is given), effects and discovered terms enter the prediction and the estimator."""
         self.params = params or (model.parameters if model is not None else Parameters())
         self.settings = _with_model_effects(settings or MpcSettings(), model)
+        if model is not None:
+            self.settings, self.params = _delay_to_estimator(self.settings, self.params)
         terms = model.terms if model is not None else ()
         s = self.settings
         self.dt_s = s.dt_s
