@@ -216,7 +216,10 @@ class MpcController:
         :class:`RtiOsqpSolver` (``reset``, ``prepare``, ``feedback``, ``fail_next``), e.g. the
         do-mpc reference of the solve-time benchmark; by default ``settings.solver`` decides.
         ``model``: a refined model (``hvac_mpc.models.model_file.load``): its parameters (unless
-        ``params`` is given), effects and discovered terms enter the prediction and the estimator."""
+        ``params`` is given), effects and discovered terms enter the prediction and the estimator; the
+        controller keeps its own ``bypass_flow`` as configured, and a transport delay up to the estimator's
+        ``dead_time_max_s`` starts the estimator's dead time instead of a lag chain (docs/identification.md,
+        "The refined model in the controller")."""
         self.params = params or (model.parameters if model is not None else Parameters())
         self.settings = _with_model_effects(settings or MpcSettings(), model)
         if model is not None:
