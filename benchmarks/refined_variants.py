@@ -45,10 +45,10 @@ def run_one(name: str, folder: Path, seed: int, duration_s: float, scenario_name
     path = folder / f"{name}.csv"
     simulate_log(path, variant, duration_s=duration_s, seed=seed)
     res = identify(log_data.load(path), Parameters(), effects)
-    model = write_model_file(folder / f"{name}.toml", res.params, res.effects, res.extras, res.terms)
-    cmp = compare(model, variant, scenarios.select(scenario_names, quick=True), seed=0)
+    model = write_model_file(folder / f"{name}.toml", res.params, res.effects, res.extras, res.terms, res.absent)
+    cmp = compare(model, variant, scenarios.select(scenario_names, quick=True), seed=0, attribution=True)
     e = res.holdout_errors()["supply_temp_c"]
-    return {"case": name, "variant": variant, "added": [a.name for a in res.accepted],
+    return {"case": name, "variant": variant, "added": [a.name for a in res.accepted], "absent": list(res.absent),
             "terms": [t.formula() for t in res.terms], "term_words": [t.description for t in res.terms],
             "supply_rms_before": e["rms_before"], "supply_rms_after": e["rms_after"],
             "model_file": model.read_text(), "comparison": cmp}
@@ -74,9 +74,16 @@ def main(argv: list[str] | None = None) -> int:
                   f"thermocouple IAE nominal {t['nominal']['temp_iae_cs']:.1f}, refined {t['refined']['temp_iae_cs']:.1f} "
                   f"C s (ratio {t['ratio']:.3f}); flow IAE {t['nominal']['flow_iae_m3']:.2f} / "
                   f"{t['refined']['flow_iae_m3']:.2f} m3", flush=True)
+            print(f"{'':26s} absent {r['absent'] or ['nothing']}; both MPCs without them: thermocouple IAE nominal "
+                  f"{t['nominal_as_identified']['temp_iae_cs']:.1f}, refined {t['refined_as_identified']['temp_iae_cs']:.1f} "
+                  f"C s (ratio {t['ratio_as_identified']:.3f})", flush=True)
+            print(f"{'':28s}{'scenario':24s} {'nominal':>7s} {'refined':>7s} C s  flow nominal refined m3   "
+                  f"| without absent: {'nominal':>7s} {'refined':>7s} C s", flush=True)
             for sc, s in r["comparison"]["scenarios"].items():
                 print(f"{'':28s}{sc:24s} {s['nominal']['temp_iae_cs']:7.1f} {s['refined']['temp_iae_cs']:7.1f} C s  "
-                      f"flow {s['nominal']['flow_iae_m3']:.2f} {s['refined']['flow_iae_m3']:.2f} m3", flush=True)
+                      f"flow {s['nominal']['flow_iae_m3']:.3f} {s['refined']['flow_iae_m3']:.3f} m3   | "
+                      f"{s['nominal_as_identified']['temp_iae_cs']:7.1f} {s['refined_as_identified']['temp_iae_cs']:7.1f} "
+                      f"C s", flush=True)
     if args.json:
         args.json.write_text(json.dumps(rows, indent=2))
     return 0

@@ -43,6 +43,8 @@ def load_identification_extras(path: str | Path) -> dict[str, Any]:
 
 
 def write_model_file(path: str | Path, params: Parameters, effects: Iterable[str],
-                     extras: Mapping[str, Any] | None = None, terms: Iterable[DiscoveredTerm] = ()) -> Path:
-    """Write the model file: changed parameters, effects, discovered terms and extras."""
-    return _mf.write(path, params, effects, extras, terms)
+                     extras: Mapping[str, Any] | None = None, terms: Iterable[DiscoveredTerm] = (),
+                     absent: Iterable[str] = ()) -> Path:
+    """Write the model file: changed parameters, effects, discovered terms, extras and the effects the log
+    tested and did not support (``IdentificationResult.absent``)."""
+    return _mf.write(path, params, effects, extras, terms, absent)

@@ -38,10 +38,10 @@ from hvac_mpc.models.parameters import Parameters
 
 from . import discovery, localise, timing
 from . import statistics as st
-from .candidates import Candidate, library
+from .candidates import MODEL_CANDIDATES, Candidate, library
 from .discovery import CABIN_CANDIDATES
 from .diagnostics import diagnose, innovations_nll
-from .fitting import FLOW_PARAMS, NOMINAL_FREE, Fit, Fitter, FreeParam
+from .fitting import FLOW_PARAMS, IDENTIFIED_REL_SE, NOMINAL_FREE, Fit, Fitter, FreeParam, parameter_confidence
 from .log_data import LogData
 from .simulator import OutputPost, Simulator, shift
 
@@ -131,10 +131,19 @@ class IdentificationResult:
     discovery: dict | None = None
     timing_shift_samples: int = 0
     steps: list = field(default_factory=list)
+    parameter_confidence: list = field(default_factory=list)  # fitting.parameter_confidence of the final fit
 
     @property
     def sigma(self) -> dict[str, float]:
         return {o: float(s) for o, s in zip(self.fitter.outputs, self.fitter.sigma)}
+
+    @property
+    def absent(self) -> tuple[str, ...]:
+        """Model effects the log tested (scored, with the nominal parameters refit together) and did not support:
+        rejected in every round they were scored, not in the final model. Not tested (skipped) is not absent."""
+        scored = {e for rnd in self.rounds for r in rnd if r.kind == "model" and r.status == "rejected"
+                  for e in _candidate_effects(r.name)}
+        return tuple(e for e in MODEL_EFFECTS if e in scored and e not in self.effects)
 
     def holdout_errors(self) -> dict[str, dict[str, float]]:
         """Held-out RMS and max |error| per output, before (nominal fit) and after."""
@@ -145,6 +154,11 @@ class IdentificationResult:
             out[o] = {"rms_before": b["rms"], "rms_after": a["rms"], "max_before": b["max_abs"],
                       "max_after": a["max_abs"]}
         return out
+
+
+def _candidate_effects(name: str) -> tuple[str, ...]:
+    """The model effects the library candidate ``name`` switches on."""
+    return next((c.effects for c in MODEL_CANDIDATES if c.name == name), ())
 
 
 def _grid_start(fitter: Fitter, effects, p: np.ndarray, post: OutputPost, cand: Candidate) -> np.ndarray:
@@ -712,6 +726,8 @@ def identify(log: LogData, base: Parameters | None = None, base_effects: Iterabl
                 notes.append(f"{o}: held-out error {after_struct[o]:.2f}x the estimated noise variance, but no "
                              "equation or signal term explains it on the held-out rows (R^2 <= 0.1)")
     params, effects, extras = model_outputs(fitter, final, base, diag_after)
+    confidence = parameter_confidence(fitter, final, [fp for fp in NOMINAL_FREE if fp.name in final.free], p_base)
+    params = _keep_unidentified(params, base, confidence, notes)
     clock.lap("final_diagnostics")
     timings = clock.totals()
     res = IdentificationResult(log, fitter, base, base_effects, nominal, final, accepted, rounds, diag_before,
@@ -720,7 +736,24 @@ def identify(log: LogData, base: Parameters | None = None, base_effects: Iterabl
     res.steps = _step_errors(fitter, nominal, accepted, discovered, final)
     res.discovery = discovered
     res.timing_shift_samples = shift_samples
+    res.parameter_confidence = confidence
     return res
+
+
+def _keep_unidentified(params: Parameters, base: Parameters, confidence: list[dict], notes: list[str]) -> Parameters:
+    """The written parameters with the base (thesis) value wherever the log does not identify the refit one
+    (standard error above ``IDENTIFIED_REL_SE`` of the value, :func:`~.fitting.parameter_confidence`); notes
+    the parameters the log moved, in words."""
+    keep = {c["name"]: getattr(base, c["name"]) for c in confidence if not c["identified"]}
+    if keep:
+        notes.append(f"nominal parameters refit but not identified by this log (standard error above "
+                     f"{IDENTIFIED_REL_SE:.0%} of the value), the thesis values kept: {sorted(keep)}")
+    for c in confidence:
+        if c["moved"]:
+            what = c["words"] or "a stand-in for a figure the thesis does not give, calibrated (docs/model.md sec. 1)"
+            notes.append(f"the log moved {c['name']} from {c['start']:.4g} to {c['value']:.4g} ({c['change']:+.1%}, "
+                         f"{abs(c['z']):.0f} standard errors): {what}")
+    return params.replace(**keep) if keep else params
 
 
 def model_outputs(fitter: Fitter, final: Fit, base: Parameters, diag: dict) -> tuple[Parameters, tuple, dict]:

@@ -17,6 +17,7 @@ from hvac_mpc.models.parameters import Parameters
 
 from . import localise
 from .diagnostics import regressors
+from .fitting import IDENTIFIED_REL_SE
 from .model_file import write_model_file
 from .pipeline import (ALPHA, EXPLAIN_MIN, FORWARD_MIN, POLISH, SAME_RESIDUAL_CORR, SCREEN_MIN, STRUCTURE_MIN,
                        IdentificationResult)
@@ -199,6 +200,10 @@ def summary(res: IdentificationResult) -> dict:
         "extras": res.extras,
         "parameters_changed": {k: {"base": a, "identified": b}
                                for k, (a, b) in _changed_params(res, res.final).items()},
+        "parameter_confidence": res.parameter_confidence,
+        "parameters_named": [{"name": c["name"], "change": c["change"], "z": c["z"], "words": c["words"]}
+                             for c in res.parameter_confidence if c["moved"] and c["words"]],
+        "effects_absent": list(res.absent),
         "holdout_errors": res.holdout_errors(),
         "steps": res.steps,
         "discovered_terms": [dict(t.as_dict(), formula=t.formula()) for t in res.terms],
@@ -223,7 +228,7 @@ def write_report(res: IdentificationResult, out_dir: str | Path, plots: bool = T
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     files: dict[str, Path] = {}
-    model_path = write_model_file(out / model_name, res.params, res.effects, res.extras, res.terms)
+    model_path = write_model_file(out / model_name, res.params, res.effects, res.extras, res.terms, res.absent)
     files["model"] = model_path
     data = summary(res)
     plt = load_pyplot() if plots else None
@@ -331,6 +336,18 @@ def _markdown(res: IdentificationResult, data: dict, model_name: str) -> list[st
     md += ["## Nominal fit", ""]
     md += _table(["parameter", "default", "fitted", "source"],
                  [[k, a, b, Parameters.source(k)] for k, (a, b) in _changed_params(res, res.nominal).items()])
+    if res.parameter_confidence:
+        md += ["", "### Confidence of the refit parameters (final model)", "",
+               "Standard error from the Gauss-Newton covariance, inflated by n / n_eff of the autocorrelated residual; "
+               f"a parameter is identified when its standard error is at most {IDENTIFIED_REL_SE:.0%} of its value (else "
+               "the thesis value is written), moved when it lies more than 2.58 standard errors (99 %) and 5 % from it.", ""]
+        md += _table(["parameter", "thesis", "refit", "standard error", "change", "identified", "moved: what it says"],
+                     [[c["name"], c["start"], c["value"], c["se"], f"{c['change']:+.1%}", "yes" if c["identified"] else "no",
+                       (c["words"] or "calibrated (a stand-in, docs/model.md sec. 1)") if c["moved"] else ""]
+                      for c in res.parameter_confidence])
+    if res.absent:
+        md += ["", f"Effects tested on this log and not supported (written as `absent` in the model file): "
+                   f"{', '.join(res.absent)}."]
     md += ["", "## Diagnostics of the nominal model (training rows)", ""]
     md += _diag_md(res.diag_before)
     if plots["ccf"]:

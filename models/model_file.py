@@ -11,6 +11,8 @@ TOML layout (JSON with the same keys is read too)::
 
     [model]
     effects = ["fan_curve"] # HvacModel effects to switch on
+    absent = ["bypass_flow"] # effects the log tested and did not support (format 3; for the record and the
+                             # controller's own estimates, docs/identification.md "The refined model in the controller")
 
     [[model.terms]]         # discovered terms (models/discovered.py)
     name = "supply_residual_term"
@@ -24,6 +26,13 @@ TOML layout (JSON with the same keys is read too)::
 
 Every key is checked on load (pydantic); an error names the field and the allowed values and
 nothing is built. Version 1 files (no ``format_version``, no terms) are read as before.
+
+**Controller-owned effects** (:data:`CONTROLLER_EFFECTS`): ``bypass_flow`` is in the MPC's prediction model
+as a device of the controller (``OcpSpec.model_effects``: it keeps valve a's gain right in low-flow heating),
+not as a statement about the box; the box's identification says whether the box has it (``absent``). The
+MPC with a refined model keeps its configured treatment of these effects
+(:meth:`RefinedModel.prediction_effects`), so what a model file changes in the controller is what the log
+established (parameters, effects, terms, delay), not the controller's own structure.
 """
 
 from __future__ import annotations
@@ -43,8 +52,10 @@ from .box import MODEL_EFFECTS, validate_effects
 from .discovered import FEATURES, LOCATIONS, DiscoveredTerm
 from .parameters import Parameters
 
-#: Current version of the file format (1: parameters and effects; 2: + discovered terms, delay).
-FORMAT_VERSION = 2
+#: Current version of the file format (1: parameters and effects; 2: + discovered terms, delay; 3: + absent).
+FORMAT_VERSION = 3
+#: Effects the controller carries as its own device whatever a model file says (module docstring).
+CONTROLLER_EFFECTS = ("bypass_flow",)
 
 
 class ModelFileError(ValueError, KeyError):
@@ -76,11 +87,12 @@ class _ModelTable(BaseModel):
     model_config = ConfigDict(extra="forbid")
     effects: list[Literal[tuple(MODEL_EFFECTS)]] = []  # type: ignore[valid-type]
     terms: list[_TermSpec] = []
+    absent: list[Literal[tuple(MODEL_EFFECTS)]] = []  # type: ignore[valid-type]
 
 
 class _FileSpec(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    format_version: Literal[1, 2] = 1
+    format_version: Literal[1, 2, 3] = 1
     parameters: dict[str, Any] = {}
     model: _ModelTable = _ModelTable()
     identification: dict[str, Any] = {}
@@ -88,17 +100,27 @@ class _FileSpec(BaseModel):
 
 @dataclass(frozen=True)
 class RefinedModel:
-    """A model as the controller builds it: parameters, effects, discovered terms, extras."""
+    """A model as the controller builds it: parameters, effects, discovered terms, extras; ``absent``: effects
+    the log tested and did not support."""
 
     parameters: Parameters = field(default_factory=Parameters)
     effects: tuple[str, ...] = ()
     terms: tuple[DiscoveredTerm, ...] = ()
     extras: Mapping[str, Any] = field(default_factory=dict)
     source: str = ""
+    absent: tuple[str, ...] = ()
 
     @property
     def transport_delay_s(self) -> float:
         return float(self.parameters.transport_delay_s)
+
+    def prediction_effects(self, configured: Iterable[str]) -> tuple[str, ...]:
+        """The effects of a controller's prediction model built from this file: the file's effects, and of the
+        controller's own (:data:`CONTROLLER_EFFECTS`) those in ``configured`` (the controller's settings),
+        whatever the file says about the box (module docstring)."""
+        configured = set(configured)
+        keep = set(self.effects) | {e for e in CONTROLLER_EFFECTS if e in configured}
+        return tuple(e for e in MODEL_EFFECTS if e in keep)
 
 
 def _describe(err: ValidationError) -> str:
@@ -145,7 +167,11 @@ def load(path: str | Path, base: Parameters | None = None) -> RefinedModel:
         except ValueError as exc:
             raise ModelFileError(f"model file {path}: model.terms.{i}: {exc}") from None
     effects = tuple(e for e in MODEL_EFFECTS if e in spec.model.effects)
-    return RefinedModel(params, effects, tuple(terms), dict(spec.identification), str(path))
+    absent = tuple(e for e in MODEL_EFFECTS if e in spec.model.absent)
+    if set(effects) & set(absent):
+        raise ModelFileError(f"model file {path}: model.absent: {sorted(set(effects) & set(absent))} also in "
+                             f"model.effects; an effect is either in the model or absent")
+    return RefinedModel(params, effects, tuple(terms), dict(spec.identification), str(path), absent)
 
 
 def _toml_value(value: Any) -> str:
@@ -157,22 +183,29 @@ def _toml_value(value: Any) -> str:
 
 
 def write(path: str | Path, params: Parameters, effects: Iterable[str], extras: Mapping[str, Any] | None = None,
-          terms: Iterable[DiscoveredTerm] = ()) -> Path:
-    """Write the model file (format :data:`FORMAT_VERSION`)."""
+          terms: Iterable[DiscoveredTerm] = (), absent: Iterable[str] = ()) -> Path:
+    """Write the model file (format :data:`FORMAT_VERSION`); ``absent``: effects the log tested and did not
+    support (not in ``effects``)."""
     path = Path(path)
     effects = validate_effects(effects, MODEL_EFFECTS)
+    absent = validate_effects(absent, MODEL_EFFECTS) - effects
     terms = tuple(terms)
     params.write(path)
     effect_list = [e for e in MODEL_EFFECTS if e in effects]
+    absent_list = [e for e in MODEL_EFFECTS if e in absent]
     if path.suffix.lower() == ".json":
         data = {"format_version": FORMAT_VERSION, **json.loads(path.read_text())}
         data["model"] = {"effects": effect_list, "terms": [t.as_dict() for t in terms]}
+        if absent_list:
+            data["model"]["absent"] = absent_list
         if extras:
             data["identification"] = dict(extras)
         path.write_text(json.dumps(data, indent=2))
         return path
     lines = [f"format_version = {FORMAT_VERSION}", "", path.read_text().rstrip("\n"), "", "[model]",
              "effects = " + json.dumps(effect_list)]
+    if absent_list:
+        lines.append("absent = " + json.dumps(absent_list))
     for t in terms:
         lines += ["", "[[model.terms]]"]
         lines += [f"{k} = {_toml_value(v)}" for k, v in t.as_dict().items()]

@@ -42,7 +42,10 @@ class DeadTimeEstimator:
     SUBDIVISION = 2
 
     def __init__(self, max_steps: int, sensor_tau_s: float, dt_s: float = 1.0, window_s: float = 60.0,
-                 min_excitation_c: float = 0.05, switch_ratio: float = 0.7):
+                 min_excitation_c: float = 0.05, switch_ratio: float = 0.7, initial_steps: float = 0.0):
+        """``initial_steps``: the estimate before the readings move it (samples; e.g. a delay identified from
+        a log, docs/identification.md), rounded to the nearest candidate."""
+        self.initial_steps = float(initial_steps)
         self.max_steps = int(max_steps)
         self.dt_s = float(dt_s)
         self.lag = math.exp(-self.dt_s / float(sensor_tau_s))  # exact first-order lag over one sample
@@ -57,7 +60,8 @@ class DeadTimeEstimator:
         self._i0 = np.floor(self.candidates).astype(int)
         self._w1 = self.candidates - self._i0
         self._i1 = np.minimum(self._i0 + 1, self.max_steps)
-        self._best = 0
+        self._best = int(np.argmin(np.abs(self.candidates - self.initial_steps)))
+        self._at_start = self._best > 0  # still at a given starting value
         self._air = None  # model air, newest first (max_steps + 1 samples)
         self._pred = np.zeros(n)  # each candidate's predicted reading for the next sample
         self._last_pred = None  # ... and for the sample before
@@ -115,6 +119,9 @@ class DeadTimeEstimator:
         # leaves data that longer candidates explain about as well
         best = int(np.flatnonzero(res <= TIE_RATIO * res.min())[0])
         cur = self._best
-        if res[best] < self.switch_ratio * res[cur] or (best < cur and res[best] <= res[cur]):
+        # a starting value (initial_steps) gives way only to a clearly better candidate, not to a tie
+        tie_moves = best < cur and res[best] <= res[cur] and not self._at_start
+        if res[best] < self.switch_ratio * res[cur] or tie_moves:
+            self._at_start = self._at_start and best == cur
             self._best = best
         return self.steps

@@ -62,8 +62,9 @@ class EkfSettings:
     the least root mean square change per sample of the predicted reading over the window for the
     estimate to move (degC); ``dead_time_min_s``: the shortest estimate the measurement model honours (below it
     the thermocouple state's process noise absorbs the delay, as in the plain filter: honouring
-    1 s made the 1 s delay's proband sequence worse, 0.91 -> 1.00 of the baseline's IAE). Module
-    docstring; ASSUMPTIONS tuned on the independent simulator's variants.
+    1 s made the 1 s delay's proband sequence worse, 0.91 -> 1.00 of the baseline's IAE);
+    ``dead_time_initial_s``: the estimate before the readings move it (a delay identified from a log; at most
+    ``dead_time_max_s``). Module docstring; ASSUMPTIONS tuned on the independent simulator's variants.
     """
 
     q_motor_c: float = 0.01
@@ -84,6 +85,7 @@ class EkfSettings:
     dead_time_window_s: float = 60.0
     dead_time_excitation_c: float = 0.05
     dead_time_min_s: float = 1.5
+    dead_time_initial_s: float = 0.0
 
     def validate(self, prefix: str = "ekf") -> None:
         for f in fields(self):
@@ -94,6 +96,9 @@ class EkfSettings:
                 continue
             if f.name in ("dead_time_max_s", "dead_time_min_s"):
                 check_number(f"{prefix}.{f.name}", value, 0.0, 30.0)
+                continue
+            if f.name == "dead_time_initial_s":
+                check_number(f"{prefix}.{f.name}", value, 0.0, float(self.dead_time_max_s))
                 continue
             check_number(f"{prefix}.{f.name}", value, 0.0, 100.0 if f.name != "dead_time_window_s" else 3600.0,
                          lo_open=True)
@@ -122,7 +127,7 @@ class DisturbanceEkf:
         q += [HIST_Q_C] * self.n_hist
         self.Q = np.diag(np.square(q))
         self.dead_time = DeadTimeEstimator(self.n_hist, model.params.tau_tc_s, self.dt_s, s.dead_time_window_s,
-                                           s.dead_time_excitation_c)
+                                           s.dead_time_excitation_c, initial_steps=s.dead_time_initial_s / self.dt_s)
         self.R_diag = np.square([s.r_supply_c, s.r_flow_m3s, s.r_water_c, s.r_inlet_c, s.r_heater_outlet_c])
         self.use = np.array([True, True, True, True, s.use_heater_outlet])
         self._build()

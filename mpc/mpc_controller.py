@@ -180,13 +180,27 @@ class MpcSettings:
 
 
 def _with_model_effects(settings: MpcSettings, model: RefinedModel | None) -> MpcSettings:
-    """Settings whose prediction model holds exactly the refined model's effects, the structure its
-    parameters were identified with (the PTC power fall stays a constraint where ``ptc_limit`` carries it)."""
+    """Settings whose prediction model holds the refined model's effects, the structure its parameters were
+    identified with, and the controller's own effects as configured (``RefinedModel.prediction_effects``; the
+    PTC power fall stays a constraint where ``ptc_limit`` carries it)."""
     if model is None:
         return settings
     ocp = settings.ocp
-    effects = tuple(e for e in model.effects if not (e == "ptc_power_fall" and ocp.ptc_limit))
+    effects = tuple(e for e in model.prediction_effects(ocp.model_effects)
+                    if not (e == "ptc_power_fall" and ocp.ptc_limit))
     return dataclasses.replace(settings, ocp=dataclasses.replace(ocp, model_effects=effects))
+
+
+def _delay_to_estimator(settings: MpcSettings, params: Parameters) -> tuple[MpcSettings, Parameters]:
+    """A model file's transport delay as the estimator's starting dead time rather than a lag chain in the
+    model, where the estimator handles dead times that long (``EkfSettings.dead_time_max_s``): the delay the log
+    showed and the one the readings show are then one estimate (docs/identification.md, "The refined model in
+    the controller"). Longer delays stay in the model."""
+    delay_s = round(params.transport_delay_s / settings.dt_s) * settings.dt_s
+    if not 0.0 < delay_s <= settings.ekf.dead_time_max_s:
+        return settings, params
+    ekf = dataclasses.replace(settings.ekf, dead_time_initial_s=float(delay_s))
+    return dataclasses.replace(settings, ekf=ekf), params.replace(transport_delay_s=0.0)
 
 
 class MpcController:
@@ -202,9 +216,14 @@ class MpcController:
         :class:`RtiOsqpSolver` (``reset``, ``prepare``, ``feedback``, ``fail_next``), e.g. the
         do-mpc reference of the solve-time benchmark; by default ``settings.solver`` decides.
         ``model``: a refined model (``hvac_mpc.models.model_file.load``): its parameters (unless
-        ``params`` is given), effects and discovered terms enter the prediction and the estimator."""
+        ``params`` is given), effects and discovered terms enter the prediction and the estimator; the
+        controller keeps its own ``bypass_flow`` as configured, and a transport delay up to the estimator's
+        ``dead_time_max_s`` starts the estimator's dead time instead of a lag chain (docs/identification.md,
+        "The refined model in the controller")."""
         self.params = params or (model.parameters if model is not None else Parameters())
         self.settings = _with_model_effects(settings or MpcSettings(), model)
+        if model is not None:
+            self.settings, self.params = _delay_to_estimator(self.settings, self.params)
         terms = model.terms if model is not None else ()
         s = self.settings
         self.dt_s = s.dt_s

@@ -226,3 +226,24 @@ def test_two_hour_log_identifies_in_under_five_minutes(tmp_path):
     assert elapsed < 300.0
     params, _ = load_model_file(tmp_path / "out" / "model.toml")
     assert params.transport_delay_s == pytest.approx(3.0, abs=1.0)  # the variant's 3 s transport delay
+
+
+@pytest.mark.parametrize("variant, moved", [("heater_weak", True), ("nominal", False)])
+def test_refit_parameter_confidence_names_a_weaker_heater_and_leaves_the_nominal_box_alone(tmp_path, variant, moved):
+    """The box's heater at 85 % of its power (``heater_weak``): the refit k_p falls about 15 %, many standard
+    errors from the thesis value, so it counts as moved and is named; on the nominal box it stays within 5 %."""
+    from hvac_mpc.identification.fitting import NOMINAL_FREE, Fitter, parameter_confidence
+    from hvac_mpc.identification.simulator import OutputPost
+
+    simulate_log(tmp_path / "log.csv", variant, duration_s=2400, seed=3)
+    log = load(tmp_path / "log.csv")
+    fitter = Fitter(log, Parameters(), quick=True)
+    p0 = np.array(Parameters().vector())
+    free = [fp for fp in NOMINAL_FREE if fp.name in ("heater_kp", "motor_gain_max_c")]
+    fit = fitter.fit(DOCUMENTED_EFFECTS, p0, free, OutputPost(fitter.outputs, log.time_s), max_nfev=6)
+    conf = {c["name"]: c for c in parameter_confidence(fitter, fit, free, p0)}
+    kp = conf["heater_kp"]
+    assert kp["identified"] and kp["se"] > 0 and kp["moved"] == moved, kp
+    if moved:
+        assert kp["change"] == pytest.approx(-0.15, abs=0.03) and "heater" in kp["words"]
+    assert not conf["motor_gain_max_c"]["moved"]
