@@ -94,59 +94,66 @@ class StageNlp:
 
     # ------------------------------------------------------------------ rows and cost
     def _build(self, xa, u, s, p) -> None:
-        ocp, N, nx = self.ocp, self.ocp.N, self.ocp.nx
-        pm = ca.DM(ocp.p_model)
-        stagewise = self.layout == "stagewise"
-        nxa = ocp.nxa
+        """Walk the stages: rows (by group and stage), cost and least-squares terms; then order the rows."""
+        ocp, pm = self.ocp, ca.DM(self.ocp.p_model)
         groups: dict[str, list] = {g: [] for g in ROW_GROUPS}  # (stage, expr, lb, ub)
-        order: list[tuple[str, int]] = []
+        order: list[tuple[str, int]] = []  # stage order: (group, stage)
         cost, res, wts, tgt = 0, [], [], []
         self.l1, self.l2 = np.zeros(self.n), np.zeros(self.n)
         for k, st in enumerate(ocp.stages):
-            xk = xa[k][:nxa]
-            if k == 0:
-                init = (xa[0] - ca.vertcat(self.x0, self.u_prev, 0)) if stagewise else (xa[0][:nx] - self.x0)
-                groups["x0"].append((0, init, np.zeros(init.numel()), np.zeros(init.numel())))
-                order.append(("x0", 0))
-            if not st.terminal:
-                f = ocp.dynamics[st.substeps](xk, u[k], self.d, st.dt_s, pm)
-                # gap-closing rows: fatrop requires x_{k+1} - F, the compact layout keeps the
-                # IPOPT reference's F - x_{k+1} (the same rows, negated)
-                nxt = (xa[k + 1] - ca.vertcat(f, self.w[self.i_slack_bound[k]]) if stagewise
-                       else f[:nx] - xa[k + 1][:nx])
-                groups["dyn"].append((k, nxt, np.zeros(nxt.numel()), np.zeros(nxt.numel())))
-                order.append(("dyn", k))
-            h = ocp.rows(k, xk, None if st.terminal else u[k], s[k])
-            for kind, sl in st.row_slices(ocp.nu).items():
-                groups[kind].append((k, h[sl], st.lh[sl], st.uh[sl]))
-                order.append((kind, k))
-            r = ocp.terminal_residual(xk, self.d, pm) if st.terminal else ocp.residual(xk, u[k], self.d, pm)
-            res.append(r)
+            xk, uk = xa[k][:ocp.nxa], None if st.terminal else u[k]
+            for group, expr, lb, ub in self._stage_rows(k, xa, uk, s[k], pm):
+                groups[group].append((k, expr, lb, ub))
+                order.append((group, k))
+            res.append(ocp.terminal_residual(xk, self.d, pm) if st.terminal else ocp.residual(xk, uk, self.d, pm))
             wts.append(ocp.weights(k, self.w_y))
             tgt.append(ocp.target(k, self.ref))
-            cost += ocp.stage_cost(k, xk, None if st.terminal else u[k], s[k], self.d, self.ref, self.w_y, pm)
+            cost += ocp.stage_cost(k, xk, uk, s[k], self.d, self.ref, self.w_y, pm)
             if st.has_slack:
                 i = self.i_slack[k - 1]
                 self.l1[i], self.l2[i] = st.slack_l1, st.slack_l2
-        if not stagewise:  # compact: grouped by kind, stages in order within a group
+        if self.layout == "compact":  # grouped by kind, stages in order within a group
             order = [(g, item[0]) for g in ROW_GROUPS for item in groups[g]]
-        by_key = {(g, item[0]): item for g in ROW_GROUPS for item in groups[g]}
-        g_parts, lbg, ubg, self.rows, o = [], [], [], {g: [] for g in ROW_GROUPS}, 0
-        for key in order:
-            _, expr, lb, ub = by_key[key]
-            g_parts.append(expr)
-            lbg.append(lb), ubg.append(ub)
-            self.rows[key[0]].append(np.arange(o, o + expr.numel()))
-            o += expr.numel()
-        self.rows = {g: np.array(v) if g == "dyn" else (np.concatenate(v) if v else np.zeros(0, int))
-                     for g, v in self.rows.items()}
-        self.g = ca.vertcat(*g_parts)
-        self.lbg, self.ubg = np.concatenate(lbg), np.concatenate(ubg)
-        self.equality = [bool(a == b) for a, b in zip(self.lbg, self.ubg)]
-        self.p = p
-        self.f = cost
+        self._order_rows(groups, order)
+        self.p, self.f = p, cost
         self.residual, self.weights, self.target = ca.vertcat(*res), ca.vertcat(*wts), ca.vertcat(*tgt)
         self.nlp = {"x": self.w, "p": p, "f": cost, "g": self.g}
+
+    def _stage_rows(self, k: int, xa: list, uk, sk, pm) -> list:
+        """(group, expr, lb, ub) of stage k: initial state (k = 0), gap-closing rows, path rows."""
+        ocp, nx, st = self.ocp, self.ocp.nx, self.ocp.stages[k]
+        stagewise = self.layout == "stagewise"
+        xk = xa[k][:ocp.nxa]
+        out = []
+        if k == 0:
+            init = xa[0] - ca.vertcat(self.x0, self.u_prev, 0) if stagewise else xa[0][:nx] - self.x0
+            out.append(("x0", init, np.zeros(init.numel()), np.zeros(init.numel())))
+        if not st.terminal:
+            f = ocp.dynamics[st.substeps](xk, uk, self.d, st.dt_s, pm)
+            # gap-closing rows: fatrop requires x_{k+1} - F, the compact layout keeps the IPOPT
+            # reference's F - x_{k+1} (the same rows, negated)
+            gap = (xa[k + 1] - ca.vertcat(f, self.w[self.i_slack_bound[k]]) if stagewise
+                   else f[:nx] - xa[k + 1][:nx])
+            out.append(("dyn", gap, np.zeros(gap.numel()), np.zeros(gap.numel())))
+        h = ocp.rows(k, xk, uk, sk)
+        out += [(kind, h[sl], st.lh[sl], st.uh[sl]) for kind, sl in st.row_slices(ocp.nu).items()]
+        return out
+
+    def _order_rows(self, groups: dict, order: list) -> None:
+        """``g``, its bounds and the row indices of each group, rows in ``order``."""
+        by_key = {(g, item[0]): item for g in ROW_GROUPS for item in groups[g]}
+        parts, lbg, ubg, rows, o = [], [], [], {g: [] for g in ROW_GROUPS}, 0
+        for group, k in order:
+            _, expr, lb, ub = by_key[(group, k)]
+            parts.append(expr)
+            lbg.append(lb), ubg.append(ub)
+            rows[group].append(np.arange(o, o + expr.numel()))
+            o += expr.numel()
+        self.rows = {g: np.array(v) if g == "dyn" else (np.concatenate(v) if v else np.zeros(0, int))
+                     for g, v in rows.items()}
+        self.g = ca.vertcat(*parts)
+        self.lbg, self.ubg = np.concatenate(lbg), np.concatenate(ubg)
+        self.equality = [bool(a == b) for a, b in zip(self.lbg, self.ubg)]
 
     # ------------------------------------------------------------------ values
     def parameters(self, x0, u_prev, d, ref, w_y) -> np.ndarray:

@@ -48,7 +48,8 @@ class Stage:
     """One stage of the description.
 
     Attributes:
-        index: k, 0..N (N the terminal stage: no input, no dynamics).
+        index: k, 0..N.
+        terminal: True for stage N (no input, no dynamics).
         dt_s: duration (s; the terminal stage repeats the last one, unused).
         substeps: RK4 substeps of the dynamics.
         rows: constraint row kinds (:data:`ROW_KINDS`), each ``nu`` rows for ``rate``, one otherwise.
@@ -60,6 +61,7 @@ class Stage:
     """
 
     index: int
+    terminal: bool
     dt_s: float
     substeps: int
     rows: tuple[str, ...]
@@ -70,10 +72,6 @@ class Stage:
     slack_l1: float
     slack_l2: float
     cost_s: float
-
-    @property
-    def terminal(self) -> bool:
-        return self.h.n_in() == 1
 
     @property
     def n_rows(self) -> int:
@@ -138,7 +136,7 @@ class StageOcp:
         self.terminal_residual = ca.Function("terminal_residual", [xa, d, p], [y_of(x, u_prev)],
                                              ["xa", "d", "p"], ["r_e"])
         heater = pb.heater_row_coef * x[pb.i_heater]
-        ptc = pb.heater_row_coef * x[pb.i_heater] + pb.ptc_row_coef_u * u[pb.i_heater_cmd]  # TrackingProblem.ptc_row
+        ptc = heater + pb.ptc_row_coef_u * u[pb.i_heater_cmd]  # TrackingProblem.ptc_row, its bound apart
         self._row_expr = {"rate": u - u_prev, "heater": heater, "ptc": ptc}
         self._row_sym = (xa, u)
 
@@ -164,12 +162,11 @@ class StageOcp:
         expr = ca.vertcat(*[self._row_expr[kind] for kind in rows]) if rows else ca.SX(0, 1)
         h = (ca.Function(f"h{k}", [xa], [expr], ["xa"], ["h"]) if terminal
              else ca.Function(f"h{k}", [xa, u], [expr], ["xa", "u"], ["h"]))
-        cat = (lambda parts, dtype=float: np.concatenate(parts).astype(dtype) if parts else np.zeros(0, dtype))
-        soft_rows = cat(soft, bool)
+        soft_rows = _concat(soft, bool)
         dt = float(pb.dt[min(k, N - 1)])
         slack_dt = float(pb.dt[k - 1]) if soft_rows.any() else 0.0  # s_k weighs dt_{k-1}
-        return Stage(index=k, dt_s=dt, substeps=int(pb.stage_substeps[k]), rows=tuple(rows), h=h,
-                     lh=cat(lh), uh=cat(uh), soft=soft_rows, slack_l1=pb.slack_l1 * slack_dt,
+        return Stage(index=k, terminal=terminal, dt_s=dt, substeps=int(pb.stage_substeps[k]), rows=tuple(rows), h=h,
+                     lh=_concat(lh), uh=_concat(uh), soft=soft_rows, slack_l1=pb.slack_l1 * slack_dt,
                      slack_l2=pb.slack_l2 * slack_dt, cost_s=pb.terminal_s if terminal else dt)
 
     # ------------------------------------------------------------------ data
@@ -228,3 +225,8 @@ class StageOcp:
                 "nx": self.nx, "nxa": self.nxa, "nu": self.nu, "stage_rows": kinds,
                 "soft_rows": "heater, ptc (one slack per stage, l1 + l2)",
                 "cost": "nonlinear least squares (outputs, electric power, move)"}
+
+
+def _concat(parts: list, dtype=float) -> np.ndarray:
+    """The rows' values of one stage as one array (empty for a stage without rows)."""
+    return np.concatenate(parts).astype(dtype) if parts else np.zeros(0, dtype)
