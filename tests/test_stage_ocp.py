@@ -105,18 +105,33 @@ class _Recorder:
 @pytest.mark.parametrize("lm", [0.0, 0.1])
 def test_the_rti_solves_the_gauss_newton_qp_of_the_description(pb, ocp, lm):
     """At the RTI's linearisation point the QP handed to OSQP is the Gauss-Newton QP of the stage-wise
-    description (compact layout, the same variables) plus the Levenberg-Marquardt term, to 1e-9."""
+    description (compact layout, the same variables) plus the Levenberg-Marquardt term, to 1e-9: on a
+    cold start (the rollout of the last command) and on the next step (the shifted plan, another
+    reference)."""
     x0, u_prev, d, ref, w_y, lo, hi = _state(pb)
     rti = RtiOsqpSolver(pb, lm_inputs=lm)
     rti._core = rec = _Recorder(rti._core)
-    res = rti.feedback(x0, u_prev, d, ref, w_y, lo, hi)  # cold: linearised at the rollout of u_prev
-    assert res.ok
-    z_lin = rti._z_lin.copy()
     nlp = StageNlp(ocp, "compact")
+    res = rti.feedback(x0, u_prev, d, ref, w_y, lo, hi)
+    assert res.ok
+    _assert_same_qp(rti, rec.qp, nlp, (x0, u_prev, d, ref, w_y, lo, hi), lm)
+    warm = Reference(24.0, 0.045)
+    x1, u0 = res.X[1], res.U[0]
+    ref1, w_y1 = pb.reference_vector(warm), pb.output_weights(warm)
+    lo1, hi1 = pb.input_bounds(pb.unscale_u(u0))
+    rti.prepare(x1, u0, d, ref1, w_y1)
+    assert rti.feedback(x1, u0, d, ref1, w_y1, lo1, hi1).ok
+    assert np.abs(rti._z_lin[nlp.ix[1:]] - res.X[1:]).max() > 1e-3  # not the cold start's point
+    _assert_same_qp(rti, rec.qp, nlp, (x1, u0, d, ref1, w_y1, lo1, hi1), lm)
+
+
+def _assert_same_qp(rti, qp, nlp, data, lm):
+    x0, u_prev, d, ref, w_y, lo, hi = data
+    z_lin = rti._z_lin.copy()
     gn = nlp.gauss_newton_qp(z_lin, nlp.parameters(x0, u_prev, d, ref, w_y))
     lbx, ubx = nlp.bounds(lo, hi)
     # Hessian (OSQP holds the upper triangle) and gradient
-    P = rti.P.matrix(rec.qp["Px"]).toarray()
+    P = rti.P.matrix(qp["Px"]).toarray()
     P = P + np.triu(P, 1).T
     iu = nlp.iu.ravel()
     lm_P = np.zeros(nlp.n)
@@ -125,10 +140,10 @@ def test_the_rti_solves_the_gauss_newton_qp_of_the_description(pb, ocp, lm):
     assert np.abs(P - gn["P"] - np.diag(lm_P)).max() <= 1e-9 * scale
     lm_q = np.zeros(nlp.n)
     lm_q[iu] = -2.0 * lm * z_lin[iu]
-    assert np.abs(rec.qp["q"] - gn["q"] - lm_q).max() <= 1e-9 * max(1.0, np.abs(gn["q"]).max())
+    assert np.abs(qp["q"] - gn["q"] - lm_q).max() <= 1e-9 * max(1.0, np.abs(gn["q"]).max())
     # rows: the same groups, the gap-closing rows negated (x_k+1 - A x_k - B u_k = e)
-    A = rti.A.matrix(rec.qp["Ax"]).toarray()
-    l, u = rec.qp["l"], rec.qp["u"]
+    A = rti.A.matrix(qp["Ax"]).toarray()
+    l, u = qp["l"], qp["u"]
     big = 1e20  # OSQP's infinity stands for inf
     pairs = [(rti.r_x0, nlp.rows["x0"], 1.0), (rti.r_dyn.ravel(), nlp.rows["dyn"].ravel(), -1.0),
              (rti.r_rate.ravel(), nlp.rows["rate"], 1.0), (rti.r_soft, nlp.rows["heater"], 1.0),
@@ -146,7 +161,9 @@ def test_the_rti_solves_the_gauss_newton_qp_of_the_description(pb, ocp, lm):
     for r_rti, idx in ((rti.r_u.ravel(), iu), (rti.r_slack, nlp.i_slack_bound)):
         assert np.array_equal(A[r_rti][:, idx], np.eye(len(idx)))
         assert np.abs(l[r_rti] - lbx[idx]).max() <= 1e-12
-        assert np.array_equal(np.minimum(u[r_rti], np.inf) >= big, np.isinf(ubx[idx]))
+        finite = np.isfinite(ubx[idx])
+        assert np.array_equal(u[r_rti] < big, finite)
+        assert np.abs(u[r_rti][finite] - ubx[idx][finite]).max(initial=0.0) <= 1e-12
     covered = sum(len(r) for r, _, _ in pairs) + rti.r_u.size + rti.r_slack.size
     assert covered == rti.m  # nothing else in the RTI's QP
 
