@@ -8,8 +8,10 @@ with the last applied input) has that form; its ``"stagewise"`` transcription
 layout) orders the variables ``xa_0, v_0, xa_1, ...`` with ``xa_k = [x_k, u_{k-1}, s_k]`` and
 ``v_k = [u_k, s_{k+1}]`` (the slack of a soft row rides in the state: fatrop holds no soft
 constraints) and the rows stage by stage, the dynamics first. CasADi's ``nlpsol`` detects the
-structure (``structure_detection='auto'``). With ``jit`` the NLP's functions run as generated C,
-built once and cached (:func:`hvac_mpc.mpc.codegen.compiled_nlpsol`).
+structure (``structure_detection='auto'``) from the symbolic NLP, so fatrop runs interpreted: set
+up from the generated C of the same NLP (:func:`hvac_mpc.mpc.codegen.compiled_nlpsol`, as IPOPT's
+``--jit``) the structure detection fails (measured: the build succeeds after 24 min on the loaded
+two-core machine, the solver's set-up then raises in ``Function::factory``).
 """
 
 from __future__ import annotations
@@ -19,7 +21,6 @@ import time
 import casadi as ca
 import numpy as np
 
-from hvac_mpc.mpc.codegen import CodegenReport, compiled_nlpsol
 from hvac_mpc.mpc.ocp import TrackingProblem, shift_maps, shift_nodes
 from hvac_mpc.mpc.rti_osqp import SolveResult
 from hvac_mpc.mpc.stage_nlp import StageNlp
@@ -31,20 +32,16 @@ class FatropSolver:
 
     name = "fatrop"
 
-    def __init__(self, problem: TrackingProblem, *, tol: float = 1e-6, max_iter: int = 300, jit: bool = False):
+    def __init__(self, problem: TrackingProblem, *, tol: float = 1e-6, max_iter: int = 300):
         self.pb = pb = problem
         self.transcription = tr = StageNlp(StageOcp(pb), "stagewise")
         opts = {"expand": True, "structure_detection": "auto", "equality": tr.equality, "fatrop.tol": tol,
                 "fatrop.max_iter": int(max_iter), "fatrop.print_level": 0, "print_time": False,
                 "fatrop.mu_init": 1e-1}
-        self.codegen = CodegenReport()
-        if jit:
-            self.nlp = compiled_nlpsol("fatrop_reference", "fatrop", tr.nlp, opts, self.codegen)
-        else:
-            self.nlp = ca.nlpsol("fatrop_reference", "fatrop", tr.nlp, opts)
+        self.nlp = ca.nlpsol("fatrop_reference", "fatrop", tr.nlp, opts)
         self.settings = {"nlp_solver": "fatrop", "tol": tol, "max_iter": int(max_iter), "hessian": "exact",
                          "structure": "stage-wise, augmented state [x, u_prev, slack]",
-                         "compiled": self.codegen.active,
+                         "compiled": False,
                          "description": "StageOcp, stagewise transcription (mpc/stage_nlp.py)"}
         self._i0, self._w1, self._j = shift_maps(pb.t_nodes, pb.dt_s)
         self.fail_next = 0

@@ -16,8 +16,9 @@ description'):
 * ``do-mpc``: do-mpc given the description's functions (optional extra ``compare``;
   :mod:`hvac_mpc.benchmarks.dompc_reference`).
 
-With ``--jit`` the NLP functions of IPOPT and fatrop run as generated C, compiled once and cached
-(the build time is reported apart, as ``codegen_build_s``, not in the step times).
+With ``--jit`` IPOPT's NLP functions run as generated C, compiled once and cached (the build time
+is reported apart, as ``codegen_build_s``, not in the step times); fatrop stays interpreted (its
+structure detection needs the symbolic NLP, :mod:`hvac_mpc.benchmarks.fatrop_reference`).
 
 Every result carries its solver's settings (``settings``: tolerances, compiled or not, and
 ``description``: what it is built from); ``shared_description`` in the JSON summarises the
@@ -249,7 +250,7 @@ def _run(args: argparse.Namespace, steps: int, cost_seeds: int) -> int:
         from .fatrop_reference import FatropSolver
         contenders.append(("fatrop", lambda: MpcController(
             settings=ipopt_settings, model=model, solver_factory=lambda pb: FatropSolver(
-                pb, tol=ipopt_settings.ipopt_tol, max_iter=ipopt_settings.ipopt_max_iter, jit=jit))))
+                pb, tol=ipopt_settings.ipopt_tol, max_iter=ipopt_settings.ipopt_max_iter))))
     if not args.no_dompc:
         try:
             from .dompc_reference import DoMpcSolver, _import_do_mpc
