@@ -1,19 +1,20 @@
-"""do-mpc given the MPC's discrete problem, as a solver for :class:`MpcController` (benchmark only).
+"""do-mpc given the MPC's stage-wise description, as a solver for :class:`MpcController` (benchmark only).
 
 do-mpc (optional extra ``compare``) is the controller a user would otherwise pick. It gets the
-same scaled discrete model (the stage functions of :class:`TrackingProblem`), horizon, weights,
-bounds and rate limits, and solves the full NLP with IPOPT at do-mpc's defaults (output
-suppressed, iteration cap as the IPOPT reference; no extra objective scaling, as a user would
-run it). Differences forced by do-mpc's API:
+functions of the stage-wise description (:class:`~hvac_mpc.mpc.stage_ocp.StageOcp`, the one IPOPT
+and fatrop are built from): its state augmented with the last input (do-mpc's ``x`` and ``ul``),
+its dynamics, its least-squares stage cost (tracking, energy and move), its terminal cost and its
+rows (rate, heater, PTC); the same horizon, bounds and weights. It solves the full NLP with IPOPT
+at do-mpc's defaults (output suppressed, iteration cap as the IPOPT reference; no extra
+objective scaling, as a user would run it). Differences forced by do-mpc's API:
 
 * one right-hand side for all stages: the non-uniform stages (move blocking) enter as
   time-varying parameters (stage duration and a one-hot choice of the RK4 substep count), so
   every stage evaluates each substep variant and keeps one;
-* rate limits need the last input as extra states (do-mpc cannot constrain u_k - u_k-1,
-  do-mpc/do-mpc#352) and per-stage bounds are nonlinear constraints fed by parameters;
-* its soft constraints are linear-penalty only: the heater limit's slack costs
-  ``slack_l1 * mean stage duration`` per degC (the quadratic part is left out);
-* the terminal cost sees the last input through the extra states.
+* one set of rows for all stages: an inner stage's, the rate bounds per stage and the per-stage
+  input bounds fed by parameters (stage 0's rate rows inactive, its limits in its input bounds);
+* its soft constraints are linear-penalty only, each row with its own slack: the heater and PTC
+  slacks cost ``slack_l1 * mean stage duration`` per degC (the quadratic part is left out).
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ import numpy as np
 
 from hvac_mpc.mpc.ocp import TrackingProblem
 from hvac_mpc.mpc.rti_osqp import SolveResult
+from hvac_mpc.mpc.stage_ocp import StageOcp
 
 
 def _import_do_mpc():
@@ -50,7 +52,9 @@ class DoMpcSolver:
         do_mpc = _import_do_mpc()
         self.pb = pb = problem
         N, nx, nu, nd, ny = pb.N, pb.nx, pb.nu, pb.nd, pb.ny
-        substeps = sorted(pb.F_by_substeps)
+        ocp = StageOcp(pb)
+        pm = ca.DM(ocp.p_model)
+        substeps = sorted(ocp.dynamics)
         self._substeps = substeps
         model = do_mpc.model.Model("discrete", "SX")
         x = model.set_variable("_x", "x", (nx, 1))
@@ -64,19 +68,16 @@ class DoMpcSolver:
         lo = model.set_variable("_tvp", "lo", (nu, 1))
         hi = model.set_variable("_tvp", "hi", (nu, 1))
         rb = model.set_variable("_tvp", "rb", (nu, 1))
+        xa = ca.vertcat(x, ul)
         x_next = 0
         for i, n in enumerate(substeps):
-            x_next = x_next + sel[i] * pb.F_by_substeps[n](x, u, d, dt)
+            x_next = x_next + sel[i] * ocp.dynamics[n](xa, u, d, dt, pm)[:nx]
         model.set_rhs("x", x_next)
-        model.set_rhs("ul", u)
-        sw = wy / ca.DM(pb.y_scale ** 2)
-        y = pb.Y(x, u, d)
-        e = y - ref
-        blower_w = u[0] * pb.u_sc[0] + pb.u_off[0]
-        energy = pb.energy_weight * ((blower_w + y[5]) / pb.energy_scale_w) ** 2
-        model.set_expression("lterm", dt * (ca.dot(sw, e * e) + energy))
-        e_term = pb.Y(x, ul, d) - ref
-        model.set_expression("mterm", pb.terminal_s * ca.dot(sw, e_term * e_term))
+        model.set_rhs("ul", u)  # the copy part of the description's dynamics
+        # the description's least-squares stage cost (tracking, energy, move) and terminal cost
+        e = ocp.residual(xa, u, d, pm) - ocp.target(0, ref)
+        model.set_expression("lterm", ca.dot(ocp.path_weights(dt, wy), e * e))
+        model.set_expression("mterm", ocp.stage_cost(N, xa, None, 0.0, d, ref, wy, pm))
         model.setup()
 
         mpc = do_mpc.controller.MPC(model)
@@ -88,18 +89,19 @@ class DoMpcSolver:
         mpc.settings.supress_ipopt_output()
         mpc.settings.nlpsol_opts.update({"ipopt.max_iter": int(max_iter)})
         mpc.set_objective(lterm=model.aux["lterm"], mterm=model.aux["mterm"])
-        mpc.set_rterm(u=np.asarray(pb.w_du, float))
         mpc.bounds["lower", "_u", "u"] = pb.u_lo
         mpc.bounds["upper", "_u", "u"] = pb.u_hi
         mpc.set_nl_cons("u_hi", u - hi, ub=0.0)
         mpc.set_nl_cons("u_lo", lo - u, ub=0.0)
-        mpc.set_nl_cons("rate_hi", (u - ul) - rb, ub=0.0)
-        mpc.set_nl_cons("rate_lo", -rb - (u - ul), ub=0.0)
-        mpc.set_nl_cons("heater", pb.heater_row_coef * x[pb.i_heater] - pb.heater_row_bound, ub=0.0,
-                        soft_constraint=True, penalty_term_cons=float(pb.slack_l1 * pb.dt.mean()))
-        if pb.ptc_limit:
-            mpc.set_nl_cons("ptc", pb.ptc_row(x[pb.i_heater], u[pb.i_heater_cmd]), ub=0.0, soft_constraint=True,
-                            penalty_term_cons=float(pb.slack_l1 * pb.dt.mean()))
+        # the rows of an inner stage (rate, heater, PTC); the rate bounds per stage as parameters
+        inner = ocp.stages[1]
+        h, rows = inner.h(ca.vertcat(model.x["x"], model.x["ul"]), model.u["u"]), inner.row_slices(nu)
+        mpc.set_nl_cons("rate_hi", h[rows["rate"]] - rb, ub=0.0)
+        mpc.set_nl_cons("rate_lo", -rb - h[rows["rate"]], ub=0.0)
+        for kind in ("heater", "ptc"):
+            if kind in rows:
+                mpc.set_nl_cons(kind, h[rows[kind]] - inner.uh[rows[kind]], ub=0.0, soft_constraint=True,
+                                penalty_term_cons=float(pb.slack_l1 * pb.dt.mean()))
         self._tvp_template = mpc.get_tvp_template()
         self._dt = np.append(pb.dt, pb.dt[-1])
         self._sel = np.zeros((N + 1, len(substeps)))
@@ -114,7 +116,8 @@ class DoMpcSolver:
             warnings.simplefilter("ignore")
             mpc.setup()
         self.mpc = mpc
-        self.settings = {"nlp_solver": "ipopt (do-mpc defaults)", "max_iter": int(max_iter), "compiled": False}
+        self.settings = {"nlp_solver": "ipopt (do-mpc defaults)", "max_iter": int(max_iter), "compiled": False,
+                         "description": "StageOcp functions (dynamics, least-squares cost, rows) through do-mpc"}
         self.fail_next = 0
         self._initialised = False
 

@@ -2,19 +2,27 @@
 
 All controllers run the same closed loop on the simulated plant (all effects on, same seed,
 same reference scenario, same estimator and fallback chain), each solving the same discrete
-problem (:class:`~hvac_mpc.mpc.ocp.TrackingProblem` at the default horizon):
+problem (:class:`~hvac_mpc.mpc.ocp.TrackingProblem` at the default horizon), described once stage
+by stage (:class:`~hvac_mpc.mpc.stage_ocp.StageOcp`, docs/architecture.md 'The stage-wise
+description'):
 
 * ``rti``: the real-time iteration with OSQP (:mod:`hvac_mpc.mpc.rti_osqp`), its QP data and
-  estimator as generated C (``--no-codegen``: CasADi's interpreter);
-* ``ipopt``: the full NLP solved to convergence by CasADi + IPOPT (:mod:`hvac_mpc.mpc.ipopt_reference`);
-  with ``--jit`` its functions run as generated C, compiled once and cached (the build time is
-  reported apart, as ``codegen_build_s``, not in the step times);
-* ``fatrop``: the same problem written stage by stage (state augmented with the last input and
-  the slack) and solved to convergence by fatrop (:mod:`hvac_mpc.benchmarks.fatrop_reference`);
-* ``do-mpc``: do-mpc given the same discrete model, horizon and weights (optional extra
-  ``compare``; :mod:`hvac_mpc.benchmarks.dompc_reference`).
+  estimator as generated C (``--no-codegen``: CasADi's interpreter); its QP is the Gauss-Newton QP
+  of the description's compact transcription (``tests/test_stage_ocp.py``, to 1e-9);
+* ``ipopt``: the description's compact transcription solved to convergence by CasADi + IPOPT
+  (:mod:`hvac_mpc.mpc.ipopt_reference`);
+* ``fatrop``: its stage-wise transcription solved to convergence by fatrop
+  (:mod:`hvac_mpc.benchmarks.fatrop_reference`);
+* ``do-mpc``: do-mpc given the description's functions (optional extra ``compare``;
+  :mod:`hvac_mpc.benchmarks.dompc_reference`).
 
-Every result carries its solver's settings (``settings``: tolerances, compiled or not). The
+With ``--jit`` IPOPT's NLP functions run as generated C, compiled once and cached (the build time
+is reported apart, as ``codegen_build_s``, not in the step times); fatrop stays interpreted (its
+structure detection needs the symbolic NLP, :mod:`hvac_mpc.benchmarks.fatrop_reference`).
+
+Every result carries its solver's settings (``settings``: tolerances, compiled or not, and
+``description``: what it is built from); ``shared_description`` in the JSON summarises the
+description and which solvers share it. The
 per-step suboptimality of the RTI against the converged solution from the same state
 (:mod:`hvac_mpc.benchmarks.suboptimality`) is measured on a second, untimed run of the RTI loop.
 
@@ -52,6 +60,8 @@ from hvac_mpc.mpc.ipopt_reference import IpoptReferenceSolver  # noqa: E402
 from hvac_mpc.models.model_file import load as load_model_file  # noqa: E402
 from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings  # noqa: E402
 from hvac_mpc.mpc.ocp import TrackingProblem  # noqa: E402
+from hvac_mpc.mpc.rti_osqp import RtiOsqpSolver  # noqa: E402
+from hvac_mpc.mpc.stage_ocp import StageOcp  # noqa: E402
 from hvac_mpc.contract import Reference  # noqa: E402
 
 #: Reference scenario (start time s, reference): proband conditions of thesis sec. 6 (room at
@@ -74,6 +84,10 @@ QUICK_STEPS = 30
 #: percentile (ms, wall time, cold step excluded) and the per-step suboptimality of the move it
 #: applies against the converged solution from the same state (``decision``, %).
 TARGETS = {"median_ms": 0.5, "p99_ms": 1.5, "decision_median_pct": 1.0, "decision_p95_pct": 5.0}
+#: What the RTI's QP is built from: the tracking problem's stage functions, assembled by hand for
+#: OSQP; the QP equals the Gauss-Newton QP of the stage-wise description (tests/test_stage_ocp.py).
+RTI_DESCRIPTION = ("StageOcp: Gauss-Newton QP of the compact transcription (built in rti_osqp from "
+                   "TrackingProblem's stage functions, equal to 1e-9 by test)")
 
 
 def reference_at(t_s: float, scenario=SCENARIO) -> Reference:
@@ -106,6 +120,8 @@ def closed_loop(name: str, make: Callable[[], MpcController], steps: int, seed: 
     solver_report = getattr(ctrl.solver, "codegen", None)
     settings = dict(getattr(ctrl.solver, "settings", {}) or {})
     settings.setdefault("compiled", bool(solver_report is not None and solver_report.active))
+    if isinstance(ctrl.solver, RtiOsqpSolver):
+        settings.setdefault("description", RTI_DESCRIPTION)
     # the controller's report: the solver's functions and the estimator's (generated C in every
     # contender alike, MpcSettings.codegen), built or loaded apart from the timed steps
     report = getattr(ctrl, "codegen", None) or solver_report
@@ -139,6 +155,7 @@ def closed_loop(name: str, make: Callable[[], MpcController], steps: int, seed: 
     c = np.array(cpu[1:]) * 1e3
     return {
         "controller": name, "steps": steps, "setup_s": setup_s, "settings": settings,
+        "problem": StageOcp(ctrl.problem).summary(),
         "codegen": dict(report.outcomes) if report is not None else {},
         "codegen_build_s": float(report.build_time_s) if report is not None else 0.0,
         "median_ms": float(np.median(t)), "p99_ms": float(np.percentile(t, 99)), "max_ms": float(t.max()),
@@ -232,7 +249,7 @@ def _run(args: argparse.Namespace, steps: int, cost_seeds: int) -> int:
     if not getattr(args, "no_fatrop", False):
         from .fatrop_reference import FatropSolver
         contenders.append(("fatrop", lambda: MpcController(
-            settings=ipopt_settings, solver_factory=lambda pb: FatropSolver(
+            settings=ipopt_settings, model=model, solver_factory=lambda pb: FatropSolver(
                 pb, tol=ipopt_settings.ipopt_tol, max_iter=ipopt_settings.ipopt_max_iter))))
     if not args.no_dompc:
         try:
@@ -288,11 +305,19 @@ def _run(args: argparse.Namespace, steps: int, cost_seeds: int) -> int:
         print(note)
     out = {"steps": steps, "seed": args.seed, "threads": args.threads, "scenario_inlet_c": INLET_C,
            "python": platform.python_version(), "machine": platform.machine(), "notes": notes, "results": results,
-           "cost_by_seed": seeds_cost, "figures": figures}
+           "cost_by_seed": seeds_cost, "figures": figures, "shared_description": shared_description(results)}
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(out, indent=2))
     print(f"wrote {args.json}")
     return 0
+
+
+def shared_description(results: list[dict[str, Any]]) -> dict[str, Any]:
+    """The stage-wise description the contenders are built from, and what each says it uses."""
+    uses = {r["controller"]: r["settings"].get("description", "own formulation") for r in results}
+    return {"problem": results[0]["problem"], "solvers": uses,
+            "all_share": all(str(v).startswith("StageOcp") for v in uses.values())
+            and all(r["problem"] == results[0]["problem"] for r in results)}
 
 
 def headline(results: list[dict[str, Any]]) -> dict[str, Any]:

@@ -1,0 +1,192 @@
+"""The stage-wise description (mpc/stage_ocp.py) and its transcription (mpc/stage_nlp.py): one
+problem behind the RTI's QP, IPOPT and fatrop.
+
+Budget: about 10 s on a loaded two-core machine (fatrop's set-up takes most of it).
+"""
+
+import casadi as ca
+import numpy as np
+import pytest
+
+from hvac_mpc.contract import Command, Reference
+from hvac_mpc.models import Parameters
+from hvac_mpc.mpc.ocp import OcpSpec, TrackingProblem
+from hvac_mpc.mpc.rti_osqp import RtiOsqpSolver
+from hvac_mpc.mpc.stage_nlp import StageNlp
+from hvac_mpc.mpc.stage_ocp import StageOcp
+
+REF = Reference.from_split(15.0, 0.03, (0.4, 0.3, 0.3))
+
+
+@pytest.fixture(scope="module")
+def pb():
+    return TrackingProblem(Parameters(), OcpSpec())
+
+
+@pytest.fixture(scope="module")
+def ocp(pb):
+    return StageOcp(pb)
+
+
+def _state(pb, command=Command(160.0, 0.0, 40.0, 90.0, 60.0, 50.0)):
+    """A steady operating point: scaled estimate, last command, disturbances, reference, weights, bounds."""
+    u_prev = pb.scale_u(command.vector())
+    d = np.array([28.0, 5.0, -0.3, 0.0])
+    x0 = pb.scale_x(pb.model.steady_state(pb.unscale_u(u_prev), np.array([28.0, 5.0, 0.0, 0.0])))
+    lo, hi = pb.input_bounds(pb.unscale_u(u_prev))
+    return x0, u_prev, d, pb.reference_vector(REF), pb.output_weights(REF), lo, hi
+
+
+def test_every_coupling_term_lives_within_one_stage(ocp):
+    """Rows and costs of the stage-wise layout touch one stage's variables (dynamics: and the next
+    stage's state), the condition for fatrop's structure detection."""
+    nlp = StageNlp(ocp, "stagewise")
+    block = int(nlp.ix[1, 0] - nlp.ix[0, 0])  # xa_k and v_k: (nx + nu + 1) + (nu + 1) variables
+    assert block == (ocp.nx + ocp.nu + 1) + (ocp.nu + 1)
+    stage_of = np.arange(nlp.n) // block
+    assert stage_of[nlp.ix[-1]].tolist() == [ocp.N] * ocp.nx
+    jac = ca.jacobian(nlp.g, nlp.w).sparsity()
+    rows, cols = jac.get_triplet()
+    owner = np.full(len(nlp.lbg), -1)
+    owner[nlp.rows["x0"]] = 0
+    for k, r in enumerate(nlp.rows["dyn"]):
+        owner[r] = k
+    for r, c in zip(rows, cols):
+        if owner[r] >= 0:  # initial and gap-closing rows: stage k and the state of k + 1
+            assert stage_of[c] in (owner[r], owner[r] + 1)
+    # path rows: all of one stage's variables, and each stage's rows in a block after its dynamics
+    path = np.setdiff1d(np.arange(len(nlp.lbg)), np.where(owner >= 0)[0])
+    assert path.size == sum(st.n_rows for st in ocp.stages)
+    for r in path:
+        assert len({stage_of[c] for c, rr in zip(cols, rows) if rr == r}) == 1
+    # the move cost, the terminal cost and the soft rows' slacks: the Hessian couples no two stages
+    hess = ca.hessian(nlp.f, nlp.w)[0].sparsity()
+    hr, hc = hess.get_triplet()
+    assert all(stage_of[i] == stage_of[j] for i, j in zip(hr, hc))
+    assert ocp.stages[0].rows == () and ocp.stages[-1].rows == ("heater",)
+    assert ocp.stages[1].rows == ("rate", "heater", "ptc") and all(ocp.stages[1].soft == [False] * 6 + [True] * 2)
+
+
+def test_both_layouts_have_the_tracking_problems_exact_cost(pb, ocp):
+    rng = np.random.default_rng(3)
+    X = rng.uniform(-0.5, 0.5, (pb.N + 1, pb.nx))
+    U = rng.uniform(-0.9, 0.9, (pb.N, pb.nu))
+    S = rng.uniform(0.0, 1.0, pb.N)
+    x0, u_prev, d, ref, w_y, _, _ = _state(pb)
+    exact = float(pb.cost_function()(X.T, U.T, S, d, ref, w_y, u_prev))
+    for layout in ("compact", "stagewise"):
+        nlp = StageNlp(ocp, layout)
+        w = nlp.pack(X, U, S, u_prev)
+        assert [a.tolist() for a in nlp.unpack(w)] == [X.tolist(), U.tolist(), S.tolist()]
+        value = float(nlp.cost_function()(w, nlp.parameters(x0, u_prev, d, ref, w_y)))
+        assert value == pytest.approx(exact, rel=1e-12)
+    with pytest.raises(ValueError, match="layout"):
+        StageNlp(ocp, "dense")
+
+
+class _Recorder:
+    """Stands between the RTI and OSQP and keeps the QP handed over."""
+
+    def __init__(self, core):
+        self.core, self.qp = core, {}
+
+    def update_matrices(self, Px, Ax):
+        self.qp.update(Px=np.array(Px), Ax=np.array(Ax))
+        self.core.update_matrices(Px, Ax)
+
+    def update_vectors(self, q, l, u):
+        self.qp.update(q=np.array(q), l=np.array(l), u=np.array(u))
+        self.core.update_vectors(q, l, u)
+
+    def __getattr__(self, name):
+        return getattr(self.core, name)
+
+
+@pytest.mark.parametrize("lm", [0.0, 0.1])
+def test_the_rti_solves_the_gauss_newton_qp_of_the_description(pb, ocp, lm):
+    """At the RTI's linearisation point the QP handed to OSQP is the Gauss-Newton QP of the stage-wise
+    description (compact layout, the same variables) plus the Levenberg-Marquardt term, to 1e-9: on a
+    cold start (the rollout of the last command) and on the next step (the shifted plan, another
+    reference)."""
+    x0, u_prev, d, ref, w_y, lo, hi = _state(pb)
+    rti = RtiOsqpSolver(pb, lm_inputs=lm)
+    rti._core = rec = _Recorder(rti._core)
+    nlp = StageNlp(ocp, "compact")
+    res = rti.feedback(x0, u_prev, d, ref, w_y, lo, hi)
+    assert res.ok
+    _assert_same_qp(rti, rec.qp, nlp, (x0, u_prev, d, ref, w_y, lo, hi), lm)
+    warm = Reference(24.0, 0.045)
+    x1, u0 = res.X[1], res.U[0]
+    ref1, w_y1 = pb.reference_vector(warm), pb.output_weights(warm)
+    lo1, hi1 = pb.input_bounds(pb.unscale_u(u0))
+    rti.prepare(x1, u0, d, ref1, w_y1)
+    assert rti.feedback(x1, u0, d, ref1, w_y1, lo1, hi1).ok
+    assert np.abs(rti._z_lin[nlp.ix[1:]] - res.X[1:]).max() > 1e-3  # not the cold start's point
+    _assert_same_qp(rti, rec.qp, nlp, (x1, u0, d, ref1, w_y1, lo1, hi1), lm)
+
+
+def _assert_same_qp(rti, qp, nlp, data, lm):
+    x0, u_prev, d, ref, w_y, lo, hi = data
+    z_lin = rti._z_lin.copy()
+    gn = nlp.gauss_newton_qp(z_lin, nlp.parameters(x0, u_prev, d, ref, w_y))
+    lbx, ubx = nlp.bounds(lo, hi)
+    # Hessian (OSQP holds the upper triangle) and gradient
+    P = rti.P.matrix(qp["Px"]).toarray()
+    P = P + np.triu(P, 1).T
+    iu = nlp.iu.ravel()
+    lm_P = np.zeros(nlp.n)
+    lm_P[iu] = 2.0 * lm
+    scale = np.abs(gn["P"]).max()
+    assert np.abs(P - gn["P"] - np.diag(lm_P)).max() <= 1e-9 * scale
+    lm_q = np.zeros(nlp.n)
+    lm_q[iu] = -2.0 * lm * z_lin[iu]
+    assert np.abs(qp["q"] - gn["q"] - lm_q).max() <= 1e-9 * max(1.0, np.abs(gn["q"]).max())
+    # rows: the same groups, the gap-closing rows negated (x_k+1 - A x_k - B u_k = e)
+    A = rti.A.matrix(qp["Ax"]).toarray()
+    l, u = qp["l"], qp["u"]
+    big = 1e20  # OSQP's infinity stands for inf
+    pairs = [(rti.r_x0, nlp.rows["x0"], 1.0), (rti.r_dyn.ravel(), nlp.rows["dyn"].ravel(), -1.0),
+             (rti.r_rate.ravel(), nlp.rows["rate"], 1.0), (rti.r_soft, nlp.rows["heater"], 1.0),
+             (rti.r_ptc, nlp.rows["ptc"], 1.0)]
+    for r_rti, r_gn, sign in pairs:
+        assert len(r_rti) == len(r_gn) > 0
+        assert np.abs(A[r_rti] - sign * gn["A"][r_gn]).max() <= 1e-9
+        lo_gn, hi_gn = (gn["lg"][r_gn], gn["ug"][r_gn]) if sign > 0 else (-gn["ug"][r_gn], -gn["lg"][r_gn])
+        for mine, theirs in ((l[r_rti], lo_gn), (u[r_rti], hi_gn)):
+            theirs = np.clip(theirs, -big, big)
+            finite = np.abs(theirs) < big
+            assert np.array_equal(np.abs(mine) >= big, ~finite)
+            assert np.abs(mine[finite] - theirs[finite]).max(initial=0.0) <= 1e-9
+    # variable bounds of the description are rows of the RTI's QP: inputs and s >= 0
+    for r_rti, idx in ((rti.r_u.ravel(), iu), (rti.r_slack, nlp.i_slack_bound)):
+        assert np.array_equal(A[r_rti][:, idx], np.eye(len(idx)))
+        assert np.abs(l[r_rti] - lbx[idx]).max() <= 1e-12
+        finite = np.isfinite(ubx[idx])
+        assert np.array_equal(u[r_rti] < big, finite)
+        assert np.abs(u[r_rti][finite] - ubx[idx][finite]).max(initial=0.0) <= 1e-12
+    covered = sum(len(r) for r, _, _ in pairs) + rti.r_u.size + rti.r_slack.size
+    assert covered == rti.m  # nothing else in the RTI's QP
+
+
+def test_ipopt_and_fatrop_built_from_the_description_reach_the_same_optimum(pb):
+    """Tight tolerances, no objective scaling (at the IPOPT reference's default 1e-3 scaling IPOPT stops
+    on the redundant actuators' flat directions about 2e-4 above the optimum from this state)."""
+    from hvac_mpc.benchmarks.fatrop_reference import FatropSolver
+    from hvac_mpc.mpc.ipopt_reference import IpoptReferenceSolver
+
+    x0, u_prev, d, ref, w_y, lo, hi = _state(pb)
+    ip = IpoptReferenceSolver(pb, tol=1e-10, obj_scaling=1.0)
+    fa = FatropSolver(pb, tol=1e-10)
+    ri = ip.feedback(x0, u_prev, d, ref, w_y, lo, hi)
+    rf = fa.feedback(x0, u_prev, d, ref, w_y, lo, hi)
+    assert ri.ok and rf.ok and ri.iterations > 0 and rf.iterations > 0
+    cost = pb.cost_function()
+    c_ip = float(cost(ri.X.T, ri.U.T, ri.S, d, ref, w_y, u_prev))
+    c_fa = float(cost(rf.X.T, rf.U.T, rf.S, d, ref, w_y, u_prev))
+    assert c_ip == pytest.approx(ri.extra["objective"], rel=1e-12)
+    assert c_fa == pytest.approx(rf.extra["objective"], rel=1e-12)
+    assert c_fa == pytest.approx(c_ip, rel=1e-8)
+    assert np.max(np.abs(pb.unscale_u(rf.U) - pb.unscale_u(ri.U))) < 1e-2  # W and %, whole plan
+    assert np.max(np.abs(rf.X - ri.X)) < 1e-5
+    for solver in (ip, fa):
+        assert solver.settings["description"].startswith("StageOcp")
