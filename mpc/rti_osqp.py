@@ -416,6 +416,12 @@ class RtiOsqpSolver:
         if getattr(self, "_workspace_used", False):
             self._setup_osqp()
 
+    def set_parameters(self, p: np.ndarray) -> None:
+        """Model parameters (``HvacModel.p_default`` order) of the next linearisations, e.g. with an
+        estimated bypass-flow exponent (:class:`~.estimator.DisturbanceEkf`); no rebuild."""
+        self._p[...] = p
+        self._qp_data.set_fixed(6, self._p)
+
     @property
     def clean(self) -> bool:
         """True when OSQP's workspace has not been used since it was set up (or reset)."""
