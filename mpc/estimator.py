@@ -43,7 +43,6 @@ lets it ramp towards the chiller set point as in the model (thesis sec. 4.2).
 from __future__ import annotations
 
 import math
-from collections import deque
 from dataclasses import dataclass, fields
 
 import casadi as ca
@@ -93,8 +92,7 @@ class EkfSettings:
     docs/robustness.md sec. 1): estimate it (module docstring), starting from the prior with standard
     deviation ``bypass_flow_exponent_sd``, random walk ``q_bypass_flow_exponent`` per sample;
     ``bypass_flow_gate`` the least |ln(flow / running mean of the flow)| for it to be learned,
-    ``bypass_flow_window_s`` that running mean's time constant (s), ``bypass_flow_valve_quiet_pct``
-    the largest move of valve a over that window while learning (100: no condition). ASSUMPTIONS.
+    ``bypass_flow_window_s`` that running mean's time constant (s). ASSUMPTIONS.
     """
 
     q_motor_c: float = 0.01
@@ -122,7 +120,6 @@ class EkfSettings:
     q_bypass_flow_exponent: float = 1e-3
     bypass_flow_gate: float = 0.05
     bypass_flow_window_s: float = 10.0
-    bypass_flow_valve_quiet_pct: float = 100.0
 
     def validate(self, prefix: str = "ekf") -> None:
         for f in fields(self):
@@ -183,9 +180,7 @@ class DisturbanceEkf:
         self.z: np.ndarray | None = None
         self.P: np.ndarray | None = None
         self._log_flow_mean: float | None = None
-        self.learning = False  # the bypass-flow exponent's gate: the flow moves, valve a does not
-        self.i_valve_a = model.inputs.index("valve_a_pct")
-        self._valve_a: deque = deque(maxlen=max(1, int(round(s.bypass_flow_window_s / self.dt_s))))
+        self.learning = False  # the bypass-flow exponent's gate: the flow moves
 
     def _d(self, z, setpoint):
         x = z[:self.nx]
@@ -296,7 +291,6 @@ class DisturbanceEkf:
         self.P = None
         self.dead_time.reset()
         self._log_flow_mean = None
-        self._valve_a.clear()
         self.learning = False
 
     @property
@@ -340,7 +334,6 @@ class DisturbanceEkf:
         self.P = np.diag(np.square(sd))
         self.dead_time.reset()
         self._log_flow_mean = None
-        self._valve_a.clear()
         self.learning = False
 
     def use_functions(self, predict_fn, update_fn) -> None:
@@ -357,20 +350,17 @@ class DisturbanceEkf:
         if self.n_hist:
             self.dead_time.push_air(float(air[0]))
         if self.learns_bypass_flow:
-            self._gate(float(flow[0]), float(u[self.i_valve_a]))
+            self._gate(float(flow[0]))
 
-    def _gate(self, flow_m3s: float, valve_a_pct: float) -> None:
+    def _gate(self, flow_m3s: float) -> None:
         """Open the bypass-flow exponent's gate while the model's flow is more than ``bypass_flow_gate``
-        (in log) away from its running mean over ``bypass_flow_window_s`` and valve a has moved less
-        than ``bypass_flow_valve_quiet_pct`` over that window (module docstring)."""
+        (in log) away from its running mean over ``bypass_flow_window_s`` (module docstring)."""
         s = self.settings
         log_flow = math.log(max(flow_m3s, 1e-4))
         if self._log_flow_mean is None:
             self._log_flow_mean = log_flow
         self._log_flow_mean += min(1.0, self.dt_s / s.bypass_flow_window_s) * (log_flow - self._log_flow_mean)
-        self._valve_a.append(valve_a_pct)
-        quiet = max(self._valve_a) - min(self._valve_a) < s.bypass_flow_valve_quiet_pct
-        self.learning = abs(log_flow - self._log_flow_mean) > s.bypass_flow_gate and quiet
+        self.learning = abs(log_flow - self._log_flow_mean) > s.bypass_flow_gate
         if not self.learning:  # a constant to the filter: no correlation with the other states
             i = self.i_exponent
             keep = self.P[i, i]

@@ -8,6 +8,7 @@ Budget: the fast tests about 1 s together; the closed loops are marked slow.
 import numpy as np
 import pytest
 
+from ekf_helpers import feed_open_loop
 from hvac_mpc.benchmarks import bench, mismatch_suite, scenarios as S
 from hvac_mpc.contract import Command
 from hvac_mpc.mismatch import Variant, make_plant
@@ -31,18 +32,7 @@ def learn_on_box(exponent: float, prior: float, seed: int = 3) -> np.ndarray:
     ekf = DisturbanceEkf(HvacModel(Parameters(), ("bypass_flow",)),
                          EkfSettings(learn_bypass_flow=True, bypass_flow_exponent_prior=prior))
     learned = []
-    for k in range(HOLD_S * len(BLOWER_STEPS_W)):
-        command = commands[k // HOLD_S]
-        u = command.vector()
-        m = plant.read()
-        if ekf.initialised:
-            ekf.update(m, u, 5.0)
-        else:
-            ekf.initialise(m, u, 5.0)
-        learned.append(ekf.bypass_flow_exponent)
-        ekf.predict(u, 5.0)
-        plant.apply(command)
-        plant.advance()
+    feed_open_loop(ekf, plant, commands, HOLD_S, lambda e: learned.append(e.bypass_flow_exponent))
     return np.array(learned)
 
 

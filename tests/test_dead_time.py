@@ -11,6 +11,7 @@ import functools
 import numpy as np
 import pytest
 
+from ekf_helpers import feed_open_loop
 from hvac_mpc.benchmarks import bench, scenarios as S
 from hvac_mpc.contract import Command
 from hvac_mpc.mismatch import make_plant
@@ -33,19 +34,12 @@ def run_filter(variant: str, settings: EkfSettings | None = None, seed: int = 3)
     plant.settle(commands[0])
     ekf = DisturbanceEkf(HvacModel(Parameters()), settings or EkfSettings())
     dead, offset = [], []
-    for k in range(HOLD_S * len(VALVE_A_STEPS)):
-        command = commands[k // HOLD_S]
-        u = command.vector()
-        m = plant.read()
-        if ekf.initialised:
-            ekf.update(m, u, 5.0)
-        else:
-            ekf.initialise(m, u, 5.0)
-        dead.append(ekf.dead_time_s)
-        offset.append(ekf.mix_offset_c)
-        ekf.predict(u, 5.0)
-        plant.apply(command)
-        plant.advance()
+
+    def record(e):
+        dead.append(e.dead_time_s)
+        offset.append(e.mix_offset_c)
+
+    feed_open_loop(ekf, plant, commands, HOLD_S, record)
     return np.array(dead), np.array(offset)
 
 
