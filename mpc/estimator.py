@@ -57,9 +57,8 @@ from .ocp import InvalidSettings, check_number
 
 #: Process noise of the history entries (degC per sample): exact copies, a floor for the numerics.
 HIST_Q_C = 1e-4
-#: Plausible range of the learned bypass-flow exponent (ASSUMPTION: from no dependence to more than twice
-#: the simulated plant's 0.4, either sign); the estimate is clipped to it.
-BYPASS_FLOW_EXPONENT_RANGE = (-0.5, 1.0)
+#: Range of the bypass-flow exponent (that of Parameters.bypass_flow_exponent); the estimate is clipped to it.
+BYPASS_FLOW_EXPONENT_RANGE = (-3.0, 3.0)
 #: Measurement names in the order of the filter's measurement vector.
 MEASURED = ("supply_temp_c", "volume_flow_m3s", "water_temp_c", "hvac_inlet_temp_c", "heater_outlet_temp_c")
 
@@ -261,7 +260,7 @@ class DisturbanceEkf:
         compared at the weights ``c``. A reading left out has its row of H and its innovation zeroed
         and a unit variance, so it adds an uncoupled identity block to S and a zero column to K: the
         same update as with the used readings alone. ``learn`` (0 or 1) scales the bypass-flow
-        exponent's row of the gain (0: a consider state; the Joseph form keeps P right for any gain)."""
+        exponent's column of H and row of the gain (0: a constant to the filter, see :meth:`_exponent_mask`)."""
         nz, nm = self.nz, len(MEASURED)
         z, P = ca.SX.sym("z", nz), ca.SX.sym("P", nz, nz)
         y, ok = ca.SX.sym("y", nm), ca.SX.sym("ok", nm)

@@ -183,12 +183,17 @@ class MpcSettings:
 
 def _with_model_effects(settings: MpcSettings, model: RefinedModel | None) -> MpcSettings:
     """Settings whose prediction model holds exactly the refined model's effects, the structure its
-    parameters were identified with (the PTC power fall stays a constraint where ``ptc_limit`` carries it)."""
+    parameters were identified with (the PTC power fall stays a constraint where ``ptc_limit`` carries it),
+    and, where it has the bypass split's flow dependence, its identified exponent as the estimator's prior."""
     if model is None:
         return settings
     ocp = settings.ocp
     effects = tuple(e for e in model.effects if not (e == "ptc_power_fall" and ocp.ptc_limit))
-    return dataclasses.replace(settings, ocp=dataclasses.replace(ocp, model_effects=effects))
+    settings = dataclasses.replace(settings, ocp=dataclasses.replace(ocp, model_effects=effects))
+    if "bypass_flow" in effects:  # identified with the model's own exponent: the prediction starts from it
+        settings = dataclasses.replace(settings, ekf=dataclasses.replace(
+            settings.ekf, bypass_flow_exponent_prior=float(model.parameters.bypass_flow_exponent)))
+    return settings
 
 
 class MpcController:

@@ -74,7 +74,7 @@ def test_the_prediction_uses_the_thesis_model_exponent_unless_told():
         assert res.stats["bypass_flow_exponent"] == c.ekf.bypass_flow_exponent
         assert c.solver._p[i] == c.ekf.bypass_flow_exponent and c.reach._p[i] == c.ekf.bypass_flow_exponent
     with pytest.raises(InvalidSettings, match="ekf.bypass_flow_exponent_prior"):
-        MpcSettings(ekf=EkfSettings(bypass_flow_exponent_prior=2.0))
+        MpcSettings(ekf=EkfSettings(bypass_flow_exponent_prior=5.0))
 
 
 @pytest.mark.slow
