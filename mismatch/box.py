@@ -58,6 +58,8 @@ def operating_point(u: np.ndarray, inlet_c: float, variant: Variant, net: ph.Val
     load = r_net + ph.box_resistance(bypass, net.r_core)
     flow = ph.blower_flow_m3s(blower, k.BLOWER_FLOW_PER_W * variant.blower_gain_scale, net.r_int, net.r_ref, load)
     mass = ph.air_density(inlet_c) * flow
+    # the flow follows the valve's geometric split; the mixing share may depend on the flow too
+    bypass = ph.flow_dependent_bypass(bypass, mass, variant.bypass_flow_exponent)
     core = (1.0 - bypass) * mass * k.CP_AIR
     return OperatingPoint(
         blower_w=blower, heater_cmd_w=heater, bypass=bypass, shares=tuple(x / g_total for x in g),

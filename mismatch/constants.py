@@ -27,6 +27,7 @@ BLOWER_FLOW_PER_W = 1.9e-4   # ASSUMPTION (docs/model.md sec. 1): V = 1.9e-4 P_b
 # ---------------------------------------------------------------- bypass valve a (thesis 4.5.1)
 BYPASS_MAX = 0.9             # thesis 4.5.1: at least 10 % of the air always crosses the core
 BYPASS_EXPONENT = 1.3        # ASSUMPTION (docs/model.md sec. 1): b(a) = 0.9 (1 - a/100)^1.3
+BYPASS_FLOW_REF_KGS = 0.04   # ASSUMPTION: mass flow at which a flow-dependent split equals b(a) (Variant.bypass_flow_exponent)
 CORE_FLOW_RATIO = 0.9        # thesis 4.5.1: ~10 % less flow when all air crosses the core
 
 # ---------------------------------------------------------------- chiller and cooler core (thesis 2.2, 4.2)

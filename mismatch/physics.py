@@ -54,6 +54,14 @@ def bypass_fraction(a_pct: float) -> float:
     return k.BYPASS_MAX * (1.0 - a_pct / 100.0) ** k.BYPASS_EXPONENT
 
 
+def flow_dependent_bypass(bypass: float, mass_flow_kgs: float, exponent: float) -> float:
+    """Bypass share when the split also depends on the total mass flow (thesis 4.5.1 remark; the form
+    and its reference flow are ASSUMPTIONS): b (m / m_ref)^exponent, at most 0.97; ``exponent`` 0 is b."""
+    if exponent == 0.0:
+        return bypass
+    return min(bypass * (max(mass_flow_kgs, 1e-4) / k.BYPASS_FLOW_REF_KGS) ** exponent, 0.97)
+
+
 def isotonic_decreasing(values: np.ndarray) -> np.ndarray:
     """Closest non-increasing sequence in the least-squares sense (pool adjacent violators)."""
     blocks: list[list[float]] = []  # [mean, weight]

@@ -26,6 +26,7 @@ class Variant:
     ptc_power_fall          PTC power falling from 240 W at ~60 C to 0 at 165 C (off: constant 240 W)
     outlet_density_correction  outlet volume flows at the supply air's density instead of the inlet's
     log_shift_samples       logs only: output columns this many samples late (negative: early)
+    bypass_flow_exponent    bypass share b (m / 0.04 kg/s)^exponent: the split depends on the total mass flow
     """
 
     transport_delay_s: float = 0.0
@@ -40,9 +41,11 @@ class Variant:
     ptc_power_fall: bool = True
     outlet_density_correction: bool = False
     log_shift_samples: int = 0
+    bypass_flow_exponent: float = 0.0
 
     def __post_init__(self) -> None:
-        for name in ("transport_delay_s", "duct_loss_ua_w_per_k", "cabin_temp_c", "valve_shift_pct"):
+        for name in ("transport_delay_s", "duct_loss_ua_w_per_k", "cabin_temp_c", "valve_shift_pct",
+                     "bypass_flow_exponent"):
             if not math.isfinite(getattr(self, name)):
                 raise ValueError(f"Variant.{name} must be finite, got {getattr(self, name)!r}")
         for name in ("thermocouple_tau_scale", "blower_gain_scale", "heater_power_scale", "chiller_rate_scale"):

@@ -41,6 +41,12 @@ class BufferedFunction:
             self._args[i][...] = value
         self._free = [a for i, a in enumerate(self._args) if i not in fixed]
 
+    def set_fixed(self, index: int, value) -> None:
+        """Change the value of the fixed input ``index`` (one of ``fixed``) for the calls that follow."""
+        if any(a is self._args[index] for a in self._free):
+            raise ValueError(f"input {index} is not a fixed input")
+        self._args[index][...] = value
+
     @staticmethod
     def _shape(rows: int, cols: int) -> tuple[int, ...]:
         return (rows,) if cols == 1 else (cols, rows)

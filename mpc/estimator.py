@@ -25,6 +25,16 @@ steers the response it will see a dead time later (a Smith predictor in state-sp
 the mixed-air offset integrates only what the delayed comparison leaves, not the delay itself.
 With an estimate of 0 the filter is the plain one. docs/robustness.md sec. 2.
 
+Bypass split against flow (models with the ``bypass_flow`` effect): the exponent k of
+``b_eff = b (m / m_ref)^k`` (``Parameters.bypass_flow_exponent``, an ASSUMPTION the thesis model
+leaves out) is the filter's own, ``EkfSettings.bypass_flow_exponent_prior`` (0: the thesis model),
+and the MPC predicts with it (:attr:`DisturbanceEkf.bypass_flow_exponent`). With
+``learn_bypass_flow`` it is one more state, a slow random walk. At a steady flow its effect on the
+supply temperature is a constant the mixed-air offset takes as well, so it is learned only while the
+flow moves (the model's flow more than ``bypass_flow_gate`` in log from its running mean); otherwise
+it is a constant to the filter (its column of the Jacobians and its row of the gain zeroed, its
+correlations dropped, its variance kept). docs/robustness.md sec. 1.
+
 Chiller water (``water_prediction``): ``"hold"`` treats the water temperature as a random walk
 (the chiller's two-point switching is unknown to the model, thesis sec. 2.2); ``"setpoint"``
 lets it ramp towards the chiller set point as in the model (thesis sec. 4.2).
@@ -32,6 +42,7 @@ lets it ramp towards the chiller set point as in the model (thesis sec. 4.2).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, fields
 
 import casadi as ca
@@ -46,6 +57,8 @@ from .ocp import InvalidSettings, check_number
 
 #: Process noise of the history entries (degC per sample): exact copies, a floor for the numerics.
 HIST_Q_C = 1e-4
+#: Range of the bypass-flow exponent (that of Parameters.bypass_flow_exponent); the estimate is clipped to it.
+BYPASS_FLOW_EXPONENT_RANGE = (-3.0, 3.0)
 #: Measurement names in the order of the filter's measurement vector.
 MEASURED = ("supply_temp_c", "volume_flow_m3s", "water_temp_c", "hvac_inlet_temp_c", "heater_outlet_temp_c")
 
@@ -65,6 +78,21 @@ class EkfSettings:
     1 s made the 1 s delay's proband sequence worse, 0.91 -> 1.00 of the baseline's IAE);
     ``dead_time_initial_s``: the estimate before the readings move it (a delay identified from a log; at most
     ``dead_time_max_s``). Module docstring; ASSUMPTIONS tuned on the independent simulator's variants.
+
+    ``q_heater_outlet_offset_c``: random walk (degC per sample) of an offset of the heater outlet
+    reading, its own integrating disturbance (0: none). Without it a persistent error of that reading
+    (a cooler core whose outlet differs from the model's) biases the mixed-air offset and so the supply
+    temperature at rest (0.03 degC on the independent box's ``cooler_literal`` with the flow out of
+    reach); with it every measured output has its integrator and the filter stays offset-free.
+
+    ``bypass_flow_exponent_prior``: the exponent of the bypass split's flow dependence the filter
+    and the MPC's prediction use where the model carries the ``bypass_flow`` effect (0 = the thesis
+    model, which leaves the dependence out), in place of ``Parameters.bypass_flow_exponent``.
+    ``learn_bypass_flow`` (off by default: measured worse on the delayed mismatch variants,
+    docs/robustness.md sec. 1): estimate it (module docstring), starting from the prior with standard
+    deviation ``bypass_flow_exponent_sd``, random walk ``q_bypass_flow_exponent`` per sample;
+    ``bypass_flow_gate`` the least |ln(flow / running mean of the flow)| for it to be learned,
+    ``bypass_flow_window_s`` that running mean's time constant (s). ASSUMPTIONS.
     """
 
     q_motor_c: float = 0.01
@@ -86,15 +114,25 @@ class EkfSettings:
     dead_time_excitation_c: float = 0.05
     dead_time_min_s: float = 1.5
     dead_time_initial_s: float = 0.0
+    q_heater_outlet_offset_c: float = 0.01
+    learn_bypass_flow: bool = False
+    bypass_flow_exponent_prior: float = 0.0
+    bypass_flow_exponent_sd: float = 0.1
+    q_bypass_flow_exponent: float = 1e-3
+    bypass_flow_gate: float = 0.05
+    bypass_flow_window_s: float = 10.0
 
     def validate(self, prefix: str = "ekf") -> None:
         for f in fields(self):
             value = getattr(self, f.name)
-            if f.name == "use_heater_outlet":
+            if f.name in ("use_heater_outlet", "learn_bypass_flow"):
                 if not isinstance(value, bool):
-                    raise InvalidSettings(f"{prefix}.use_heater_outlet must be True or False")
+                    raise InvalidSettings(f"{prefix}.{f.name} must be True or False")
                 continue
-            if f.name in ("dead_time_max_s", "dead_time_min_s"):
+            if f.name == "bypass_flow_exponent_prior":
+                check_number(f"{prefix}.{f.name}", value, *BYPASS_FLOW_EXPONENT_RANGE)
+                continue
+            if f.name in ("dead_time_max_s", "dead_time_min_s", "q_heater_outlet_offset_c"):
                 check_number(f"{prefix}.{f.name}", value, 0.0, 30.0)
                 continue
             if f.name == "dead_time_initial_s":
@@ -108,13 +146,24 @@ class DisturbanceEkf:
     """EKF for the HVAC box; ``predict(u)`` after applying a command, ``update(measurement)`` on arrival."""
 
     def __init__(self, model: HvacModel, settings: EkfSettings | None = None, dt_s: float = 1.0,
-                 water_prediction: str = "hold"):
+                 water_prediction: str = "hold", learn_bypass_flow: bool = True):
+        """``learn_bypass_flow``: False keeps the model's bypass-flow exponent fixed whatever the
+        settings say (for a prediction that cannot take a changed parameter)."""
         self.model = model
         self.settings = s = settings or EkfSettings()
         self.dt_s = float(dt_s)
         self.hold_water = water_prediction == "hold"
         self.nx = len(model.states)
-        self.nc = self.nx + 3  # model states and disturbance states
+        self.i_exponent_p = model.param_names.index("bypass_flow_exponent")
+        # the filter's own bypass-flow exponent (the prior, learned if so set) where the model has the effect
+        self.adapts_bypass_flow = bool(learn_bypass_flow and "bypass_flow" in model.effects)
+        self.learns_bypass_flow = self.adapts_bypass_flow and s.learn_bypass_flow
+        # model states, disturbance states and, when learned, the bypass-flow exponent
+        # ... and the heater outlet reading's own offset (an integrating disturbance per measured output)
+        self.has_outlet_offset = bool(s.use_heater_outlet and s.q_heater_outlet_offset_c > 0.0)
+        self.nc = self.nx + 3 + int(self.learns_bypass_flow) + int(self.has_outlet_offset)
+        self.i_exponent = self.nx + 3 if self.learns_bypass_flow else None
+        self.i_outlet_offset = self.nc - 1 if self.has_outlet_offset else None
         self.n_hist = int(round(s.dead_time_max_s / self.dt_s))
         self.nz = self.nc + self.n_hist  # ... and the history of the undelayed thermocouple state
         names = model.states.names
@@ -124,7 +173,8 @@ class DisturbanceEkf:
                    "supply_sensor_c": s.q_sensor_c, "trap_air_temp_c": s.q_trap_c}
         q_state.update({n: s.q_sensor_c for n in model.delay_states})
         q = [q_state[n] for n in names] + [s.q_mix_offset_c, s.q_flow_offset_m3s, s.q_inlet_c]
-        q += [HIST_Q_C] * self.n_hist
+        q += [s.q_bypass_flow_exponent] * int(self.learns_bypass_flow)
+        q += [s.q_heater_outlet_offset_c] * int(self.has_outlet_offset) + [HIST_Q_C] * self.n_hist
         self.Q = np.diag(np.square(q))
         self.dead_time = DeadTimeEstimator(self.n_hist, model.params.tau_tc_s, self.dt_s, s.dead_time_window_s,
                                            s.dead_time_excitation_c, initial_steps=s.dead_time_initial_s / self.dt_s)
@@ -133,6 +183,8 @@ class DisturbanceEkf:
         self._build()
         self.z: np.ndarray | None = None
         self.P: np.ndarray | None = None
+        self._log_flow_mean: float | None = None
+        self.learning = False  # the bypass-flow exponent's gate: the flow moves
 
     def _d(self, z, setpoint):
         x = z[:self.nx]
@@ -148,6 +200,8 @@ class DisturbanceEkf:
         # functions serves every parameter set of one model structure (docs/architecture.md)
         p = ca.SX.sym("p", len(m.p_default))
         self.p = np.array(m.p_default, float)
+        if self.adapts_bypass_flow:  # the filter's own exponent (module docstring)
+            self.p[self.i_exponent_p] = self.settings.bypass_flow_exponent_prior
         # weights of the supply reading over [thermocouple state now, history entries 1..n]: the
         # dead time the reading is compared at (unit weight on "now" = the plain filter)
         c = ca.SX.sym("c", self.n_hist + 1)
@@ -155,18 +209,25 @@ class DisturbanceEkf:
         zc = z[:nc]
         d = self._d(zc, sp)
         x = zc[:nx]
-        xk = rk4(m.ode, x, u, d, p, self.dt_s, 2)
+        pm = p
+        if self.learns_bypass_flow:  # the estimated exponent in place of the parameter
+            i = self.i_exponent_p
+            pm = ca.vertcat(p[:i], zc[self.i_exponent], p[i + 1:])
+        xk = rk4(m.ode, x, u, d, pm, self.dt_s, 2)
         # shift register: the newest history entry is the thermocouple state now, the others move on
         hist = z[nc:]
         zn = ca.vertcat(xk, zc[nx:], x[self.i_sensor], hist[:-1]) if self.n_hist else ca.vertcat(xk, zc[nx:])
-        y = m.output(x, u, d, p)
+        y = m.output(x, u, d, pm)
         supply = ca.dot(c, ca.vertcat(x[self.i_sensor], hist))
-        meas = ca.vertcat(supply, y[m.outputs.index("volume_flow_m3s")], x[self.i_water], zc[nx + 2],
-                          y[m.outputs.index("heater_outlet_temp_c")])
+        outlet = y[m.outputs.index("heater_outlet_temp_c")]
+        if self.has_outlet_offset:
+            outlet = outlet + zc[self.i_outlet_offset]
+        meas = ca.vertcat(supply, y[m.outputs.index("volume_flow_m3s")], x[self.i_water], zc[nx + 2], outlet)
         # the model's air at the thermocouple (after the model's own transport delay, if its parameters
         # set one) without the offset state, for the dead time beyond the model's
         air = y[m.outputs.index("duct_air_temp_c")] - zc[nx]
-        self.f_p = ca.Function("ekf_f", [z, u, sp, p], [zn, ca.jacobian(zn, z), air])
+        flow = y[m.outputs.index("volume_flow_m3s")]
+        self.f_p = ca.Function("ekf_f", [z, u, sp, p], [zn, ca.jacobian(zn, z), air, flow])
         self.h_p = ca.Function("ekf_h", [z, u, sp, p, c], [meas, ca.jacobian(meas, z)])
         self.h = BufferedFunction(self.h_p, fixed={4: self.c_now})
         self.predict_fn = self._predict_function()
@@ -174,22 +235,37 @@ class DisturbanceEkf:
         self.use_functions(self.predict_fn, self.update_fn)
 
     def _predict_function(self) -> ca.Function:
-        """(z, P, u, setpoint, p, Q) -> (z+, P+, air): the time update of :meth:`predict` as one
-        function; ``air`` is the model's air at the thermocouple before the update (dead-time estimate)."""
+        """(z, P, u, setpoint, p, Q, learn) -> (z+, P+, air, flow): the time update of :meth:`predict` as one
+        function; ``air`` is the model's air at the thermocouple before the update (dead-time estimate),
+        ``flow`` its total volume flow (m3/s, the bypass-flow exponent's gate)."""
         nz = self.nz
         z, P = ca.SX.sym("z", nz), ca.SX.sym("P", nz, nz)
         u, sp = ca.SX.sym("u", len(self.model.inputs)), ca.SX.sym("setpoint")
         p, Q = ca.SX.sym("p", len(self.p)), ca.SX.sym("Q", nz, nz)
-        zn, F, air = self.f_p(z, u, sp, p)
-        return ca.Function("ekf_predict", [z, P, u, sp, p, Q], [zn, ca.mtimes([F, P, F.T]) + Q, air],
-                           ["z", "P", "u", "setpoint", "p", "Q"], ["z_next", "P_next", "air"])
+        learn = ca.SX.sym("learn")
+        zn, F, air, flow = self.f_p(z, u, sp, p)
+        if self.learns_bypass_flow:  # its column zeroed but for its own 1 (a constant to the filter)
+            unit = ca.DM.zeros(nz, nz)
+            unit[self.i_exponent, self.i_exponent] = 1.0
+            F = F @ ca.diag(self._exponent_mask(learn)) + (1.0 - learn) * unit
+        return ca.Function("ekf_predict", [z, P, u, sp, p, Q, learn], [zn, ca.mtimes([F, P, F.T]) + Q, air, flow],
+                           ["z", "P", "u", "setpoint", "p", "Q", "learn"], ["z_next", "P_next", "air", "flow"])
+
+    def _exponent_mask(self, learn):
+        """Ones, with ``learn`` at the bypass-flow exponent (if learned): scales its column of the
+        Jacobians and its row of the gain, so that with ``learn`` 0 the exponent is a constant to the
+        filter (the plain filter for the other states) and keeps its variance."""
+        if not self.learns_bypass_flow:
+            return ca.DM.ones(self.nz)
+        return ca.vertcat(ca.DM.ones(self.i_exponent), learn, ca.DM.ones(self.nz - self.i_exponent - 1))
 
     def _update_function(self) -> ca.Function:
-        """(z, P, y, ok, u, setpoint, c, p, R) -> (z+, P+): the measurement update of :meth:`update`
-        (Joseph form) with the readings where ``ok`` is 1 and the supply reading compared at the
-        weights ``c``. A reading left out has its row of H and its innovation zeroed and a unit
-        variance, so it adds an uncoupled identity block to S and a zero column to K: the same
-        update as with the used readings alone."""
+        """(z, P, y, ok, u, setpoint, c, p, R, learn) -> (z+, P+): the measurement update of
+        :meth:`update` (Joseph form) with the readings where ``ok`` is 1 and the supply reading
+        compared at the weights ``c``. A reading left out has its row of H and its innovation zeroed
+        and a unit variance, so it adds an uncoupled identity block to S and a zero column to K: the
+        same update as with the used readings alone. ``learn`` (0 or 1) scales the bypass-flow
+        exponent's column of H and row of the gain (0: a constant to the filter, see :meth:`_exponent_mask`)."""
         nz, nm = self.nz, len(MEASURED)
         z, P = ca.SX.sym("z", nz), ca.SX.sym("P", nz, nz)
         y, ok = ca.SX.sym("y", nm), ca.SX.sym("ok", nm)
@@ -197,15 +273,17 @@ class DisturbanceEkf:
         c = ca.SX.sym("c", self.n_hist + 1)
         p, R = ca.SX.sym("p", len(self.p)), ca.SX.sym("R", nm)
         hz, H = self.h_p(z, u, sp, p, c)
-        H = ca.diag(ok) @ H
+        learn = ca.SX.sym("learn")
+        mask = ca.diag(self._exponent_mask(learn))
+        H = ca.diag(ok) @ H @ mask
         innov = ok * (y - hz)
         Rm = ca.diag(ok * R + (1 - ok))
         S = H @ P @ H.T + Rm
-        K = ca.solve(S, H @ P).T
+        K = mask @ ca.solve(S, H @ P).T
         IKH = ca.DM.eye(nz) - K @ H
         Pn = IKH @ P @ IKH.T + K @ ca.diag(ok * R) @ K.T
-        return ca.Function("ekf_update", [z, P, y, ok, u, sp, c, p, R], [z + K @ innov, 0.5 * (Pn + Pn.T)],
-                           ["z", "P", "y", "ok", "u", "setpoint", "c", "p", "R"], ["z_next", "P_next"])
+        return ca.Function("ekf_update", [z, P, y, ok, u, sp, c, p, R, learn], [z + K @ innov, 0.5 * (Pn + Pn.T)],
+                           ["z", "P", "y", "ok", "u", "setpoint", "c", "p", "R", "learn"], ["z_next", "P_next"])
 
     # ------------------------------------------------------------------ interface
     @property
@@ -216,6 +294,8 @@ class DisturbanceEkf:
         self.z = None
         self.P = None
         self.dead_time.reset()
+        self._log_flow_mean = None
+        self.learning = False
 
     @property
     def dead_time_s(self) -> float:
@@ -229,15 +309,16 @@ class DisturbanceEkf:
         water = finite_or(measurement.water_temp_c, setpoint_c)
         target = water if self.hold_water else setpoint_c
         d = m.d_vector(inlet, target)
+        p = self.model_parameters(self.settings.bypass_flow_exponent_prior)
         try:
-            x = m.steady_state(u, d)
+            x = m.steady_state(u, d, p)
             if not np.all(np.isfinite(x)):
                 raise ValueError("non-finite rest state")
         except Exception:  # noqa: BLE001 - fall back to a plain guess, the filter converges from it
             x = np.full(self.nx, inlet)
             x[m.states.index("motor_rise_c")] = 0.5
         x[self.i_water] = water
-        y = m.outputs.dict(m.y(x, u, d))
+        y = m.outputs.dict(m.y(x, u, d, p))
         supply = finite_or(measurement.supply_temp_c, y["supply_temp_c"])
         flow = finite_or(measurement.volume_flow_m3s, y["volume_flow_m3s"])
         mix = supply - y["supply_air_temp_c"]
@@ -248,9 +329,16 @@ class DisturbanceEkf:
         p0 = {"motor_rise_c": 0.5, "water_temp_c": 0.2, "heater_temp_c": 5.0, "supply_sensor_c": 0.1,
               "trap_air_temp_c": 5.0}
         p0.update({n: 0.1 for n in m.delay_states})
-        sd = [p0[n] for n in m.states.names] + [0.5, 2e-3, 0.1] + [0.1] * self.n_hist
+        s = self.settings
+        exponent = [s.bypass_flow_exponent_prior] * int(self.learns_bypass_flow)
+        outlet = [0.0] * int(self.has_outlet_offset)
+        self.z = np.concatenate([self.z[:self.nx + 3], exponent, outlet, self.z[self.nx + 3:]])
+        sd = [p0[n] for n in m.states.names] + [0.5, 2e-3, 0.1] + [s.bypass_flow_exponent_sd] * len(exponent)
+        sd += [1.0] * len(outlet) + [0.1] * self.n_hist
         self.P = np.diag(np.square(sd))
         self.dead_time.reset()
+        self._log_flow_mean = None
+        self.learning = False
 
     def use_functions(self, predict_fn, update_fn) -> None:
         """Evaluate the time and measurement updates with these functions (the same signatures as
@@ -261,7 +349,7 @@ class DisturbanceEkf:
         self._update = BufferedFunction(update_fn, fixed={7: self.p, 8: self.R_diag})
 
     def prediction_function(self) -> tuple[ca.Function, dict[int, np.ndarray]]:
-        """The time update in use, ``(z, P, u, setpoint, p, Q) -> (z+, P+, air)``, and its fixed
+        """The time update in use, ``(z, P, u, setpoint, p, Q, learn) -> (z+, P+, air, flow)``, and its fixed
         inputs (index -> value): for a caller that fuses it with more work into one call (the MPC's
         preparation, :meth:`~.rti_osqp.RtiOsqpSolver.use_prediction`), which then hands the results to
         :meth:`accept_prediction`."""
@@ -277,13 +365,31 @@ class DisturbanceEkf:
 
     def predict(self, u: np.ndarray, setpoint_c: float) -> None:
         """Time update over one sample with the command that was applied."""
-        self.accept_prediction(*self._predict(self.z, self.P, u, setpoint_c))
+        self.accept_prediction(*self._predict(self.z, self.P, u, setpoint_c, float(self.learning)))
 
-    def accept_prediction(self, z_next: np.ndarray, P_next_t: np.ndarray, air: np.ndarray) -> None:
+    def accept_prediction(self, z_next: np.ndarray, P_next_t: np.ndarray, air: np.ndarray, flow: np.ndarray) -> None:
         """Take the time update's results (as the time-update function returns them, ``P`` column-major)."""
         self.z, self.P = z_next, P_next_t.T  # buffers are column-major
         if self.n_hist:
             self.dead_time.push_air(float(air[0]))
+        if self.learns_bypass_flow:
+            self._gate(float(flow[0]))
+
+    def _gate(self, flow_m3s: float) -> None:
+        """Open the bypass-flow exponent's gate while the model's flow is more than ``bypass_flow_gate``
+        (in log) away from its running mean over ``bypass_flow_window_s`` (module docstring)."""
+        s = self.settings
+        log_flow = math.log(max(flow_m3s, 1e-4))
+        if self._log_flow_mean is None:
+            self._log_flow_mean = log_flow
+        self._log_flow_mean += min(1.0, self.dt_s / s.bypass_flow_window_s) * (log_flow - self._log_flow_mean)
+        self.learning = abs(log_flow - self._log_flow_mean) > s.bypass_flow_gate
+        if not self.learning:  # a constant to the filter: no correlation with the other states
+            i = self.i_exponent
+            keep = self.P[i, i]
+            self.P[i, :] = 0.0
+            self.P[:, i] = 0.0
+            self.P[i, i] = keep
 
     def readings(self, measurement: Measurement) -> tuple[np.ndarray, np.ndarray]:
         """The measured values (order ``MEASURED``, 0 where unused) and which are used (finite and enabled)."""
@@ -296,8 +402,11 @@ class DisturbanceEkf:
         values, ok = self.readings(measurement)
         if not ok.any():
             return 0
-        zn, Pt = self._update(self.z, self.P, values, ok, u, setpoint_c, self._supply_weights(values[0], ok[0]))
+        zn, Pt = self._update(self.z, self.P, values, ok, u, setpoint_c, self._supply_weights(values[0], ok[0]),
+                              float(self.learning))
         self.z, self.P = zn, Pt.T
+        if self.learns_bypass_flow:
+            self.z[self.i_exponent] = np.clip(self.z[self.i_exponent], *BYPASS_FLOW_EXPONENT_RANGE)
         return int(ok.sum())
 
     def _supply_weights(self, supply_c: float, used: bool) -> np.ndarray:
@@ -332,6 +441,22 @@ class DisturbanceEkf:
     @property
     def inlet_temp_c(self) -> float:
         return float(self.z[self.nx + 2])
+
+    @property
+    def bypass_flow_exponent(self) -> float:
+        """The bypass-flow exponent the filter's model uses now: the estimate, or the parameter where
+        it is not learned."""
+        if self.learns_bypass_flow and self.z is not None:
+            return float(self.z[self.i_exponent])
+        return float(self.p[self.i_exponent_p])
+
+    def model_parameters(self, exponent: float | None = None) -> np.ndarray:
+        """The model parameters (``HvacModel.p_default`` order) with the bypass-flow exponent the
+        filter uses (or ``exponent``), for a prediction consistent with the estimate."""
+        p = self.p.copy()
+        if self.adapts_bypass_flow:
+            p[self.i_exponent_p] = self.bypass_flow_exponent if exponent is None else exponent
+        return p
 
     def healthy(self) -> bool:
         return self.z is not None and bool(np.isfinite(self.z).all() and np.isfinite(self.P).all())

@@ -26,7 +26,9 @@ Stats of a step: ``step_time_s`` (the whole step), ``feedback_time_s`` (measurem
 else "cooling"), ``solver``, ``valve_a_cap_pct``, ``mix_offset_c``, ``flow_offset_m3s``, ``out_of_reach``
 (reference name -> shortfall in its unit, e.g. ``{"volume_flow_m3s": 0.004}``; empty when every
 reference is within reach, :mod:`hvac_mpc.mpc.priorities`), ``dead_time_s`` (the thermocouple's
-dead time beyond the model's that the estimator has found and honours, :mod:`hvac_mpc.mpc.estimator`).
+dead time beyond the model's that the estimator has found and honours, :mod:`hvac_mpc.mpc.estimator`),
+``bypass_flow_exponent`` (the exponent of the bypass split's flow dependence the prediction uses: the
+estimator's estimate where it learns it, :mod:`hvac_mpc.mpc.estimator`).
 """
 
 from __future__ import annotations
@@ -182,13 +184,18 @@ class MpcSettings:
 def _with_model_effects(settings: MpcSettings, model: RefinedModel | None) -> MpcSettings:
     """Settings whose prediction model holds the refined model's effects, the structure its parameters were
     identified with, and the controller's own effects as configured (``RefinedModel.prediction_effects``; the
-    PTC power fall stays a constraint where ``ptc_limit`` carries it)."""
+    PTC power fall stays a constraint where ``ptc_limit`` carries it); where the file has the bypass split's
+    flow dependence, its identified exponent is the estimator's prior."""
     if model is None:
         return settings
     ocp = settings.ocp
     effects = tuple(e for e in model.prediction_effects(ocp.model_effects)
                     if not (e == "ptc_power_fall" and ocp.ptc_limit))
-    return dataclasses.replace(settings, ocp=dataclasses.replace(ocp, model_effects=effects))
+    settings = dataclasses.replace(settings, ocp=dataclasses.replace(ocp, model_effects=effects))
+    if "bypass_flow" in model.effects:  # identified with the model's own exponent: the prediction starts from it
+        settings = dataclasses.replace(settings, ekf=dataclasses.replace(
+            settings.ekf, bypass_flow_exponent_prior=float(model.parameters.bypass_flow_exponent)))
+    return settings
 
 
 def _delay_to_estimator(settings: MpcSettings, params: Parameters) -> tuple[MpcSettings, Parameters]:
@@ -238,7 +245,10 @@ class MpcController:
         if s.ocp.ptc_limit and "ptc_power_fall" not in s.ocp.model_effects:
             ekf_model = HvacModel(self.params, tuple(s.ocp.model_effects) + ("ptc_power_fall",), dt_s=s.dt_s,
                                   terms=terms)
-        self.ekf = DisturbanceEkf(ekf_model, s.ekf, s.dt_s, s.water_prediction)
+        # the bypass-flow exponent is learned only where the prediction can take it as a runtime
+        # parameter (the RTI/SQP solver; the reference solvers predict with the parameters as given)
+        self.ekf = DisturbanceEkf(ekf_model, s.ekf, s.dt_s, s.water_prediction,
+                                  learn_bypass_flow=hasattr(self.solver, "set_parameters"))
         pb = self.problem
         self.reach = ReachableFlow(pb.model, pb.u_lo_phys, pb.u_hi_phys, pb.heater_max_phys, self.params,
                                    every_s=s.reach_every_s) if s.priorities else None
@@ -353,6 +363,7 @@ class MpcController:
         if not self.ekf.healthy():
             self.ekf.reset()
             raise FloatingPointError("state estimate is not finite")
+        self._use_estimated_parameters()
         x0 = pb.scale_x(self.ekf.x)
         d = self._disturbance(setpoint)
         u_prev_s = self._scaled_prev()
@@ -425,6 +436,16 @@ class MpcController:
         if reach.flow_m3s is not None and reach.flow_m3s < ref.volume_flow_m3s:
             y_ref[1:5] *= reach.flow_m3s / ref.volume_flow_m3s
         return y_ref
+
+    def _use_estimated_parameters(self) -> None:
+        """The prediction (the next QPs) and the reachable-flow check use the model parameters of the
+        estimate, the learned bypass-flow exponent included (docs/robustness.md sec. 1)."""
+        if not self.ekf.adapts_bypass_flow:
+            return
+        p = self.ekf.model_parameters()
+        self.solver.set_parameters(p)
+        if self.reach is not None:
+            self.reach.set_parameters(p)
 
     def _disturbance(self, setpoint: float) -> np.ndarray:
         e = self.ekf
@@ -508,6 +529,7 @@ class MpcController:
             stats["mix_offset_c"] = self.ekf.mix_offset_c
             stats["flow_offset_m3s"] = self.ekf.flow_offset_m3s
             stats["dead_time_s"] = self.ekf.dead_time_s
+            stats["bypass_flow_exponent"] = self.ekf.bypass_flow_exponent
         return stats
 
 

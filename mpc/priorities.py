@@ -82,7 +82,10 @@ class ReachableFlow:
         nx, nu, nd = len(model.states), len(model.inputs), len(model.disturbances)
         x, u = ca.SX.sym("x", nx), ca.SX.sym("u", nu)
         d, t_ref, a_cap = ca.SX.sym("d", nd), ca.SX.sym("t_ref"), ca.SX.sym("a_cap")
-        p = ca.DM(model.p_default)
+        # the model parameters are a parameter of the problem: the estimator may change one (the
+        # bypass-flow exponent, mpc/estimator.py) from step to step
+        p = ca.SX.sym("p", len(model.p_default))
+        self._p = np.array(model.p_default, float)
         y = model.output(x, u, d, p)
         flow = y[model.outputs.index("volume_flow_m3s")]
         temp = y[model.outputs.index("duct_air_temp_c")]
@@ -90,17 +93,25 @@ class ReachableFlow:
         i_a = model.inputs.index("valve_a_pct")
         cost = TEMP_WEIGHT_PER_C2 * (temp - t_ref) ** 2 - flow / FLOW_UNIT_M3S
         g = ca.vertcat(model.ode(x, u, d, p), heater, u[i_a] - a_cap)
-        nlp = {"x": ca.vertcat(x, u), "p": ca.vertcat(d, t_ref, a_cap), "f": cost, "g": g}
+        nlp = {"x": ca.vertcat(x, u), "p": ca.vertcat(d, t_ref, a_cap, p), "f": cost, "g": g}
         opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.max_iter": int(max_iter), "ipopt.tol": 1e-6,
                 "ipopt.sb": "yes"}
         self.solver = ca.nlpsol("reachable_flow", "ipopt", nlp, opts)
-        self.out = BufferedFunction(ca.Function("reach_out", [x, u, d], [flow, temp]))  # numpy in and out
+        self._out = BufferedFunction(ca.Function("reach_out", [x, u, d, p], [flow, temp]))  # numpy in and out
         self.lbx = np.concatenate([np.full(nx, -np.inf), u_lo])
         self.ubx = np.concatenate([np.full(nx, np.inf), u_hi])
         self.lbg = np.concatenate([np.zeros(nx), [-np.inf, -np.inf]])
         self.ubg = np.concatenate([np.zeros(nx), [heater_temp_max_c, 0.0]])
         self.nx = nx
         self.reset()
+
+    def set_parameters(self, p: np.ndarray) -> None:
+        """Model parameters (``HvacModel.p_default`` order) of the checks that follow."""
+        self._p[...] = p
+
+    def out(self, x: np.ndarray, u: np.ndarray, d: np.ndarray) -> list[np.ndarray]:
+        """The model's total flow and air at the thermocouple (m3/s, degC) at the current parameters."""
+        return self._out(x, u, d, self._p)
 
     def reset(self) -> None:
         self._w: np.ndarray | None = None
@@ -141,7 +152,7 @@ class ReachableFlow:
         self._key, self._age_s, self._inputs = key, 0.0, inputs
         w0 = self._w if self._w is not None else np.concatenate([x, u])
         try:
-            sol = self.solver(x0=w0, p=np.concatenate([d, [temp_ref_c, a_cap_pct]]), lbx=self.lbx, ubx=self.ubx,
+            sol = self.solver(x0=w0, p=np.concatenate([d, [temp_ref_c, a_cap_pct], self._p]), lbx=self.lbx, ubx=self.ubx,
                               lbg=self.lbg, ubg=self.ubg)
             w = np.asarray(sol["x"]).ravel()
             flow, temp = (float(v[0]) for v in self.out(w[:self.nx], w[self.nx:], d))

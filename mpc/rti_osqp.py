@@ -421,13 +421,15 @@ class RtiOsqpSolver:
         predict, fixed = ekf.prediction_function()
         args = predict.mx_in()
         z, sp = args[0], args[3]
-        zn, Pn, air = predict.call(args)
+        zn, Pn, air, flow = predict.call(args)
         x0 = (ekf.model_state(zn) - ca.DM(pb.x_off)) / ca.DM(pb.x_sc)
         d = ekf.disturbance(zn, sp)
         X1, U, SW = ca.MX.sym("X1", nx, N), ca.MX.sym("U", pb.nu, N), ca.MX.sym("SW", pb.ny + 1, N + 1)
-        data = self._qp_data.fn.call([ca.horzcat(x0, X1), U, d, SW, self._P_const, self._A_const, self._p])
-        fn = ca.Function("hvac_predict_qp_data", [*args, X1, U, SW], [zn, Pn, air, x0, d, *data])
-        self._predict_qp = BufferedFunction(fn, fixed=fixed)
+        p_qp = ca.MX.sym("p_qp", self._p.size)  # the QP's model parameters (set_parameters), not the filter's
+        data = self._qp_data.fn.call([ca.horzcat(x0, X1), U, d, SW, self._P_const, self._A_const, p_qp])
+        fn = ca.Function("hvac_predict_qp_data", [*args, X1, U, SW, p_qp], [zn, Pn, air, flow, x0, d, *data])
+        self._i_p_qp = len(args) + 3
+        self._predict_qp = BufferedFunction(fn, fixed={**fixed, self._i_p_qp: self._p})
         self._ekf = ekf
 
     @property
@@ -445,9 +447,9 @@ class RtiOsqpSolver:
         U = self.U[self._j]
         U[0] = u_prev
         S = self.S[np.minimum(self._j, self.pb.N - 1)]
-        zn, Pt, air, x0, d, Px, Ax, e_dyn, gw2, c_base, y = self._predict_qp(
-            ekf.z, ekf.P, u_cmd, setpoint_c, X[1:], U, self._weights(w_y))
-        ekf.accept_prediction(zn, Pt, air)
+        zn, Pt, air, flow, x0, d, Px, Ax, e_dyn, gw2, c_base, y = self._predict_qp(
+            ekf.z, ekf.P, u_cmd, setpoint_c, float(ekf.learning), X[1:], U, self._weights(w_y))
+        ekf.accept_prediction(zn, Pt, air, flow)
         X[0] = x0
         self.X, self.U, self.S = X, U, S
         self._write(X, U, S, d, ref, w_y, Px, Ax, dict(e_dyn=e_dyn, gw2=gw2, c_base=c_base, y=y))
@@ -461,6 +463,14 @@ class RtiOsqpSolver:
         self._prepared = None
         if getattr(self, "_workspace_used", False):
             self._setup_osqp()
+
+    def set_parameters(self, p: np.ndarray) -> None:
+        """Model parameters (``HvacModel.p_default`` order) of the next linearisations, e.g. with an
+        estimated bypass-flow exponent (:class:`~.estimator.DisturbanceEkf`); no rebuild."""
+        self._p[...] = p
+        self._qp_data.set_fixed(6, self._p)
+        if getattr(self, "_predict_qp", None) is not None:
+            self._predict_qp.set_fixed(self._i_p_qp, self._p)
 
     @property
     def clean(self) -> bool:

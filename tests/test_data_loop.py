@@ -330,7 +330,9 @@ def test_several_effects_together_are_found_and_the_refined_mpc_tracks_better(tm
     path = write_model_file(tmp_path / "refined.toml", res.params, res.effects, res.extras, res.terms)
     # the proband sequence (cooling, seven references): the nominal MPC finds the 3 s dead time itself
     # (mpc/dead_time.py), so what the model file adds here is the duct loss and the delay in the prediction
-    # (measured 0.77 of the nominal MPC's IAE; on the cooling steps alone the two are level, 1.01)
+    # (measured 0.93 of the nominal MPC's IAE, 0.77 before the nominal MPC dropped the bypass split's flow
+    # dependence the box does not have and gave the heater outlet reading its own offset, docs/robustness.md
+    # sec. 1; on the cooling steps alone the two are level, 1.01)
     cmp = compare(path, "combo_delay_loss_cooler", scenarios.select(["proband_sequence"], quick=True), seed=0)
     r = cmp["scenarios"]["proband_sequence"]
-    assert r["refined"]["temp_iae_cs"] < 0.9 * r["nominal"]["temp_iae_cs"], r
+    assert r["refined"]["temp_iae_cs"] < 0.97 * r["nominal"]["temp_iae_cs"], r

@@ -1,0 +1,92 @@
+"""The bypass split's dependence on the total flow (docs/robustness.md sec. 1): the MPC predicts with
+the thesis model's none by default, and the estimator can learn its size from flow changes. The truth
+is the independent box (``hvac_mpc.mismatch``) with and without a flow-dependent split of its own.
+
+Budget: the fast tests about 1 s together; the closed loops are marked slow.
+"""
+
+import numpy as np
+import pytest
+
+from ekf_helpers import feed_open_loop
+from hvac_mpc.benchmarks import bench, mismatch_suite, scenarios as S
+from hvac_mpc.contract import Command
+from hvac_mpc.mismatch import Variant, make_plant
+from hvac_mpc.models import HvacModel, Parameters
+from hvac_mpc.mpc.estimator import DisturbanceEkf, EkfSettings
+from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
+from hvac_mpc.mpc.ocp import InvalidSettings
+
+#: Blower powers held HOLD_S each (valve a 50 %, outlets open, inlet 32 C, chiller 5 C): flow steps.
+BLOWER_STEPS_W = (120.0, 280.0, 80.0, 220.0, 140.0, 300.0)
+HOLD_S = 30
+
+
+def learn_on_box(exponent: float, prior: float, seed: int = 3) -> np.ndarray:
+    """The estimator fed open loop by the independent box whose split has ``exponent``; per sample the
+    learned exponent."""
+    plant = make_plant(Variant(bypass_flow_exponent=exponent), seed=seed)
+    plant.set_environment(inlet_temp_c=32.0, chiller_setpoint_c=5.0)
+    commands = [Command(b, 0.0, 50.0, 100.0, 100.0, 100.0) for b in BLOWER_STEPS_W]
+    plant.settle(commands[0])
+    ekf = DisturbanceEkf(HvacModel(Parameters(), ("bypass_flow",)),
+                         EkfSettings(learn_bypass_flow=True, bypass_flow_exponent_prior=prior))
+    learned = []
+    feed_open_loop(ekf, plant, commands, HOLD_S, lambda e: learned.append(e.bypass_flow_exponent))
+    return np.array(learned)
+
+
+@pytest.mark.parametrize("truth", [0.0, 0.4])
+def test_learned_exponent_converges_to_the_box_from_the_middle_of_the_range(truth):
+    learned = learn_on_box(truth, prior=0.2)
+    # at a steady flow nothing is learned (the mixed-air offset takes the level) ...
+    assert np.all(learned[:HOLD_S] == 0.2)
+    # ... the flow steps tell the two apart: at the end of the last three holds it is the box's exponent
+    ends = learned[[HOLD_S * (i + 1) - 1 for i in range(3, len(BLOWER_STEPS_W))]]
+    assert np.all(np.abs(ends - truth) < 0.05)
+    assert abs(learned[-1] - truth) < 0.5 * abs(0.2 - truth)
+
+
+def test_the_box_split_depends_on_the_flow_only_with_the_exponent():
+    low, high = Command(80.0, 0.0, 50.0, 100.0, 100.0, 100.0), Command(300.0, 0.0, 50.0, 100.0, 100.0, 100.0)
+    share = {}
+    for exponent in (0.0, 0.4):
+        box = make_plant(Variant(bypass_flow_exponent=exponent), seed=0)
+        share[exponent] = []
+        for command in (low, high):
+            box.settle(command)
+            share[exponent].append(box.truth()["bypass_fraction"])
+    assert share[0.0][0] == pytest.approx(share[0.0][1])
+    assert share[0.4][0] < share[0.0][0] < share[0.4][1]  # below the reference flow less, above more
+
+
+def test_the_prediction_uses_the_thesis_model_exponent_unless_told():
+    ctrl = MpcController(settings=MpcSettings(codegen=False))
+    assert not ctrl.ekf.learns_bypass_flow and ctrl.ekf.bypass_flow_exponent == 0.0
+    i = ctrl.problem.model.param_names.index("bypass_flow_exponent")
+    assert ctrl.problem.model.p_default[i] == Parameters().bypass_flow_exponent  # the parameter stays
+    told = MpcController(settings=MpcSettings(codegen=False, ekf=EkfSettings(bypass_flow_exponent_prior=0.4)))
+    assert told.ekf.bypass_flow_exponent == 0.4
+    ref = {"supply_temp_c": 18.0, "volume_flow_m3s": 0.025}
+    box = make_plant("nominal", seed=0)
+    for c in (ctrl, told):
+        res = c.step(box.read(), ref)
+        assert res.stats["bypass_flow_exponent"] == c.ekf.bypass_flow_exponent
+        assert c.solver._p[i] == c.ekf.bypass_flow_exponent and c.reach._p[i] == c.ekf.bypass_flow_exponent
+    with pytest.raises(InvalidSettings, match="ekf.bypass_flow_exponent_prior"):
+        MpcSettings(ekf=EkfSettings(bypass_flow_exponent_prior=5.0))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("variant", ["nominal", "cooler_literal"])
+def test_flow_jump_out_of_reach_keeps_the_temperature_as_well_as_the_baseline(variant):
+    """The quick out-of-reach scenario (90 -> 200 m3/h at 18 C, 32 C inlet) on the independent box: the
+    MPC no longer opens valve a for a warming the box does not have (2.99 and 4.69 times the baseline's
+    thermocouple IAE before)."""
+    sc = S.flow_out_of_reach().quick()
+    res, tr = bench.run_benchmark([sc], {"baseline": bench.baseline_factory(), "mpc": bench.mpc_factory()}, 0,
+                                  plant_factory=mismatch_suite.variant_factory(variant))
+    cell = res["scenarios"][sc.name]
+    assert cell["ratios"]["temp_iae_cs"] <= 1.0
+    assert mismatch_suite.out_of_reach_steady(tr[sc.name]["mpc"], sc)["steady_temp_error_max_c"] <= 0.3
+    assert cell["mpc"]["figures"]["fallbacks"] == 0 and cell["mpc"]["figures"]["violations_total"] == 0
