@@ -134,7 +134,8 @@ def test_two_experiments_and_a_report_give_the_bench_ratios(tmp_path, capsys):
     for fig in ("temp_iae_cs", "flow_iae_m3", "energy_wh"):
         lo, hi = aware[fig]["band"]
         assert lo <= ref["ratios"][fig] <= hi, (fig, aware[fig]["band"], ref["ratios"][fig])
-    assert aware["temp_iae_cs"]["band"][1] - aware["temp_iae_cs"]["band"][0] <= MAX_BAND_WIDTH["temp_iae_cs"]
+    assert (aware["temp_iae_cs"]["band"][1] - aware["temp_iae_cs"]["band"][0]
+            <= MAX_BAND_WIDTH["temp_iae_cs"] * ref["ratios"]["temp_iae_cs"])
     assert aware["energy_wh"]["band"][1] - aware["energy_wh"]["band"][0] <= MAX_BAND_WIDTH["energy_wh"]
     # the MPC's flow error here is below the flow sensor's noise floor: the band starts at 0, and its
     # upper end still says which controller tracks the flow better
@@ -144,15 +145,18 @@ def test_two_experiments_and_a_report_give_the_bench_ratios(tmp_path, capsys):
     assert [c["status"] for c in rep["criteria"]][0] == [c["status"] for c in ref["criteria"]][0]
 
 
-#: Widest noise-aware ratio band (95 %) the checks accept where the log resolves both figures.
-MAX_BAND_WIDTH = {"temp_iae_cs": 0.15, "flow_iae_m3": 0.15, "energy_wh": 0.02}
+#: Widest noise-aware ratio band (95 %) the checks accept where the log resolves both figures: for the
+#: IAE ratios a fifth of the bench's ratio (the noise scales both controllers' IAE alike), for energy
+#: 0.02 absolute.
+MAX_BAND_WIDTH = {"temp_iae_cs": 0.2, "flow_iae_m3": 0.2, "energy_wh": 0.02}
+RELATIVE_WIDTH = {"temp_iae_cs", "flow_iae_m3"}
 
 
 @pytest.mark.slow
 def test_report_bands_hold_the_bench_ratios_where_the_flow_error_is_resolved(tmp_path):
     """flow_split_changes (flow reference steps, errors well above the flow sensor's noise): both
     experiments and the report; the bench's temperature, flow and energy ratios lie inside the
-    report's noise-aware bands, each band at most MAX_BAND_WIDTH wide."""
+    report's noise-aware bands, each band at most MAX_BAND_WIDTH wide (relative where said)."""
     name, seed = "flow_split_changes", 0
     logs = []
     for c in ("baseline", "mpc"):
@@ -167,7 +171,7 @@ def test_report_bands_hold_the_bench_ratios_where_the_flow_error_is_resolved(tmp
     for fig, width in MAX_BAND_WIDTH.items():
         lo, hi = aware[fig]["band"]
         assert lo <= ref[fig] <= hi, (fig, aware[fig]["band"], ref[fig])
-        assert hi - lo <= width, (fig, aware[fig]["band"])
+        assert hi - lo <= width * (ref[fig] if fig in RELATIVE_WIDTH else 1.0), (fig, aware[fig]["band"])
     assert aware["flow_iae_m3"]["mpc"]["resolved"] and aware["flow_iae_m3"]["baseline"]["resolved"]
     raw = results["scenarios"][name]["ratios"]["temp_iae_cs"]
     assert abs(aware["temp_iae_cs"]["ratio"] - ref["temp_iae_cs"]) < abs(raw - ref["temp_iae_cs"])
