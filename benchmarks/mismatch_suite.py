@@ -32,9 +32,13 @@ STEADY_WINDOW_S = 30.0
 OUT_OF_REACH_TEMP_TOL_C = 0.3
 
 
+#: Registered variants the suite leaves out: not among the variants issue 11 names (the data loop uses them).
+NOT_IN_SUITE = ("bypass_flow",)
+
+
 def variant_names() -> list[str]:
     from hvac_mpc.mismatch import VARIANTS
-    return list(VARIANTS)
+    return [v for v in VARIANTS if v not in NOT_IN_SUITE]
 
 
 def variant_factory(variant: str):

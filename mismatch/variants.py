@@ -88,6 +88,10 @@ VARIANTS: dict[str, Variant] = {
     "combo_delay_loss_cooler": Variant(transport_delay_s=3.0, duct_loss_ua_w_per_k=_LOSS, cooler_literal_fit=True),
     "combo_tc_blower_valve": Variant(thermocouple_tau_scale=1.5, blower_gain_scale=0.8, valve_shift_pct=10.0),
     "combo_heater_chiller_delay": Variant(heater_power_scale=0.85, chiller_rate_scale=0.5, transport_delay_s=3.0),
+    # the bypass split depending on the total flow, an effect the thesis names and leaves out of its model
+    # (ASSUMPTION: exponent 0.3); for the data loop (a refined model in the controller), not in the
+    # robustness suite's list (benchmarks/mismatch_suite.py)
+    "bypass_flow": Variant(bypass_flow_exponent=0.3),
 }
 
 

@@ -234,7 +234,7 @@ def test_thermocouple_time_constant(name, scale):
 def test_registry_names_and_every_variant_runs():
     expected = {"nominal", "delay_1s", "delay_3s", "delay_5s", "duct_loss", "cooler_literal", "tc_fast", "tc_slow",
                 "blower_weak", "blower_strong", "valve_shift", "heater_weak", "chiller_slow",
-                "combo_delay_loss_cooler", "combo_tc_blower_valve", "combo_heater_chiller_delay"}
+                "combo_delay_loss_cooler", "combo_tc_blower_valve", "combo_heater_chiller_delay", "bypass_flow"}
     assert set(VARIANTS) == expected
     assert VARIANTS["nominal"] == Variant()
     assert VARIANTS["combo_heater_chiller_delay"].differences() == {
