@@ -114,6 +114,8 @@ class MpcSettings:
             model says the flow reference cannot be held at the temperature reference, track the
             reachable flow instead and report the shortfall in ``stats["out_of_reach"]``.
         reach_every_s: how often the reachable flow is recomputed while the flow reference is in doubt (s).
+        reach_skip_unmoved: skip that periodic re-solve while its inputs have not moved materially
+            (``mpc/priorities.py`` ``MATERIAL_CHANGE``; off: measured worse with the flow out of reach).
     """
 
     dt_s: float = 1.0
@@ -139,6 +141,7 @@ class MpcSettings:
     ekf: EkfSettings = field(default_factory=EkfSettings)
     priorities: bool = True
     reach_every_s: float = 10.0
+    reach_skip_unmoved: bool = False
 
     def __post_init__(self) -> None:
         p = "MpcSettings"
@@ -176,8 +179,9 @@ class MpcSettings:
         if not isinstance(self.ekf, EkfSettings):
             raise InvalidSettings(f"{p}.ekf must be an EkfSettings")
         self.ekf.validate(f"{p}.ekf")
-        if not isinstance(self.priorities, bool):
-            raise InvalidSettings(f"{p}.priorities must be True or False")
+        for flag in ("priorities", "reach_skip_unmoved"):
+            if not isinstance(getattr(self, flag), bool):
+                raise InvalidSettings(f"{p}.{flag} must be True or False")
         check_number(f"{p}.reach_every_s", self.reach_every_s, 1.0, 3600.0)
 
 
@@ -251,7 +255,7 @@ class MpcController:
                                   learn_bypass_flow=hasattr(self.solver, "set_parameters"))
         pb = self.problem
         self.reach = ReachableFlow(pb.model, pb.u_lo_phys, pb.u_hi_phys, pb.heater_max_phys, self.params,
-                                   every_s=s.reach_every_s) if s.priorities else None
+                                   every_s=s.reach_every_s, skip_unmoved=s.reach_skip_unmoved) if s.priorities else None
         self.heater_bound = HeaterOffBound(self.params, s.dt_s)
         self.codegen = getattr(self.solver, "codegen", None) or CodegenReport()
         if s.codegen:
