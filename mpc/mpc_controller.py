@@ -237,6 +237,8 @@ class MpcController:
             self.settings, self.params = _delay_to_estimator(self.settings, self.params)
         terms = model.terms if model is not None else ()
         s = self.settings
+        if "bypass_flow" in s.ocp.model_effects:  # one exponent for every solver: the estimator's prior
+            self.params = self.params.replace(bypass_flow_exponent=s.ekf.bypass_flow_exponent_prior)
         self.dt_s = s.dt_s
         self.problem = TrackingProblem(self.params, s.ocp, s.dt_s, terms=terms)
         self.jit_active = False
