@@ -25,6 +25,7 @@ pydantic (hvac_mpc.validation), the same as the API bodies.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import tomllib
@@ -412,8 +413,12 @@ class SafetyConfig(_Section):
         return out
 
 
-#: The monitor's own defaults (one place: :class:`.monitor.MonitorSettings`).
-_MS = MonitorSettings
+def _like_monitor(name: str, doc: str) -> Any:
+    """A ``[monitor]`` field with the default and allowed range of :class:`.monitor.MonitorSettings`' field
+    ``name`` (one place for both)."""
+    f = next(f for f in dataclasses.fields(MonitorSettings) if f.name == name)
+    check = f.metadata["check"]
+    return _f(f.default, doc, check.lo, check.hi)
 
 
 class MonitorConfig(_Section):
@@ -421,27 +426,23 @@ class MonitorConfig(_Section):
     docs/real-box.md, model monitoring). The default bounds are 1.25 times the largest residual a healthy
     simulated box gave (:data:`.monitor.DEFAULT_BOUNDS`); a lab sets them from a run of its box."""
 
-    horizon_s: float = _f(_MS.horizon_s, "free-run window of the horizon residual", 5.0, 3600.0)
-    every_s: float = _f(_MS.every_s, "time between two horizon evaluations", 1.0, 3600.0)
-    bound_supply_temp_c: float = _f(_MS.bound_supply_temp_c,
-                                    "bound on the supply temperature's horizon RMS residual", 1e-3, 100.0)
-    bound_volume_flow_m3s: float = _f(_MS.bound_volume_flow_m3s,
-                                      "bound on the volume flow's horizon RMS residual", 1e-6, 1.0)
-    bound_heater_outlet_temp_c: float = _f(_MS.bound_heater_outlet_temp_c,
-                                           "bound on the heater outlet temperature's horizon RMS residual",
-                                           1e-3, 100.0)
-    bound_one_step_supply_temp_c: float = _f(_MS.bound_one_step_supply_temp_c,
-                                             "bound on the supply temperature's one-step RMS residual over the "
-                                             "window", 1e-3, 100.0)
-    bound_one_step_volume_flow_m3s: float = _f(_MS.bound_one_step_volume_flow_m3s,
-                                               "bound on the volume flow's one-step RMS residual over the window",
-                                               1e-6, 1.0)
-    bound_one_step_heater_outlet_temp_c: float = _f(_MS.bound_one_step_heater_outlet_temp_c,
-                                                    "bound on the heater outlet temperature's one-step RMS "
-                                                    "residual over the window", 1e-3, 100.0)
-    degraded_after: int = _f(_MS.degraded_after,
-                             "evaluations in a row beyond a bound before 'degraded' (and within before 'ok')",
-                             1, 1000)
+    horizon_s: float = _like_monitor("horizon_s", "free-run window of the horizon residual")
+    every_s: float = _like_monitor("every_s", "time between two horizon evaluations")
+    bound_supply_temp_c: float = _like_monitor("bound_supply_temp_c",
+                                               "bound on the supply temperature's horizon RMS residual")
+    bound_volume_flow_m3s: float = _like_monitor("bound_volume_flow_m3s",
+                                                 "bound on the volume flow's horizon RMS residual")
+    bound_heater_outlet_temp_c: float = _like_monitor("bound_heater_outlet_temp_c",
+                                                      "bound on the heater outlet temperature's horizon RMS residual")
+    bound_one_step_supply_temp_c: float = _like_monitor(
+        "bound_one_step_supply_temp_c", "bound on the supply temperature's one-step RMS residual over the window")
+    bound_one_step_volume_flow_m3s: float = _like_monitor(
+        "bound_one_step_volume_flow_m3s", "bound on the volume flow's one-step RMS residual over the window")
+    bound_one_step_heater_outlet_temp_c: float = _like_monitor(
+        "bound_one_step_heater_outlet_temp_c",
+        "bound on the heater outlet temperature's one-step RMS residual over the window")
+    degraded_after: int = _like_monitor(
+        "degraded_after", "evaluations in a row beyond a bound before 'degraded' (and within before 'ok')")
 
     def settings(self) -> MonitorSettings:
         """The :class:`hvac_mpc.daemon.monitor.MonitorSettings` of this section."""

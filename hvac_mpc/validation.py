@@ -27,6 +27,8 @@ class Check:
     adapter: TypeAdapter
     allowed: str
     optional: bool = False
+    lo: float | None = None  # the range of a finite_in check, for a config field that states it again
+    hi: float | None = None
 
     def __call__(self, name: str, value: Any, error: type[InvalidValue] = InvalidValue) -> Any:
         if value is None and self.optional:
@@ -54,7 +56,7 @@ def finite_in(lo: float, hi: float, *, integer: bool = False, lo_open: bool = Fa
     kind = int if integer else float
     adapter = TypeAdapter(Annotated[kind, Field(strict=True, le=hi, allow_inf_nan=False, **bound)])
     left = "(" if lo_open else "["
-    return Check(adapter, f"{left}{lo}, {hi}]" + (" (integer)" if integer else ""), optional)
+    return Check(adapter, f"{left}{lo}, {hi}]" + (" (integer)" if integer else ""), optional, lo, hi)
 
 
 def one_of(*choices: Any) -> Check:
