@@ -444,9 +444,10 @@ class MpcController:
         return y_ref
 
     def _use_estimated_parameters(self) -> None:
-        """The prediction (the next QPs) and the reachable-flow check use the model parameters of the
-        estimate, the learned bypass-flow exponent included (docs/robustness.md sec. 1)."""
-        if not self.ekf.adapts_bypass_flow:
+        """The prediction (the next QPs) and the reachable-flow check use the learned bypass-flow exponent
+        (docs/robustness.md sec. 1). Unlearned, the exponent is the prior the problem was built with, and
+        nothing needs copying."""
+        if not self.ekf.learns_bypass_flow:
             return
         p = self.ekf.model_parameters()
         self.solver.set_parameters(p)
