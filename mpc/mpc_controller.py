@@ -80,6 +80,12 @@ class MpcSettings:
             ``sqp_max_iter`` QPs) or ``"ipopt"`` (the full NLP to convergence; reference only).
         osqp_eps: OSQP absolute/relative tolerance; osqp_max_iter: OSQP iteration cap;
             osqp_check_termination: OSQP convergence-check interval (iterations).
+        osqp_scaling: OSQP's equilibration passes, run again on every matrix update (the
+            preparation's refactorisation); osqp_alpha: OSQP's relaxation parameter;
+            osqp_check_dualgap: also hold OSQP's duality gap to ``osqp_eps``;
+            osqp_first_pass_iter: each QP first gets up to this many OSQP iterations without
+            over-relaxation and stops there when they converge (0: off), :mod:`hvac_mpc.mpc.rti_osqp`.
+            The defaults are measured in the README, "Solve time".
         sqp_max_iter, sqp_tol: SQP iteration cap and step tolerance (scaled variables).
         levenberg_marquardt: weight of lm * |u_k - u_k_lin|^2 (scaled inputs, every stage) added to
             each QP: damps Gauss-Newton steps along the flat directions the redundant actuators
@@ -124,6 +130,10 @@ class MpcSettings:
     osqp_eps: float = 1e-4
     osqp_max_iter: int = 400
     osqp_check_termination: int = 5
+    osqp_scaling: int = 4
+    osqp_alpha: float = 1.6
+    osqp_check_dualgap: bool = False
+    osqp_first_pass_iter: int = 4
     sqp_max_iter: int = 5
     levenberg_marquardt: float = 0.1
     cold_start_qps: int = 10
@@ -154,6 +164,12 @@ class MpcSettings:
         check_number(f"{p}.osqp_eps", self.osqp_eps, 1e-8, 1e-1)
         check_number(f"{p}.osqp_max_iter", self.osqp_max_iter, 10, 100000, integer=True)
         check_number(f"{p}.osqp_check_termination", self.osqp_check_termination, 1, 1000, integer=True)
+        check_number(f"{p}.osqp_scaling", self.osqp_scaling, 0, 100, integer=True)
+        alpha = self.osqp_alpha
+        if isinstance(alpha, bool) or not isinstance(alpha, (int, float)) or not 0.0 < alpha < 2.0:
+            raise InvalidSettings(f"{p}.osqp_alpha = {alpha!r} is outside the allowed open range (0, 2) "
+                                  "(OSQP's relaxation)")
+        check_number(f"{p}.osqp_first_pass_iter", self.osqp_first_pass_iter, 0, 1000, integer=True)
         check_number(f"{p}.sqp_max_iter", self.sqp_max_iter, 1, 100, integer=True)
         check_number(f"{p}.sqp_tol", self.sqp_tol, 1e-10, 1.0, lo_open=True)
         check_number(f"{p}.levenberg_marquardt", self.levenberg_marquardt, 0.0, 1e4)
@@ -179,7 +195,7 @@ class MpcSettings:
         if not isinstance(self.ekf, EkfSettings):
             raise InvalidSettings(f"{p}.ekf must be an EkfSettings")
         self.ekf.validate(f"{p}.ekf")
-        for flag in ("priorities", "reach_skip_unmoved"):
+        for flag in ("priorities", "reach_skip_unmoved", "osqp_check_dualgap"):
             if not isinstance(getattr(self, flag), bool):
                 raise InvalidSettings(f"{p}.{flag} must be True or False")
         check_number(f"{p}.reach_every_s", self.reach_every_s, 1.0, 3600.0)
@@ -277,7 +293,9 @@ class MpcController:
         return RtiOsqpSolver(pb, eps=s.osqp_eps, max_iter=s.osqp_max_iter, sqp_max_iter=sqp_iter,
                              sqp_tol=s.sqp_tol, check_termination=s.osqp_check_termination,
                              lm_inputs=s.levenberg_marquardt, cold_start_qps=s.cold_start_qps,
-                             reference_change_qps=s.reference_change_qps, codegen=s.codegen)
+                             reference_change_qps=s.reference_change_qps, codegen=s.codegen,
+                             scaling=s.osqp_scaling, alpha=s.osqp_alpha, check_dualgap=s.osqp_check_dualgap,
+                             first_pass_iter=s.osqp_first_pass_iter)
 
     # ------------------------------------------------------------------ protocol
     def reset(self, command: Command | None = None) -> None:

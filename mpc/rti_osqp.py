@@ -116,6 +116,13 @@ class RtiOsqpSolver:
         sqp_max_iter: QPs per step (1 = real-time iteration).
         sqp_tol: SQP stops when the largest change of a scaled variable is below this.
         check_termination: OSQP checks convergence every this many iterations.
+        scaling: OSQP's Ruiz equilibration passes, run again on every matrix update (each pass
+            costs about as much as the numeric refactorisation itself).
+        alpha: OSQP's relaxation parameter in (0, 2).
+        check_dualgap: also require OSQP's duality gap below the tolerance (OSQP >= 1.0) before it
+            stops; the primal and dual residuals are checked either way.
+        first_pass_iter: iterations of OSQP's first pass without over-relaxation (0: none), see
+            :class:`_OsqpCore`.
         lm_inputs: Levenberg-Marquardt weight on the inputs' step from the linearisation point.
         cold_start_qps: QPs allowed (Gauss-Newton SQP to ``sqp_tol``) on a cold start, when there
             is no previous solution to start from (first step, after a reset or a failure).
@@ -130,7 +137,8 @@ class RtiOsqpSolver:
     def __init__(self, problem: TrackingProblem, *, eps: float = 1e-4, max_iter: int = 400,
                  sqp_max_iter: int = 1, sqp_tol: float = 1e-3, check_termination: int = 5,
                  lm_inputs: np.ndarray | float = 0.0, cold_start_qps: int = 1, reference_change_qps: int = 1,
-                 codegen: bool = False):
+                 codegen: bool = False, scaling: int = 4, alpha: float = 1.6, check_dualgap: bool = False,
+                 first_pass_iter: int = 4):
         self.pb = pb = problem
         self.name = "rti" if sqp_max_iter == 1 else "sqp"
         self.lm = np.broadcast_to(np.asarray(lm_inputs, float), (pb.nu,)).copy()
@@ -155,17 +163,20 @@ class RtiOsqpSolver:
         self._qp_gradient = BufferedFunction(wrap(self.qp_gradient),
                                              fixed={7: self._q_const, 8: self._lm_all, 9: pb.w_du})
         self._sw_key = None
+        self._first_pass_iter = int(first_pass_iter)
         self.fail_next = 0  # steps to fail on purpose (tests of the fallback chain)
         self._osqp_settings = dict(eps_abs=eps, eps_rel=eps, max_iter=int(max_iter), polishing=False,
                                    warm_starting=True, adaptive_rho=True, verbose=False,
-                                   check_termination=int(check_termination), scaling=10)
+                                   check_termination=int(check_termination), scaling=int(scaling), alpha=float(alpha),
+                                   check_dualgap=bool(check_dualgap))
         self._setup_osqp()
         self.reset()
 
     @property
     def settings(self) -> dict:
         """The QP solver's settings and whether the QP data run as generated C (benchmark reports)."""
-        return {"qp_solver": "osqp", **self._osqp_settings, "sqp_max_iter": self.sqp_max_iter,
+        return {"qp_solver": "osqp", **self._osqp_settings, "first_pass_iter": self._first_pass_iter,
+                "sqp_max_iter": self.sqp_max_iter,
                 "reference_change_qps": self.reference_change_qps, "compiled": self.codegen.active}
 
     # ------------------------------------------------------------------ structure
@@ -284,7 +295,7 @@ class RtiOsqpSolver:
         np.clip(self.u, -inf, inf, out=self.u)
         self.solver.setup(self.P.matrix(Px), np.zeros(self.n), self.A.matrix(Ax), self.l.copy(), self.u.copy(),
                           **self._osqp_settings)
-        self._core = _OsqpCore(self.solver)
+        self._core = _OsqpCore(self.solver, self._first_pass_iter)
         self._workspace_used = False
         self._time_limit = None
 
@@ -566,11 +577,11 @@ class RtiOsqpSolver:
                     status = "deadline"
                     break
                 self._limit_time(remaining, time_limit_s)
-            info, x = self._core.solve()
+            status_val, status, n_iter, x = self._core.solve()
             solves += 1
-            iterations += int(info.iter)
-            status = str(info.status)
-            if info.status_val not in (1, 2):  # solved, solved inaccurate
+            iterations += n_iter
+            status = str(status)
+            if status_val not in (1, 2):  # solved, solved inaccurate
                 z = None
                 break
             z = np.array(x)
@@ -624,11 +635,23 @@ class _OsqpCore:
     (osqp >= 1.0, ``OSQP._solver``) when it is there: the interface's own ``update`` and ``solve``
     add per call what the RTI does not need (bounds clamped to OSQP's infinity again, a copy for
     its derivative cache, a namespace of the whole info), about a third of the QP's own time on
-    this problem. Without that object the public interface is used."""
+    this problem. Without that object the public interface is used.
 
-    def __init__(self, wrapper: osqp.OSQP):
+    ``first_pass_iter > 0``: each solve first runs up to that many iterations without
+    over-relaxation (``alpha = 1``, convergence checked at the end of the pass) and returns when
+    they converged; otherwise OSQP continues from where the pass left off with its own settings
+    (``alpha``, ``check_termination``, ``max_iter``). A warm start from the shifted plan and the last
+    multipliers often meets the tolerance at once, but over-relaxed first iterations move away from
+    it before they come back."""
+
+    def __init__(self, wrapper: osqp.OSQP, first_pass_iter: int = 0):
         self.wrapper = wrapper
         self.core = getattr(wrapper, "_solver", None)
+        self.first_pass_iter = int(first_pass_iter)
+        st = wrapper.settings
+        self._full = dict(alpha=st.alpha, max_iter=st.max_iter, check_termination=st.check_termination)
+        self._first = dict(alpha=1.0, max_iter=self.first_pass_iter, check_termination=self.first_pass_iter)
+        self._mode = "full"
 
     def update_matrices(self, Px: np.ndarray, Ax: np.ndarray) -> None:
         if self.core is None:
@@ -647,13 +670,40 @@ class _OsqpCore:
         """Primal warm start; the duals stay those of the last solve (see ``feedback``)."""
         (self.core or self.wrapper).warm_start(x, None)
 
-    def solve(self):
-        """Solve; returns OSQP's info (``iter``, ``status``, ``status_val``) and the primal solution."""
+    def _use(self, mode: str) -> None:
+        """Switch OSQP's iteration settings to the first pass or the full solve (a call only on a change)."""
+        if mode == self._mode:
+            return
+        values = self._first if mode == "first" else self._full
+        if self.core is None:
+            self.wrapper.update_settings(**values)
+        else:  # the interface's settings object, changed in place and handed over as a whole
+            for name, value in values.items():
+                setattr(self.wrapper.settings, name, value)
+            self.core.update_settings(self.wrapper.settings)
+        self._mode = mode
+
+    def solve(self) -> tuple[int, str, int, np.ndarray]:
+        """Solve; returns OSQP's status value and text, the iterations (both passes) and the primal solution."""
+        iterations = 0
+        if self.first_pass_iter > 0:
+            self._use("first")
+            status_val, status, n, x = self._solve_once()
+            if status_val == 1:  # solved within the pass
+                return status_val, status, n, x
+            iterations = n
+            self._use("full")
+        status_val, status, n, x = self._solve_once()
+        return status_val, status, iterations + n, x
+
+    def _solve_once(self) -> tuple[int, str, int, np.ndarray]:
         if self.core is None:
             res = self.wrapper.solve(raise_error=False)
-            return res.info, res.x
-        self.core.solve()
-        return self.core.info, self.core.solution.x
+            info, x = res.info, res.x
+        else:
+            self.core.solve()
+            info, x = self.core.info, self.core.solution.x
+        return info.status_val, info.status, int(info.iter), x
 
 
 def _selection(slots: np.ndarray, size: int) -> ca.DM:

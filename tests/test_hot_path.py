@@ -148,3 +148,37 @@ def test_a_step_makes_one_qp_and_three_calls_into_generated_code_with_one_qp_per
     _, apart, _, _, commands_apart = run(fused=False)
     assert all(c == ["ekf_predict", "ekf_update", "qp_data", "qp_gradient"] for c in apart[1:])
     assert np.array_equal(commands, commands_apart)
+
+
+def test_steady_steps_end_in_osqps_first_pass_and_the_settings_reach_osqp():
+    """OSQP's first pass without over-relaxation (``MpcSettings.osqp_first_pass_iter``): warm-started
+    from the shifted plan, the QPs of steady steps meet OSQP's tolerance within the pass (OSQP says
+    solved) where the over-relaxed iterations alone take at least one check interval; the
+    equilibration passes and the duality-gap check are what the settings say."""
+
+    def run(**kw):
+        ctrl = MpcController(settings=MpcSettings(codegen=False, **kw))
+        plant = SimulatedPlant(seed=7, environment=Environment(solve_time.INLET_C, 5.0))
+        plant.settle(solve_time.INITIAL)
+        ctrl.reset(plant.command)
+        stats = []
+        for k in range(40):
+            res = ctrl.step(plant.read(), solve_time.reference_at(float(k)))
+            plant.apply(res.command)
+            plant.advance()
+            assert res.stats["fallback"] is None
+            stats.append(res.stats)
+        return ctrl, stats
+
+    ctrl, stats = run()
+    s = ctrl.settings
+    assert s.osqp_first_pass_iter < s.osqp_check_termination
+    osqp_settings = ctrl.solver.solver.settings
+    assert (osqp_settings.scaling, bool(osqp_settings.check_dualgap)) == (s.osqp_scaling, s.osqp_check_dualgap)
+    steady = [st for k, st in enumerate(stats) if k >= 12 and st["qp_solves"] == 1]
+    in_pass = [st for st in steady if st["iterations"] <= s.osqp_first_pass_iter]
+    assert len(in_pass) >= 0.75 * len(steady)
+    assert all(st["status"] == "solved" for st in in_pass)
+    _, stats_off = run(osqp_first_pass_iter=0)
+    assert all(st["iterations"] >= s.osqp_check_termination for st in stats_off)
+    assert sum(st["iterations"] for st in stats[12:]) < 0.6 * sum(st["iterations"] for st in stats_off[12:])

@@ -1,0 +1,106 @@
+"""OSQP settings of the RTI side by side: the closed loop of ``hvac-mpc solve-time`` with two settings.
+
+    python -m hvac_mpc.benchmarks.qp_settings [--steps 240] [--rounds 3] [--seed 1] [--json FILE]
+
+Both controllers run the solve-time scenario (:mod:`.solve_time`: the same plant, seed and references)
+in lockstep, one step of each in turn (which goes first alternates), so that the load of other
+processes on a shared machine falls on both alike. Step times are this process's CPU time
+(``time.process_time``) per ``MpcController.step``, the cold first step excluded. Reported per round:
+median, 99th percentile, the ratio of the medians (after / before), OSQP iterations and the
+closed-loop cost of each (deterministic: the same in every round). ``before`` is OSQP as set up
+before the settings of :class:`~hvac_mpc.mpc.mpc_controller.MpcSettings` named in ``BEFORE``
+(ten equilibration passes on every matrix update, the duality gap checked, no first pass);
+``after`` the defaults.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hvac_mpc.models.plant import Environment, SimulatedPlant
+from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
+
+from . import solve_time
+
+#: The OSQP settings before (OSQP's own scaling default, its duality-gap check, no first pass).
+BEFORE = {"osqp_scaling": 10, "osqp_check_dualgap": True, "osqp_first_pass_iter": 0}
+
+
+class _Loop:
+    """One controller on its own plant, stepped one sample at a time."""
+
+    def __init__(self, settings: MpcSettings, seed: int):
+        self.ctrl = MpcController(settings=settings)
+        self.plant = SimulatedPlant(seed=seed, environment=Environment(solve_time.INLET_C, 5.0))
+        self.plant.settle(solve_time.INITIAL)
+        self.ctrl.reset(self.plant.command)
+        self.previous = self.plant.command.vector()
+        self.cpu: list[float] = []
+        self.iterations: list[int] = []
+        self.cost = 0.0
+
+    def step(self, k: int) -> None:
+        ref = solve_time.reference_at(k * self.plant.dt_s)
+        measurement = self.plant.read()
+        c0 = time.process_time()
+        res = self.ctrl.step(measurement, ref)
+        self.cpu.append(time.process_time() - c0)
+        command = self.plant.apply(res.command)
+        self.plant.advance()
+        terms = solve_time.stage_cost(self.ctrl.problem, self.plant.truth(), ref, command, self.previous)
+        self.cost += sum(terms.values())
+        self.previous = command
+        self.iterations.append(int(res.stats["iterations"]))
+
+    def summary(self) -> dict[str, float]:
+        c = np.array(self.cpu[1:]) * 1e3
+        return {"cpu_median_ms": float(np.median(c)), "cpu_p99_ms": float(np.percentile(c, 99)),
+                "median_iterations": float(np.median(self.iterations[1:])),
+                "total_iterations": int(sum(self.iterations)), "cost": float(self.cost)}
+
+
+def side_by_side(before: MpcSettings, after: MpcSettings, steps: int, seed: int) -> dict[str, Any]:
+    """One round: both loops in lockstep; returns each one's summary and the ratio of the medians."""
+    loops = {"before": _Loop(before, seed), "after": _Loop(after, seed)}
+    order = list(loops.values())
+    for k in range(steps):
+        for loop in (order if k % 2 == 0 else order[::-1]):
+            loop.step(k)
+    out = {name: loop.summary() for name, loop in loops.items()}
+    out["median_ratio"] = out["after"]["cpu_median_ms"] / out["before"]["cpu_median_ms"]
+    out["p99_ratio"] = out["after"]["cpu_p99_ms"] / out["before"]["cpu_p99_ms"]
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--steps", type=int, default=solve_time.FULL_STEPS, help="closed-loop steps (default 240)")
+    p.add_argument("--rounds", type=int, default=3, help="rounds, each with both loops anew (default 3)")
+    p.add_argument("--seed", type=int, default=1, help="plant noise seed (default 1)")
+    p.add_argument("--json", type=Path, default=None, help="write the rounds here (JSON)")
+    args = p.parse_args(argv)
+    if args.steps < 3 or args.rounds < 1:
+        print("qp_settings: --steps must be at least 3 and --rounds at least 1")
+        return 2
+    before, after = MpcSettings(**BEFORE), MpcSettings()
+    rounds = [side_by_side(before, after, args.steps, args.seed) for _ in range(args.rounds)]
+    for i, r in enumerate(rounds, 1):
+        b, a = r["before"], r["after"]
+        print(f"round {i}: median {b['cpu_median_ms']:.3f} -> {a['cpu_median_ms']:.3f} ms "
+              f"({r['median_ratio']:.2f}x), p99 {b['cpu_p99_ms']:.2f} -> {a['cpu_p99_ms']:.2f} ms, "
+              f"iterations median {b['median_iterations']:.0f} -> {a['median_iterations']:.0f}, "
+              f"total {b['total_iterations']} -> {a['total_iterations']}, cost {b['cost']:.1f} -> {a['cost']:.1f}")
+    if args.json is not None:
+        args.json.write_text(json.dumps({"before": BEFORE, "steps": args.steps, "seed": args.seed,
+                                         "rounds": rounds}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
