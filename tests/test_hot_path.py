@@ -152,8 +152,8 @@ def test_a_step_makes_one_qp_and_three_calls_into_generated_code_with_one_qp_per
 
 def test_steady_steps_end_in_osqps_first_pass_and_the_settings_reach_osqp():
     """OSQP's first pass without over-relaxation (``MpcSettings.osqp_first_pass_iter``): warm-started
-    from the shifted plan, the QPs of steady steps meet OSQP's tolerance within the pass (OSQP says
-    solved) where the over-relaxed iterations alone take at least one check interval; the
+    from the shifted plan, more than half of the steady steps' QPs meet the first pass's tolerance
+    (OSQP says solved) where the over-relaxed iterations alone take at least one check interval; the
     equilibration passes and the duality-gap check are what the settings say."""
 
     def run(**kw):
@@ -177,7 +177,7 @@ def test_steady_steps_end_in_osqps_first_pass_and_the_settings_reach_osqp():
     assert (osqp_settings.scaling, bool(osqp_settings.check_dualgap)) == (s.osqp_scaling, s.osqp_check_dualgap)
     steady = [st for k, st in enumerate(stats) if k >= 12 and st["qp_solves"] == 1]
     in_pass = [st for st in steady if st["iterations"] <= s.osqp_first_pass_iter]
-    assert len(in_pass) >= 0.75 * len(steady)
+    assert len(in_pass) > 0.5 * len(steady)
     assert all(st["status"] == "solved" for st in in_pass)
     _, stats_off = run(osqp_first_pass_iter=0)
     assert all(st["iterations"] >= s.osqp_check_termination for st in stats_off)
