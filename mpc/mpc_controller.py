@@ -116,6 +116,12 @@ class MpcSettings:
         reach_every_s: how often the reachable flow is recomputed while the flow reference is in doubt (s).
         reach_skip_unmoved: skip that periodic re-solve while its inputs have not moved materially
             (``mpc/priorities.py`` ``MATERIAL_CHANGE``; off: measured worse with the flow out of reach).
+        reach_deferred: a reachable-flow solve started in one step is applied from the next step on
+            (that step answers from the previous solve); the commands do not depend on where or how
+            fast the solve runs.
+        reach_background: with ``reach_deferred``, run that solve on a second thread between the two
+            steps, off the step's critical path (:mod:`hvac_mpc.mpc.background`); the commands are
+            those of ``reach_background=False`` bit for bit.
     """
 
     dt_s: float = 1.0
@@ -142,6 +148,8 @@ class MpcSettings:
     priorities: bool = True
     reach_every_s: float = 10.0
     reach_skip_unmoved: bool = False
+    reach_deferred: bool = False
+    reach_background: bool = False
 
     def __post_init__(self) -> None:
         p = "MpcSettings"
@@ -179,9 +187,12 @@ class MpcSettings:
         if not isinstance(self.ekf, EkfSettings):
             raise InvalidSettings(f"{p}.ekf must be an EkfSettings")
         self.ekf.validate(f"{p}.ekf")
-        for flag in ("priorities", "reach_skip_unmoved"):
+        for flag in ("priorities", "reach_skip_unmoved", "reach_deferred", "reach_background"):
             if not isinstance(getattr(self, flag), bool):
                 raise InvalidSettings(f"{p}.{flag} must be True or False")
+        if self.reach_background and not self.reach_deferred:
+            raise InvalidSettings(f"{p}.reach_background = True needs {p}.reach_deferred = True "
+                                  "(the solve's answer is used from the next step on)")
         check_number(f"{p}.reach_every_s", self.reach_every_s, 1.0, 3600.0)
 
 
@@ -257,7 +268,8 @@ class MpcController:
                                   learn_bypass_flow=hasattr(self.solver, "set_parameters"))
         pb = self.problem
         self.reach = ReachableFlow(pb.model, pb.u_lo_phys, pb.u_hi_phys, pb.heater_max_phys, self.params,
-                                   every_s=s.reach_every_s, skip_unmoved=s.reach_skip_unmoved) if s.priorities else None
+                                   every_s=s.reach_every_s, skip_unmoved=s.reach_skip_unmoved,
+                                   deferred=s.reach_deferred, background=s.reach_background) if s.priorities else None
         self.heater_bound = HeaterOffBound(self.params, s.dt_s)
         self.codegen = getattr(self.solver, "codegen", None) or CodegenReport()
         if s.codegen:
