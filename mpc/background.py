@@ -9,8 +9,8 @@ deadline.
 
 ASSUMPTION: the function releases Python's global interpreter lock while it works; CasADi's
 numeric function calls (IPOPT included) do in CasADi 3.8 (``tests/test_background.py`` checks the
-installed version; ``benchmarks/reach_background.py`` measures the step time both ways). Where it does not, the thread costs what the call costs, in
-the next step instead of this one.
+installed version; ``benchmarks/step_tail.py`` measures the step time both ways). Where it does
+not, the thread costs what the call costs, in the next step instead of this one.
 """
 
 from __future__ import annotations

@@ -78,8 +78,13 @@ class MpcSettings:
         ocp: the optimal control problem (horizon, weights, rates, soft limits), :class:`OcpSpec`.
         solver: ``"rti"`` (one QP per step), ``"sqp"`` (Gauss-Newton SQP to ``sqp_tol``, at most
             ``sqp_max_iter`` QPs) or ``"ipopt"`` (the full NLP to convergence; reference only).
-        osqp_eps: OSQP absolute/relative tolerance; osqp_max_iter: OSQP iteration cap;
+        osqp_eps: OSQP absolute/relative tolerance; osqp_max_iter: OSQP iteration cap per QP (60: a
+            QP of a step between reference changes needs a median of 15; 150-400 were the slow
+            steps' before the cap, README "Solve time");
             osqp_check_termination: OSQP convergence-check interval (iterations).
+        osqp_accept_max_iter: take OSQP's iterate at ``osqp_max_iter`` as the QP's answer (an inexact
+            QP step; the next step's QP goes on from it) instead of a failure and the fallback chain:
+            with the low cap, a deterministic bound on a step's OSQP iterations.
         sqp_max_iter, sqp_tol: SQP iteration cap and step tolerance (scaled variables).
         levenberg_marquardt: weight of lm * |u_k - u_k_lin|^2 (scaled inputs, every stage) added to
             each QP: damps Gauss-Newton steps along the flat directions the redundant actuators
@@ -116,9 +121,10 @@ class MpcSettings:
         reach_every_s: how often the reachable flow is recomputed while the flow reference is in doubt (s).
         reach_skip_unmoved: skip that periodic re-solve while its inputs have not moved materially
             (``mpc/priorities.py`` ``MATERIAL_CHANGE``; off: measured worse with the flow out of reach).
-        reach_deferred: a reachable-flow solve started in one step is applied from the next step on
-            (that step answers from the previous solve); the commands do not depend on where or how
-            fast the solve runs.
+        reach_deferred: a periodic reachable-flow re-solve (the references unchanged) started in one
+            step is applied from the next step on (that step answers from the previous solve); the
+            commands do not depend on where or how fast the solve runs. A change of the references
+            is solved inside its step (``mpc/priorities.py``).
         reach_background: with ``reach_deferred``, run that solve on a second thread between the two
             steps, off the step's critical path (:mod:`hvac_mpc.mpc.background`); the commands are
             those of ``reach_background=False`` bit for bit.
@@ -128,8 +134,9 @@ class MpcSettings:
     ocp: OcpSpec = field(default_factory=OcpSpec)
     solver: str = "rti"
     osqp_eps: float = 1e-4
-    osqp_max_iter: int = 400
+    osqp_max_iter: int = 60
     osqp_check_termination: int = 5
+    osqp_accept_max_iter: bool = True
     sqp_max_iter: int = 5
     levenberg_marquardt: float = 0.1
     cold_start_qps: int = 10
@@ -148,8 +155,8 @@ class MpcSettings:
     priorities: bool = True
     reach_every_s: float = 10.0
     reach_skip_unmoved: bool = False
-    reach_deferred: bool = False
-    reach_background: bool = False
+    reach_deferred: bool = True
+    reach_background: bool = True
 
     def __post_init__(self) -> None:
         p = "MpcSettings"
@@ -187,7 +194,7 @@ class MpcSettings:
         if not isinstance(self.ekf, EkfSettings):
             raise InvalidSettings(f"{p}.ekf must be an EkfSettings")
         self.ekf.validate(f"{p}.ekf")
-        for flag in ("priorities", "reach_skip_unmoved", "reach_deferred", "reach_background"):
+        for flag in ("priorities", "reach_skip_unmoved", "reach_deferred", "reach_background", "osqp_accept_max_iter"):
             if not isinstance(getattr(self, flag), bool):
                 raise InvalidSettings(f"{p}.{flag} must be True or False")
         if self.reach_background and not self.reach_deferred:
@@ -289,7 +296,8 @@ class MpcController:
         return RtiOsqpSolver(pb, eps=s.osqp_eps, max_iter=s.osqp_max_iter, sqp_max_iter=sqp_iter,
                              sqp_tol=s.sqp_tol, check_termination=s.osqp_check_termination,
                              lm_inputs=s.levenberg_marquardt, cold_start_qps=s.cold_start_qps,
-                             reference_change_qps=s.reference_change_qps, codegen=s.codegen)
+                             reference_change_qps=s.reference_change_qps, codegen=s.codegen,
+                             accept_max_iter=s.osqp_accept_max_iter)
 
     # ------------------------------------------------------------------ protocol
     def reset(self, command: Command | None = None) -> None:

@@ -29,11 +29,14 @@ re-solve is skipped while its other inputs (the estimator's disturbances, the va
 moved by less than :data:`MATERIAL_CHANGE` since the last solve: fewer slow steps, but measured
 worse with the flow out of reach on the independent box (docs/robustness.md sec. 1).
 
-With ``deferred`` a solve started in one check is applied at the start of the next check (the next
-control step), which in between answers from the previous solve; with ``background`` as well the
-solve runs on a second thread meanwhile (:mod:`hvac_mpc.mpc.background`), off the step's critical
-path. Deferred answers are the same with and without the thread: the solve's inputs are copied when
-it starts, and the next check waits for it.
+With ``deferred`` a periodic re-solve (the references unchanged) started in one check is applied at
+the start of the next check (the next control step), which in between answers from the previous
+solve; with ``background`` as well the solve runs on a second thread meanwhile
+(:mod:`hvac_mpc.mpc.background`), off the step's critical path. Deferred answers are the same with
+and without the thread: the solve's inputs are copied when it starts, and the next check waits for
+it. A change of the references is still solved inside its step: one step of tracking an unreachable
+flow reference at a reference change doubled the quick mismatch suite's temperature IAE ratio on
+flow_out_of_reach (median over the variants 0.77 -> 1.52, measured with every solve deferred).
 """
 
 from __future__ import annotations
@@ -144,7 +147,7 @@ class ReachableFlow:
 
         ``x``, ``u``, ``d``: the estimate, the command in force and the disturbances (physical).
         Re-solved when the reference changes or every ``every_s``; otherwise the last answer.
-        With ``deferred`` the solve started here is applied at the start of the next check.
+        With ``deferred`` a periodic re-solve started here is applied at the start of the next check.
         """
         failed = self._collect()
         if flow_ref_m3s < self.check_flow_m3s:
@@ -167,11 +170,12 @@ class ReachableFlow:
             if self._age_s >= self.every_s:
                 self._age_s = 0.0  # looked again: nothing moved
             return self._last if failed else self._limit(flow_ref_m3s, flow_now)
+        periodic = key == self._key
         self._key, self._age_s, self._inputs = key, 0.0, inputs
         w0 = self._w if self._w is not None else np.concatenate([x, u])
         # copies: the model parameters may change before a deferred solve has run
         args = (w0.copy(), np.concatenate([d, [temp_ref_c, a_cap_pct], self._p]), np.array(d, float), temp_ref_c)
-        if self.deferred:
+        if self.deferred and periodic:
             self._pending = BackgroundCall(self._solve, args, thread=self.background)
             return self._last if failed else self._limit(flow_ref_m3s, flow_now)
         if not self._apply(self._solve(*args)):

@@ -62,15 +62,21 @@ def test_casadi_lets_python_run_while_the_reachable_flow_solve_works():
     assert during > 100
 
 
-def test_a_deferred_solve_answers_at_the_next_check_what_the_inline_solve_answers_at_once():
+def test_a_deferred_re_solve_answers_at_the_next_check_what_the_inline_re_solve_answers_at_once():
     inline, x, u, d = _reach_setup()
+    _, x1, _, d1 = _reach_setup(15.0)  # the estimator's flow offset moves the reachable flow
     pb = _default_problem()
     deferred = ReachableFlow(pb.model, pb.u_lo_phys, pb.u_hi_phys, pb.heater_max_phys, Parameters(), deferred=True,
                              background=True)
-    first = inline.check(x, u, d, 18.0, 200 * M3H, 100.0, 1.0)
-    assert "volume_flow_m3s" in first.out_of_reach
-    assert deferred.check(x, u, d, 18.0, 200 * M3H, 100.0, 1.0).out_of_reach == {}  # no answer yet
-    assert deferred.check(x, u, d, 18.0, 200 * M3H, 100.0, 1.0) == first
+    # a new reference: solved inside the check, both alike
+    assert deferred.check(x, u, d, 18.0, 200 * M3H, 100.0, 1.0) == inline.check(x, u, d, 18.0, 200 * M3H, 100.0, 1.0)
+    before = inline._reachable
+    # the periodic re-solve (every_s passed) with moved inputs: inline at once, deferred one check later
+    inline.check(x1, u, d1, 18.0, 200 * M3H, 100.0, inline.every_s)
+    deferred.check(x1, u, d1, 18.0, 200 * M3H, 100.0, deferred.every_s)
+    assert inline._reachable > before + 1 * M3H and deferred._reachable == before
+    after = [r.check(x1, u, d1, 18.0, 200 * M3H, 100.0, 1.0) for r in (inline, deferred)]
+    assert after[0] == after[1] and deferred._reachable == inline._reachable
     with pytest.raises(ValueError, match="deferred"):
         ReachableFlow(pb.model, pb.u_lo_phys, pb.u_hi_phys, pb.heater_max_phys, Parameters(), background=True)
 
@@ -80,9 +86,9 @@ HIGH_FLOW = ((0.0, Reference.from_split(13.0, 0.05, (0.34, 0.33, 0.33))),
 
 
 def _loop(settings: MpcSettings, steps: int = 14):
-    """The solve-time loop at a high flow reference (the reachable flow solved at 0, 10 and 12 s, out
-    of reach from the solve at 10 s on): commands, reports, and per reachable-flow solve whether it ran
-    on the main thread and inside a step."""
+    """The solve-time loop at a high flow reference (the reachable flow solved at 0 s and 12 s for new
+    references, at 10 s periodically, out of reach from the solve at 10 s on): commands, reports, and per
+    reachable-flow solve whether it ran on the main thread and inside a step."""
     ctrl = MpcController(settings=settings)
     solver = ctrl.reach.solver
     solves: list[tuple[bool, bool]] = []
@@ -110,14 +116,16 @@ def _loop(settings: MpcSettings, steps: int = 14):
     return np.array(commands), reports, solves
 
 
-def test_reach_solves_run_off_the_step_and_the_commands_do_not_depend_on_the_thread():
+def test_periodic_reach_solves_run_off_the_step_and_the_commands_do_not_depend_on_the_thread():
     on_thread = _loop(MpcSettings(codegen=False, reach_deferred=True, reach_background=True))
-    at_once = _loop(MpcSettings(codegen=False, reach_deferred=True))
+    at_once = _loop(MpcSettings(codegen=False, reach_deferred=True, reach_background=False))
     assert np.array_equal(on_thread[0], at_once[0]) and on_thread[1] == at_once[1]
     assert len(on_thread[2]) == len(at_once[2]) == 3
-    assert all(not main for main, _ in on_thread[2])  # every solve on the second thread
     assert all(main and in_step for main, in_step in at_once[2])
-    # the solve started at 10 s answers at 11 s
+    # new references (0 s, 12 s) solved inside the step, the periodic re-solve (10 s) on the second thread
+    assert [main for main, _ in on_thread[2]] == [True, False, True]
+    assert on_thread[2][0][1] and on_thread[2][2][1]
+    # the re-solve started at 10 s answers at 11 s (inline: at 10 s)
     assert on_thread[1].index(True) == 11
     with pytest.raises(InvalidSettings, match="reach_background"):
-        MpcSettings(reach_background=True)
+        MpcSettings(reach_deferred=False, reach_background=True)
