@@ -114,8 +114,10 @@ class ReachableFlow:
         opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.max_iter": int(max_iter), "ipopt.tol": 1e-6,
                 "ipopt.sb": "yes"}
         self.solver = ca.nlpsol("reachable_flow", "ipopt", nlp, opts)
-        self._out_fn = ca.Function("reach_out", [x, u, d, p], [flow, temp])
-        self._out = BufferedFunction(self._out_fn)  # numpy in and out
+        self._out = BufferedFunction(ca.Function("reach_out", [x, u, d, p], [flow, temp]))  # numpy in and out
+        # the same outputs as a function object of its own for the solve, which may run on a second
+        # thread: no memory shared with the buffered calls of the step
+        self._out_fn = ca.Function("reach_solution_out", [x, u, d, p], [flow, temp])
         self.lbx = np.concatenate([np.full(nx, -np.inf), u_lo])
         self.ubx = np.concatenate([np.full(nx, np.inf), u_hi])
         self.lbg = np.concatenate([np.zeros(nx), [-np.inf, -np.inf]])
@@ -197,8 +199,7 @@ class ReachableFlow:
         return w, flow, temp - temp_ref_c
 
     def _solution_out(self, w: np.ndarray, d: np.ndarray, p: np.ndarray) -> np.ndarray:
-        """Flow and temperature of a solution, through the unbuffered function (thread-safe; the buffered
-        one serves the step on the main thread)."""
+        """Flow and temperature of a solution (m3/s, degC), through the solve's own function object."""
         nd = len(d)
         out = self._out_fn(w[:self.nx], w[self.nx:], d, p[nd + 2:])
         return np.array([float(out[0]), float(out[1])])
