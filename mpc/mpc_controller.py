@@ -78,13 +78,13 @@ class MpcSettings:
         ocp: the optimal control problem (horizon, weights, rates, soft limits), :class:`OcpSpec`.
         solver: ``"rti"`` (one QP per step), ``"sqp"`` (Gauss-Newton SQP to ``sqp_tol``, at most
             ``sqp_max_iter`` QPs) or ``"ipopt"`` (the full NLP to convergence; reference only).
-        osqp_eps: OSQP absolute/relative tolerance; osqp_max_iter: OSQP iteration cap per QP (60: a
-            QP of a step between reference changes needs a median of 15; 150-400 were the slow
-            steps' before the cap, README "Solve time");
+        osqp_eps: OSQP absolute/relative tolerance; osqp_max_iter: OSQP iteration cap per QP;
             osqp_check_termination: OSQP convergence-check interval (iterations).
         osqp_accept_max_iter: take OSQP's iterate at ``osqp_max_iter`` as the QP's answer (an inexact
             QP step; the next step's QP goes on from it) instead of a failure and the fallback chain:
-            with the low cap, a deterministic bound on a step's OSQP iterations.
+            with a low cap (``osqp_max_iter=60``), a deterministic bound on a step's OSQP iterations.
+            Off: measured with 60, the inexact iterates let the heater command leave zero in the
+            summer pull-down (2.8 W, ``tests/test_cabin.py``; README "Solve time").
         sqp_max_iter, sqp_tol: SQP iteration cap and step tolerance (scaled variables).
         levenberg_marquardt: weight of lm * |u_k - u_k_lin|^2 (scaled inputs, every stage) added to
             each QP: damps Gauss-Newton steps along the flat directions the redundant actuators
@@ -134,9 +134,9 @@ class MpcSettings:
     ocp: OcpSpec = field(default_factory=OcpSpec)
     solver: str = "rti"
     osqp_eps: float = 1e-4
-    osqp_max_iter: int = 60
+    osqp_max_iter: int = 400
     osqp_check_termination: int = 5
-    osqp_accept_max_iter: bool = True
+    osqp_accept_max_iter: bool = False
     sqp_max_iter: int = 5
     levenberg_marquardt: float = 0.1
     cold_start_qps: int = 10

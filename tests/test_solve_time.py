@@ -41,7 +41,7 @@ def test_rti_step_time_p99_under_100_ms_with_one_qp_per_step_between_reference_c
     assert all(1 <= solves[k] <= settings.reference_change_qps for k in changes)
     assert sum(solves[k] for k in changes) > len(changes)  # the extra QPs are used
     assert all(i <= n * settings.osqp_max_iter for i, n in zip(iters, solves))
-    assert np.median(iters) <= settings.osqp_max_iter / 4  # most QPs end well before the cap
+    assert np.median(iters) < settings.osqp_max_iter / 4
     # two-core budget: 99th percentile below 100 ms of the 1 s sample (first, cold step excluded)
     assert np.percentile(np.array(times[1:]), 99) < 0.100
 
