@@ -78,7 +78,7 @@ class MpcSettings:
         ocp: the optimal control problem (horizon, weights, rates, soft limits), :class:`OcpSpec`.
         solver: ``"rti"`` (one QP per step), ``"sqp"`` (Gauss-Newton SQP to ``sqp_tol``, at most
             ``sqp_max_iter`` QPs) or ``"ipopt"`` (the full NLP to convergence; reference only).
-        osqp_eps: OSQP absolute/relative tolerance; osqp_max_iter: OSQP iteration cap;
+        osqp_eps: OSQP absolute/relative tolerance; osqp_max_iter: OSQP iteration cap per QP;
             osqp_check_termination: OSQP convergence-check interval (iterations).
         osqp_scaling: OSQP's equilibration passes, run again on every matrix update (the
             preparation's refactorisation); osqp_alpha: OSQP's relaxation parameter;
@@ -86,6 +86,11 @@ class MpcSettings:
             osqp_first_pass_iter: each QP first gets up to this many OSQP iterations without
             over-relaxation and stops there when they converge (0: off), :mod:`hvac_mpc.mpc.rti_osqp`.
             The defaults are measured in the README, "Solve time".
+        osqp_accept_max_iter: take OSQP's iterate at ``osqp_max_iter`` as the QP's answer (an inexact
+            QP step; the next step's QP goes on from it) instead of a failure and the fallback chain:
+            with a low cap (``osqp_max_iter=60``), a deterministic bound on a step's OSQP iterations.
+            Off: measured with 60, the inexact iterates let the heater command leave zero in the
+            summer pull-down (2.8 W, ``tests/test_cabin.py``; README "Solve time").
         sqp_max_iter, sqp_tol: SQP iteration cap and step tolerance (scaled variables).
         levenberg_marquardt: weight of lm * |u_k - u_k_lin|^2 (scaled inputs, every stage) added to
             each QP: damps Gauss-Newton steps along the flat directions the redundant actuators
@@ -122,6 +127,13 @@ class MpcSettings:
         reach_every_s: how often the reachable flow is recomputed while the flow reference is in doubt (s).
         reach_skip_unmoved: skip that periodic re-solve while its inputs have not moved materially
             (``mpc/priorities.py`` ``MATERIAL_CHANGE``; off: measured worse with the flow out of reach).
+        reach_deferred: a periodic reachable-flow re-solve (the references unchanged) started in one
+            step is applied from the next step on (that step answers from the previous solve); the
+            commands do not depend on where or how fast the solve runs. A change of the references
+            is solved inside its step (``mpc/priorities.py``).
+        reach_background: with ``reach_deferred``, run that solve on a second thread between the two
+            steps, off the step's critical path (:mod:`hvac_mpc.mpc.background`); the commands are
+            those of ``reach_background=False`` bit for bit.
     """
 
     dt_s: float = 1.0
@@ -134,6 +146,7 @@ class MpcSettings:
     osqp_alpha: float = 1.6
     osqp_check_dualgap: bool = False
     osqp_first_pass_iter: int = 4
+    osqp_accept_max_iter: bool = False
     sqp_max_iter: int = 5
     levenberg_marquardt: float = 0.1
     cold_start_qps: int = 10
@@ -152,6 +165,8 @@ class MpcSettings:
     priorities: bool = True
     reach_every_s: float = 10.0
     reach_skip_unmoved: bool = False
+    reach_deferred: bool = True
+    reach_background: bool = True
 
     def __post_init__(self) -> None:
         p = "MpcSettings"
@@ -195,9 +210,13 @@ class MpcSettings:
         if not isinstance(self.ekf, EkfSettings):
             raise InvalidSettings(f"{p}.ekf must be an EkfSettings")
         self.ekf.validate(f"{p}.ekf")
-        for flag in ("priorities", "reach_skip_unmoved", "osqp_check_dualgap"):
+        for flag in ("priorities", "reach_skip_unmoved", "reach_deferred", "reach_background", "osqp_accept_max_iter",
+                     "osqp_check_dualgap"):
             if not isinstance(getattr(self, flag), bool):
                 raise InvalidSettings(f"{p}.{flag} must be True or False")
+        if self.reach_background and not self.reach_deferred:
+            raise InvalidSettings(f"{p}.reach_background = True needs {p}.reach_deferred = True "
+                                  "(the solve's answer is used from the next step on)")
         check_number(f"{p}.reach_every_s", self.reach_every_s, 1.0, 3600.0)
 
 
@@ -273,7 +292,8 @@ class MpcController:
                                   learn_bypass_flow=hasattr(self.solver, "set_parameters"))
         pb = self.problem
         self.reach = ReachableFlow(pb.model, pb.u_lo_phys, pb.u_hi_phys, pb.heater_max_phys, self.params,
-                                   every_s=s.reach_every_s, skip_unmoved=s.reach_skip_unmoved) if s.priorities else None
+                                   every_s=s.reach_every_s, skip_unmoved=s.reach_skip_unmoved,
+                                   deferred=s.reach_deferred, background=s.reach_background) if s.priorities else None
         self.heater_bound = HeaterOffBound(self.params, s.dt_s)
         self.codegen = getattr(self.solver, "codegen", None) or CodegenReport()
         if s.codegen:
@@ -295,7 +315,7 @@ class MpcController:
                              lm_inputs=s.levenberg_marquardt, cold_start_qps=s.cold_start_qps,
                              reference_change_qps=s.reference_change_qps, codegen=s.codegen,
                              scaling=s.osqp_scaling, alpha=s.osqp_alpha, check_dualgap=s.osqp_check_dualgap,
-                             first_pass_iter=s.osqp_first_pass_iter)
+                             first_pass_iter=s.osqp_first_pass_iter, accept_max_iter=s.osqp_accept_max_iter)
 
     # ------------------------------------------------------------------ protocol
     def reset(self, command: Command | None = None) -> None:

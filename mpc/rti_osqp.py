@@ -129,6 +129,9 @@ class RtiOsqpSolver:
         reference_change_qps: QPs allowed on a step whose reference differs from the one the
             preparation used: the shifted plan was made for the old reference, so one damped
             Gauss-Newton step from it is far from the new optimum.
+        accept_max_iter: take OSQP's iterate at ``max_iter`` (status "maximum iterations reached")
+            as the QP's answer instead of a failure: an inexact QP step, as the real-time iteration
+            takes an inexact NLP step; the next QP starts from it (primal shifted, dual kept).
         codegen: evaluate the QP data as generated C (:func:`.codegen.compiled`, cached on disk);
             otherwise (or without a compiler) CasADi's interpreter runs the same functions.
             ``self.codegen`` reports what happened.
@@ -138,8 +141,10 @@ class RtiOsqpSolver:
                  sqp_max_iter: int = 1, sqp_tol: float = 1e-3, check_termination: int = 5,
                  lm_inputs: np.ndarray | float = 0.0, cold_start_qps: int = 1, reference_change_qps: int = 1,
                  codegen: bool = False, scaling: int = 4, alpha: float = 1.6, check_dualgap: bool = False,
-                 first_pass_iter: int = 4):
+                 first_pass_iter: int = 4, accept_max_iter: bool = False):
         self.pb = pb = problem
+        # OSQP status values taken as an answer: solved, solved inaccurate (and maximum iterations reached)
+        self._accepted = (1, 2, 7) if accept_max_iter else (1, 2)
         self.name = "rti" if sqp_max_iter == 1 else "sqp"
         self.lm = np.broadcast_to(np.asarray(lm_inputs, float), (pb.nu,)).copy()
         self.sqp_max_iter = int(sqp_max_iter)
@@ -176,6 +181,7 @@ class RtiOsqpSolver:
     def settings(self) -> dict:
         """The QP solver's settings and whether the QP data run as generated C (benchmark reports)."""
         return {"qp_solver": "osqp", **self._osqp_settings, "first_pass_iter": self._first_pass_iter,
+                "accept_max_iter": 7 in self._accepted,
                 "sqp_max_iter": self.sqp_max_iter,
                 "reference_change_qps": self.reference_change_qps, "compiled": self.codegen.active}
 
@@ -581,7 +587,7 @@ class RtiOsqpSolver:
             solves += 1
             iterations += n_iter
             status = str(status)
-            if status_val not in (1, 2):  # solved, solved inaccurate
+            if status_val not in self._accepted:
                 z = None
                 break
             z = np.array(x)

@@ -1,0 +1,141 @@
+"""The slow steps of the solve-time loop, before and after, side by side: the reachable-flow solve inside
+the step against on a second thread, and OSQP's iterations per QP capped.
+
+    python -m hvac_mpc.benchmarks.step_tail [--rounds 3] [--steps 240] [--seed 1] [--json FILE]
+
+The solve-time loop (:mod:`hvac_mpc.benchmarks.solve_time`: 240 closed-loop steps, eight references)
+with the RTI as configured by default except for the settings each variant names (all of them, so
+the comparison does not move with the defaults):
+
+* ``inline``: the reachable flow (:mod:`hvac_mpc.mpc.priorities`) solved inside the step that needs
+  it, OSQP capped at 400 iterations per QP with a QP at the cap a failure (the settings before);
+* ``reach_thread``: that solve started in the step on a second thread and applied from the next
+  step on (``reach_deferred=True, reach_background=True``);
+* ``reach_thread_cap60``: as well, OSQP capped at 60 iterations per QP with the iterate at the cap
+  the QP's answer (``osqp_max_iter=60, osqp_accept_max_iter=True``).
+
+The variants run alternately, ``--rounds`` times each, on at most two cores (the solve-time
+benchmark's limit). Per step: the wall time of ``MpcController.step`` and the CPU time of the thread
+that runs it (``time.thread_time``; the process CPU time would count the second thread's solve too),
+the cold first step excluded; per loop the closed-loop cost (as ``solve-time`` computes it), the
+reachable-flow solves and the OSQP iterations of the slowest steps. The ``reach_thread`` commands are
+checked against ``reach_deferred=True`` without the thread (the same bit for bit).
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    if not os.environ.get(_var, "").isdigit() or int(os.environ[_var]) > 2:
+        os.environ[_var] = "2"
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import Any  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+from hvac_mpc.models.plant import Environment, SimulatedPlant  # noqa: E402
+from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings  # noqa: E402
+
+from . import solve_time  # noqa: E402
+
+BEFORE = {"reach_deferred": False, "reach_background": False, "osqp_max_iter": 400, "osqp_accept_max_iter": False}
+VARIANTS = {"inline": BEFORE,
+            "reach_thread": {**BEFORE, "reach_deferred": True, "reach_background": True},
+            "reach_thread_cap60": {**BEFORE, "reach_deferred": True, "reach_background": True, "osqp_max_iter": 60,
+                                   "osqp_accept_max_iter": True}}
+
+
+def run_loop(settings: MpcSettings, steps: int, seed: int) -> dict[str, Any]:
+    """One closed loop of the solve-time scenario: per-step wall and thread CPU times (ms), commands,
+    the steps that started a reachable-flow solve, and the closed-loop cost."""
+    ctrl = MpcController(settings=settings)
+    solver, started = ctrl.reach.solver, []
+    k = 0
+
+    def counted(**kw):
+        started.append(k)
+        return solver(**kw)
+
+    ctrl.reach.solver = counted  # the index is read when the call starts: on a thread it may be k + 1
+    plant = SimulatedPlant(seed=seed, environment=Environment(solve_time.INLET_C, 5.0))
+    plant.settle(solve_time.INITIAL)
+    ctrl.reset(plant.command)
+    previous = plant.command.vector()
+    wall, cpu, commands, iterations, cost = [], [], [], [], 0.0
+    for k in range(steps):
+        ref = solve_time.reference_at(k * plant.dt_s)
+        measurement = plant.read()
+        c0 = time.thread_time()
+        res = ctrl.step(measurement, ref)
+        cpu.append(time.thread_time() - c0)
+        wall.append(res.stats["step_time_s"])
+        iterations.append(res.stats["iterations"])
+        command = plant.apply(res.command)
+        plant.advance()
+        cost += sum(solve_time.stage_cost(ctrl.problem, plant.truth(), ref, command, previous).values())
+        previous = command
+        commands.append(res.command.vector())
+    ctrl.reach.reset()
+    return {"wall_ms": np.array(wall[1:]) * 1e3, "cpu_ms": np.array(cpu[1:]) * 1e3, "commands": np.array(commands),
+            "solves": started, "cost": cost, "iterations": np.array(iterations[1:])}
+
+
+def figures(times_ms: np.ndarray) -> dict[str, float]:
+    return {"median_ms": float(np.median(times_ms)), "p99_ms": float(np.percentile(times_ms, 99)),
+            "max_ms": float(times_ms.max())}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--steps", type=int, default=solve_time.FULL_STEPS)
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--cost-seeds", type=int, default=1,
+                        help="closed-loop cost of every variant on seeds --seed ... --seed + N - 1 (untimed beyond --seed)")
+    parser.add_argument("--json", type=Path, default=Path("step_tail.json"))
+    args = parser.parse_args(argv)
+    if args.rounds < 1 or args.steps < 3 or not 1 <= args.cost_seeds <= 20:
+        parser.error("--rounds must be at least 1, --steps at least 3 and --cost-seeds in [1, 20]")
+    if hasattr(os, "sched_setaffinity"):
+        os.sched_setaffinity(0, sorted(os.sched_getaffinity(0))[:2])
+    rows: dict[str, list[dict[str, Any]]] = {name: [] for name in VARIANTS}
+    loops: dict[str, dict[str, Any]] = {}
+    for r in range(args.rounds):
+        for name, extra in VARIANTS.items():
+            loop = run_loop(MpcSettings(**extra), args.steps, args.seed)
+            loops[name] = loop
+            rows[name].append({"round": r, "wall": figures(loop["wall_ms"]), "thread_cpu": figures(loop["cpu_ms"]),
+                               "reach_solves": len(loop["solves"]), "cost": loop["cost"],
+                               "osqp_iterations_top": [int(v) for v in np.sort(loop["iterations"])[::-1][:8]]})
+            w, c = rows[name][-1]["wall"], rows[name][-1]["thread_cpu"]
+            print(f"round {r} {name:<18} wall median {w['median_ms']:.2f} p99 {w['p99_ms']:.2f} max {w['max_ms']:.2f} ms"
+                  f" | thread CPU median {c['median_ms']:.2f} p99 {c['p99_ms']:.2f} max {c['max_ms']:.2f} ms"
+                  f" | solves {len(loop['solves'])}, cost {loop['cost']:.2f}"
+                  f" | OSQP iterations, largest {rows[name][-1]['osqp_iterations_top'][:4]}", flush=True)
+    same = bool(np.array_equal(loops["reach_thread"]["commands"], run_loop(
+        MpcSettings(**{**VARIANTS["reach_thread"], "reach_background": False}), args.steps, args.seed)["commands"]))
+    print(f"reach_thread commands equal to the deferred solve on the step's own thread: {same}")
+    costs = {name: [rows[name][0]["cost"]] for name in VARIANTS}
+    for seed in range(args.seed + 1, args.seed + args.cost_seeds):
+        for name, extra in VARIANTS.items():
+            costs[name].append(run_loop(MpcSettings(**extra), args.steps, seed)["cost"])
+    if args.cost_seeds > 1:
+        for name, c in costs.items():
+            print(f"closed-loop cost {name:<18} seeds {args.seed}-{args.seed + args.cost_seeds - 1}: "
+                  + " / ".join(f"{v:.1f}" for v in c) + f", sum {sum(c):.1f}")
+    out = {"steps": args.steps, "seed": args.seed, "variants": VARIANTS, "rounds": rows, "thread_equals_deferred": same,
+           "cost_by_seed": costs,
+           "inline_solve_steps": loops["inline"]["solves"]}
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps(out, indent=2))
+    print(f"wrote {args.json}")
+    return 0 if same else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

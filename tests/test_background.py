@@ -1,0 +1,131 @@
+"""The reachable-flow solve off the control step's critical path (mpc/background.py, mpc/priorities.py):
+answered one step later, the same with and without the second thread, never solved inside a step."""
+
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from hvac_mpc.benchmarks import solve_time
+from hvac_mpc.contract import Reference
+from hvac_mpc.models import Parameters
+from hvac_mpc.models.plant import Environment, SimulatedPlant
+from hvac_mpc.mpc.background import BackgroundCall
+from hvac_mpc.mpc.mpc_controller import InvalidSettings, MpcController, MpcSettings
+from hvac_mpc.mpc.priorities import ReachableFlow
+
+from test_robust import M3H, _default_problem, _reach_setup
+
+
+def test_background_call_returns_what_the_call_returns_or_raises_what_it_raised():
+    for thread in (True, False):
+        assert BackgroundCall(lambda a, b: a * b, (6, 7), thread=thread).result() == 42
+        with pytest.raises(ZeroDivisionError):
+            BackgroundCall(lambda a: 1 / a, (0,), thread=thread).result()
+
+
+def test_casadi_lets_python_run_while_the_reachable_flow_solve_works():
+    """The assumption of mpc/background.py on the installed CasADi: IPOPT through CasADi releases the
+    global interpreter lock, so the control step runs on while the second thread solves."""
+    reach, x, u, d = _reach_setup()
+    args = dict(x0=np.concatenate([x, u]), p=np.concatenate([d, [18.0, 100.0], reach._p]), lbx=reach.lbx,
+                ubx=reach.ubx, lbg=reach.lbg, ubg=reach.ubg)
+    windows: list[tuple[float, float]] = []
+    inside, done = threading.Event(), threading.Event()
+
+    def work():
+        inside.set()
+        for _ in range(2):  # a few milliseconds each
+            t0 = time.perf_counter()
+            reach.solver(**args)
+            windows.append((t0, time.perf_counter()))
+        done.set()
+
+    # a long switch interval: a thread holding the lock through a C call keeps it until the call's
+    # thread ends (a negative control with a C loop that holds it gave no time inside a call)
+    interval = sys.getswitchinterval()
+    sys.setswitchinterval(0.2)
+    try:
+        thread = threading.Thread(target=work)
+        thread.start()
+        inside.wait()
+        ticks = []
+        while not done.is_set():
+            ticks.append(time.perf_counter())
+        thread.join()
+    finally:
+        sys.setswitchinterval(interval)
+    ticks = np.array(ticks)
+    during = sum(int(np.count_nonzero((ticks > t0) & (ticks < t1))) for t0, t1 in windows)
+    assert during > 100
+
+
+def test_a_deferred_re_solve_answers_at_the_next_check_what_the_inline_re_solve_answers_at_once():
+    inline, x, u, d = _reach_setup()
+    _, x1, _, d1 = _reach_setup(15.0)  # the estimator's flow offset moves the reachable flow
+    pb = _default_problem()
+    deferred = ReachableFlow(pb.model, pb.u_lo_phys, pb.u_hi_phys, pb.heater_max_phys, Parameters(), deferred=True,
+                             background=True)
+    # a new reference: solved inside the check, both alike
+    assert deferred.check(x, u, d, 18.0, 200 * M3H, 100.0, 1.0) == inline.check(x, u, d, 18.0, 200 * M3H, 100.0, 1.0)
+    before = inline._reachable
+    # the periodic re-solve (every_s passed) with moved inputs: inline at once, deferred one check later
+    inline.check(x1, u, d1, 18.0, 200 * M3H, 100.0, inline.every_s)
+    deferred.check(x1, u, d1, 18.0, 200 * M3H, 100.0, deferred.every_s)
+    assert inline._reachable > before + 1 * M3H and deferred._reachable == before
+    after = [r.check(x1, u, d1, 18.0, 200 * M3H, 100.0, 1.0) for r in (inline, deferred)]
+    assert after[0] == after[1] and deferred._reachable == inline._reachable
+    with pytest.raises(ValueError, match="deferred"):
+        ReachableFlow(pb.model, pb.u_lo_phys, pb.u_hi_phys, pb.heater_max_phys, Parameters(), background=True)
+
+
+HIGH_FLOW = ((0.0, Reference.from_split(13.0, 0.05, (0.34, 0.33, 0.33))),
+             (12.0, Reference.from_split(14.0, 0.05, (0.34, 0.33, 0.33))))
+
+
+def _loop(settings: MpcSettings, steps: int = 14):
+    """The solve-time loop at a high flow reference (the reachable flow solved at 0 s and 12 s for new
+    references, at 10 s periodically, out of reach from the solve at 10 s on): commands, reports, and per
+    reachable-flow solve whether it ran on the main thread and inside a step."""
+    ctrl = MpcController(settings=settings)
+    solver = ctrl.reach.solver
+    solves: list[tuple[bool, bool]] = []
+    in_step = [False]
+
+    def recorded(**kw):
+        solves.append((threading.current_thread() is threading.main_thread(), in_step[0]))
+        return solver(**kw)
+
+    ctrl.reach.solver = recorded
+    plant = SimulatedPlant(seed=4, environment=Environment(solve_time.INLET_C, 5.0))
+    plant.settle(solve_time.INITIAL)
+    ctrl.reset(plant.command)
+    commands, reports = [], []
+    for k in range(steps):
+        in_step[0] = True
+        res = ctrl.step(plant.read(), solve_time.reference_at(float(k), HIGH_FLOW))
+        in_step[0] = False
+        assert res.stats["fallback"] is None
+        plant.apply(res.command)
+        plant.advance()
+        commands.append(res.command.vector())
+        reports.append("volume_flow_m3s" in res.stats["out_of_reach"])
+    ctrl.reach.reset()  # waits for a solve still running
+    return np.array(commands), reports, solves
+
+
+def test_periodic_reach_solves_run_off_the_step_and_the_commands_do_not_depend_on_the_thread():
+    on_thread = _loop(MpcSettings(codegen=False, reach_deferred=True, reach_background=True))
+    at_once = _loop(MpcSettings(codegen=False, reach_deferred=True, reach_background=False))
+    assert np.array_equal(on_thread[0], at_once[0]) and on_thread[1] == at_once[1]
+    assert len(on_thread[2]) == len(at_once[2]) == 3
+    assert all(main and in_step for main, in_step in at_once[2])
+    # new references (0 s, 12 s) solved inside the step, the periodic re-solve (10 s) on the second thread
+    assert [main for main, _ in on_thread[2]] == [True, False, True]
+    assert on_thread[2][0][1] and on_thread[2][2][1]
+    # the re-solve started at 10 s answers at 11 s (inline: at 10 s)
+    assert on_thread[1].index(True) == 11
+    with pytest.raises(InvalidSettings, match="reach_background"):
+        MpcSettings(reach_deferred=False, reach_background=True)

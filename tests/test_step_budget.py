@@ -1,0 +1,35 @@
+"""A deterministic bound on a step's OSQP iterations (``MpcSettings.osqp_accept_max_iter``): the iterate at
+the cap is the QP's answer, so a low cap bounds the step's QP work without falling back."""
+
+import numpy as np
+
+from hvac_mpc.benchmarks import solve_time
+from hvac_mpc.models.plant import Environment, SimulatedPlant
+from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
+
+
+def _loop(settings: MpcSettings, steps: int = 34):
+    ctrl = MpcController(settings=settings)
+    plant = SimulatedPlant(seed=7, environment=Environment(solve_time.INLET_C, 5.0))
+    plant.settle(solve_time.INITIAL)
+    ctrl.reset(plant.command)
+    rows = []
+    for k in range(steps):
+        res = ctrl.step(plant.read(), solve_time.reference_at(float(k)))
+        plant.apply(res.command)
+        plant.advance()
+        st = res.stats
+        rows.append((st["iterations"], st["qp_solves"], st["fallback"], str(st["status"])))
+    return rows
+
+
+def test_capped_qps_answer_within_the_cap_and_without_the_flag_they_fall_back():
+    cap = 20
+    accepted = _loop(MpcSettings(codegen=False, osqp_max_iter=cap, osqp_accept_max_iter=True))
+    assert all(fallback is None for _, _, fallback, _ in accepted)
+    assert all(its <= qps * cap for its, qps, _, _ in accepted)
+    capped = [k for k, (its, qps, _, _) in enumerate(accepted) if its == qps * cap]
+    assert len(capped) >= 2 and any("maximum iterations" in accepted[k][3] for k in capped)
+    # the same cap without the flag: a QP at the cap is a failure and the fallback chain answers
+    refused = _loop(MpcSettings(codegen=False, osqp_max_iter=cap, osqp_accept_max_iter=False))
+    assert any(fallback is not None for _, _, fallback, _ in refused)
