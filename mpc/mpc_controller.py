@@ -25,8 +25,9 @@ Stats of a step: ``step_time_s`` (the whole step), ``feedback_time_s`` (measurem
 ``qp_solves``, ``cold_start``, ``status``, ``fallback``, ``mode`` ("heating" while the heater is commanded,
 else "cooling"), ``solver``, ``valve_a_cap_pct``, ``mix_offset_c``, ``flow_offset_m3s``, ``out_of_reach``
 (reference name -> shortfall in its unit, e.g. ``{"volume_flow_m3s": 0.004}``; empty when every
-reference is within reach, :mod:`hvac_mpc.mpc.priorities`), ``dead_time_s`` (the thermocouple's
-dead time beyond the model's that the estimator has found and honours, :mod:`hvac_mpc.mpc.estimator`),
+reference is within reach, :mod:`hvac_mpc.mpc.priorities`), ``flow_weight_factor`` (the factor on the
+flow weights of the step: 1, less out of reach or while a large flow error is closed), ``dead_time_s``
+(the thermocouple's dead time beyond the model's that the estimator has found and honours, :mod:`hvac_mpc.mpc.estimator`),
 ``bypass_flow_exponent`` (the exponent of the bypass split's flow dependence the prediction uses: the
 estimator's estimate where it learns it, :mod:`hvac_mpc.mpc.estimator`).
 """
@@ -51,7 +52,7 @@ from hvac_mpc.contract import Command, Measurement
 from hvac_mpc.contract import StepResult
 from .codegen import CodegenReport, compiled
 from .estimator import DisturbanceEkf, EkfSettings, finite_or
-from .priorities import ReachableFlow
+from .priorities import ReachableFlow, flow_weight_factor
 from .ocp import HeaterOffBound, InvalidSettings, OcpSpec, TrackingProblem, check_number, trap_cap_pct
 from hvac_mpc.contract import InvalidReference, Reference
 from .rti_osqp import RtiOsqpSolver, SolveResult
@@ -134,6 +135,10 @@ class MpcSettings:
         reach_background: with ``reach_deferred``, run that solve on a second thread between the two
             steps, off the step's critical path (:mod:`hvac_mpc.mpc.background`); the commands are
             those of ``reach_background=False`` bit for bit.
+        flow_trade_c: the most supply temperature (degC) a flow error may buy through valve a while the
+            blower closes it at its rate limit: the flow weights are cut for the step where the error
+            would buy more (:func:`hvac_mpc.mpc.priorities.flow_weight_factor`; with ``priorities`` only;
+            None: the plain weighted sum, which bought 1.8 degC at a flow step, docs/robustness.md sec. 1).
     """
 
     dt_s: float = 1.0
@@ -167,6 +172,7 @@ class MpcSettings:
     reach_skip_unmoved: bool = False
     reach_deferred: bool = True
     reach_background: bool = True
+    flow_trade_c: float | None = 0.05
 
     def __post_init__(self) -> None:
         p = "MpcSettings"
@@ -218,6 +224,8 @@ class MpcSettings:
             raise InvalidSettings(f"{p}.reach_background = True needs {p}.reach_deferred = True "
                                   "(the solve's answer is used from the next step on)")
         check_number(f"{p}.reach_every_s", self.reach_every_s, 1.0, 3600.0)
+        if self.flow_trade_c is not None:
+            check_number(f"{p}.flow_trade_c", self.flow_trade_c, 0.0, 10.0, lo_open=True)
 
 
 def _with_model_effects(settings: MpcSettings, model: RefinedModel | None) -> MpcSettings:
@@ -330,6 +338,7 @@ class MpcController:
         self._last_solution: SolveResult | None = None
         self._u_prev_scaled: tuple[np.ndarray, np.ndarray] | None = None
         self._out_of_reach: dict = {}
+        self._flow_factor = 1.0
         if self.reach is not None:
             self.reach.reset()
         self.heater_bound.reset()
@@ -416,8 +425,8 @@ class MpcController:
         u_lo, u_hi = pb.input_bounds(self.u_prev, cap, heater_c)
         y_ref = self._tracked_reference(ref, d, cap)
         w_y = pb.output_weights(ref)
-        if "volume_flow_m3s" in self._out_of_reach:
-            w_y[1:5] *= OUT_OF_REACH_FLOW_WEIGHT
+        self._flow_factor = self._flow_weight_factor(y_ref, d)
+        w_y[1:5] *= self._flow_factor
         # --- feedback
         if not self._prepared_for_next:
             self.solver.reset()
@@ -480,6 +489,21 @@ class MpcController:
         if reach.flow_m3s is not None and reach.flow_m3s < ref.volume_flow_m3s:
             y_ref[1:5] *= reach.flow_m3s / ref.volume_flow_m3s
         return y_ref
+
+    def _flow_weight_factor(self, y_ref: np.ndarray, d: np.ndarray) -> float:
+        """Factor on the flow weights: :data:`OUT_OF_REACH_FLOW_WEIGHT` while the flow reference is out of
+        reach, less while a flow error (a shortfall beyond one sample of the blower's rate, an excess whole)
+        would buy supply temperature through valve a (:func:`~.priorities.flow_weight_factor`,
+        ``MpcSettings.flow_trade_c``), whichever is less."""
+        factor = OUT_OF_REACH_FLOW_WEIGHT if "volume_flow_m3s" in self._out_of_reach else 1.0
+        trade_c = self.settings.flow_trade_c
+        if self.reach is None or trade_c is None:
+            return factor
+        pb = self.problem
+        error_m3s = self.reach.transient_flow_error(self.ekf.x, self.u_prev, d, float(y_ref[1]),
+                                                    pb.rate_phys * pb.dt_s)
+        w = pb.w_y_full
+        return min(factor, flow_weight_factor(error_m3s, w[1], w[0], trade_c))
 
     def _use_estimated_parameters(self) -> None:
         """The prediction (the next QPs) and the reachable-flow check use the learned bypass-flow exponent
@@ -567,6 +591,7 @@ class MpcController:
             "mode": "heating" if heating else "cooling",
             "solver": getattr(self.solver, "name", self.settings.solver),
             "out_of_reach": dict(getattr(self, "_out_of_reach", {})),
+            "flow_weight_factor": float(getattr(self, "_flow_factor", 1.0)),
         }
         if cap is not None:
             stats["valve_a_cap_pct"] = cap

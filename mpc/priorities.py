@@ -20,6 +20,12 @@ so a new temperature reference must not bring the same flow back into a trade ag
 The box itself can say so too: the blower at full power for ``saturated_s`` with the flow still
 below the reference latches the reference even where the model thinks it reachable.
 
+While a flow error is large (a flow step the blower closes at its rate limit), the weighted sum buys
+flow with valve a as well, and so with supply temperature, for as long as the blower ramps:
+:func:`flow_weight_factor` cuts the flow weights for that step so that the pull on valve a of a
+flow error (a shortfall beyond what the blower closes within the sample, an excess whole) buys at
+most ``trade_c`` of supply temperature (docs/robustness.md sec. 1).
+
 The problem is only solved when the flow reference is high enough to be in doubt (above
 ``check_fraction`` of the blower's nominal open flow, and above 90 % of what full blower power with
 open outlets would give at the present valve a and heater): on a change of the references, and
@@ -63,6 +69,31 @@ FLOW_UNIT_M3S = 0.01
 #: much, the inlet and water temperatures through the cooler less), a flow offset of 0.2 L/s by as
 #: much; both far below the 2 % tracking margin (``margin``, about 1 L/s at 50 L/s).
 MATERIAL_CHANGE = np.array([0.3, 0.3, 0.3, 2e-4, 1.0])
+
+
+#: ASSUMPTION: how much supply temperature valve a moves per unit of total flow it moves, degC per L/s:
+#: dT/da about 0.25 degC/% against dQ/da about 0.05 (L/s)/% at full blower (docs/robustness.md sec. 1).
+#: Where dQ/da is larger (a slower blower) the cap below is stricter than its ``trade_c``, never looser.
+TEMP_PER_FLOW_VIA_VALVE_A_C_PER_LPS = 5.0
+#: Scale of the flow residuals in the tracking cost (m3/s per unit: 1 L/s, mpc/ocp.py ``y_scale``).
+FLOW_RESIDUAL_SCALE_M3S = 1e-3
+
+
+def flow_weight_factor(flow_error_m3s: float, flow_weight: float, temp_weight: float, trade_c: float) -> float:
+    """Factor in (0, 1] on the flow weights that caps what a flow error may cost in supply temperature.
+
+    The QP settles where the two residuals' gradients through valve a balance,
+    ``w_T e_T dT/da = w_Q e_Q dQ/da``: a flow error ``e_Q`` (L/s) the blower cannot close at once buys
+    ``e_T = w_Q e_Q / (w_T r)`` of supply temperature, ``r`` = :data:`TEMP_PER_FLOW_VIA_VALVE_A_C_PER_LPS`
+    (with the default weights, 30 L/s at a flow step buy 12 degC: valve a as far as its rate allows).
+    The factor lowers ``w_Q`` to ``w_T r trade_c / |e_Q|`` where that is less, so the price stays at
+    ``trade_c`` (degC); the blower's pull stays far above the energy term's (the flow still comes before
+    energy). Small errors (below 0.125 L/s with the default weights and 0.05 degC) keep the full weight.
+    ``flow_error_m3s``: :meth:`ReachableFlow.transient_flow_error` (a shortfall counts only beyond what the
+    blower closes within the sample)."""
+    pull = flow_weight * abs(flow_error_m3s) / FLOW_RESIDUAL_SCALE_M3S
+    limit = temp_weight * TEMP_PER_FLOW_VIA_VALVE_A_C_PER_LPS * trade_c
+    return 1.0 if pull <= limit else limit / pull
 
 
 @dataclass
@@ -132,6 +163,23 @@ class ReachableFlow:
     def out(self, x: np.ndarray, u: np.ndarray, d: np.ndarray) -> list[np.ndarray]:
         """The model's total flow and air at the thermocouple (m3/s, degC) at the current parameters."""
         return self._out(x, u, d, self._p)
+
+    def transient_flow_error(self, x: np.ndarray, u: np.ndarray, d: np.ndarray, flow_m3s: float,
+                             step: np.ndarray) -> float:
+        """The flow error (m3/s, the target less the model's flow at the estimate ``x``) whose pull on valve a
+        :func:`flow_weight_factor` caps. A flow above the target counts whole: it is never a hazard, and the
+        energy term pulls it down as well. A flow below it counts only beyond what the blower and the outlet
+        valves reach within one sample at their rate limits (``step``: each input's largest move in a sample,
+        physical), valve a and the heater held: a shortfall the MPC chose itself, giving up flow for a supply
+        temperature out of reach, keeps the full weight, so the flow is not let go further (the heater's
+        minimum flow)."""
+        excess = flow_m3s - float(self.out(x, u, d)[0][0])
+        if excess <= 0.0:
+            return excess
+        moved = [self.i_blower, *self.i_outlets]
+        u_up = np.array(u, float)
+        u_up[moved] = np.minimum(u_up[moved] + step[moved], self.u_hi[moved])
+        return max(flow_m3s - float(self.out(x, u_up, d)[0][0]), 0.0)
 
     def reset(self) -> None:
         self._drop_pending()

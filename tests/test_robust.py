@@ -5,6 +5,7 @@ independent simulator (``hvac_mpc.mismatch``), never from the model with a switc
 Budget: the fast tests a few seconds together; the closed loops are marked slow.
 """
 
+import dataclasses
 import functools
 
 import numpy as np
@@ -356,6 +357,37 @@ def test_flow_out_of_reach_on_a_weak_blower_keeps_the_temperature_as_well_as_the
     assert steady["steady_samples_reported"] > 0 and not steady["flow_reached"]
     assert cell["ratios"]["temp_iae_cs"] <= 1.0
     assert cell["mpc"]["figures"]["fallbacks"] == 0
+
+
+def test_flow_weight_factor_caps_what_a_flow_error_buys_in_supply_temperature():
+    from hvac_mpc.mpc.priorities import TEMP_PER_FLOW_VIA_VALVE_A_C_PER_LPS as r, flow_weight_factor
+    w_q, w_t, trade_c = 2.0, 1.0, 0.05
+    for error_lps in (1.0, 30.0, -30.0):
+        f = flow_weight_factor(error_lps * 1e-3, w_q, w_t, trade_c)
+        # the gradient balance w_T e_T = f w_Q |e_Q| / r then gives e_T = trade_c
+        assert f * w_q * abs(error_lps) / (w_t * r) == pytest.approx(trade_c)
+    assert flow_weight_factor(0.1e-3, w_q, w_t, trade_c) == 1.0  # a small error keeps the full weight
+    assert flow_weight_factor(1e-3, w_q, 2 * w_t, trade_c) == pytest.approx(2 * flow_weight_factor(1e-3, w_q, w_t, trade_c))
+    with pytest.raises(ValueError, match="flow_trade_c"):
+        MpcSettings(flow_trade_c=0.0)
+
+
+def test_flow_step_within_reach_does_not_buy_flow_with_supply_temperature():
+    """A flow step the blower can make (90 -> 200 m3/h on the independent box with a blower 20 % stronger than
+    the model: within reach, so the priorities' reachable flow does not engage): while the blower ramps at its
+    rate limit the MPC must not buy flow with valve a. The plain weighted sum did (valve a 20 % in one step,
+    the supply air 1.8 C warm); with the flow weights capped by ``flow_trade_c`` the thermocouple stays
+    within 0.3 C of its reference and the blower still brings the flow up at once."""
+    quick = S.flow_out_of_reach().quick()
+    sc = dataclasses.replace(quick, segments=(dataclasses.replace(quick.segments[0], duration_s=15.0),))
+    ctrl = bench.mpc_factory()(sc.initial_command)
+    tr = simulate(sc, ctrl, Parameters(), seed=0, plant=make_plant("blower_strong", seed=0))
+    step = tr.time_s >= sc.step_times_s()[0]
+    error = np.abs(tr.truth["supply_temp_c"][step] - sc.segments[0].reference.supply_temp_c)
+    assert error.max() <= 0.3
+    assert tr.truth["volume_flow_m3s"][step][5] >= 190 * M3H  # the flow is there after 5 s
+    assert not any(tr.out_of_reach[k] for k in np.flatnonzero(step))  # within reach: nothing reported
+    assert all(f is None for f in tr.fallback)
 
 
 def test_reachable_flow_is_solved_again_only_when_its_inputs_have_moved_materially():
