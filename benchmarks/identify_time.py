@@ -21,6 +21,7 @@ import os
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 from hvac_mpc.identification import log_data
@@ -37,26 +38,50 @@ def _load() -> str:
     return " ".join(f"{x:.1f}" for x in os.getloadavg()) if hasattr(os, "getloadavg") else "n/a"
 
 
-def _variant(name: str):
-    if name.startswith("shift_"):
-        return Variant(log_shift_samples=int(name.split("_", 1)[1]))
-    return name
+#: Suffixes of a log name: ``+bad`` bad rows injected, ``+hot`` the "hot_heater" excitation (the heater
+#: body past the PTC's knee), ``+noptc`` identification starts without the PTC power fall (it must find it).
+FLAGS = ("bad", "hot", "noptc")
+
+
+@dataclass(frozen=True)
+class LogCase:
+    """One timed log: the variant for :func:`simulate_log`, its excitation, bad rows, the starting effects."""
+
+    variant: object
+    excitation: str = "steps"
+    bad_rows: bool = False
+    base_effects: tuple[str, ...] = DOCUMENTED_EFFECTS
+
+
+def log_case(name: str) -> LogCase:
+    """The :class:`LogCase` of a log name: a registry name or ``shift_N`` (outputs N samples late), with
+    any of the :data:`FLAGS` as ``+flag`` suffixes (``nominal+hot+noptc``)."""
+    base, *flags = name.split("+")
+    unknown = [f for f in flags if f not in FLAGS]
+    if unknown:
+        raise ValueError(f"log {name!r}: unknown suffix {unknown[0]!r}; allowed: {', '.join(FLAGS)}")
+    variant = Variant(log_shift_samples=int(base.split("_", 1)[1])) if base.startswith("shift_") else base
+    effects = tuple(e for e in DOCUMENTED_EFFECTS if not ("noptc" in flags and e == "ptc_power_fall"))
+    return LogCase(variant, "hot_heater" if "hot" in flags else "steps", "bad" in flags, effects)
 
 
 def time_one(name: str, duration_s: float, seed: int, folder: Path) -> dict:
     """Generate one log (untimed) and time the identification of it."""
     path = folder / f"{name}.csv"
-    simulate_log(path, _variant(name), duration_s=duration_s, seed=seed)
+    case = log_case(name)
+    simulate_log(path, case.variant, duration_s=duration_s, seed=seed, excitation=case.excitation,
+                 bad_rows=case.bad_rows)
     t0, c0 = time.perf_counter(), cpu_seconds()
     log = log_data.load(path)
     load_wall, load_cpu = time.perf_counter() - t0, cpu_seconds() - c0
-    res = identify(log, base_effects=DOCUMENTED_EFFECTS)
+    res = identify(log, base_effects=case.base_effects)
     wall, cpu = time.perf_counter() - t0, cpu_seconds() - c0
     e = res.holdout_errors()["supply_temp_c"]
     added = [a.name for a in res.accepted] + [f"term {t.formula()}" for t in res.terms]
     return {"log": name, "wall_s": wall, "cpu_s": cpu, "added": added, "supply_rms_before": e["rms_before"],
             "supply_rms_after": e["rms_after"], "supply_max_before": e["max_before"], "supply_max_after": e["max_after"],
             "timing_shift_samples": res.timing_shift_samples,
+            "moved": {c["name"]: round(c["change"], 4) for c in res.parameter_confidence if c["moved"]},
             "timings_s": dict(res.timings, load_s=load_wall, load_cpu_s=load_cpu),
             "terms_in_words": [t.description for t in res.terms]}
 
@@ -71,7 +96,8 @@ def _parts(t: dict) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--variant", action="append", default=None,
-                        help="hvac_mpc.mismatch variant, or shift_N for a log shifted by N samples (repeatable)")
+                        help="hvac_mpc.mismatch variant, or shift_N for a log shifted by N samples; suffixes +bad (bad "
+                             "rows), +hot (heater past the PTC's knee), +noptc (start without the PTC fall) (repeatable)")
     parser.add_argument("--duration", type=float, default=7200.0, help="log length, s (default 7200)")
     parser.add_argument("--seed", type=int, default=5)
     parser.add_argument("--threads", type=int, default=2, choices=(1, 2), help="cores to use (default 2)")
@@ -86,7 +112,8 @@ def main(argv: list[str] | None = None) -> int:
             rows.append(r)
             print(f"{name:28s} wall {r['wall_s']:6.1f} s, CPU {r['cpu_s']:6.1f} s  added {r['added'] or ['nothing']}  "
                   f"supply RMS {r['supply_rms_before']:.3f} -> {r['supply_rms_after']:.3f} C"
-                  + (f"  shift {r['timing_shift_samples']} sample(s)" if r["timing_shift_samples"] else ""),
+                  + (f"  shift {r['timing_shift_samples']} sample(s)" if r["timing_shift_samples"] else "")
+                  + (f"  moved {r['moved']}" if r["moved"] else ""),
                   flush=True)
             print(f"{'':28s} parts wall/CPU s: {_parts(r['timings_s'])}", flush=True)
     worst = max(r["wall_s"] for r in rows)
