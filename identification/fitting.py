@@ -173,10 +173,13 @@ class Fitter:
             post.bias.pop(o, None)
         for o in gain_outputs:
             post.gain.pop(o, None)
+        kept = self._kept_bias(post, gain_outputs)
         y0, dy_own = sim.simulate_with_sensitivity(p0, self._e_matrix(p0, own)) if own else (sim.simulate(p0)[0], None)
         cols = [dy_free] + ([dy_own] if own else [])
         d = np.concatenate(cols, axis=2)
         y0, d = post.apply(y0, d)
+        y_gain = y0.copy()  # the outputs a gain multiplies (without their offsets, which it does not)
+        y0 = OutputPost(self.outputs, self.log.time_s, bias=kept).apply(y0)
         bias_idx = [self.outputs.index(o) for o in bias_outputs]
         extra = []
         for j in bias_idx:
@@ -187,7 +190,7 @@ class Fitter:
         gain_idx = [self.outputs.index(o) for o in gain_outputs]
         for j in gain_idx:  # y_j -> (1 + theta) y_j: the column is the output itself
             block = np.zeros((self.log.n, len(self.outputs), 1))
-            block[:, j, 0] = np.nan_to_num(y0[:, j])
+            block[:, j, 0] = np.nan_to_num(y_gain[:, j])
             extra.append(block)
         if extra:
             d = np.concatenate([d] + extra, axis=2)
@@ -207,6 +210,7 @@ class Fitter:
                 v = p0[i] * math.exp(np.clip(theta[k], -3.0, 3.0)) if fp.transform == "log" else p0[i] + fp.scale * theta[k]
                 p[i] = min(max(v, lo), hi)
             trial = post.copy()
+            trial.bias.update(kept)
             for k, j in enumerate(bias_idx):
                 b = len(all_free) + 2 * k
                 trial.bias[self.outputs[j]] = (float(theta[b] * self.sigma[j]), float(theta[b + 1] * self.sigma[j]))
@@ -219,6 +223,12 @@ class Fitter:
             if np.isfinite(fit.cost_train) and fit.cost_train <= float(r @ r):
                 break
         return best
+
+    @staticmethod
+    def _kept_bias(post: OutputPost, gain_outputs: Sequence[str]) -> dict:
+        """Takes the offsets of the outputs whose gain is fitted out of ``post`` (a gain multiplies the model's
+        output, not the offset added after it) and returns them, to be added back unchanged."""
+        return {o: post.bias.pop(o) for o in gain_outputs if o in post.bias}
 
     def _e_matrix(self, p: np.ndarray, free: Sequence[FreeParam]) -> np.ndarray:
         e = np.zeros((len(self.names), len(free)))
@@ -247,6 +257,7 @@ class Fitter:
         gain_idx = [self.outputs.index(o) for o in gain_outputs]
         for o in gain_outputs:
             post.gain.pop(o, None)
+        kept = self._kept_bias(post, gain_outputs)
         n_model = len(free)
         n_bias = 2 * len(bias_idx)
         lo_b, hi_b = [], []
@@ -278,6 +289,8 @@ class Fitter:
             y = y.copy()
             for k, j in enumerate(gain_idx):
                 y[:, j] *= 1.0 + theta[n_model + n_bias + k]
+                b0, b1 = kept.get(self.outputs[j], (0.0, 0.0))
+                y[:, j] += b0 + b1 * ramp
             for k, j in enumerate(bias_idx):
                 b0, b1 = theta[n_model + 2 * k] * self.sigma[j], theta[n_model + 2 * k + 1] * self.sigma[j]
                 y[:, j] += b0 + b1 * ramp
@@ -329,6 +342,7 @@ class Fitter:
                                           float(sol.x[n_model + 2 * k + 1] * self.sigma[j]))
         for k, j in enumerate(gain_idx):
             post.gain[self.outputs[j]] = float(1.0 + sol.x[n_model + n_bias + k])
+        post.bias.update(kept)
         fit = self.evaluate(effects, p, post, [fp.name for fp in free], sol.nfev, sol.message, terms)
         fit.extra["theta"] = sol.x.tolist()
         return fit

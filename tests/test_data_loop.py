@@ -379,6 +379,11 @@ def test_weaker_heater_is_named_as_a_gain_on_its_power_and_a_lower_kp(tmp_path):
     assert kp["moved"] and kp["change"] == pytest.approx(-0.15, abs=0.03)
     e = res.holdout_errors()["supply_temp_c"]
     assert e["rms_after"] <= 0.5 * e["rms_before"]
+    from hvac_mpc.identification import load_identification_extras
+    from hvac_mpc.identification.report import write_report
+    files = write_report(res, tmp_path / "out", plots=False)
+    assert "output_gain:heater_power_w" in files["report"].read_text()
+    assert load_identification_extras(files["model"])["heater_power_w_gain"] == pytest.approx(0.85, abs=0.02)
 
 
 @pytest.mark.slow
