@@ -2,6 +2,8 @@
 
     python -m hvac_mpc.benchmarks.identify_time                       # the default set of variants
     python -m hvac_mpc.benchmarks.identify_time --variant delay_3s --threads 2 --json out.json
+    python -m hvac_mpc.benchmarks.identify_time --seed 23 --variant nominal+bad --variant shift_-1 \
+        --variant heater_weak+hot+noptc                                # bad rows; a shift; the PTC fall to find
 
 For each variant: a 2 h log is written by :func:`hvac_mpc.mismatch.simulate_log` (seeded), then
 the command's own path runs on it (``log_data.load`` and ``identify`` from the documented effects,
@@ -27,10 +29,12 @@ from pathlib import Path
 from hvac_mpc.identification import log_data
 from hvac_mpc.identification.pipeline import DOCUMENTED_EFFECTS, cpu_seconds, identify
 from hvac_mpc.mismatch import simulate_log
-from hvac_mpc.mismatch.variants import Variant
+from hvac_mpc.mismatch.variants import Variant, get_variant
 
-#: Logs timed by default: clean, single effects, effects outside the library, several together, shifted.
-DEFAULT_VARIANTS = ("nominal", "delay_3s", "duct_loss", "cooler_literal", "combo_delay_loss_cooler", "shift_1")
+#: Logs timed by default: clean, single effects, effects outside the library, several together, shifted, the
+#: PTC fall to find on a log that excites it.
+DEFAULT_VARIANTS = ("nominal", "delay_3s", "heater_weak", "duct_loss", "cooler_literal", "combo_delay_loss_cooler",
+                    "shift_1", "nominal+hot+noptc")
 BUDGET_S = 60.0
 
 
@@ -61,6 +65,7 @@ def log_case(name: str) -> LogCase:
     if unknown:
         raise ValueError(f"log {name!r}: unknown suffix {unknown[0]!r}; allowed: {', '.join(FLAGS)}")
     variant = Variant(log_shift_samples=int(base.split("_", 1)[1])) if base.startswith("shift_") else base
+    get_variant(variant)  # an unknown name: ValueError naming the allowed ones
     effects = tuple(e for e in DOCUMENTED_EFFECTS if not ("noptc" in flags and e == "ptc_power_fall"))
     return LogCase(variant, "hot_heater" if "hot" in flags else "steps", "bad" in flags, effects)
 
@@ -103,6 +108,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--threads", type=int, default=2, choices=(1, 2), help="cores to use (default 2)")
     parser.add_argument("--json", type=Path, default=None, help="write the results here")
     args = parser.parse_args(argv)
+    for name in args.variant or ():
+        try:
+            log_case(name)
+        except ValueError as exc:
+            parser.error(str(exc))
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, sorted(os.sched_getaffinity(0))[:args.threads])
     rows = []
