@@ -2,6 +2,8 @@
 
     python -m hvac_mpc.benchmarks.identify_time                       # the default set of variants
     python -m hvac_mpc.benchmarks.identify_time --variant delay_3s --threads 2 --json out.json
+    python -m hvac_mpc.benchmarks.identify_time --seed 23 --variant nominal+bad --variant shift_-1 \
+        --variant heater_weak+hot+noptc                                # bad rows; a shift; the PTC fall to find
 
 For each variant: a 2 h log is written by :func:`hvac_mpc.mismatch.simulate_log` (seeded), then
 the command's own path runs on it (``log_data.load`` and ``identify`` from the documented effects,
@@ -21,15 +23,18 @@ import os
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 from hvac_mpc.identification import log_data
 from hvac_mpc.identification.pipeline import DOCUMENTED_EFFECTS, cpu_seconds, identify
 from hvac_mpc.mismatch import simulate_log
-from hvac_mpc.mismatch.variants import Variant
+from hvac_mpc.mismatch.variants import Variant, get_variant
 
-#: Logs timed by default: clean, single effects, effects outside the library, several together, shifted.
-DEFAULT_VARIANTS = ("nominal", "delay_3s", "duct_loss", "cooler_literal", "combo_delay_loss_cooler", "shift_1")
+#: Logs timed by default: clean, single effects, effects outside the library, several together, shifted, the
+#: PTC fall to find on a log that excites it.
+DEFAULT_VARIANTS = ("nominal", "delay_3s", "heater_weak", "duct_loss", "cooler_literal", "combo_delay_loss_cooler",
+                    "shift_1", "nominal+hot+noptc")
 BUDGET_S = 60.0
 
 
@@ -37,26 +42,51 @@ def _load() -> str:
     return " ".join(f"{x:.1f}" for x in os.getloadavg()) if hasattr(os, "getloadavg") else "n/a"
 
 
-def _variant(name: str):
-    if name.startswith("shift_"):
-        return Variant(log_shift_samples=int(name.split("_", 1)[1]))
-    return name
+#: Suffixes of a log name: ``+bad`` bad rows injected, ``+hot`` the "hot_heater" excitation (the heater
+#: body past the PTC's knee), ``+noptc`` identification starts without the PTC power fall (it must find it).
+FLAGS = ("bad", "hot", "noptc")
+
+
+@dataclass(frozen=True)
+class LogCase:
+    """One timed log: the variant for :func:`simulate_log`, its excitation, bad rows, the starting effects."""
+
+    variant: object
+    excitation: str = "steps"
+    bad_rows: bool = False
+    base_effects: tuple[str, ...] = DOCUMENTED_EFFECTS
+
+
+def log_case(name: str) -> LogCase:
+    """The :class:`LogCase` of a log name: a registry name or ``shift_N`` (outputs N samples late), with
+    any of the :data:`FLAGS` as ``+flag`` suffixes (``nominal+hot+noptc``)."""
+    base, *flags = name.split("+")
+    unknown = [f for f in flags if f not in FLAGS]
+    if unknown:
+        raise ValueError(f"log {name!r}: unknown suffix {unknown[0]!r}; allowed: {', '.join(FLAGS)}")
+    variant = Variant(log_shift_samples=int(base.split("_", 1)[1])) if base.startswith("shift_") else base
+    get_variant(variant)  # an unknown name: ValueError naming the allowed ones
+    effects = tuple(e for e in DOCUMENTED_EFFECTS if not ("noptc" in flags and e == "ptc_power_fall"))
+    return LogCase(variant, "hot_heater" if "hot" in flags else "steps", "bad" in flags, effects)
 
 
 def time_one(name: str, duration_s: float, seed: int, folder: Path) -> dict:
     """Generate one log (untimed) and time the identification of it."""
     path = folder / f"{name}.csv"
-    simulate_log(path, _variant(name), duration_s=duration_s, seed=seed)
+    case = log_case(name)
+    simulate_log(path, case.variant, duration_s=duration_s, seed=seed, excitation=case.excitation,
+                 bad_rows=case.bad_rows)
     t0, c0 = time.perf_counter(), cpu_seconds()
     log = log_data.load(path)
     load_wall, load_cpu = time.perf_counter() - t0, cpu_seconds() - c0
-    res = identify(log, base_effects=DOCUMENTED_EFFECTS)
+    res = identify(log, base_effects=case.base_effects)
     wall, cpu = time.perf_counter() - t0, cpu_seconds() - c0
     e = res.holdout_errors()["supply_temp_c"]
     added = [a.name for a in res.accepted] + [f"term {t.formula()}" for t in res.terms]
     return {"log": name, "wall_s": wall, "cpu_s": cpu, "added": added, "supply_rms_before": e["rms_before"],
             "supply_rms_after": e["rms_after"], "supply_max_before": e["max_before"], "supply_max_after": e["max_after"],
             "timing_shift_samples": res.timing_shift_samples,
+            "moved": {c["name"]: round(c["change"], 4) for c in res.parameter_confidence if c["moved"]},
             "timings_s": dict(res.timings, load_s=load_wall, load_cpu_s=load_cpu),
             "terms_in_words": [t.description for t in res.terms]}
 
@@ -71,12 +101,18 @@ def _parts(t: dict) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--variant", action="append", default=None,
-                        help="hvac_mpc.mismatch variant, or shift_N for a log shifted by N samples (repeatable)")
+                        help="hvac_mpc.mismatch variant, or shift_N for a log shifted by N samples; suffixes +bad (bad "
+                             "rows), +hot (heater past the PTC's knee), +noptc (start without the PTC fall) (repeatable)")
     parser.add_argument("--duration", type=float, default=7200.0, help="log length, s (default 7200)")
     parser.add_argument("--seed", type=int, default=5)
     parser.add_argument("--threads", type=int, default=2, choices=(1, 2), help="cores to use (default 2)")
     parser.add_argument("--json", type=Path, default=None, help="write the results here")
     args = parser.parse_args(argv)
+    for name in args.variant or ():
+        try:
+            log_case(name)
+        except ValueError as exc:
+            parser.error(str(exc))
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, sorted(os.sched_getaffinity(0))[:args.threads])
     rows = []
@@ -86,7 +122,8 @@ def main(argv: list[str] | None = None) -> int:
             rows.append(r)
             print(f"{name:28s} wall {r['wall_s']:6.1f} s, CPU {r['cpu_s']:6.1f} s  added {r['added'] or ['nothing']}  "
                   f"supply RMS {r['supply_rms_before']:.3f} -> {r['supply_rms_after']:.3f} C"
-                  + (f"  shift {r['timing_shift_samples']} sample(s)" if r["timing_shift_samples"] else ""),
+                  + (f"  shift {r['timing_shift_samples']} sample(s)" if r["timing_shift_samples"] else "")
+                  + (f"  moved {r['moved']}" if r["moved"] else ""),
                   flush=True)
             print(f"{'':28s} parts wall/CPU s: {_parts(r['timings_s'])}", flush=True)
     worst = max(r["wall_s"] for r in rows)

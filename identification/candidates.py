@@ -4,7 +4,8 @@ Each candidate nests the current model (its "null" is the model without it):
 
 - effects the model implements as switches (``HvacModel`` effects, docs/model.md sec. 5);
 - generic effects: sensor lag mismatch (the thermocouple time constant), transport delay
-  (integer samples on one output), output offset and drift (on one output).
+  (integer samples on one output), output offset and drift (on one output), and a gain on the
+  logged heater power (the heater draws a constant share of what the model says).
 
 Candidates whose excitation the log lacks, or whose signature lies on signals the log does not
 hold, are skipped with the reason. A "missing input dependence" on a logged signal the model
@@ -27,7 +28,7 @@ from .log_data import LogData
 @dataclass(frozen=True)
 class Candidate:
     """One candidate effect. ``kind``: ``model`` (switch an HvacModel effect on and fit its
-    parameters), ``parameter`` (free a fixed parameter), ``delay`` or ``bias`` (on ``output``).
+    parameters), ``parameter`` (free a fixed parameter), ``delay``, ``bias`` or ``gain`` (on ``output``).
     ``signature``: the outputs where the effect shows, most direct first; the first one the
     log holds is the candidate's primary output. ``regressor``: the diagnostic variable that
     shows it best (for the report's plot). ``grid``: starting points (every entry sets all the
@@ -195,6 +196,23 @@ def bias_candidates(outputs) -> tuple[Candidate, ...]:
                  for o in outputs)
 
 
+#: Outputs a gain candidate is offered on: the heater's electric power, whose model is the command itself (capped
+#: by the PTC curve). A heater drawing a share of that (a weaker element, a lower supply voltage) shows as a gain
+#: on this reading; its heat is the refit k_p's (the nominal parameters are refit together with the gain).
+GAIN_OUTPUTS = ("heater_power_w",)
+
+
+def gain_candidates(outputs) -> tuple[Candidate, ...]:
+    """A constant gain on the logged heater power (the reading a share of the model's electric power)."""
+    return tuple(Candidate(f"output_gain:{o}", "gain",
+                           "heater draws a constant share of the power the model gives it (weaker or stronger "
+                           "element, or a supply voltage off the thesis's)",
+                           "generic (docs/identification.md, 'The loop')", output=o, signature=(o,),
+                           regressor="heater_cmd_w", requires=_needs_heating)
+                 for o in outputs if o in GAIN_OUTPUTS)
+
+
 def library(outputs) -> tuple[Candidate, ...]:
     """All candidates for a log with these outputs."""
-    return MODEL_CANDIDATES + GENERIC_CANDIDATES + delay_candidates(outputs) + bias_candidates(outputs)
+    return (MODEL_CANDIDATES + GENERIC_CANDIDATES + delay_candidates(outputs) + gain_candidates(outputs)
+            + bias_candidates(outputs))

@@ -56,6 +56,8 @@ NOMINAL_FREE = (
     FreeParam("cooler_slope", "lin", 0.05, 0.3, 0.98),
     FreeParam("heater_kp", "log", lo=0.2, hi=1.0),
 )
+#: Range of an output gain's step theta (gain = 1 + theta): a reading between 20 % and twice the model's.
+GAIN_THETA = (-0.8, 1.0)
 #: Nominal parameters of the flow equation (models/blower.py), fitted on the volume flow alone first.
 FLOW_PARAMS = ("flow_per_watt_m3s_per_w", "core_flow_loss")
 
@@ -160,7 +162,7 @@ class Fitter:
 
     def gn_step(self, effects, p0: np.ndarray, free: Sequence[FreeParam], dy_free: np.ndarray,
                 own: Sequence[FreeParam], post: OutputPost, bias_outputs: Sequence[str] = (), terms: tuple = (),
-                damping: float = 1e-2) -> Fit:
+                damping: float = 1e-2, gain_outputs: Sequence[str] = ()) -> Fit:
         """One joint Gauss-Newton step from ``p0``: the free parameters (sensitivities ``dy_free``, taken
         from the current model) and the candidate's own parameters (and offsets) together, evaluated by a
         free run (the step halved up to twice while the training cost rises; no step at all if it still does). The score of a candidate with the nominal
@@ -169,16 +171,26 @@ class Fitter:
         post = post.copy()
         for o in bias_outputs:
             post.bias.pop(o, None)
+        for o in gain_outputs:
+            post.gain.pop(o, None)
+        kept = self._kept_bias(post, gain_outputs)
         y0, dy_own = sim.simulate_with_sensitivity(p0, self._e_matrix(p0, own)) if own else (sim.simulate(p0)[0], None)
         cols = [dy_free] + ([dy_own] if own else [])
         d = np.concatenate(cols, axis=2)
         y0, d = post.apply(y0, d)
+        y_gain = y0.copy()  # the outputs a gain multiplies (without their offsets, which it does not)
+        y0 = OutputPost(self.outputs, self.log.time_s, bias=kept).apply(y0)
         bias_idx = [self.outputs.index(o) for o in bias_outputs]
         extra = []
         for j in bias_idx:
             block = np.zeros((self.log.n, len(self.outputs), 2))
             block[:, j, 0] = self.sigma[j]
             block[:, j, 1] = self.sigma[j] * post.ramp
+            extra.append(block)
+        gain_idx = [self.outputs.index(o) for o in gain_outputs]
+        for j in gain_idx:  # y_j -> (1 + theta) y_j: the column is the output itself
+            block = np.zeros((self.log.n, len(self.outputs), 1))
+            block[:, j, 0] = np.nan_to_num(y_gain[:, j])
             extra.append(block)
         if extra:
             d = np.concatenate([d] + extra, axis=2)
@@ -198,15 +210,25 @@ class Fitter:
                 v = p0[i] * math.exp(np.clip(theta[k], -3.0, 3.0)) if fp.transform == "log" else p0[i] + fp.scale * theta[k]
                 p[i] = min(max(v, lo), hi)
             trial = post.copy()
+            trial.bias.update(kept)
             for k, j in enumerate(bias_idx):
                 b = len(all_free) + 2 * k
                 trial.bias[self.outputs[j]] = (float(theta[b] * self.sigma[j]), float(theta[b + 1] * self.sigma[j]))
+            for k, j in enumerate(gain_idx):
+                trial.gain[self.outputs[j]] = float(1.0 + np.clip(theta[len(all_free) + 2 * len(bias_idx) + k],
+                                                                  *GAIN_THETA))
             fit = self.evaluate(effects, p, trial, [fp.name for fp in all_free], 1, "one Gauss-Newton step", terms)
             if best is None or fit.cost_train < best.cost_train:
                 best = fit
             if np.isfinite(fit.cost_train) and fit.cost_train <= float(r @ r):
                 break
         return best
+
+    @staticmethod
+    def _kept_bias(post: OutputPost, gain_outputs: Sequence[str]) -> dict:
+        """Takes the offsets of the outputs whose gain is fitted out of ``post`` (a gain multiplies the model's
+        output, not the offset added after it) and returns them, to be added back unchanged."""
+        return {o: post.bias.pop(o) for o in gain_outputs if o in post.bias}
 
     def _e_matrix(self, p: np.ndarray, free: Sequence[FreeParam]) -> np.ndarray:
         e = np.zeros((len(self.names), len(free)))
@@ -217,9 +239,9 @@ class Fitter:
 
     def fit(self, effects: Iterable[str], p_start: np.ndarray, free: Sequence[FreeParam], post: OutputPost,
             bias_outputs: Sequence[str] = (), max_nfev: int | None = None,
-            only_outputs: Sequence[str] | None = None, terms: tuple = ()) -> Fit:
-        """Fit ``free`` model parameters (and offset+drift of ``bias_outputs``) on the training rows
-        (of ``only_outputs`` when given, else of every logged output)."""
+            only_outputs: Sequence[str] | None = None, terms: tuple = (), gain_outputs: Sequence[str] = ()) -> Fit:
+        """Fit ``free`` model parameters (and offset+drift of ``bias_outputs``, the gain of ``gain_outputs``) on
+        the training rows (of ``only_outputs`` when given, else of every logged output)."""
         effects = frozenset(effects)
         sim = self.simulator(effects, terms)
         free = list(free)
@@ -232,7 +254,12 @@ class Fitter:
         post = post.copy()
         for o in bias_outputs:
             post.bias.pop(o, None)
+        gain_idx = [self.outputs.index(o) for o in gain_outputs]
+        for o in gain_outputs:
+            post.gain.pop(o, None)
+        kept = self._kept_bias(post, gain_outputs)
         n_model = len(free)
+        n_bias = 2 * len(bias_idx)
         lo_b, hi_b = [], []
         for fp, i in zip(free, idx):
             lo, hi = fp.bounds()
@@ -242,8 +269,8 @@ class Fitter:
             else:
                 lo_b.append((lo - p0[i]) / fp.scale)
                 hi_b.append((hi - p0[i]) / fp.scale)
-        lo_b += [-np.inf] * (2 * len(bias_idx))
-        hi_b += [np.inf] * (2 * len(bias_idx))
+        lo_b += [-np.inf] * n_bias + [GAIN_THETA[0]] * len(gain_idx)
+        hi_b += [np.inf] * n_bias + [GAIN_THETA[1]] * len(gain_idx)
         lo_b = np.array(lo_b)
         hi_b = np.array(hi_b)
         train = self.log.train
@@ -260,6 +287,10 @@ class Fitter:
 
         def add_bias(y, theta):
             y = y.copy()
+            for k, j in enumerate(gain_idx):
+                y[:, j] *= 1.0 + theta[n_model + n_bias + k]
+                b0, b1 = kept.get(self.outputs[j], (0.0, 0.0))
+                y[:, j] += b0 + b1 * ramp
             for k, j in enumerate(bias_idx):
                 b0, b1 = theta[n_model + 2 * k] * self.sigma[j], theta[n_model + 2 * k + 1] * self.sigma[j]
                 y[:, j] += b0 + b1 * ramp
@@ -275,13 +306,21 @@ class Fitter:
             p = params(theta)
             cols = []
             if n_model:
-                _, dy = sim.simulate_with_sensitivity(p, self._e_matrix(p, free))
-                dy = post.apply(np.zeros(dy.shape[:2]), dy)[1]
+                y, dy = sim.simulate_with_sensitivity(p, self._e_matrix(p, free))
+                y, dy = post.apply(y, dy)
+                for k, j in enumerate(gain_idx):
+                    dy[:, j, :] *= 1.0 + theta[n_model + n_bias + k]
                 cols.append(dy)
+            elif gain_idx:
+                y = post.apply(sim.simulate(p)[0])
             for k, j in enumerate(bias_idx):
                 block = np.zeros((self.log.n, len(self.outputs), 2))
                 block[:, j, 0] = self.sigma[j]
                 block[:, j, 1] = self.sigma[j] * ramp
+                cols.append(block)
+            for k, j in enumerate(gain_idx):
+                block = np.zeros((self.log.n, len(self.outputs), 1))
+                block[:, j, 0] = np.nan_to_num(y[:, j])
                 cols.append(block)
             d = np.concatenate(cols, axis=2) if cols else np.zeros((self.log.n, len(self.outputs), 0))
             d = np.where(ok[:, :, None], d / self.sigma[None, :, None], 0.0)
@@ -289,7 +328,7 @@ class Fitter:
 
         # start a little inside the bounds: trf's scaling freezes variables that sit on a bound
         width = np.where(np.isfinite(hi_b - lo_b), np.minimum(hi_b - lo_b, 10.0), 10.0)
-        theta0 = np.zeros(n_model + 2 * len(bias_idx))
+        theta0 = np.zeros(n_model + n_bias + len(gain_idx))
         at_lo, at_hi = theta0 - lo_b < 1e-3 * width, hi_b - theta0 < 1e-3 * width
         theta0 = np.where(at_lo, lo_b + 0.02 * width, np.where(at_hi, hi_b - 0.02 * width, theta0))
         if len(theta0) == 0:
@@ -301,6 +340,9 @@ class Fitter:
         for k, j in enumerate(bias_idx):
             post.bias[self.outputs[j]] = (float(sol.x[n_model + 2 * k] * self.sigma[j]),
                                           float(sol.x[n_model + 2 * k + 1] * self.sigma[j]))
+        for k, j in enumerate(gain_idx):
+            post.gain[self.outputs[j]] = float(1.0 + sol.x[n_model + n_bias + k])
+        post.bias.update(kept)
         fit = self.evaluate(effects, p, post, [fp.name for fp in free], sol.nfev, sol.message, terms)
         fit.extra["theta"] = sol.x.tolist()
         return fit

@@ -90,6 +90,7 @@ class CandidateResult:
     params: dict = field(default_factory=dict)
     delay_s: float | None = None
     bias: tuple | None = None
+    gain: float | None = None
     cost_train: float = float("nan")
     cost_holdout: float = float("nan")
     train_reduction: float = float("nan")     # share of the training cost removed
@@ -178,8 +179,8 @@ def _grid_start(fitter: Fitter, effects, p: np.ndarray, post: OutputPost, cand: 
 
 
 def _screen_and_fit(fitter: Fitter, current: Fit, free: list[FreeParam], effects, p0: np.ndarray,
-                    own: list[FreeParam], post: OutputPost, bias_outputs=(), flow_side: bool = False
-                    ) -> tuple[Fit | None, str]:
+                    own: list[FreeParam], post: OutputPost, bias_outputs=(), flow_side: bool = False,
+                    gain_outputs=()) -> tuple[Fit | None, str]:
     """Joint screening: the candidate's own parameters and the free parameters of the current model
     take one Gauss-Newton step together (so a nominal refit cannot absorb the effect before it is
     scored); the best candidates are refit fully afterwards (:func:`_forward`). The flow equation's
@@ -191,7 +192,7 @@ def _screen_and_fit(fitter: Fitter, current: Fit, free: list[FreeParam], effects
         current.extra["dy_free"] = dy_free
     keep = [k for k, fp in enumerate(free) if flow_side or fp.name not in FLOW_PARAMS]
     return fitter.gn_step(effects, p0, [free[k] for k in keep], dy_free[:, :, keep], own, post, bias_outputs,
-                          current.terms), ""
+                          current.terms, gain_outputs=gain_outputs), ""
 
 
 def _score_model(fitter: Fitter, current: Fit, free: list[FreeParam], cand: Candidate) -> tuple[Fit | None, str]:
@@ -229,6 +230,11 @@ def _score_delay(fitter: Fitter, current: Fit, free: list[FreeParam], cand: Cand
 def _score_bias(fitter: Fitter, current: Fit, free: list[FreeParam], cand: Candidate) -> tuple[Fit | None, str]:
     return _screen_and_fit(fitter, current, free, current.effects, current.p, [], current.post,
                            bias_outputs=[cand.output], flow_side=cand.output == "volume_flow_m3s")
+
+
+def _score_gain(fitter: Fitter, current: Fit, free: list[FreeParam], cand: Candidate) -> tuple[Fit | None, str]:
+    return _screen_and_fit(fitter, current, free, current.effects, current.p, [], current.post,
+                           gain_outputs=[cand.output], flow_side=cand.output == "volume_flow_m3s")
 
 
 def _primary(cand: Candidate, outputs: tuple[str, ...], ratios: np.ndarray) -> str:
@@ -328,6 +334,8 @@ def _score_round(fitter: Fitter, current: Fit, current_free, lib, rnd: int, say,
             reason = "already in the model"
         if cand.kind == "bias" and cand.output in current.post.bias:
             reason = "already in the model"
+        if cand.kind == "gain" and cand.output in current.post.gain:
+            reason = "already in the model"
         if cand.kind == "parameter" and any(fp.name in current.free for fp in cand.params):
             reason = "already in the model"
         if cand.name in skip:
@@ -350,6 +358,8 @@ def _score_round(fitter: Fitter, current: Fit, current_free, lib, rnd: int, say,
             res.delay_s = fit.post.delays[cand.output] * log.dt_s
         if cand.kind == "bias":
             res.bias = fit.post.bias[cand.output]
+        if cand.kind == "gain":
+            res.gain = fit.post.gain[cand.output]
         res.cost_train, res.cost_holdout = fit.cost_train, fit.cost_holdout
         res.train_reduction = 1.0 - fit.cost_train / current.cost_train
         res.explained_holdout = (current.cost_holdout - fit.cost_holdout) / structured if structured > 0 else 0.0
@@ -358,14 +368,14 @@ def _score_round(fitter: Fitter, current: Fit, current_free, lib, rnd: int, say,
         c_new, _ = fitter.output_costs(fit.y)
         excess = c_o[jp] - n_o[jp]
         res.explained_primary = ((c_o[jp] - c_new[jp]) / excess) if excess > 0.1 * n_o[jp] else float("nan")
-        res.dof = {"delay": 1, "bias": 2}.get(cand.kind, len(res.params) or len(cand.params))
+        res.dof = {"delay": 1, "bias": 2, "gain": 1}.get(cand.kind, len(res.params) or len(cand.params))
         res.bic_change = _bic_change(fitter, fit, current, res.dof, res.primary_output)
     return results
 
 
 def _score_one(fitter: Fitter, current: Fit, current_free, cand: Candidate) -> tuple[Fit | None, str]:
     scorer = {"model": _score_model, "parameter": _score_model, "delay": _score_delay,
-              "bias": _score_bias}[cand.kind]
+              "bias": _score_bias, "gain": _score_gain}[cand.kind]
     try:
         return scorer(fitter, current, list(current_free), cand)
     except (RuntimeError, np.linalg.LinAlgError, ValueError) as exc:
@@ -421,7 +431,8 @@ def _polish(fitter: Fitter, current: Fit, free, pairs: list, quick: bool) -> lis
         r, cand = pairs[i]
         fit = fitter.fit(r.fit.effects, r.fit.p, list(free) + [fp for fp in cand.params], r.fit.post,
                          max_nfev=6 if quick else 8, terms=current.terms,
-                         bias_outputs=[cand.output] if cand.kind == "bias" else ())
+                         bias_outputs=[cand.output] if cand.kind == "bias" else (),
+                         gain_outputs=[cand.output] if cand.kind == "gain" else ())
         if not fit.cost_train < r.fit.cost_train:
             fit = r.fit
         return _slim(fit), innovations_nll(fitter, fit)[2]
@@ -456,6 +467,8 @@ def _without(fitter: Fitter, current: Fit, free: list[FreeParam], cand: Candidat
         post.delays.pop(cand.output, None)
     if cand.kind == "bias":
         post.bias.pop(cand.output, None)
+    if cand.kind == "gain":
+        post.gain.pop(cand.output, None)
     names = {fp.name for fp in cand.params}
     return current.effects - frozenset(cand.effects), p, post, [fp for fp in free if fp.name not in names]
 
@@ -496,6 +509,8 @@ def _forward(fitter: Fitter, nominal: Fit, free: list[FreeParam], lib, max_effec
                     r.delay_s = polished.post.delays[cand.output] * fitter.log.dt_s
                 if cand.kind == "bias":
                     r.bias = polished.post.bias[cand.output]
+                if cand.kind == "gain":
+                    r.gain = polished.post.gain[cand.output]
             r.bic_change = _bic_change(fitter, r.fit, current, r.dof, r.primary_output)
             r.lr = nll_current - nll
             r.p_value = float(stats.chi2.sf(r.lr, r.dof)) if r.lr > 0 else 1.0
@@ -785,4 +800,6 @@ def model_outputs(fitter: Fitter, final: Fit, base: Parameters, diag: dict) -> t
         # offset at the log's mid-time and drift per hour (b1 spans the whole log)
         extras[f"{o}_offset"] = float(b0)
         extras[f"{o}_drift_per_h"] = float(b1 / span_h) if span_h > 0 else 0.0
+    for o, g in final.post.gain.items():
+        extras[f"{o}_gain"] = float(g)
     return params, effects, extras

@@ -276,6 +276,8 @@ def _markdown(res: IdentificationResult, data: dict, model_name: str) -> list[st
                 what = f"delay {a.delay_s:g} s"
             if a.bias is not None:
                 what = f"offset {_num(a.bias[0])} at mid-log, drift {_num(a.bias[1])} over the log"
+            if a.gain is not None:
+                what = f"the reading {_num(a.gain)} times the model's"
             md.append(f"- **{a.name}**: {a.description} ({a.source}); {what}. {a.reason}.")
     else:
         md.append("- No effect of the library was added.")

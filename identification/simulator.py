@@ -277,19 +277,22 @@ class Simulator:
 
 
 class OutputPost:
-    """Output-side corrections the state model does not hold: delays (samples) and offset+drift."""
+    """Output-side corrections the state model does not hold: delays (samples), gains and offset+drift.
+
+    Applied in that order: y_o(t) -> gain_o y_o(t - delay_o) + b0 + b1 ramp(t)."""
 
     def __init__(self, outputs: Sequence[str], time_s: np.ndarray, delays: dict[str, int] | None = None,
-                 bias: dict[str, tuple[float, float]] | None = None):
+                 bias: dict[str, tuple[float, float]] | None = None, gain: dict[str, float] | None = None):
         self.outputs = tuple(outputs)
         self.time_s = time_s
         self.delays = {k: int(v) for k, v in (delays or {}).items() if v}
         self.bias = {k: tuple(v) for k, v in (bias or {}).items()}
+        self.gain = {k: float(v) for k, v in (gain or {}).items()}
         span = max(float(time_s[-1] - time_s[0]), 1.0)
         self.ramp = (time_s - time_s[0]) / span - 0.5
 
     def copy(self) -> "OutputPost":
-        return OutputPost(self.outputs, self.time_s, dict(self.delays), dict(self.bias))
+        return OutputPost(self.outputs, self.time_s, dict(self.delays), dict(self.bias), dict(self.gain))
 
     def apply(self, y: np.ndarray, dy: np.ndarray | None = None):
         y = y.copy()
@@ -299,24 +302,32 @@ class OutputPost:
             y[:, j] = shift(y[:, j], dl)
             if dy is not None:
                 dy[:, j, :] = shift(dy[:, j, :], dl)
+        for name, g in self.gain.items():
+            j = self.outputs.index(name)
+            y[:, j] *= g
+            if dy is not None:
+                dy[:, j, :] *= g
         for name, (b0, b1) in self.bias.items():
             j = self.outputs.index(name)
             y[:, j] += b0 + b1 * self.ramp
         return y if dy is None else (y, dy)
 
     def undo(self, y_meas: np.ndarray) -> np.ndarray:
-        """Measurement mapped back to model time and offset (for one-step filtering)."""
+        """Measurement mapped back to model time, gain and offset (for one-step filtering)."""
         y = y_meas.copy()
         for name, (b0, b1) in self.bias.items():
             j = self.outputs.index(name)
             y[:, j] -= b0 + b1 * self.ramp
+        for name, g in self.gain.items():
+            y[:, self.outputs.index(name)] /= g
         for name, dl in self.delays.items():
             j = self.outputs.index(name)
             y[:, j] = np.concatenate([y[dl:, j], np.full(dl, np.nan)])
         return y
 
     def describe(self) -> dict:
-        return {"delays_samples": dict(self.delays), "bias": {k: list(v) for k, v in self.bias.items()}}
+        return {"delays_samples": dict(self.delays), "bias": {k: list(v) for k, v in self.bias.items()},
+                "gain": dict(self.gain)}
 
 
 def shift(values: np.ndarray, lag: int) -> np.ndarray:

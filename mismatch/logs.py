@@ -26,7 +26,10 @@ SENSOR_COLUMNS = ("hvac_inlet_temp_c", "volume_flow_m3s", "supply_temp_c", "heat
 #: All columns, in file order.
 COLUMNS = ("time_s",) + INPUTS + ("hvac_inlet_temp_c", "volume_flow_m3s", "supply_temp_c", "heater_power_w",
                                   "water_temp_c", "chiller_setpoint_c", "heater_outlet_temp_c", "cabin_temp_c")
-EXCITATIONS = ("steps",)
+#: "steps": cooling and heating phases with random steps; "hot_heater": the same, but the heating phases
+#: run the heater near full power at low flow, so its body passes the PTC's knee (~60 C) and the PTC
+#: power fall shows in the logged heater power.
+EXCITATIONS = ("steps", "hot_heater")
 
 HOLD_S = (20, 300)                 # ASSUMPTION: hold times of the steps (s)
 PHASE_S = (900, 1800)              # ASSUMPTION: length of a cooling or heating phase
@@ -35,6 +38,8 @@ HEATING_SETPOINT_C = 20.0          # ASSUMPTION: chiller set point while heating
 HEATING_MIN_BLOWER_W = 80.0        # ASSUMPTION: heater only with flow (~0.015 m3/s at least)
 HEATING_HEATER_W = (40.0, k.HEATER_MAX_W)
 HEATING_VALVE_A_PCT = (20.0, 80.0)  # valve a partly open while heating (thesis 5.4.2 caps it at 80 %)
+HOT_HEATER_W = (200.0, k.HEATER_MAX_W)   # ASSUMPTION: "hot_heater" heater steps (the fall bites above ~200-215 W)
+HOT_BLOWER_W = (HEATING_MIN_BLOWER_W, 180.0)  # ASSUMPTION: "hot_heater" blower steps (low flow)
 INLET_MEAN_C, INLET_SLOW_C, INLET_FAST_C = 26.0, 4.0, 2.0   # inlet between 20 and 32 C
 INLET_PERIODS_S = (3600.0, 1100.0)
 
@@ -69,24 +74,28 @@ def _steps(n: int, lo: float, hi: float, rng: np.random.Generator) -> np.ndarray
     return out
 
 
-def _phase_commands(n: int, heating: bool, rng: np.random.Generator) -> np.ndarray:
-    """Commands of one phase: cooling (heater off, valve a anywhere) or heating (heater on, a partly open)."""
+def _phase_commands(n: int, heating: bool, rng: np.random.Generator, hot: bool = False) -> np.ndarray:
+    """Commands of one phase: cooling (heater off, valve a anywhere) or heating (heater on, a partly open);
+    ``hot``: heating near full heater power at low flow (the "hot_heater" excitation)."""
     u = np.empty((n, len(INPUTS)))
-    u[:, 0] = _steps(n, HEATING_MIN_BLOWER_W if heating else k.BLOWER_MIN_W, k.BLOWER_MAX_W, rng)
-    u[:, 1] = _steps(n, *HEATING_HEATER_W, rng) if heating else 0.0
+    blower = HOT_BLOWER_W if heating and hot else (HEATING_MIN_BLOWER_W if heating else k.BLOWER_MIN_W,
+                                                     k.BLOWER_MAX_W)
+    u[:, 0] = _steps(n, *blower, rng)
+    u[:, 1] = _steps(n, *(HOT_HEATER_W if hot else HEATING_HEATER_W), rng) if heating else 0.0
     u[:, 2] = _steps(n, *HEATING_VALVE_A_PCT, rng) if heating else _steps(n, 0.0, 100.0, rng)
     for j in (3, 4, 5):
         u[:, j] = _steps(n, 0.0, 100.0, rng)
     return u
 
 
-def excitation_schedule(n: int, rng: np.random.Generator) -> Schedule:
-    """Alternating cooling and heating phases (cooling first) and a slowly varying inlet temperature."""
+def excitation_schedule(n: int, rng: np.random.Generator, excitation: str = "steps") -> Schedule:
+    """Alternating cooling and heating phases (cooling first) and a slowly varying inlet temperature
+    (``excitation``: one of :data:`EXCITATIONS`)."""
     commands, setpoint = np.empty((n, len(INPUTS))), np.empty(n)
     i, heating = 0, False
     while i < n:
         length = min(n - i, int(rng.integers(PHASE_S[0], PHASE_S[1] + 1)))
-        commands[i:i + length] = _phase_commands(length, heating, rng)
+        commands[i:i + length] = _phase_commands(length, heating, rng, hot=excitation == "hot_heater")
         setpoint[i:i + length] = HEATING_SETPOINT_C if heating else COOLING_SETPOINT_C
         i, heating = i + length, not heating
     t = np.arange(n, dtype=float)
@@ -234,7 +243,7 @@ def simulate_log(path: str | Path, variant: str | Variant = "nominal", duration_
     shift = int(var.log_shift_samples)
     pad = abs(shift)
     rng_exc, rng_sens, rng_bad = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(3))
-    schedule = excitation_schedule(n + 2 * pad, rng_exc)
+    schedule = excitation_schedule(n + 2 * pad, rng_exc, excitation)
     box = IndependentBox(var, seed=seed, inlet_temp_c=schedule.inlet_c[0], chiller_setpoint_c=schedule.setpoint_c[0],
                          initial_command=schedule.commands[0])
     applied, sensors = run_open_loop(box, schedule, rng_sens)
