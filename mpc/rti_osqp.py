@@ -654,7 +654,7 @@ class _OsqpCore:
     over-relaxation (``alpha = 1``, convergence checked at the end of the pass, at
     ``FIRST_PASS_EPS_RATIO`` times OSQP's tolerance) and returns when they converged; otherwise OSQP
     continues from where the pass left off with its own settings (``alpha``, tolerances,
-    ``check_termination``, ``max_iter``). A warm start from the shifted plan and the last
+    ``check_termination``, ``max_iter`` counting the pass's iterations). A warm start from the shifted plan and the last
     multipliers often meets the tolerance at once, but over-relaxed first iterations move away from
     it before they come back."""
 
@@ -663,7 +663,9 @@ class _OsqpCore:
         self.core = getattr(wrapper, "_solver", None)
         self.first_pass_iter = int(first_pass_iter)
         st = wrapper.settings
-        self._full = dict(alpha=st.alpha, max_iter=st.max_iter, check_termination=st.check_termination,
+        # the continuation's cap leaves room for the pass's iterations: ``max_iter`` bounds the whole QP
+        full_cap = max(st.max_iter - self.first_pass_iter, 1) if self.first_pass_iter > 0 else st.max_iter
+        self._full = dict(alpha=st.alpha, max_iter=full_cap, check_termination=st.check_termination,
                           eps_abs=st.eps_abs, eps_rel=st.eps_rel)
         self._first = dict(alpha=1.0, max_iter=self.first_pass_iter, check_termination=self.first_pass_iter,
                            eps_abs=st.eps_abs * FIRST_PASS_EPS_RATIO, eps_rel=st.eps_rel * FIRST_PASS_EPS_RATIO)

@@ -117,8 +117,10 @@ def _loop(settings: MpcSettings, steps: int = 14):
 
 
 def test_periodic_reach_solves_run_off_the_step_and_the_commands_do_not_depend_on_the_thread():
-    on_thread = _loop(MpcSettings(codegen=False, reach_deferred=True, reach_background=True))
-    at_once = _loop(MpcSettings(codegen=False, reach_deferred=True, reach_background=False))
+    # the flow-trade cap off: with it the flow weights stay lower during the blower's ramp, the estimator's
+    # offsets differ and the re-solve at 10 s finds the reference just within reach (no report to time)
+    on_thread = _loop(MpcSettings(codegen=False, reach_deferred=True, reach_background=True, flow_trade_c=None))
+    at_once = _loop(MpcSettings(codegen=False, reach_deferred=True, reach_background=False, flow_trade_c=None))
     assert np.array_equal(on_thread[0], at_once[0]) and on_thread[1] == at_once[1]
     assert len(on_thread[2]) == len(at_once[2]) == 3
     assert all(main and in_step for main, in_step in at_once[2])
