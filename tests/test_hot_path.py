@@ -165,7 +165,10 @@ def test_steady_steps_end_in_osqps_first_pass_and_the_settings_reach_osqp():
     """OSQP's first pass without over-relaxation (``MpcSettings.osqp_first_pass_iter``): warm-started
     from the shifted plan, more than half of the steady steps' QPs meet the first pass's tolerance
     (OSQP says solved) where the over-relaxed iterations alone take at least one check interval; the
-    equilibration passes and the duality-gap check are what the settings say."""
+    equilibration passes and the duality-gap check are what the settings say. These settings are not
+    the defaults (with them a winter heating step of the built-in bench no longer settles, README
+    "Solve time")."""
+    fast = dict(osqp_scaling=4, osqp_check_dualgap=False, osqp_first_pass_iter=4)
 
     def run(**kw):
         ctrl = MpcController(settings=MpcSettings(codegen=False, **kw))
@@ -181,7 +184,7 @@ def test_steady_steps_end_in_osqps_first_pass_and_the_settings_reach_osqp():
             stats.append(res.stats)
         return ctrl, stats
 
-    ctrl, stats = run()
+    ctrl, stats = run(**fast)
     s = ctrl.settings
     assert s.osqp_first_pass_iter < s.osqp_check_termination
     osqp_settings = ctrl.solver.solver.settings
@@ -190,6 +193,6 @@ def test_steady_steps_end_in_osqps_first_pass_and_the_settings_reach_osqp():
     in_pass = [st for st in steady if st["iterations"] <= s.osqp_first_pass_iter]
     assert len(in_pass) > 0.5 * len(steady)
     assert all(st["status"] == "solved" for st in in_pass)
-    _, stats_off = run(osqp_first_pass_iter=0)
+    _, stats_off = run(**{**fast, "osqp_first_pass_iter": 0})
     assert all(st["iterations"] >= s.osqp_check_termination for st in stats_off)
     assert sum(st["iterations"] for st in stats[12:]) < 0.6 * sum(st["iterations"] for st in stats_off[12:])
