@@ -192,7 +192,14 @@ def _screen_and_fit(fitter: Fitter, current: Fit, free: list[FreeParam], effects
         current.extra["dy_free"] = dy_free
     keep = [k for k, fp in enumerate(free) if flow_side or fp.name not in FLOW_PARAMS]
     return fitter.gn_step(effects, p0, [free[k] for k in keep], dy_free[:, :, keep], own, post, bias_outputs,
-                          current.terms, gain_outputs=gain_outputs), ""
+                          current.terms, gain_outputs=_gains(post, gain_outputs)), ""
+
+
+def _gains(post: OutputPost, new=()) -> list[str]:
+    """Outputs whose gain is fitted: ``new`` and those already in ``post`` (refit with every candidate, like the
+    free parameters: a gain kept in an earlier round took up part of what a later effect explains, the PTC fall
+    on the heater power)."""
+    return list(dict.fromkeys(list(new) + list(post.gain)))
 
 
 def _score_model(fitter: Fitter, current: Fit, free: list[FreeParam], cand: Candidate) -> tuple[Fit | None, str]:
@@ -432,7 +439,7 @@ def _polish(fitter: Fitter, current: Fit, free, pairs: list, quick: bool) -> lis
         fit = fitter.fit(r.fit.effects, r.fit.p, list(free) + [fp for fp in cand.params], r.fit.post,
                          max_nfev=6 if quick else 8, terms=current.terms,
                          bias_outputs=[cand.output] if cand.kind == "bias" else (),
-                         gain_outputs=[cand.output] if cand.kind == "gain" else ())
+                         gain_outputs=_gains(r.fit.post, [cand.output] if cand.kind == "gain" else ()))
         if not fit.cost_train < r.fit.cost_train:
             fit = r.fit
         return _slim(fit), innovations_nll(fitter, fit)[2]
