@@ -133,7 +133,7 @@ class MpcSettings:
     osqp_scaling: int = 4
     osqp_alpha: float = 1.6
     osqp_check_dualgap: bool = False
-    osqp_first_pass_iter: int = 4
+    osqp_first_pass_iter: int = 0
     sqp_max_iter: int = 5
     levenberg_marquardt: float = 0.1
     cold_start_qps: int = 10

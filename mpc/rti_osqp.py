@@ -138,7 +138,7 @@ class RtiOsqpSolver:
                  sqp_max_iter: int = 1, sqp_tol: float = 1e-3, check_termination: int = 5,
                  lm_inputs: np.ndarray | float = 0.0, cold_start_qps: int = 1, reference_change_qps: int = 1,
                  codegen: bool = False, scaling: int = 4, alpha: float = 1.6, check_dualgap: bool = False,
-                 first_pass_iter: int = 4):
+                 first_pass_iter: int = 0):
         self.pb = pb = problem
         self.name = "rti" if sqp_max_iter == 1 else "sqp"
         self.lm = np.broadcast_to(np.asarray(lm_inputs, float), (pb.nu,)).copy()
