@@ -166,8 +166,7 @@ def test_steady_steps_end_in_osqps_first_pass_and_the_settings_reach_osqp():
     from the shifted plan, more than half of the steady steps' QPs meet the first pass's tolerance
     (OSQP says solved) where the over-relaxed iterations alone take at least one check interval; the
     equilibration passes and the duality-gap check are what the settings say. These settings are not
-    the defaults (with them a winter heating step of the built-in bench no longer settles, README
-    "Solve time")."""
+    all the defaults (the first pass is off: README "Solve time")."""
     fast = dict(osqp_scaling=4, osqp_check_dualgap=False, osqp_first_pass_iter=4)
 
     def run(**kw):
