@@ -147,9 +147,9 @@ class MpcSettings:
     osqp_eps: float = 1e-4
     osqp_max_iter: int = 400
     osqp_check_termination: int = 5
-    osqp_scaling: int = 4
+    osqp_scaling: int = 10
     osqp_alpha: float = 1.6
-    osqp_check_dualgap: bool = False
+    osqp_check_dualgap: bool = True
     osqp_first_pass_iter: int = 0
     osqp_accept_max_iter: bool = False
     sqp_max_iter: int = 5
