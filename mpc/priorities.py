@@ -164,10 +164,20 @@ class ReachableFlow:
         if not (np.all(np.isfinite(w)) and np.isfinite(flow) and np.isfinite(temp)):
             self._last = Reach(None, {})
             return self._last
+        if self._w is not None and not self._converged():
+            # stopped short (iteration cap): keep the last converged answer and warm start (quick mismatch suite,
+            # blower_weak with the flow out of reach: a capped solve said -7 m3/h was reachable, the MPC cut
+            # the blower to 30 W and heated)
+            return self._limit(flow_ref_m3s, flow_now)
         self._w = w
         self._reachable = flow
         self._temp_error = temp - temp_ref_c
         return self._limit(flow_ref_m3s, flow_now)
+
+    def _converged(self) -> bool:
+        """Whether the last solve converged (IPOPT's ``success``; a solver without statistics counts as converged)."""
+        stats = getattr(self.solver, "stats", None)
+        return True if stats is None else bool(stats().get("success", False))
 
     def _moved(self, inputs: np.ndarray) -> bool:
         """True when an input has moved by :data:`MATERIAL_CHANGE` or more since the last solve."""
