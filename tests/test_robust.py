@@ -401,6 +401,36 @@ def test_reachable_flow_is_solved_again_only_when_its_inputs_have_moved_material
     assert len(solves) == 3
 
 
+class CappedSolver:
+    """Stand-in for the reachable-flow IPOPT solver: the real solve, the blower of its answer at its lowest
+    and ``success`` False (a solve stopped at its iteration cap, as seen on the independent box)."""
+
+    def __init__(self, solver, reach):
+        self.solver, self.reach = solver, reach
+
+    def __call__(self, **kwargs):
+        sol = self.solver(**kwargs)
+        w = np.asarray(sol["x"], float).ravel().copy()
+        w[self.reach.nx + self.reach.i_blower] = 30.0  # the blower's lowest power (W)
+        return {**sol, "x": w}
+
+    def stats(self):
+        return {**self.solver.stats(), "success": False, "return_status": "Maximum_Iterations_Exceeded"}
+
+
+def test_a_capped_reachable_flow_solve_keeps_the_last_converged_answer():
+    reach, x, u, d = _reach_setup()
+    ref = 200 * M3H
+    first = reach.check(x, u, d, 18.0, ref, 100.0, 1.0)
+    assert "volume_flow_m3s" in first.out_of_reach and first.flow_m3s > 100 * M3H
+    converged = reach.solver
+    reach.solver = CappedSolver(converged, reach)
+    capped = reach.check(x, u, d, 17.0, ref, 100.0, 1.0)  # a new reference: solved at once, stops at the cap
+    assert capped.flow_m3s == first.flow_m3s
+    reach.solver = converged
+    assert reach.check(x, u, d, 16.0, ref, 100.0, 1.0).flow_m3s != first.flow_m3s  # converged again: taken
+
+
 def test_heater_never_runs_below_the_minimum_flow_when_the_temperature_is_out_of_reach():
     """trapped_air_release asks for more heat than the heater gives at 40 m3/h: the supply
     temperature is out of reach. On the independent box the MPC may give up some flow for it, but
