@@ -140,6 +140,7 @@ def test_stage_cost_is_zero_on_target_and_grows_with_error():
     hot = {**truth, "supply_air_temp_c": ref.supply_temp_c + 1.0, "supply_temp_c": ref.supply_temp_c + 1.0}
     off = solve_time.stage_cost(ctrl.problem, hot, ref, u, u)
     assert off["temperature"] == pytest.approx(MpcSettings().ocp.weights.supply_temp)
-    # the default tracks the mean of air and thermocouple: air alone 1 C off is half the error
+    # the default tracks a blend of air and thermocouple: air alone 1 C off is the air's share of the error
     air_only = solve_time.stage_cost(ctrl.problem, {**truth, "supply_air_temp_c": ref.supply_temp_c + 1.0}, ref, u, u)
-    assert air_only["temperature"] == pytest.approx(0.25 * MpcSettings().ocp.weights.supply_temp)
+    air_share = 1.0 - MpcSettings().ocp.sensor_share
+    assert air_only["temperature"] == pytest.approx(air_share ** 2 * MpcSettings().ocp.weights.supply_temp)
