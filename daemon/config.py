@@ -126,7 +126,7 @@ rate_blower_w_per_s = 60.0    # manual mode and the transfer after a mode switch
 rate_heater_w_per_s = 60.0
 rate_valve_pct_per_s = 20.0
 transfer_s = 30.0
-transfer_ramp_c_per_s = 0.03      # after a switch: reference ramps from the reading (0 = at once)
+transfer_ramp_c_per_s = 0.025     # after a switch: reference ramps from the reading (0 = at once)
 transfer_ramp_m3s_per_s = 0.0005
 unsafe = false                # true allows min_flow_m3s = 0 and no interlock sensor (logged)
 
@@ -369,8 +369,8 @@ class SafetyConfig(_Section):
     transfer_s: float = _f(30.0, "after a switch to an automatic mode the command is rate-limited this long",
                            0.0, 600.0)
     transfer_ramp_c_per_s: float = _f(
-        0.03, "ASSUMPTION after a switch to an automatic mode the controller's supply temperature reference "
-              "starts at the reading and ramps to the reference in force at this rate (1.8 C/min: 0.3 C in "
+        0.025, "ASSUMPTION after a switch to an automatic mode the controller's supply temperature reference "
+              "starts at the reading and ramps to the reference in force at this rate (1.5 C/min: 0.25 C in "
               "the 10 s after a switch); 0 = the reference at once", 0.0, 10.0)
     transfer_ramp_m3s_per_s: float = _f(
         0.0005, "ASSUMPTION the same ramp for the volume flow reference (0.03 m3/s per min); 0 = at once",

@@ -24,7 +24,8 @@ KINDS = ("steps", "prbs", "multisine")
 #: (0.005 m3/s at about 30 W with open valves, docs/model.md sec. 1), outlet valves never all closed.
 DEFAULT_RANGES = {"blower_power_w": (60.0, 260.0), "heater_cmd_w": (0.0, 200.0), "valve_a_pct": (0.0, 100.0),
                   "valve_m_pct": (20.0, 100.0), "valve_f_pct": (20.0, 100.0), "valve_w_pct": (20.0, 100.0)}
-#: Rate limits per actuator and second (the MPC's, docs/model.md sec. 2: valves 20 %/s, powers 60 W/s).
+#: Rate limits per actuator and second (ASSUMPTION: the daemon's manual-mode limits, valves 20 %/s, powers 60 W/s;
+#: the MPC allows its valves 50 %/s, docs/model.md sec. 2).
 DEFAULT_RATES = {"blower_power_w": 60.0, "heater_cmd_w": 60.0, "valve_a_pct": 20.0, "valve_m_pct": 20.0,
                  "valve_f_pct": 20.0, "valve_w_pct": 20.0}
 LIMITS = {"blower_power_w": (30.0, 300.0), "heater_cmd_w": (0.0, 240.0), "valve_a_pct": (0.0, 100.0),

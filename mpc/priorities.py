@@ -233,18 +233,19 @@ class ReachableFlow:
         return self._limit(flow_ref_m3s, flow_now)
 
     def _solve(self, w0: np.ndarray, p: np.ndarray, d: np.ndarray, temp_ref_c: float) -> tuple | None:
-        """The steady state of the largest flow (stacked x, u), its flow (m3/s) and its temperature error
-        (degC); ``None`` where the solve gives no finite answer. Touches no state of this object: it may
+        """The steady state of the largest flow (stacked x, u), its flow (m3/s), its temperature error
+        (degC) and whether the solve converged; ``None`` where the solve gives no finite answer. Touches no state of this object: it may
         run on a second thread while the controller goes on."""
         try:
             sol = self.solver(x0=w0, p=p, lbx=self.lbx, ubx=self.ubx, lbg=self.lbg, ubg=self.ubg)
             w = np.asarray(sol["x"]).ravel()
+            converged = self._converged()
             flow, temp = (float(v) for v in self._solution_out(w, d, p))
         except Exception:  # noqa: BLE001 - no answer: track the reference as it is
             return None
         if not (np.all(np.isfinite(w)) and np.isfinite(flow) and np.isfinite(temp)):
             return None
-        return w, flow, temp - temp_ref_c
+        return w, flow, temp - temp_ref_c, converged
 
     def _solution_out(self, w: np.ndarray, d: np.ndarray, p: np.ndarray) -> np.ndarray:
         """Flow and temperature of a solution (m3/s, degC), through the solve's own function object."""
@@ -257,8 +258,18 @@ class ReachableFlow:
         if result is None:
             self._last = Reach(None, {})
             return False
-        self._w, self._reachable, self._temp_error = result
+        if self._w is not None and not result[3]:
+            # stopped short (iteration cap): keep the last converged answer and warm start (quick mismatch suite,
+            # blower_weak with the flow out of reach: a capped solve said -7 m3/h was reachable, the MPC cut
+            # the blower to 30 W and heated)
+            return True
+        self._w, self._reachable, self._temp_error = result[:3]
         return True
+
+    def _converged(self) -> bool:
+        """Whether the last solve converged (IPOPT's ``success``; a solver without statistics counts as converged)."""
+        stats = getattr(self.solver, "stats", None)
+        return True if stats is None else bool(stats().get("success", False))
 
     def _collect(self) -> bool:
         """Apply the deferred solve of the previous check, waiting for it; True where it gave no answer."""

@@ -23,7 +23,7 @@ PARAMS = Parameters()
 REF_WARM = Reference.from_split(20.0, 0.03, (0.4, 0.3, 0.3))
 REF_COOL = Reference.from_split(15.0, 0.03, (0.4, 0.3, 0.3))
 START = Command(150.0, 0.0, 50.0, 100.0, 100.0, 100.0)
-RATES = np.array([60.0, 60.0, 20.0, 20.0, 20.0, 20.0])  # OcpSpec defaults (W/s, %/s)
+RATES = np.array([OcpSpec().rate_blower_w_per_s, OcpSpec().rate_heater_w_per_s] + [OcpSpec().rate_valve_pct_per_s] * 4)  # W/s, %/s
 LO = np.array([30.0, 0.0, 0.0, 0.0, 0.0, 0.0])
 HI = np.array([300.0, 240.0, 100.0, 100.0, 100.0, 100.0])
 

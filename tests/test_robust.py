@@ -278,10 +278,22 @@ def test_mpc_told_of_a_3_s_delay_holds_a_cooling_step_on_the_delayed_box():
     # told of the delay, the MPC does as well as when its estimator finds the dead time itself (the
     # estimate then is the dead time beyond the model's, none here, so the two are not added up) ...
     assert abs(iae_told - iae_unaware) <= 0.15 * iae_unaware
-    # ... and comes within 15 % of the baseline's IAE (1.13 measured, 1.07 before the prediction dropped
-    # the bypass split's flow dependence and the heater outlet reading got its own offset, docs/robustness.md
-    # sec. 1: the baseline's valves jump, the MPC's move at most 20 %/s; README, Robustness)
+    # ... and comes within 15 % of the baseline's IAE (1.13 measured with the valves' former 20 %/s, 1.07
+    # before the prediction dropped the bypass split's flow dependence and the heater outlet reading got its
+    # own offset, docs/robustness.md sec. 1 and 2.3; README, Robustness)
     assert r["ratios"]["temp_iae_cs"] <= 1.15
+    assert r["mpc"]["figures"]["fallbacks"] == 0 and r["mpc"]["figures"]["violations_total"] == 0
+
+
+def test_cooling_step_on_the_independent_box_beats_the_baseline_by_more_than_a_third():
+    """docs/robustness.md sec. 2.3: the valves' rate limit (50 %/s) and the reading-heavy tracked temperature
+    (sensor share 0.75) let the MPC hurry the thermocouple at a step. Measured on this step (20 -> 15 C): 0.57
+    of the baseline's IAE; with the former 20 %/s 0.70, with the former share 0.5 0.645."""
+    sc = short_cooling_step()
+    res, _ = bench.run_benchmark([sc], {"baseline": bench.baseline_factory(), "mpc": bench.mpc_factory()}, seed=0,
+                                 plant_factory=functools.partial(make_plant, "nominal"))
+    r = res["scenarios"][sc.name]
+    assert r["ratios"]["temp_iae_cs"] <= 0.62
     assert r["mpc"]["figures"]["fallbacks"] == 0 and r["mpc"]["figures"]["violations_total"] == 0
 
 
@@ -419,6 +431,36 @@ def test_reachable_flow_is_solved_again_only_when_its_inputs_have_moved_material
     # a new temperature reference is solved at once, whatever the inputs
     reach.check(x, u, moved, 17.0, ref, 100.0, 1.0)
     assert len(solves) == 3
+
+
+class CappedSolver:
+    """Stand-in for the reachable-flow IPOPT solver: the real solve, the blower of its answer at its lowest
+    and ``success`` False (a solve stopped at its iteration cap, as seen on the independent box)."""
+
+    def __init__(self, solver, reach):
+        self.solver, self.reach = solver, reach
+
+    def __call__(self, **kwargs):
+        sol = self.solver(**kwargs)
+        w = np.asarray(sol["x"], float).ravel().copy()
+        w[self.reach.nx + self.reach.i_blower] = 30.0  # the blower's lowest power (W)
+        return {**sol, "x": w}
+
+    def stats(self):
+        return {**self.solver.stats(), "success": False, "return_status": "Maximum_Iterations_Exceeded"}
+
+
+def test_a_capped_reachable_flow_solve_keeps_the_last_converged_answer():
+    reach, x, u, d = _reach_setup()
+    ref = 200 * M3H
+    first = reach.check(x, u, d, 18.0, ref, 100.0, 1.0)
+    assert "volume_flow_m3s" in first.out_of_reach and first.flow_m3s > 100 * M3H
+    converged = reach.solver
+    reach.solver = CappedSolver(converged, reach)
+    capped = reach.check(x, u, d, 17.0, ref, 100.0, 1.0)  # a new reference: solved at once, stops at the cap
+    assert capped.flow_m3s == first.flow_m3s
+    reach.solver = converged
+    assert reach.check(x, u, d, 16.0, ref, 100.0, 1.0).flow_m3s != first.flow_m3s  # converged again: taken
 
 
 def test_heater_never_runs_below_the_minimum_flow_when_the_temperature_is_out_of_reach():
