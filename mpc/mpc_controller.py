@@ -78,7 +78,9 @@ class MpcSettings:
         ocp: the optimal control problem (horizon, weights, rates, soft limits), :class:`OcpSpec`.
         solver: ``"rti"`` (one QP per step), ``"sqp"`` (Gauss-Newton SQP to ``sqp_tol``, at most
             ``sqp_max_iter`` QPs) or ``"ipopt"`` (the full NLP to convergence; reference only).
-        osqp_eps: OSQP absolute/relative tolerance; osqp_max_iter: OSQP iteration cap;
+        osqp_eps: OSQP absolute/relative tolerance; osqp_max_iter: OSQP iteration cap (1000: with the
+            supply-temperature weight 5 the QP of a large heating step needed more than 400, and the
+            failed step's cold starts then missed the deadline, docs/robustness.md sec. 2.2);
             osqp_check_termination: OSQP convergence-check interval (iterations).
         sqp_max_iter, sqp_tol: SQP iteration cap and step tolerance (scaled variables).
         levenberg_marquardt: weight of lm * |u_k - u_k_lin|^2 (scaled inputs, every stage) added to
@@ -122,7 +124,7 @@ class MpcSettings:
     ocp: OcpSpec = field(default_factory=OcpSpec)
     solver: str = "rti"
     osqp_eps: float = 1e-4
-    osqp_max_iter: int = 400
+    osqp_max_iter: int = 1000
     osqp_check_termination: int = 5
     sqp_max_iter: int = 5
     levenberg_marquardt: float = 0.1

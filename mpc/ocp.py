@@ -108,6 +108,11 @@ class Weights:
     """Cost weights (per second of horizon unless said otherwise); tuning choices on the simulated
     plant (ASSUMPTIONS, nothing here comes from the thesis).
 
+    ``supply_temp`` 5 against ``volume_flow`` 2: supply temperature comes first (docs/robustness.md
+    sec. 1); where the heater is at its limit the flow is the only lever left, and the MPC gives up
+    flow for temperature down to the flow floor (``OcpSpec.heater_min_flow_m3s``; measured on the
+    quick mismatch suite, docs/robustness.md sec. 2.2).
+
     Residuals are divided by their scale first: temperature by 1 degC, flows by 1 L/s, electric
     power (blower plus heater) by 100 W. The energy term is a least-squares residual too: it
     prefers the least power among the actuator settings that track equally well (the redundant
@@ -116,7 +121,7 @@ class Weights:
     input between consecutive stages (per unit squared, not per s).
     """
 
-    supply_temp: float = 1.0
+    supply_temp: float = 5.0
     volume_flow: float = 2.0
     outlet_flow: float = 0.5
     energy_per_100w2: float = 5e-2
