@@ -93,15 +93,17 @@ class DoMpcSolver:
         mpc.bounds["upper", "_u", "u"] = pb.u_hi
         mpc.set_nl_cons("u_hi", u - hi, ub=0.0)
         mpc.set_nl_cons("u_lo", lo - u, ub=0.0)
-        # the rows of an inner stage (rate, heater, PTC); the rate bounds per stage as parameters
+        # the rows of an inner stage (rate, heater, PTC, flow floor); the rate bounds per stage as parameters
         inner = ocp.stages[1]
-        h, rows = inner.h(ca.vertcat(model.x["x"], model.x["ul"]), model.u["u"]), inner.row_slices(nu)
+        h, rows = inner.h(ca.vertcat(model.x["x"], model.x["ul"]), model.u["u"], d, pm), inner.row_slices(nu)
         mpc.set_nl_cons("rate_hi", h[rows["rate"]] - rb, ub=0.0)
         mpc.set_nl_cons("rate_lo", -rb - h[rows["rate"]], ub=0.0)
         for kind in ("heater", "ptc"):
             if kind in rows:
                 mpc.set_nl_cons(kind, h[rows[kind]] - inner.uh[rows[kind]], ub=0.0, soft_constraint=True,
                                 penalty_term_cons=float(pb.slack_l1 * pb.dt.mean()))
+        if "floor" in rows:
+            mpc.set_nl_cons("floor", inner.lh[rows["floor"]] - h[rows["floor"]], ub=0.0)
         self._tvp_template = mpc.get_tvp_template()
         self._dt = np.append(pb.dt, pb.dt[-1])
         self._sel = np.zeros((N + 1, len(substeps)))

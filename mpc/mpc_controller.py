@@ -79,7 +79,9 @@ class MpcSettings:
         ocp: the optimal control problem (horizon, weights, rates, soft limits), :class:`OcpSpec`.
         solver: ``"rti"`` (one QP per step), ``"sqp"`` (Gauss-Newton SQP to ``sqp_tol``, at most
             ``sqp_max_iter`` QPs) or ``"ipopt"`` (the full NLP to convergence; reference only).
-        osqp_eps: OSQP absolute/relative tolerance; osqp_max_iter: OSQP iteration cap per QP;
+        osqp_eps: OSQP absolute/relative tolerance; osqp_max_iter: OSQP iteration cap per QP (1000: with the
+            supply-temperature weight 5 the QP of a large heating step needed more than 400, and the
+            failed step's cold starts then missed the deadline, docs/robustness.md sec. 2.2);
             osqp_check_termination: OSQP convergence-check interval (iterations).
         osqp_scaling: OSQP's equilibration passes, run again on every matrix update (the
             preparation's refactorisation); osqp_alpha: OSQP's relaxation parameter;
@@ -145,7 +147,7 @@ class MpcSettings:
     ocp: OcpSpec = field(default_factory=OcpSpec)
     solver: str = "rti"
     osqp_eps: float = 1e-4
-    osqp_max_iter: int = 400
+    osqp_max_iter: int = 1000
     osqp_check_termination: int = 5
     osqp_scaling: int = 10
     osqp_alpha: float = 1.6

@@ -17,6 +17,7 @@ The discrete problem (scaled variables ``x = (x_phys - x_off) / x_sc``, likewise
          u_lo <= u_k <= u_hi,  |u_k - u_k-1| <= rate * dt_k-1  (dt_-1 = one sample)
          heater_temp(x_k) <= heater_temp_max + s_k,  s_k >= 0,  k = 1..N
          heater_cmd_k / c + heater_temp(x_k) <= T_zero + s_k,  k = 1..N-1   (PTC limit, ptc_limit)
+         Q(x_k, u_k) >= Q_min min(1, heater_cmd_k / P_on),  k = 0..N-1      (flow floor, heater_min_flow_m3s)
 
 Tracked outputs ``y``: supply temperature, total volume flow, outlet flows m, f, w (outlet
 weights are zero when the reference leaves the split free); ``P_heater_el`` is the model's
@@ -34,6 +35,15 @@ where the box has a dead time the estimator has not seen yet. The blend (``senso
 tuning choice on the independent simulator's variants, docs/robustness.md sec. 2.3) overshoots the
 air for a few seconds at a step and hurries the reading. At rest air and reading agree, so
 offset-free tracking holds for both.
+
+The flow floor (``OcpSpec.heater_min_flow_m3s``, docs/robustness.md sec. 2.2): while the heater is
+on, the total volume flow stays at or above the heater's minimum flow. "On" is a switch, which no
+convex row holds; the row ``Q >= Q_min min(1, P / P_on)`` (``P`` the heater command, ``P_on``
+``OcpSpec.heater_on_w``) is a plain floor ``Q >= Q_min`` wherever the linearisation has the heater at
+``P_on`` or more and ``Q >= Q_min P / P_on`` (no floor with the heater off, the full floor from
+``P_on`` on) where it has it below. It is a hard row; where the first move cannot reach the floor
+within its rate limits (after a fallback, say) the real-time iteration asks of stage 0 only what that
+move can reach, and the blower raises the flow from stage 1 on.
 """
 
 from __future__ import annotations
@@ -64,6 +74,9 @@ STAGE_OUTPUTS = TRACKED + ("heater_power_w",)
 #: Default horizon: 25 stages covering 104 s, fine where the thermocouple (tau 5.73 s) and
 #: valve moves matter, coarse where only the heater body (tau ~90 s) and motor lag still move.
 DEFAULT_STAGES_S = (1.0,) * 8 + (2.0,) * 6 + (4.0,) * 5 + (8.0,) * 4 + (16.0,) * 2
+
+#: Unit of the flow-floor row: L/s per m3/s (rows of order one beside the others).
+FLOOR_SCALE = 1e3
 
 #: Offsets and scales of the states (degC): scaled value = (physical - offset) / scale.
 STATE_SCALING = {"motor_rise_c": (1.0, 1.0), "water_temp_c": (5.0, 5.0), "heater_temp_c": (40.0, 40.0),
@@ -97,6 +110,11 @@ class Weights:
     """Cost weights (per second of horizon unless said otherwise); tuning choices on the simulated
     plant (ASSUMPTIONS, nothing here comes from the thesis).
 
+    ``supply_temp`` 5 against ``volume_flow`` 2: supply temperature comes first (docs/robustness.md
+    sec. 1); where the heater is at its limit the flow is the only lever left, and the MPC gives up
+    flow for temperature down to the flow floor (``OcpSpec.heater_min_flow_m3s``; measured on the
+    quick mismatch suite, docs/robustness.md sec. 2.2).
+
     Residuals are divided by their scale first: temperature by 1 degC, flows by 1 L/s, electric
     power (blower plus heater) by 100 W. The energy term is a least-squares residual too: it
     prefers the least power among the actuator settings that track equally well (the redundant
@@ -105,7 +123,7 @@ class Weights:
     input between consecutive stages (per unit squared, not per s).
     """
 
-    supply_temp: float = 1.0
+    supply_temp: float = 5.0
     volume_flow: float = 2.0
     outlet_flow: float = 0.5
     energy_per_100w2: float = 5e-2
@@ -163,6 +181,14 @@ class OcpSpec:
             changes nothing in the plant, so the min has a zero gradient there and a Gauss-Newton
             iteration can sit at full command while the supply air is too warm (measured on the
             simulated plant). The estimator keeps the min (it sees what was really applied).
+        heater_min_flow_m3s: the flow floor while the heater is on (m3/s; None: no floor), a hard row
+            of stages 0..N-1 (module docstring). ASSUMPTION: the daemon's heater interlock
+            (``SafetyConfig.min_flow_m3s``, 0.004 m3/s = 14.4 m3/h) with 25 % margin for the model's
+            flow error; without it a heavy temperature weight trades the flow away without limit where
+            the temperature is out of reach (docs/robustness.md sec. 2.2). Stage 1 alone is not
+            enough: the first stage's flow, which the command applied sets, is what the box sees.
+        heater_on_w: heater command (W) from which the floor holds in full; below it the floor is
+            ``heater_min_flow_m3s * command / heater_on_w``.
     """
 
     stage_durations_s: tuple[float, ...] = DEFAULT_STAGES_S
@@ -178,6 +204,8 @@ class OcpSpec:
     trap_warm_c: float = 5.0
     model_effects: tuple[str, ...] = ("fan_curve", "valve_leakage", "bypass_flow")
     ptc_limit: bool = True
+    heater_min_flow_m3s: float | None = 0.005
+    heater_on_w: float = 10.0
 
     @property
     def temperature_sensor_share(self) -> float:
@@ -213,6 +241,9 @@ class OcpSpec:
             check_number(f"{prefix}.heater_temp_max_c", self.heater_temp_max_c, 20.0, 200.0)
         check_number(f"{prefix}.trap_margin_pct", self.trap_margin_pct, 0.0, 50.0)
         check_number(f"{prefix}.trap_warm_c", self.trap_warm_c, 0.0, 100.0)
+        if self.heater_min_flow_m3s is not None:
+            check_number(f"{prefix}.heater_min_flow_m3s", self.heater_min_flow_m3s, 0.0, 0.05)
+        check_number(f"{prefix}.heater_on_w", self.heater_on_w, 0.0, 1000.0, lo_open=True)
         if not isinstance(self.ptc_limit, bool):
             raise InvalidSettings(f"{prefix}.ptc_limit = {self.ptc_limit!r} must be True or False")
         unknown = sorted(set(self.model_effects) - set(MODEL_EFFECTS))
@@ -348,6 +379,11 @@ class TrackingProblem:
         ih = self.i_heater_cmd
         self.ptc_row_coef_u = float(self.u_sc[ih] / slope_w_per_k)
         self.ptc_row_bound = float(prm.ptc_zero_c - self.u_off[ih] / slope_w_per_k - self.x_off[self.i_heater])
+        # flow floor while the heater is on (module docstring), in L/s
+        self.floor = bool(spec.heater_min_flow_m3s)
+        self.floor_m3s = float(spec.heater_min_flow_m3s or 0.0)
+        self.floor_on_w = float(spec.heater_on_w)
+        self.floor_scale = FLOOR_SCALE
         w = spec.weights
         self.ny = len(STAGE_OUTPUTS)
         self.y_scale = np.array([1.0, 1e-3, 1e-3, 1e-3, 1e-3, 1.0])
@@ -400,6 +436,22 @@ class TrackingProblem:
         ``heater_x`` and scaled heater command ``heater_u`` of the same stage (CasADi or numpy; the
         QP of ``rti_osqp`` holds the same coefficients)."""
         return self.heater_row_coef * heater_x + self.ptc_row_coef_u * heater_u - self.ptc_row_bound
+
+    def floor_row(self, flow_m3s, heater_cmd_w):
+        """Flow-floor row, ``>= 0`` when kept (L/s), of the total flow and the heater command of one stage
+        (CasADi): ``Q - Q_min min(1, P / P_on)``."""
+        return self.floor_scale * (flow_m3s - self.floor_m3s * ca.fmin(1.0, heater_cmd_w / self.floor_on_w))
+
+    def floor_linearisation(self, heater_u) -> tuple[np.ndarray, np.ndarray]:
+        """The floor's heater part ``Q_min min(1, P / P_on)`` at scaled heater commands ``heater_u`` (numpy):
+        its value (m3/s) and its slope per scaled command (what :meth:`floor_row` gives CasADi's Jacobian)."""
+        ih = self.i_heater_cmd
+        p_w = self.u_off[ih] + self.u_sc[ih] * np.asarray(heater_u, float)
+        ratio = p_w / self.floor_on_w
+        below = ratio < 1.0
+        value = self.floor_m3s * np.where(below, ratio, 1.0)
+        slope = np.where(below, self.floor_m3s * self.u_sc[ih] / self.floor_on_w, 0.0)
+        return value, slope
 
     def command_bounds(self, u_prev_phys: np.ndarray, cap_a_pct: float = 100.0,
                        heater_temp_c: float | None = None) -> tuple[np.ndarray, np.ndarray]:

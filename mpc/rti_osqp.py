@@ -47,6 +47,10 @@ U_BLOWER = INPUTS.index("blower_power_w")
 #: Disturbance entries estimated by the EKF that enter the gradient without a new linearisation:
 #: the mixed-air offset and the flow offset.
 D_OFFSETS = [DISTURBANCES.index("mix_offset_c"), DISTURBANCES.index("flow_offset_m3s")]
+#: Margin (L/s) below the most stage 0's flow-floor row can reach within the first move's bounds, where
+#: that is below the floor (``RtiOsqpSolver._floor_bounds``): a bound on the edge of the feasible set is
+#: left to the QP solver's tolerance otherwise.
+FLOOR_TOLERANCE_LS = 0.01
 
 
 @dataclass
@@ -256,15 +260,23 @@ class RtiOsqpSolver:
             entries_const.append((self.r_ptc, k * nx + pb.i_heater, np.full(N - 1, pb.heater_row_coef)))
             entries_const.append((self.r_ptc, self.iu0 + k * nu + pb.i_heater_cmd, np.full(N - 1, pb.ptc_row_coef_u)))
             entries_const.append((self.r_ptc, self.is0 + k - 1, -np.ones(N - 1)))
+        # flow floor while the heater is on, stages 0..N-1 (L/s): the flow's Jacobian row over x_k, u_k
+        # (values from the QP data) and the heater command's slope of the floor (set per linearisation)
+        self.r_floor = rows + np.arange(N if pb.floor else 0)
+        rows += self.r_floor.size
         self.m = rows
         A.shape = (rows, n)
         self._A_var = A.add(dyn_r, dyn_c)  # values -[A_k B_k]
+        self._A_floor = A.add(np.repeat(self.r_floor[:, None], nzs, axis=1), cols[:self.r_floor.size])
         c_ids = [A.add(r, c) for r, c, _ in entries_const]
         A.finalise()
         self.A = A
         self._A_const = A.assemble(np.concatenate([i.ravel() for i in c_ids]),
                                    np.concatenate([v for _, _, v in entries_const]))
         self._A_var_slots = A.slot[self._A_var.ravel()]
+        self._A_floor_slots = A.slot[self._A_floor.ravel()]
+        self._floor_heater_slots = A.slot[self._A_floor[:, nx + pb.i_heater_cmd]]
+        self._floor_l = np.full(self.r_floor.size, -np.inf)
 
         # constant bounds
         self.l = np.zeros(rows)
@@ -278,6 +290,8 @@ class RtiOsqpSolver:
         self.u[self.r_slack] = np.inf
         self.l[self.r_ptc] = -np.inf
         self.u[self.r_ptc] = pb.ptc_row_bound
+        self.l[self.r_floor] = -np.inf
+        self.u[self.r_floor] = np.inf
         self.l[self.r_u] = pb.u_lo
         self.u[self.r_u] = pb.u_hi
         # constant part of the gradient: the slacks' L1 penalty
@@ -344,6 +358,9 @@ class RtiOsqpSolver:
         m_a = _selection(self._A_var_slots, self.A.nnz)
         Px = P0 + ca.mtimes(m_p, ca.vec(htri))
         Ax = A0 + ca.mtimes(m_a, ca.vec(ab))
+        if self.r_floor.size:  # the flow's Jacobian rows of stages 0..N-1, in L/s
+            g_flow = ca.horzcat(*[p[6] for p in parts])[:, :self.r_floor.size]
+            Ax += ca.mtimes(_selection(self._A_floor_slots, self.A.nnz), pb.floor_scale * ca.vec(g_flow))
         self.qp_data = ca.Function("hvac_qp_data", [X, U, d, SW, P0, A0, p], [Px, Ax, ca.vec(e_dyn), gw2, c_base, y],
                                    ["X", "U", "d", "SW", "P0", "A0", "p"],
                                    ["Px", "Ax", "e_dyn", "Gw2", "c_base", "y"])
@@ -401,7 +418,7 @@ class RtiOsqpSolver:
         gw2 = 2.0 * G * ca.repmat(sw, 1, self.nz_stage)
         H = ca.mtimes(G.T, gw2)
         htri = ca.vertcat(*[H[i, j] for i, j in zip(*self._triu)])
-        outs = [xn - ca.mtimes(AB, z), ca.vec(-AB.T), htri, ca.vec(gw2), r - ca.mtimes(G, z), y]
+        outs = [xn - ca.mtimes(AB, z), ca.vec(-AB.T), htri, ca.vec(gw2), r - ca.mtimes(G, z), y, G[Y_FLOW, :].T]
         # common subexpressions computed once (the Jacobians repeat much of the model): about
         # 40 % fewer operations, the same values
         return ca.Function(f"qp_{stage.name()}", [x, u, d, dt, sw, p], ca.cse(outs))
@@ -512,12 +529,41 @@ class RtiOsqpSolver:
 
     def _write(self, X, U, S, d, ref, w_y, Px, Ax, data) -> None:
         """Put a linearisation's values into OSQP and keep what the feedback needs."""
+        self._linearise_floor(U, Ax, data)
         self._core.update_matrices(Px, Ax)
         self._workspace_used = True
         self.l[self._r_dyn_flat] = data["e_dyn"]
         self.u[self._r_dyn_flat] = data["e_dyn"]
         self._prepared = dict(data=data, d=d.copy(), w_y=w_y.copy(), ref=np.array(ref, float))
         self._z_lin = np.concatenate([X.ravel(), U.ravel(), S])
+
+    def _linearise_floor(self, U: np.ndarray, Ax: np.ndarray, data: dict) -> None:
+        """The flow floor's rows at the linearisation (stages 0..N-1): the heater command's slope into
+        ``Ax``, the lower bound without the flow-offset change (:meth:`_floor_bounds` adds it), and stage
+        0's row coefficients."""
+        n = self.r_floor.size
+        if not n:
+            return
+        pb = self.pb
+        heater_u = U[:n, pb.i_heater_cmd]
+        value, slope = pb.floor_linearisation(heater_u)
+        Ax[self._floor_heater_slots] -= pb.floor_scale * slope
+        # flow = c_base + G z (the residual's constant part): G z - slope u >= floor - slope u_lin - c_base
+        c_flow = data["c_base"][:n, Y_FLOW]
+        self._floor_l = pb.floor_scale * (value - slope * heater_u - c_flow)
+        self._floor_a0 = Ax[self._A_floor_slots[:self.nz_stage]]
+
+    def _floor_bounds(self, d: np.ndarray, x0: np.ndarray, u_lo: np.ndarray, u_hi: np.ndarray) -> None:
+        """Lower bounds of the floor rows with the flow offset's change since the linearisation. Stage 0's
+        row asks no more than its first move can reach within that move's bounds (``u_lo[0]``, ``u_hi[0]``:
+        the rate limits from the command in force) from the estimate ``x0``, less FLOOR_TOLERANCE_LS,
+        where that is below the floor (after a fallback, say); the rows of stage 1 on hold it in full."""
+        if self.r_floor.size:
+            dd = d[D_OFFSETS[1]] - self._prepared["d"][D_OFFSETS[1]]
+            self.l[self.r_floor] = self._floor_l - self.pb.floor_scale * dd
+            a_x, a_u = self._floor_a0[:self.pb.nx], self._floor_a0[self.pb.nx:]
+            most = float(a_x @ x0 + np.maximum(a_u * u_lo[0], a_u * u_hi[0]).sum())
+            self.l[self.r_floor[0]] = min(self.l[self.r_floor[0]], most - FLOOR_TOLERANCE_LS)
 
     def prepare(self, x_pred: np.ndarray, u_prev: np.ndarray, d: np.ndarray, ref: np.ndarray,
                 w_y: np.ndarray) -> float:
@@ -570,6 +616,7 @@ class RtiOsqpSolver:
             if it > 0:
                 prep += self._relinearise(z, x0, d, ref, w_y, u_prev)
             q = self._q(ref, d, u_prev)
+            self._floor_bounds(d, x0, u_lo, u_hi)
             self._core.update_vectors(q, self.l, self.u)
             # primal: the shifted plan; dual: OSQP keeps the last QP's multipliers in its workspace
             # (measured on the solve-time loop when this was chosen: 5935 OSQP iterations in 240

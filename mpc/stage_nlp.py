@@ -8,7 +8,7 @@ variables sit:
 * ``"compact"`` (IPOPT, a general sparse solver): ``w = [x_0..x_N, u_0..u_N-1, s_1..s_N]``; the
   copy part of the augmented state is substituted (``xa_k = [x_k, u_{k-1}]``, ``u_{-1}`` the
   parameter ``u_prev``), the slacks of the soft rows are variables ``s_k >= 0``. Rows grouped by
-  kind: initial state, dynamics, rate, heater, PTC. These are the variables and rows of the real-time
+  kind: initial state, dynamics, rate, heater, PTC, flow floor. These are the variables and rows of the real-time
   iteration's QP (:mod:`hvac_mpc.mpc.rti_osqp`).
 * ``"stagewise"`` (fatrop, which needs every row within one stage): ``w = [xa_0, v_0, xa_1, ...,
   xa_N]`` with ``xa_k = [x_k, u_{k-1}, s_k]`` and ``v_k = [u_k, s_{k+1}]``: the slack, which fatrop
@@ -29,7 +29,7 @@ from .stage_ocp import StageOcp
 
 LAYOUTS = ("compact", "stagewise")
 #: Row groups in the order of the compact layout.
-ROW_GROUPS = ("x0", "dyn", "rate", "heater", "ptc")
+ROW_GROUPS = ("x0", "dyn", "rate", "heater", "ptc", "floor")
 
 
 class StageNlp:
@@ -135,7 +135,7 @@ class StageNlp:
             gap = (xa[k + 1] - ca.vertcat(f, self.w[self.i_slack_bound[k]]) if stagewise
                    else f[:nx] - xa[k + 1][:nx])
             out.append(("dyn", gap, np.zeros(gap.numel()), np.zeros(gap.numel())))
-        h = ocp.rows(k, xk, uk, sk)
+        h = ocp.rows(k, xk, uk, sk, self.d, pm)
         out += [(kind, h[sl], st.lh[sl], st.uh[sl]) for kind, sl in st.row_slices(ocp.nu).items()]
         return out
 

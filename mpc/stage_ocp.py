@@ -13,8 +13,10 @@ docs/architecture.md, 'The stage-wise description'. Built from a
   residual ``y(x_N, u_{N-1})`` with ``T_term w_y / s^2``;
 * **constraint rows** ``lh <= h(xa, u) <= uh`` per stage (:class:`Stage`): the rate limits
   ``u_k - u_{k-1}`` (k >= 1; stage 0's are in its input bounds, exact in the valve angle), the
-  heater-body row of ``x_k`` (k >= 1, and the terminal stage) and the PTC row of ``x_k`` and the
-  heater command ``u_k`` (k = 1..N-1). Rows marked **soft** relax their upper bound by the stage's
+  heater-body row of ``x_k`` (k >= 1, and the terminal stage), the PTC row of ``x_k`` and the
+  heater command ``u_k`` (k = 1..N-1) and the flow floor while the heater is on (k = 0..N-1, hard,
+  ``TrackingProblem.floor_row``: the total flow of ``x_k``, ``u_k`` with the disturbances and the
+  model parameters, and the heater command). Rows marked **soft** relax their upper bound by the stage's
   one slack ``s_k >= 0`` at the cost ``l1_k s_k + l2_k s_k^2``; a solver that holds soft
   constraints takes them as they are, the transcriptions for IPOPT and fatrop
   (:mod:`hvac_mpc.mpc.stage_nlp`) add the slack as a variable;
@@ -40,7 +42,7 @@ from hvac_mpc.models.box import INPUTS
 from .ocp import STAGE_OUTPUTS, TrackingProblem
 
 #: Constraint rows a stage may carry, in the order of its ``h``.
-ROW_KINDS = ("rate", "heater", "ptc")
+ROW_KINDS = ("rate", "heater", "ptc", "floor")
 
 
 @dataclass(frozen=True)
@@ -53,8 +55,8 @@ class Stage:
         dt_s: duration (s; the terminal stage repeats the last one, unused).
         substeps: RK4 substeps of the dynamics.
         rows: constraint row kinds (:data:`ROW_KINDS`), each ``nu`` rows for ``rate``, one otherwise.
-        h: CasADi function of the rows, ``(xa, u) -> h`` (terminal: ``(xa) -> h``).
-        lh, uh: bounds of the rows (scaled units; degC for the heater and PTC rows).
+        h: CasADi function of the rows, ``(xa, u, d, p) -> h`` (terminal: ``(xa, d, p) -> h``).
+        lh, uh: bounds of the rows (scaled units; degC for the heater and PTC rows, L/s for the floor).
         soft: per row, True where the stage's slack relaxes the upper bound.
         slack_l1, slack_l2: cost of the stage's slack per degC and degC^2 (0 without soft rows).
         cost_s: the residual weights' time factor: ``dt_s``, or ``T_term`` at the terminal stage.
@@ -137,8 +139,10 @@ class StageOcp:
                                              ["xa", "d", "p"], ["r_e"])
         heater = pb.heater_row_coef * x[pb.i_heater]
         ptc = heater + pb.ptc_row_coef_u * u[pb.i_heater_cmd]  # TrackingProblem.ptc_row, its bound apart
-        self._row_expr = {"rate": u - u_prev, "heater": heater, "ptc": ptc}
-        self._row_sym = (xa, u)
+        ih = pb.i_heater_cmd
+        floor = pb.floor_row(y[STAGE_OUTPUTS.index("volume_flow_m3s")], pb.u_off[ih] + pb.u_sc[ih] * u[ih])
+        self._row_expr = {"rate": u - u_prev, "heater": heater, "ptc": ptc, "floor": floor}
+        self._row_sym = (xa, u, d, p)
 
     def _stage(self, k: int) -> Stage:
         pb, N, nu = self.problem, self.N, self.nu
@@ -150,18 +154,22 @@ class StageOcp:
             rows.append("heater")
         if pb.ptc_limit and 1 <= k <= N - 1:
             rows.append("ptc")
+        if pb.floor and k <= N - 1:
+            rows.append("floor")
         rb = pb.rate_bounds()
         lh, uh, soft = [], [], []
         for kind in rows:
             if kind == "rate":
                 lh.append(-rb[k - 1]), uh.append(rb[k - 1]), soft.append(np.zeros(nu, bool))
+            elif kind == "floor":
+                lh.append([0.0]), uh.append([np.inf]), soft.append([False])
             else:
                 bound = pb.heater_row_bound if kind == "heater" else pb.ptc_row_bound
                 lh.append([-np.inf]), uh.append([bound]), soft.append([True])
-        xa, u = self._row_sym
+        xa, u, d, p = self._row_sym
         expr = ca.vertcat(*[self._row_expr[kind] for kind in rows]) if rows else ca.SX(0, 1)
-        h = (ca.Function(f"h{k}", [xa], [expr], ["xa"], ["h"]) if terminal
-             else ca.Function(f"h{k}", [xa, u], [expr], ["xa", "u"], ["h"]))
+        h = (ca.Function(f"h{k}", [xa, d, p], [expr], ["xa", "d", "p"], ["h"]) if terminal
+             else ca.Function(f"h{k}", [xa, u, d, p], [expr], ["xa", "u", "d", "p"], ["h"]))
         soft_rows = _concat(soft, bool)
         dt = float(pb.dt[min(k, N - 1)])
         slack_dt = float(pb.dt[k - 1]) if soft_rows.any() else 0.0  # s_k weighs dt_{k-1}
@@ -204,10 +212,11 @@ class StageOcp:
             cost += st.slack_l1 * slack + st.slack_l2 * slack * slack
         return cost
 
-    def rows(self, k: int, xa, u, slack=0.0):
-        """Rows of stage k with the soft ones relaxed by ``slack``: ``lh <= h - soft * slack <= uh``."""
+    def rows(self, k: int, xa, u, slack, d, p):
+        """Rows of stage k with the soft ones relaxed by ``slack``: ``lh <= h - soft * slack <= uh``
+        (``d`` the disturbances, ``p`` the model parameters)."""
         st = self.stages[k]
-        h = st.h(xa) if st.terminal else st.h(xa, u)
+        h = st.h(xa, d, p) if st.terminal else st.h(xa, u, d, p)
         if st.has_slack:
             h = h - ca.DM(st.soft.astype(float)) * slack
         return h
@@ -223,7 +232,7 @@ class StageOcp:
         return {"description": "StageOcp", "stages": self.N, "stage_durations_s": pb.dt.tolist(),
                 "model_effects": list(pb.spec.model_effects), "augmented_state": "[x, u_prev]",
                 "nx": self.nx, "nxa": self.nxa, "nu": self.nu, "stage_rows": kinds,
-                "soft_rows": "heater, ptc (one slack per stage, l1 + l2)",
+                "soft_rows": "heater, ptc (one slack per stage, l1 + l2)", "hard_rows": "rate, floor",
                 "cost": "nonlinear least squares (outputs, electric power, move)"}
 
 

@@ -228,7 +228,9 @@ def test_mpc_with_the_duct_loss_term_tracks_the_box_with_the_loss_better():
     nominal = closed_loop_iae(sc, MpcController(settings=settings), "duct_loss", seed=0)
     better = closed_loop_iae(sc, MpcController(settings=settings, model=refined), "duct_loss", seed=0)
     assert better["temp_iae_cs"] < 0.85 * nominal["temp_iae_cs"], (better, nominal)
-    assert better["flow_iae_m3"] < 1.1 * nominal["flow_iae_m3"], (better, nominal)
+    # temperature first (Weights.supply_temp 5 against the flow's 2): the better model gives up a little more
+    # flow for a temperature error half the nominal's (1.20 times the flow IAE measured, 1.1 with weight 1)
+    assert better["flow_iae_m3"] < 1.3 * nominal["flow_iae_m3"], (better, nominal)
 
 
 def test_mpc_takes_the_refined_model_without_breaking_its_signature():

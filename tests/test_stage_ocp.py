@@ -63,8 +63,9 @@ def test_every_coupling_term_lives_within_one_stage(ocp):
     hess = ca.hessian(nlp.f, nlp.w)[0].sparsity()
     hr, hc = hess.get_triplet()
     assert all(stage_of[i] == stage_of[j] for i, j in zip(hr, hc))
-    assert ocp.stages[0].rows == () and ocp.stages[-1].rows == ("heater",)
-    assert ocp.stages[1].rows == ("rate", "heater", "ptc") and all(ocp.stages[1].soft == [False] * 6 + [True] * 2)
+    assert ocp.stages[0].rows == ("floor",) and ocp.stages[-1].rows == ("heater",)
+    assert ocp.stages[1].rows == ("rate", "heater", "ptc", "floor")
+    assert ocp.stages[1].soft.tolist() == [False] * 6 + [True] * 2 + [False]
 
 
 def test_both_layouts_have_the_tracking_problems_exact_cost(pb, ocp):
@@ -102,19 +103,22 @@ class _Recorder:
         return getattr(self.core, name)
 
 
-@pytest.mark.parametrize("lm", [0.0, 0.1])
-def test_the_rti_solves_the_gauss_newton_qp_of_the_description(pb, ocp, lm):
+@pytest.mark.parametrize("lm, heater_w", [(0.0, 0.0), (0.1, 0.0), (0.1, 120.0)])
+def test_the_rti_solves_the_gauss_newton_qp_of_the_description(pb, ocp, lm, heater_w):
     """At the RTI's linearisation point the QP handed to OSQP is the Gauss-Newton QP of the stage-wise
     description (compact layout, the same variables) plus the Levenberg-Marquardt term, to 1e-9: on a
     cold start (the rollout of the last command) and on the next step (the shifted plan, another
-    reference)."""
-    x0, u_prev, d, ref, w_y, lo, hi = _state(pb)
+    reference); with the heater off (the flow floor's slope in the heater command) and on (the plain
+    floor)."""
+    x0, u_prev, d, ref, w_y, lo, hi = _state(pb, Command(160.0, heater_w, 40.0, 90.0, 60.0, 50.0))
     rti = RtiOsqpSolver(pb, lm_inputs=lm)
     rti._core = rec = _Recorder(rti._core)
     nlp = StageNlp(ocp, "compact")
     res = rti.feedback(x0, u_prev, d, ref, w_y, lo, hi)
     assert res.ok
     _assert_same_qp(rti, rec.qp, nlp, (x0, u_prev, d, ref, w_y, lo, hi), lm)
+    heater_col = rti.A.matrix(rec.qp["Ax"]).toarray()[rti.r_floor][:, nlp.iu[:, pb.i_heater_cmd]].diagonal()
+    assert (np.abs(heater_col) > 1.0).all() if heater_w == 0.0 else (heater_col == 0.0).all()
     warm = Reference(24.0, 0.045)
     x1, u0 = res.X[1], res.U[0]
     ref1, w_y1 = pb.reference_vector(warm), pb.output_weights(warm)
@@ -147,7 +151,7 @@ def _assert_same_qp(rti, qp, nlp, data, lm):
     big = 1e20  # OSQP's infinity stands for inf
     pairs = [(rti.r_x0, nlp.rows["x0"], 1.0), (rti.r_dyn.ravel(), nlp.rows["dyn"].ravel(), -1.0),
              (rti.r_rate.ravel(), nlp.rows["rate"], 1.0), (rti.r_soft, nlp.rows["heater"], 1.0),
-             (rti.r_ptc, nlp.rows["ptc"], 1.0)]
+             (rti.r_ptc, nlp.rows["ptc"], 1.0), (rti.r_floor, nlp.rows["floor"], 1.0)]
     for r_rti, r_gn, sign in pairs:
         assert len(r_rti) == len(r_gn) > 0
         assert np.abs(A[r_rti] - sign * gn["A"][r_gn]).max() <= 1e-9
