@@ -109,8 +109,8 @@ class Weights:
     (towards closed, :meth:`TrackingProblem.heating_weights`). At rest heating has a free direction: the air
     takes k_p times the heater's power whatever valve a's share, so valve a and the heater body's temperature
     trade without changing the supply temperature or the energy, and where the MPC ends up depended on the
-    path: after a step down it had drawn on the body's stored heat and sat at valve a's cap with a body a
-    few degrees above the air, so the next step up waited for the body (docs/identification.md, "The
+    path: after a step it had drawn on the body's stored heat and sat at valve a's cap with the body cooled
+    (27 C against 29-39 C), so the next step up waited for the body (docs/identification.md, "The
     refined model in the controller"). Valve a low holds the body as hot as the heat demand allows, with the
     heater's air far above the bypass air: valve a then moves the supply temperature fast either way and the
     body holds heat for a step up. 3e-5 weighs valve a at 50 % like 0.27 degC of supply error, which the free
