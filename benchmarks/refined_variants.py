@@ -6,7 +6,7 @@
 For each variant of the independent box (:mod:`hvac_mpc.mismatch`): a 2 h, 1 Hz open-loop log
 (seeded) is identified as ``hvac-mpc identify`` does, the model file written, and the MPC with it
 run against the MPC with the nominal model on the same variant, through every bench scenario
-(quick versions) with the same noise seed (:func:`hvac_mpc.benchmarks.refined_model.compare`, what
+(quick versions unless ``--full``) with the same noise seed (:func:`hvac_mpc.benchmarks.refined_model.compare`, what
 ``hvac-mpc bench --model FILE --model-plant VARIANT`` adds to its report). Printed per variant:
 what was added, held-out supply RMS before and after, thermocouple and flow IAE of both MPCs.
 
@@ -41,14 +41,16 @@ DEFAULT_VARIANTS = ("delay_3s", "duct_loss", "cooler_literal", "ptc_fall", "bypa
 CASES = {"ptc_fall": ("nominal", ("fan_curve", "valve_leakage"))}
 
 
-def run_one(name: str, folder: Path, seed: int, duration_s: float, scenario_names: list[str] | None) -> dict:
-    """Log, identification, model file and closed-loop comparison of one variant."""
+def run_one(name: str, folder: Path, seed: int, duration_s: float, scenario_names: list[str] | None,
+            quick: bool = True) -> dict:
+    """Log, identification, model file and closed-loop comparison of one variant (``quick``: the scenarios'
+    quick versions, their first segments only)."""
     variant, effects = CASES.get(name, (name, DOCUMENTED_EFFECTS))
     path = folder / f"{name}.csv"
     simulate_log(path, variant, duration_s=duration_s, seed=seed)
     res = identify(log_data.load(path), Parameters(), effects)
     model = write_model_file(folder / f"{name}.toml", res.params, res.effects, res.extras, res.terms, res.absent)
-    cmp = compare(model, variant, scenarios.select(scenario_names, quick=True), seed=0, attribution=True)
+    cmp = compare(model, variant, scenarios.select(scenario_names, quick=quick), seed=0, attribution=True)
     e = res.holdout_errors()["supply_temp_c"]
     return {"case": name, "variant": variant, "added": [a.name for a in res.accepted], "absent": list(res.absent),
             "terms": [t.formula() for t in res.terms], "term_words": [t.description for t in res.terms],
@@ -61,6 +63,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--variant", action="append", default=None,
                         help=f"case (repeatable; default {', '.join(DEFAULT_VARIANTS)})")
     parser.add_argument("--scenario", action="append", default=None, help="bench scenario (default: all, quick)")
+    parser.add_argument("--full", action="store_true",
+                        help="the scenarios' full versions (default: quick, the first segments only; in "
+                             "winter_heating_steps two steps up)")
     parser.add_argument("--duration", type=float, default=7200.0, help="log length, s (default 7200)")
     parser.add_argument("--seed", type=int, default=5, help="seed of the identification log (default 5)")
     parser.add_argument("--json", type=Path, default=None, help="write the results here")
@@ -68,14 +73,16 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.variant or DEFAULT_VARIANTS:
-            r = run_one(name, Path(tmp), args.seed, args.duration, args.scenario)
+            r = run_one(name, Path(tmp), args.seed, args.duration, args.scenario, quick=not args.full)
             rows.append(r)
             t = r["comparison"]["total"]
             print(f"{name:26s} added {r['added'] + r['terms'] or ['nothing']}", flush=True)
             print(f"{'':26s} held-out supply RMS {r['supply_rms_before']:.3f} -> {r['supply_rms_after']:.3f} C; "
                   f"thermocouple IAE nominal {t['nominal']['temp_iae_cs']:.1f}, refined {t['refined']['temp_iae_cs']:.1f} "
                   f"C s (ratio {t['ratio']:.3f}); flow IAE {t['nominal']['flow_iae_m3']:.2f} / "
-                  f"{t['refined']['flow_iae_m3']:.2f} m3", flush=True)
+                  f"{t['refined']['flow_iae_m3']:.2f} m3; whole runs (warm-up included) "
+                  f"{t['nominal']['run_temp_iae_cs']:.1f} / {t['refined']['run_temp_iae_cs']:.1f} C s "
+                  f"(ratio {t['run_ratio']:.3f})", flush=True)
             print(f"{'':26s} absent {r['absent'] or ['nothing']}; both MPCs without them: thermocouple IAE nominal "
                   f"{t['nominal_as_identified']['temp_iae_cs']:.1f}, refined {t['refined_as_identified']['temp_iae_cs']:.1f} "
                   f"C s (ratio {t['ratio_as_identified']:.3f})", flush=True)

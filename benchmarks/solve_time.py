@@ -101,11 +101,13 @@ def stage_cost(problem: TrackingProblem, truth: dict[str, float], reference: Ref
     share = problem.spec.temperature_sensor_share
     temp = (1.0 - share) * truth["supply_air_temp_c"] + share * truth["supply_temp_c"]
     y = np.array([temp, truth["volume_flow_m3s"], truth["flow_m_m3s"], truth["flow_f_m3s"],
-                  truth["flow_w_m3s"], truth["heater_power_w"]])
+                  truth["flow_w_m3s"], truth["heater_power_w"], command[problem.i_valve_a]])
     e = (y - problem.reference_vector(reference)) / problem.y_scale
-    c = problem.output_weights(reference) * e * e
+    heating = previous[problem.i_heater_cmd] > 1.0  # the controller's test, on the command in force before
+    c = problem.heating_weights(problem.output_weights(reference), heating) * e * e
     du = problem.scale_u(command) - problem.scale_u(previous)
     return {"temperature": float(c[0]), "flow": float(c[1]), "outlets": float(c[2:5].sum()),
+            "valve_a_heating": float(c[6]),
             "energy": float(problem.energy_weight * ((command[0] + truth["heater_power_w"])
                                                       / problem.energy_scale_w) ** 2),
             "moves": float(np.sum(problem.w_du * du * du))}
@@ -131,7 +133,7 @@ def closed_loop(name: str, make: Callable[[], MpcController], steps: int, seed: 
     plant.settle(INITIAL)
     ctrl.reset(plant.command)
     previous = plant.command.vector()
-    cost = {"temperature": 0.0, "flow": 0.0, "outlets": 0.0, "energy": 0.0, "moves": 0.0}
+    cost = {"temperature": 0.0, "flow": 0.0, "outlets": 0.0, "energy": 0.0, "moves": 0.0, "valve_a_heating": 0.0}
     times, cpu, iters, solves, fallbacks, statuses = [], [], [], [], 0, {}
     for k in range(steps):
         ref = reference_at(k * plant.dt_s, scenario)

@@ -20,7 +20,9 @@ The discrete problem (scaled variables ``x = (x_phys - x_off) / x_sc``, likewise
          Q(x_k, u_k) >= Q_min min(1, heater_cmd_k / P_on),  k = 0..N-1      (flow floor, heater_min_flow_m3s)
 
 Tracked outputs ``y``: supply temperature, total volume flow, outlet flows m, f, w (outlet
-weights are zero when the reference leaves the split free); ``P_heater_el`` is the model's
+weights are zero when the reference leaves the split free) and, while the heater is on, valve a's
+opening against 0 % (``Weights.valve_a_heating_per_pct2``: the heater body carries the heat, valve a
+keeps its authority); ``P_heater_el`` is the model's
 electric heater power (PTC fall included when the model has it). The valves m, f, w are
 decided as openings (:mod:`hvac_mpc.mpc.valve_map`); their plan-stage rate limit is on the
 opening (:meth:`TrackingProblem.rate_bounds`), the applied move's on the angle.
@@ -68,8 +70,9 @@ from .valve_map import VALVE_NAMES, ValveMap
 #: Tracked outputs (model output names) in the order of the residual vector; the first is
 #: replaced by ``supply_temp_c`` when the sensor reading is tracked.
 TRACKED = ("supply_air_temp_c", "volume_flow_m3s", "flow_m_m3s", "flow_f_m3s", "flow_w_m3s")
-#: Stage-function outputs: the tracked ones plus the electric heater power for the energy term.
-STAGE_OUTPUTS = TRACKED + ("heater_power_w",)
+#: Stage-function outputs: the tracked ones plus the electric heater power for the energy term and valve a's
+#: opening, penalised while heating (:attr:`Weights.valve_a_heating_per_pct2`).
+STAGE_OUTPUTS = TRACKED + ("heater_power_w", "valve_a_pct")
 
 #: Default horizon: 25 stages covering 104 s, fine where the thermocouple (tau 5.73 s) and
 #: valve moves matter, coarse where only the heater body (tau ~90 s) and motor lag still move.
@@ -121,6 +124,20 @@ class Weights:
     blower/outlet-valve and valve a/heater directions) and, unlike a linear term, gives the
     Gauss-Newton Hessian curvature along those directions. ``move_*`` penalise the change of an
     input between consecutive stages (per unit squared, not per s).
+
+    ``valve_a_heating_per_pct2`` (per %^2 per s): while the heater is on, valve a's opening is penalised
+    (towards closed, :meth:`TrackingProblem.heating_weights`). At rest heating has a free direction: the air
+    takes k_p times the heater's power whatever valve a's share, so valve a and the heater body's temperature
+    trade without changing the supply temperature or the energy, and where the MPC ends up depended on the
+    path: after a step it had drawn on the body's stored heat and sat at valve a's cap with the body cooled
+    (27 C against 29-39 C), so the next step up waited for the body (docs/identification.md, "The
+    refined model in the controller"). Valve a low holds the body as hot as the heat demand allows, with the
+    heater's air far above the bypass air: valve a then moves the supply temperature fast either way and the
+    body holds heat for a step up. 3e-5 weighs valve a at 50 % like 0.27 degC of supply error, which the free
+    direction lets the body take instead; the PTC fall and the soft heater limit bound it. ASSUMPTION, chosen
+    on winter_heating_steps over variants of the mismatch suite (3e-5 and 5e-5 about equal and best of 3e-5,
+    5e-5, 1e-4, 3e-4; from 5e-5 on a step up at 40 m3/h overshoots by 0.5 C while valve a closes,
+    docs/identification.md).
     """
 
     supply_temp: float = 5.0
@@ -133,6 +150,7 @@ class Weights:
     terminal_s: float = 16.0
     slack_l1_per_c: float = 5.0
     slack_l2_per_c2: float = 1.0
+    valve_a_heating_per_pct2: float = 3e-5
 
     def validate(self, prefix: str = "weights") -> None:
         for f in fields(self):
@@ -386,8 +404,9 @@ class TrackingProblem:
         self.floor_scale = FLOOR_SCALE
         w = spec.weights
         self.ny = len(STAGE_OUTPUTS)
-        self.y_scale = np.array([1.0, 1e-3, 1e-3, 1e-3, 1e-3, 1.0])
-        self.w_y_full = np.array([w.supply_temp, w.volume_flow, w.outlet_flow, w.outlet_flow, w.outlet_flow, 0.0])
+        self.y_scale = np.array([1.0, 1e-3, 1e-3, 1e-3, 1e-3, 1.0, 1.0])
+        self.w_y_full = np.array([w.supply_temp, w.volume_flow, w.outlet_flow, w.outlet_flow, w.outlet_flow, 0.0, 0.0])
+        self.valve_a_heating_weight = w.valve_a_heating_per_pct2
         # move weights per unit^2 of the command; for the valve openings per (1 % of opening)^2
         move = np.array([w.move_blower_per_w2, w.move_heater_per_w2] + [w.move_valve_per_pct2] * 4)
         unit = np.where(self.valve_mask, self.u_sc * 100.0, self.u_sc)
@@ -510,9 +529,15 @@ class TrackingProblem:
 
     @staticmethod
     def reference_vector(reference: Reference) -> np.ndarray:
-        """Reference of the stage outputs (physical units; 0 where not tracked)."""
+        """Reference of the stage outputs (physical units; 0 where not tracked, valve a's 0 % included)."""
         split = reference.split or (0.0, 0.0, 0.0)
-        return np.array([reference.supply_temp_c, reference.volume_flow_m3s, *split, 0.0])
+        return np.array([reference.supply_temp_c, reference.volume_flow_m3s, *split, 0.0, 0.0])
+
+    def heating_weights(self, w_y: np.ndarray, heating: bool) -> np.ndarray:
+        """``w_y`` with valve a's weight (:attr:`Weights.valve_a_heating_per_pct2`) on while ``heating`` (the heater
+        commanded), off otherwise."""
+        w_y[STAGE_OUTPUTS.index("valve_a_pct")] = self.valve_a_heating_weight if heating else 0.0
+        return w_y
 
     # ------------------------------------------------------------------ CasADi
     def _stage_function(self, substeps: int) -> ca.Function:
@@ -543,7 +568,7 @@ class TrackingProblem:
         # with no delay)
         temp = ((1.0 - share) * y_all[m.outputs.index("duct_air_temp_c")]
                 + share * y_all[m.outputs.index("supply_temp_c")])
-        y = ca.vertcat(temp, *[y_all[m.outputs.index(n)] for n in STAGE_OUTPUTS[1:]])
+        y = ca.vertcat(temp, *[y_all[m.outputs.index(n)] for n in STAGE_OUTPUTS[1:-1]], u_phys[self.i_valve_a])
         out = ca.densify(ca.vertcat(xn, ca.vec(ca.jacobian(xn, xs)), ca.vec(ca.jacobian(xn, us)), y,
                                     ca.vec(ca.jacobian(y, xs)), ca.vec(ca.jacobian(y, us))))
         return ca.Function(f"stage{substeps}_p", [xs, us, d, dt, p], [out], ["x", "u", "d", "dt", "p"], ["out"])

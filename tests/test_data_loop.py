@@ -233,6 +233,28 @@ def test_mpc_with_the_duct_loss_term_tracks_the_box_with_the_loss_better():
     assert better["flow_iae_m3"] < 1.3 * nominal["flow_iae_m3"], (better, nominal)
 
 
+@pytest.mark.slow
+def test_a_delay_in_the_model_file_spares_the_mpc_the_online_search():
+    """The independent box with a 3 s transport delay (``delay_3s``), the MPC with a model file that names the
+    delay (the thesis parameters otherwise) against the nominal MPC, which finds the dead time online: over the
+    whole run, the unscored warm-up included, the file's delay removes the search's transient (measured 65.5
+    against 83.8 C s with the identified file, docs/identification.md); on the scored part the two are level."""
+    from hvac_mpc.benchmarks import scenarios
+    from hvac_mpc.benchmarks.refined_model import closed_loop_iae
+    from hvac_mpc.mpc.mpc_controller import MpcSettings
+
+    refined = RefinedModel(Parameters().replace(transport_delay_s=3.0), ("ptc_power_fall", "fan_curve", "valve_leakage"),
+                           absent=("bypass_flow",))
+    sc = scenarios.select(["summer_cooling_steps"], quick=True)[0]
+    settings = MpcSettings(initial_command=sc.initial_command)
+    nominal = closed_loop_iae(sc, MpcController(settings=settings), "delay_3s", seed=0)
+    known = closed_loop_iae(sc, MpcController(settings=settings, model=refined), "delay_3s", seed=0)
+    for r in (nominal, known):
+        assert r["run_temp_iae_cs"] > r["temp_iae_cs"] > 0.0, r  # the warm-up adds its error to the scored part
+    assert known["run_temp_iae_cs"] < 0.9 * nominal["run_temp_iae_cs"], (known, nominal)
+    assert known["temp_iae_cs"] < 1.06 * nominal["temp_iae_cs"], (known, nominal)
+
+
 def test_mpc_takes_the_refined_model_without_breaking_its_signature():
     refined = RefinedModel(Parameters().replace(tau_tc_s=7.0), ("ptc_power_fall", "fan_curve", "motor_asymmetry"),
                            (LOSS_TERM,))

@@ -104,7 +104,8 @@ def test_a_solve_that_would_overrun_the_deadline_falls_back_and_the_next_ones_so
         plant.apply(res.command)
         plant.advance()
     # no time left when the feedback starts: no QP is started, the shifted plan stands in
-    res = ctrl.solver.feedback(np.zeros(ctrl.problem.nx), np.zeros(6), np.zeros(4), np.zeros(6), np.ones(6),
+    res = ctrl.solver.feedback(np.zeros(ctrl.problem.nx), np.zeros(6), np.zeros(4), np.zeros(ctrl.problem.ny),
+                               np.ones(ctrl.problem.ny),
                                -np.ones((ctrl.problem.N, 6)), np.ones((ctrl.problem.N, 6)), time_limit_s=1e-12)
     assert not res.ok and res.status == "deadline" and res.qp_solves == 0
     ctrl.solver.reset()
