@@ -144,7 +144,7 @@ class RtiOsqpSolver:
     def __init__(self, problem: TrackingProblem, *, eps: float = 1e-4, max_iter: int = 400,
                  sqp_max_iter: int = 1, sqp_tol: float = 1e-3, check_termination: int = 5,
                  lm_inputs: np.ndarray | float = 0.0, cold_start_qps: int = 1, reference_change_qps: int = 1,
-                 codegen: bool = False, scaling: int = 4, alpha: float = 1.6, check_dualgap: bool = False,
+                 codegen: bool = False, scaling: int = 10, alpha: float = 1.6, check_dualgap: bool = True,
                  first_pass_iter: int = 0, accept_max_iter: bool = False):
         self.pb = pb = problem
         # OSQP status values taken as an answer: solved, solved inaccurate (and maximum iterations reached)
