@@ -177,7 +177,14 @@ def ratio_band(mpc: Mapping, baseline: Mapping) -> tuple[float, tuple[float, flo
         return None
     delta = (em + mpc["errors"] - bm) / den - em / eb
     lo, hi = np.percentile(delta, BAND_PERCENTILES)
-    return max(rho, 0.0), (max(rho - hi, 0.0) if mpc["resolved"] else 0.0, max(rho - lo, 0.0))
+    if mpc["resolved"]:
+        return max(rho, 0.0), (max(rho - hi, 0.0), max(rho - lo, 0.0))
+    # unresolved: the bias correction may take the MPC's estimate below 0 and the paired band with it; the
+    # band's top is then the MPC's highest IAE over the baseline's lowest, and where that is 0 too the log
+    # bounds nothing (the band is [0, inf), not a claim that the ratio is 0)
+    top = mpc["band"][1] / baseline["band"][0] if baseline["band"][0] > 0 else math.inf
+    top = max(rho - lo, top)
+    return max(rho, 0.0), (0.0, top if top > 0 else math.inf)
 
 
 def sum_band(values, dt_s: float, sigma: float, scale: float = 1.0) -> tuple[float, tuple[float, float]]:

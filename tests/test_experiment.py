@@ -133,14 +133,15 @@ def test_two_experiments_and_a_report_give_the_bench_ratios(tmp_path, capsys):
     aware = rep["noise_aware"]
     for fig in ("temp_iae_cs", "flow_iae_m3", "energy_wh"):
         lo, hi = aware[fig]["band"]
+        hi = math.inf if hi is None else hi  # JSON has no infinity: a band the log does not bound above
         assert lo <= ref["ratios"][fig] <= hi, (fig, aware[fig]["band"], ref["ratios"][fig])
     assert (aware["temp_iae_cs"]["band"][1] - aware["temp_iae_cs"]["band"][0]
             <= MAX_BAND_WIDTH["temp_iae_cs"] * ref["ratios"]["temp_iae_cs"])
     assert aware["energy_wh"]["band"][1] - aware["energy_wh"]["band"][0] <= MAX_BAND_WIDTH["energy_wh"]
-    # the MPC's flow error here is below the flow sensor's noise floor: the band starts at 0, and its
-    # upper end still says which controller tracks the flow better
+    # the MPC's flow error here is below the flow sensor's noise floor: the band starts at 0 (its upper end
+    # is not bounded by this log since the faster valves: README, Known gaps)
     assert not aware["flow_iae_m3"]["mpc"]["resolved"] and aware["flow_iae_m3"]["baseline"]["resolved"]
-    assert aware["flow_iae_m3"]["band"][1] < 1.0
+    assert aware["flow_iae_m3"]["band"][0] == 0.0
     assert "noise floor" in text
     assert [c["status"] for c in rep["criteria"]][0] == [c["status"] for c in ref["criteria"]][0]
 

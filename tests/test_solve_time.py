@@ -71,7 +71,7 @@ def test_benchmark_runs_all_contenders_side_by_side_and_writes_json(tmp_path, ca
         assert r["settings"]["description"].startswith("StageOcp")
     shared = data["shared_description"]
     assert shared["all_share"] is True and set(shared["solvers"]) == set(names)
-    assert shared["problem"]["stage_rows"] == {"rate": 24, "heater": 25, "ptc": 24}
+    assert shared["problem"]["stage_rows"] == {"rate": 24, "heater": 25, "ptc": 24, "floor": 25}
     rti = data["results"][0]
     assert rti["settings"]["qp_solver"] == "osqp" and rti["settings"]["compiled"] is True, rti["codegen"]
     assert data["results"][1]["settings"]["compiled"] is False  # IPOPT interpreted without --jit
