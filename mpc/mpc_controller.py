@@ -426,7 +426,7 @@ class MpcController:
         heater_c = float(self.ekf.x[pb.i_heater])
         u_lo, u_hi = pb.input_bounds(self.u_prev, cap, heater_c)
         y_ref = self._tracked_reference(ref, d, cap)
-        w_y = pb.heating_weights(pb.output_weights(ref), heating=self.u_prev[pb.i_heater_cmd] > 1.0)
+        w_y = pb.heating_weights(pb.output_weights(ref), heating=pb.heating(self.u_prev))
         self._flow_factor = self._flow_weight_factor(y_ref, d)
         w_y[1:5] *= self._flow_factor
         # --- feedback
@@ -581,7 +581,7 @@ class MpcController:
                healthy: bool | None = None) -> dict[str, Any]:
         """The step's statistics (names in the module docstring); ``healthy``: the estimator's state
         is known to be finite (checked when None)."""
-        heating = self.u_prev[self.problem.i_heater_cmd] > 1.0
+        heating = self.problem.heating(self.u_prev)
         stats = {
             "step_time_s": time.perf_counter() - t0,
             "prep_time_s": prep,

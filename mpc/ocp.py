@@ -80,6 +80,8 @@ DEFAULT_STAGES_S = (1.0,) * 8 + (2.0,) * 6 + (4.0,) * 5 + (8.0,) * 4 + (16.0,) *
 
 #: Unit of the flow-floor row: L/s per m3/s (rows of order one beside the others).
 FLOOR_SCALE = 1e3
+#: Heater command (W) above which the controller is heating (valve a's heating weight, the step's mode).
+HEATING_CMD_W = 1.0
 
 #: Offsets and scales of the states (degC): scaled value = (physical - offset) / scale.
 STATE_SCALING = {"motor_rise_c": (1.0, 1.0), "water_temp_c": (5.0, 5.0), "heater_temp_c": (40.0, 40.0),
@@ -532,6 +534,10 @@ class TrackingProblem:
         """Reference of the stage outputs (physical units; 0 where not tracked, valve a's 0 % included)."""
         split = reference.split or (0.0, 0.0, 0.0)
         return np.array([reference.supply_temp_c, reference.volume_flow_m3s, *split, 0.0, 0.0])
+
+    def heating(self, u_phys: np.ndarray) -> bool:
+        """Whether the command ``u_phys`` (physical) has the heater on (above :data:`HEATING_CMD_W`)."""
+        return bool(u_phys[self.i_heater_cmd] > HEATING_CMD_W)
 
     def heating_weights(self, w_y: np.ndarray, heating: bool) -> np.ndarray:
         """``w_y`` with valve a's weight (:attr:`Weights.valve_a_heating_per_pct2`) on while ``heating`` (the heater
