@@ -103,14 +103,46 @@ def stage_cost(problem: TrackingProblem, truth: dict[str, float], reference: Ref
     y = np.array([temp, truth["volume_flow_m3s"], truth["flow_m_m3s"], truth["flow_f_m3s"],
                   truth["flow_w_m3s"], truth["heater_power_w"], command[problem.i_valve_a]])
     e = (y - problem.reference_vector(reference)) / problem.y_scale
-    heating = previous[problem.i_heater_cmd] > 1.0  # the controller's test, on the command in force before
-    c = problem.heating_weights(problem.output_weights(reference), heating) * e * e
+    # the controller's test, on the command in force before
+    c = problem.heating_weights(problem.output_weights(reference), problem.heating(previous)) * e * e
     du = problem.scale_u(command) - problem.scale_u(previous)
     return {"temperature": float(c[0]), "flow": float(c[1]), "outlets": float(c[2:5].sum()),
             "valve_a_heating": float(c[6]),
             "energy": float(problem.energy_weight * ((command[0] + truth["heater_power_w"])
                                                       / problem.energy_scale_w) ** 2),
             "moves": float(np.sum(problem.w_du * du * du))}
+
+
+class Loop:
+    """One controller on its own plant of the solve-time scenario, stepped one sample at a time: the
+    plant (``seed``, ``inlet_c``, water at 5 C) settled at :data:`INITIAL` and the controller reset to
+    it; :meth:`step` applies the controller's command and sums the stage cost per term (``cost``)
+    and the step's process and thread CPU times (``cpu_s``, ``thread_s``, seconds)."""
+
+    def __init__(self, ctrl: MpcController, seed: int, scenario=SCENARIO, inlet_c: float = INLET_C):
+        self.ctrl, self.scenario = ctrl, scenario
+        self.plant = SimulatedPlant(seed=seed, environment=Environment(inlet_c, 5.0))
+        self.plant.settle(INITIAL)
+        ctrl.reset(self.plant.command)
+        self.previous = self.plant.command.vector()
+        self.cost: dict[str, float] = {}
+        self.cpu_s: list[float] = []
+        self.thread_s: list[float] = []
+
+    def step(self, k: int):
+        """Step ``k`` (sample k of the scenario); returns the controller's :class:`StepResult`."""
+        ref = reference_at(k * self.plant.dt_s, self.scenario)
+        measurement = self.plant.read()
+        c0, t0 = time.process_time(), time.thread_time()
+        res = self.ctrl.step(measurement, ref)
+        self.thread_s.append(time.thread_time() - t0)
+        self.cpu_s.append(time.process_time() - c0)
+        command = self.plant.apply(res.command)
+        self.plant.advance()
+        for term, value in stage_cost(self.ctrl.problem, self.plant.truth(), ref, command, self.previous).items():
+            self.cost[term] = self.cost.get(term, 0.0) + value
+        self.previous = command
+        return res
 
 
 def closed_loop(name: str, make: Callable[[], MpcController], steps: int, seed: int, scenario=SCENARIO,
@@ -129,32 +161,19 @@ def closed_loop(name: str, make: Callable[[], MpcController], steps: int, seed: 
     report = getattr(ctrl, "codegen", None) or solver_report
     settings["estimator_compiled"] = bool(report is not None and any(
         k.startswith("ekf_") and not v.startswith("interpreted") for k, v in report.outcomes.items()))
-    plant = SimulatedPlant(seed=seed, environment=Environment(inlet_c, 5.0))
-    plant.settle(INITIAL)
-    ctrl.reset(plant.command)
-    previous = plant.command.vector()
-    cost = {"temperature": 0.0, "flow": 0.0, "outlets": 0.0, "energy": 0.0, "moves": 0.0, "valve_a_heating": 0.0}
-    times, cpu, iters, solves, fallbacks, statuses = [], [], [], [], 0, {}
+    loop = Loop(ctrl, seed, scenario, inlet_c)
+    times, iters, solves, fallbacks, statuses = [], [], [], 0, {}
     for k in range(steps):
-        ref = reference_at(k * plant.dt_s, scenario)
-        measurement = plant.read()
-        c0 = time.process_time()
-        res = ctrl.step(measurement, ref)
-        cpu.append(time.process_time() - c0)
-        command = plant.apply(res.command)
-        plant.advance()
-        for term, value in stage_cost(ctrl.problem, plant.truth(), ref, command, previous).items():
-            cost[term] += value
-        previous = command
-        st = res.stats
+        st = loop.step(k).stats
         times.append(st["step_time_s"])
         iters.append(st["iterations"])
         solves.append(st["qp_solves"])
         fallbacks += st["fallback"] is not None
         key = str(st["status"]).split(";")[0]
         statuses[key] = statuses.get(key, 0) + 1
+    cost = loop.cost
     t = np.array(times[1:]) * 1e3  # first (cold) step excluded
-    c = np.array(cpu[1:]) * 1e3
+    c = np.array(loop.cpu_s[1:]) * 1e3
     return {
         "controller": name, "steps": steps, "setup_s": setup_s, "settings": settings,
         "problem": StageOcp(ctrl.problem).summary(),

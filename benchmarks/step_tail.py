@@ -32,13 +32,11 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse  # noqa: E402
 import json  # noqa: E402
-import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from hvac_mpc.models.plant import Environment, SimulatedPlant  # noqa: E402
 from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings  # noqa: E402
 
 from . import solve_time  # noqa: E402
@@ -62,25 +60,15 @@ def run_loop(settings: MpcSettings, steps: int, seed: int) -> dict[str, Any]:
         return solver(**kw)
 
     ctrl.reach.solver = counted  # the index is read when the call starts: on a thread it may be k + 1
-    plant = SimulatedPlant(seed=seed, environment=Environment(solve_time.INLET_C, 5.0))
-    plant.settle(solve_time.INITIAL)
-    ctrl.reset(plant.command)
-    previous = plant.command.vector()
-    wall, cpu, commands, iterations, cost = [], [], [], [], 0.0
+    loop = solve_time.Loop(ctrl, seed)
+    wall, commands, iterations = [], [], []
     for k in range(steps):
-        ref = solve_time.reference_at(k * plant.dt_s)
-        measurement = plant.read()
-        c0 = time.thread_time()
-        res = ctrl.step(measurement, ref)
-        cpu.append(time.thread_time() - c0)
+        res = loop.step(k)
         wall.append(res.stats["step_time_s"])
         iterations.append(res.stats["iterations"])
-        command = plant.apply(res.command)
-        plant.advance()
-        cost += sum(solve_time.stage_cost(ctrl.problem, plant.truth(), ref, command, previous).values())
-        previous = command
         commands.append(res.command.vector())
     ctrl.reach.reset()
+    cpu, cost = loop.thread_s, sum(loop.cost.values())
     return {"wall_ms": np.array(wall[1:]) * 1e3, "cpu_ms": np.array(cpu[1:]) * 1e3, "commands": np.array(commands),
             "solves": started, "cost": cost, "iterations": np.array(iterations[1:])}
 

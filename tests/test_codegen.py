@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from hvac_mpc.benchmarks import solve_time
-from hvac_mpc.models import Environment, HvacModel, Parameters, SimulatedPlant
+from hvac_mpc.models import HvacModel, Parameters
 from hvac_mpc.mpc import codegen
 from hvac_mpc.mpc.estimator import DisturbanceEkf
 from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
@@ -22,15 +22,11 @@ from hvac_mpc.mpc.ocp import OcpSpec, Weights
 def _commands(settings: MpcSettings, steps: int, params: Parameters | None = None
               ) -> tuple[np.ndarray, MpcController]:
     ctrl = MpcController(params, settings)
-    plant = SimulatedPlant(seed=3, environment=Environment(solve_time.INLET_C, 5.0))
-    plant.settle(solve_time.INITIAL)
-    ctrl.reset(plant.command)
+    loop = solve_time.Loop(ctrl, seed=3)
     out = []
     for k in range(steps):
         # reference changes at 0 and 30 s: a cold start, then the two-QP path
-        res = ctrl.step(plant.read(), solve_time.reference_at(float(k)))
-        plant.apply(res.command)
-        plant.advance()
+        res = loop.step(k)
         assert res.stats["fallback"] is None
         out.append(res.command.vector())
     return np.array(out), ctrl

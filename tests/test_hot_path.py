@@ -119,17 +119,13 @@ def test_a_step_makes_one_qp_and_three_calls_into_generated_code_with_one_qp_per
                 calls.append(hot[id(self)])
             return original(self, *args)
 
-        plant = SimulatedPlant(seed=7, environment=Environment(solve_time.INLET_C, 5.0))
-        plant.settle(solve_time.INITIAL)
-        ctrl.reset(plant.command)
+        loop = solve_time.Loop(ctrl, seed=7)
         per_step, solves, times, commands, factors = [], [], [], [], []
         BufferedFunction.__call__ = counted
         try:
             for k in range(34):
                 calls.clear()
-                res = ctrl.step(plant.read(), solve_time.reference_at(float(k)))
-                plant.apply(res.command)
-                plant.advance()
+                res = loop.step(k)
                 assert res.stats["fallback"] is None
                 per_step.append(sorted(calls))
                 solves.append(res.stats["qp_solves"])
@@ -171,14 +167,10 @@ def test_steady_steps_end_in_osqps_first_pass_and_the_settings_reach_osqp():
 
     def run(**kw):
         ctrl = MpcController(settings=MpcSettings(codegen=False, **kw))
-        plant = SimulatedPlant(seed=7, environment=Environment(solve_time.INLET_C, 5.0))
-        plant.settle(solve_time.INITIAL)
-        ctrl.reset(plant.command)
+        loop = solve_time.Loop(ctrl, seed=7)
         stats = []
         for k in range(40):
-            res = ctrl.step(plant.read(), solve_time.reference_at(float(k)))
-            plant.apply(res.command)
-            plant.advance()
+            res = loop.step(k)
             assert res.stats["fallback"] is None
             stats.append(res.stats)
         return ctrl, stats

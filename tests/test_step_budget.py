@@ -1,24 +1,15 @@
 """A deterministic bound on a step's OSQP iterations (``MpcSettings.osqp_accept_max_iter``): the iterate at
 the cap is the QP's answer, so a low cap bounds the step's QP work without falling back."""
 
-import numpy as np
-
 from hvac_mpc.benchmarks import solve_time
-from hvac_mpc.models.plant import Environment, SimulatedPlant
 from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
 
 
 def _loop(settings: MpcSettings, steps: int = 34):
-    ctrl = MpcController(settings=settings)
-    plant = SimulatedPlant(seed=7, environment=Environment(solve_time.INLET_C, 5.0))
-    plant.settle(solve_time.INITIAL)
-    ctrl.reset(plant.command)
+    loop = solve_time.Loop(MpcController(settings=settings), seed=7)
     rows = []
     for k in range(steps):
-        res = ctrl.step(plant.read(), solve_time.reference_at(float(k)))
-        plant.apply(res.command)
-        plant.advance()
-        st = res.stats
+        st = loop.step(k).stats
         rows.append((st["iterations"], st["qp_solves"], st["fallback"], str(st["status"])))
     return rows
 
