@@ -25,7 +25,8 @@ Stats of a step: ``step_time_s`` (the whole step), ``feedback_time_s`` (measurem
 ``qp_solves``, ``cold_start``, ``status``, ``fallback``, ``mode`` ("heating" while the heater is commanded,
 else "cooling"), ``solver``, ``valve_a_cap_pct``, ``mix_offset_c``, ``flow_offset_m3s``, ``out_of_reach``
 (reference name -> shortfall in its unit, e.g. ``{"volume_flow_m3s": 0.004}``; empty when every
-reference is within reach, :mod:`hvac_mpc.mpc.priorities`), ``flow_weight_factor`` (the factor on the
+reference is within reach, :mod:`hvac_mpc.mpc.priorities`; ``supply_temp_c`` also while the heater or
+the cooler is saturated and the reading stays away, :mod:`hvac_mpc.mpc.temperature_reach`), ``flow_weight_factor`` (the factor on the
 flow weights of the step: 1, less out of reach or while a large flow error is closed), ``dead_time_s``
 (the thermocouple's dead time beyond the model's that the estimator has found and honours, :mod:`hvac_mpc.mpc.estimator`),
 ``bypass_flow_exponent`` (the exponent of the bypass split's flow dependence the prediction uses: the
@@ -56,6 +57,7 @@ from .priorities import ReachableFlow, flow_weight_factor
 from .ocp import HeaterOffBound, InvalidSettings, OcpSpec, TrackingProblem, check_number, trap_cap_pct
 from hvac_mpc.contract import InvalidReference, Reference
 from .rti_osqp import RtiOsqpSolver, SolveResult
+from .temperature_reach import SaturatedTemperature
 
 SOLVERS = ("rti", "sqp", "ipopt")
 #: Factor on the flow weights while the flow reference is out of reach (docs/robustness.md sec. 1).
@@ -305,6 +307,7 @@ class MpcController:
                                    every_s=s.reach_every_s, skip_unmoved=s.reach_skip_unmoved,
                                    deferred=s.reach_deferred, background=s.reach_background) if s.priorities else None
         self.heater_bound = HeaterOffBound(self.params, s.dt_s)
+        self.temp_reach = SaturatedTemperature(pb.i_heater_cmd, pb.i_valve_a, s.dt_s)
         self.codegen = getattr(self.solver, "codegen", None) or CodegenReport()
         if s.codegen:
             self.ekf.use_functions(compiled(self.ekf.predict_fn, self.codegen),
@@ -343,6 +346,7 @@ class MpcController:
         self._flow_factor = 1.0
         if self.reach is not None:
             self.reach.reset()
+        self.temp_reach.reset()
         self.heater_bound.reset()
 
     def force_solver_failure(self, steps: int) -> None:
@@ -456,6 +460,7 @@ class MpcController:
         lo, hi = pb.command_bounds(self.u_prev, cap, heater_c)
         u_cmd = np.minimum(np.maximum(u_cmd, lo), hi)
         self.u_prev = u_cmd
+        self._note_temperature_reach(measurement, ref, u_cmd, hi)
         # --- prediction and preparation of the next step
         prep_time = sol.prep_time_s
         self._prepared_for_next = False
@@ -491,6 +496,15 @@ class MpcController:
         if reach.flow_m3s is not None and reach.flow_m3s < ref.volume_flow_m3s:
             y_ref[1:5] *= reach.flow_m3s / ref.volume_flow_m3s
         return y_ref
+
+    def _note_temperature_reach(self, measurement: Measurement, ref: Reference, u_cmd: np.ndarray,
+                                u_hi: np.ndarray) -> None:
+        """Add ``supply_temp_c`` to the out-of-reach report while the heater (heating) or the cooler
+        (cooling) is saturated and the reading stays away (:mod:`hvac_mpc.mpc.temperature_reach`), where
+        the reachable-flow check has not already reported it."""
+        gap = self.temp_reach.update(getattr(measurement, "supply_temp_c", None), ref.supply_temp_c, u_cmd, u_hi)
+        if gap is not None and "supply_temp_c" not in self._out_of_reach:
+            self._out_of_reach["supply_temp_c"] = gap
 
     def _flow_weight_factor(self, y_ref: np.ndarray, d: np.ndarray) -> float:
         """Factor on the flow weights: :data:`OUT_OF_REACH_FLOW_WEIGHT` while the flow reference is out of

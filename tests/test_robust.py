@@ -484,6 +484,14 @@ def test_heater_never_runs_below_the_minimum_flow_when_the_temperature_is_out_of
     assert flow.min() >= 0.9 * OcpSpec().heater_min_flow_m3s  # 4.9 L/s measured (the floor 5 L/s)
     assert flow.min() <= 0.6 * mpc.reference["volume_flow_m3s"][scored].min()  # the flow was the lever
     assert res["scenarios"][sc.name]["ratios"]["temp_iae_cs"] <= 1.0
+    # and says so: the supply temperature out of reach while the heater and valve a sit at their limits,
+    # with the gap the box really has (61 of the step's 61 samples from the 89th second on, 0.97-1.50 C)
+    reports = [(k, r["supply_temp_c"]) for k, r in enumerate(mpc.out_of_reach) if r and "supply_temp_c" in r]
+    assert len(reports) >= 30
+    gaps = np.array([g for _, g in reports])
+    true_gaps = np.array([mpc.reference["supply_temp_c"][k] - mpc.truth["supply_temp_c"][k] for k, _ in reports])
+    assert np.all(gaps > 0.3) and np.max(np.abs(gaps - true_gaps)) < 0.3
+    assert res["scenarios"][sc.name]["mpc"]["details"]["out_of_reach"]["supply_temp_c"]["samples"] == len(reports)
 
 
 @pytest.mark.parametrize("floor_m3s", [0.005, None])
