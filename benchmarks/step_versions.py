@@ -146,13 +146,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--before", required=True, help="git revision or import root of the version before")
     p.add_argument("--after", default=None, help="git revision or import root of the version after "
                                                  "(default: the installed one)")
-    p.add_argument("--steps", type=int, default=solve_time.FULL_STEPS, help="closed-loop steps (default 240)")
-    p.add_argument("--rounds", type=int, default=3, help="rounds, each with both versions anew (default 3)")
-    p.add_argument("--seed", type=int, default=1, help="plant noise seed (default 1)")
-    p.add_argument("--json", type=Path, default=None, help="write the rounds here (JSON)")
+    solve_time.side_by_side_arguments(p)
     args = p.parse_args(argv)
-    if args.steps < 3 or args.rounds < 1:
-        print("step_versions: --steps must be at least 3 and --rounds at least 1")
+    if solve_time.side_by_side_refused(args, "step_versions"):
         return 2
     with tempfile.TemporaryDirectory() as tmp:
         try:
