@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import json
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -58,13 +57,9 @@ def side_by_side(before: MpcSettings, after: MpcSettings, steps: int, seed: int)
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--steps", type=int, default=solve_time.FULL_STEPS, help="closed-loop steps (default 240)")
-    p.add_argument("--rounds", type=int, default=3, help="rounds, each with both loops anew (default 3)")
-    p.add_argument("--seed", type=int, default=1, help="plant noise seed (default 1)")
-    p.add_argument("--json", type=Path, default=None, help="write the rounds here (JSON)")
+    solve_time.side_by_side_arguments(p)
     args = p.parse_args(argv)
-    if args.steps < 3 or args.rounds < 1:
-        print("qp_settings: --steps must be at least 3 and --rounds at least 1")
+    if solve_time.side_by_side_refused(args, "qp_settings"):
         return 2
     before, after = MpcSettings(**BEFORE), MpcSettings(**AFTER)
     rounds = [side_by_side(before, after, args.steps, args.seed) for _ in range(args.rounds)]

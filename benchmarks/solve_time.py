@@ -90,6 +90,22 @@ RTI_DESCRIPTION = ("StageOcp: Gauss-Newton QP of the compact transcription (buil
                    "TrackingProblem's stage functions, equal to 1e-9 by test)")
 
 
+def side_by_side_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of a run of two variants side by side on this loop: --steps, --rounds, --seed, --json."""
+    parser.add_argument("--steps", type=int, default=FULL_STEPS, help=f"closed-loop steps (default {FULL_STEPS})")
+    parser.add_argument("--rounds", type=int, default=3, help="rounds, each with both anew (default 3)")
+    parser.add_argument("--seed", type=int, default=1, help="plant noise seed (default 1)")
+    parser.add_argument("--json", type=Path, default=None, help="write the rounds here (JSON)")
+
+
+def side_by_side_refused(args: argparse.Namespace, prog: str) -> bool:
+    """True, with the reason printed, when the options of :func:`side_by_side_arguments` are out of range."""
+    if args.steps < 3 or args.rounds < 1:
+        print(f"{prog}: --steps must be at least 3 and --rounds at least 1")
+        return True
+    return False
+
+
 def reference_at(t_s: float, scenario=SCENARIO) -> Reference:
     """The scenario's reference in force at time ``t_s``."""
     return [r for t0, r in scenario if t_s >= t0][-1]

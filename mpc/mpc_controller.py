@@ -428,7 +428,8 @@ class MpcController:
         u_prev_s = self._scaled_prev()
         cap = self._trap_cap(measurement)
         heater_c = float(self.ekf.x[pb.i_heater])
-        u_lo, u_hi = pb.input_bounds(self.u_prev, cap, heater_c)
+        bounds = pb.command_bounds(self.u_prev, cap, heater_c)  # of the command, and folded into the QP's
+        u_lo, u_hi = pb.input_bounds(self.u_prev, cap, heater_c, command=bounds)
         y_ref = self._tracked_reference(ref, d, cap)
         w_y = pb.heating_weights(pb.output_weights(ref), heating=pb.heating(self.u_prev))
         self._flow_factor = self._flow_weight_factor(y_ref, d)
@@ -457,8 +458,7 @@ class MpcController:
             self.solver.reset()
             u_cmd, fallback = self._fallback_command(measurement, ref)
         # project onto bounds, rate limits and the trapped-air cap (np.clip costs ~10 us on 6 values)
-        lo, hi = pb.command_bounds(self.u_prev, cap, heater_c)
-        u_cmd = np.minimum(np.maximum(u_cmd, lo), hi)
+        u_cmd = np.minimum(np.maximum(u_cmd, bounds[0]), bounds[1])
         self.u_prev = u_cmd
         self._note_temperature_reach(measurement, ref, u_cmd, hi)
         # --- prediction and preparation of the next step

@@ -369,7 +369,9 @@ class TrackingProblem:
         self.u_sc = np.array([INPUT_SCALING[n][1] for n in INPUTS])
         self.valve_mask = np.zeros(self.nu, bool)
         self.valve_mask[list(self.VALVES)] = True
-        self._valve_cols = list(self.VALVES)  # in the order of VALVE_NAMES
+        # in the order of VALVE_NAMES; a slice (a view, where a list of indices copies: ~4 us a conversion)
+        self._valve_cols = slice(self.VALVES[0], self.VALVES[-1] + 1)
+        assert tuple(range(self.nu))[self._valve_cols] == self.VALVES, "ASSUMPTION: valves m, f, w decide side by side"
         self.u_off[self.valve_mask] = 0.5  # openings v in [0, 1]
         self.u_sc[self.valve_mask] = 0.5
         self.u_lo_phys = np.array([INPUT_LOWER[n] for n in INPUTS])
@@ -464,14 +466,17 @@ class TrackingProblem:
         return self.floor_scale * (flow_m3s - self.floor_m3s * ca.fmin(1.0, heater_cmd_w / self.floor_on_w))
 
     def floor_linearisation(self, heater_u) -> tuple[np.ndarray, np.ndarray]:
-        """The floor's heater part ``Q_min min(1, P / P_on)`` at scaled heater commands ``heater_u`` (numpy):
-        its value (m3/s) and its slope per scaled command (what :meth:`floor_row` gives CasADi's Jacobian)."""
+        """The floor's heater part ``Q_min min(1, P / P_on)`` at scaled heater commands ``heater_u`` (numpy or
+        CasADi, the same operations): its value (m3/s) and its slope per scaled command (what :meth:`floor_row`
+        gives CasADi's Jacobian)."""
         ih = self.i_heater_cmd
-        p_w = self.u_off[ih] + self.u_sc[ih] * np.asarray(heater_u, float)
+        symbolic = isinstance(heater_u, (ca.SX, ca.MX))
+        where = ca.if_else if symbolic else np.where
+        p_w = float(self.u_off[ih]) + float(self.u_sc[ih]) * (heater_u if symbolic else np.asarray(heater_u, float))
         ratio = p_w / self.floor_on_w
         below = ratio < 1.0
-        value = self.floor_m3s * np.where(below, ratio, 1.0)
-        slope = np.where(below, self.floor_m3s * self.u_sc[ih] / self.floor_on_w, 0.0)
+        value = self.floor_m3s * where(below, ratio, 1.0)
+        slope = where(below, self.floor_m3s * self.u_sc[ih] / self.floor_on_w, 0.0)
         return value, slope
 
     def command_bounds(self, u_prev_phys: np.ndarray, cap_a_pct: float = 100.0,
@@ -492,18 +497,20 @@ class TrackingProblem:
         return lo, hi
 
     def input_bounds(self, u_prev_phys: np.ndarray, cap_a_pct: float = 100.0,
-                     heater_temp_c: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+                     heater_temp_c: float | None = None,
+                     command: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Scaled decision bounds (N, nu): ranges everywhere, the first stage's rate limits folded in
         exactly (the opening is monotone in the angle), the first stage's PTC limit (later stages
         carry it as a row of the problem), and the valve a cap, which tightens stage by stage no
-        faster than valve a may move, so the bounds always hold a feasible point."""
+        faster than valve a may move, so the bounds always hold a feasible point. ``command``: the
+        :meth:`command_bounds` of the same arguments where the caller has them already."""
         lo = self._u_lo_tiled.copy()
         hi = self._u_hi_tiled.copy()
         ia = self.i_valve_a
         cap = (min(cap_a_pct, 100.0) - self.u_off[ia]) / self.u_sc[ia]
         reachable = (u_prev_phys[ia] - self.u_off[ia]) / self.u_sc[ia] - self._a_travel
         hi[:, ia] = np.minimum(hi[:, ia], np.maximum(cap, reachable))
-        first = self.scale_u(np.stack(self.command_bounds(u_prev_phys, cap_a_pct, heater_temp_c)))
+        first = self.scale_u(np.stack(command or self.command_bounds(u_prev_phys, cap_a_pct, heater_temp_c)))
         lo[0] = np.maximum(lo[0], first[0])
         hi[0] = np.minimum(hi[0], first[1])
         lo[0] = np.minimum(lo[0], hi[0])

@@ -230,13 +230,14 @@ class RtiOsqpSolver:
         entries_const.append((self.r_x0, np.arange(nx), np.ones(nx)))
         rows = nx
         self.r_dyn = rows + np.arange(N * nx).reshape(N, nx)
-        self._r_dyn_flat = self.r_dyn.ravel()
         rows += N * nx
         dyn_r = np.repeat(self.r_dyn[:, :, None], nx + nu, axis=2)  # (N, nx, nx+nu)
         dyn_c = np.broadcast_to(cols[:N, None, :], (N, nx, nx + nu))
         for k in range(N):
             entries_const.append((self.r_dyn[k], (k + 1) * nx + np.arange(nx), np.ones(nx)))
         self.r_u = rows + np.arange(N * nu).reshape(N, nu)
+        # contiguous rows as slices: a view each step where the index arrays copy
+        self._r_dyn_rows, self._r_u_rows = slice(nx, rows), slice(rows, rows + N * nu)
         rows += N * nu
         for k in range(N):
             entries_const.append((self.r_u[k], self.iu0 + k * nu + np.arange(nu), np.ones(nu)))
@@ -276,7 +277,6 @@ class RtiOsqpSolver:
         self._A_var_slots = A.slot[self._A_var.ravel()]
         self._A_floor_slots = A.slot[self._A_floor.ravel()]
         self._floor_heater_slots = A.slot[self._A_floor[:, nx + pb.i_heater_cmd]]
-        self._floor_l = np.full(self.r_floor.size, -np.inf)
 
         # constant bounds
         self.l = np.zeros(rows)
@@ -358,12 +358,22 @@ class RtiOsqpSolver:
         m_a = _selection(self._A_var_slots, self.A.nnz)
         Px = P0 + ca.mtimes(m_p, ca.vec(htri))
         Ax = A0 + ca.mtimes(m_a, ca.vec(ab))
-        if self.r_floor.size:  # the flow's Jacobian rows of stages 0..N-1, in L/s
-            g_flow = ca.horzcat(*[p[6] for p in parts])[:, :self.r_floor.size]
+        n_f = self.r_floor.size
+        floor_l = ca.MX(0, 1)
+        if n_f:  # the flow's Jacobian rows of stages 0..N-1, in L/s
+            g_flow = ca.horzcat(*[p[6] for p in parts])[:, :n_f]
             Ax += ca.mtimes(_selection(self._A_floor_slots, self.A.nnz), pb.floor_scale * ca.vec(g_flow))
-        self.qp_data = ca.Function("hvac_qp_data", [X, U, d, SW, P0, A0, p], [Px, Ax, ca.vec(e_dyn), gw2, c_base, y],
+            # the heater command's slope of the floor, and the rows' lower bound without the flow-offset
+            # change (_floor_bounds adds it): flow = c_base + G z (the residual's constant part), so
+            # G z - slope u >= floor - slope u_lin - c_base
+            heater_u = U[pb.i_heater_cmd, :n_f].T
+            value, slope = pb.floor_linearisation(heater_u)
+            Ax += ca.mtimes(_selection(self._floor_heater_slots, self.A.nnz), -(pb.floor_scale * slope))
+            floor_l = pb.floor_scale * (value - slope * heater_u - c_base[Y_FLOW, :n_f].T)
+        self.qp_data = ca.Function("hvac_qp_data", [X, U, d, SW, P0, A0, p],
+                                   [Px, Ax, ca.vec(e_dyn), gw2, c_base, y, floor_l],
                                    ["X", "U", "d", "SW", "P0", "A0", "p"],
-                                   ["Px", "Ax", "e_dyn", "Gw2", "c_base", "y"])
+                                   ["Px", "Ax", "e_dyn", "Gw2", "c_base", "y", "floor_l"])
         # gradient
         G2 = ca.SX.sym("Gw2", nr * nz, N + 1)
         C = ca.SX.sym("c_base", nr, N + 1)
@@ -442,8 +452,8 @@ class RtiOsqpSolver:
 
     def _matrices(self, X, U, d, w_y):
         """Linearise at (X, U) and return P and A data plus the stage data for q and l/u."""
-        Px, Ax, e_dyn, gw2, c_base, y = self._qp_data(X, U, d, self._weights(w_y))
-        return Px, Ax, dict(e_dyn=e_dyn, gw2=gw2, c_base=c_base, y=y)
+        Px, Ax, e_dyn, gw2, c_base, y, floor_l = self._qp_data(X, U, d, self._weights(w_y))
+        return Px, Ax, dict(e_dyn=e_dyn, gw2=gw2, c_base=c_base, y=y, floor_l=floor_l)
 
     def use_prediction(self, ekf) -> None:
         """Fuse the estimator's time update with the QP data into one call of the preparation
@@ -458,11 +468,18 @@ class RtiOsqpSolver:
         zn, Pn, air, flow = predict.call(args)
         x0 = (ekf.model_state(zn) - ca.DM(pb.x_off)) / ca.DM(pb.x_sc)
         d = ekf.disturbance(zn, sp)
-        X1, U, SW = ca.MX.sym("X1", nx, N), ca.MX.sym("U", pb.nu, N), ca.MX.sym("SW", pb.ny + 1, N + 1)
+        X_last, U_last = ca.MX.sym("X_last", nx, N + 1), ca.MX.sym("U_last", pb.nu, N)
+        u_prev, SW = ca.MX.sym("u_prev", pb.nu), ca.MX.sym("SW", pb.ny + 1, N + 1)
         p_qp = ca.MX.sym("p_qp", self._p.size)  # the QP's model parameters (set_parameters), not the filter's
-        data = self._qp_data.fn.call([ca.horzcat(x0, X1), U, d, SW, self._P_const, self._A_const, p_qp])
-        fn = ca.Function("hvac_predict_qp_data", [*args, X1, U, SW, p_qp], [zn, Pn, air, flow, x0, d, *data])
-        self._i_p_qp = len(args) + 3
+        # the last solution shifted one sample along the stage grid, as shift_nodes does (the same
+        # operations, so the same values): nodes 1..N, and the inputs with u_prev first
+        i0, w1 = self._i0[1:], np.tile(self._w1[1:], (nx, 1))
+        X1 = X_last[:, i0.tolist()] * ca.DM(1.0 - w1) + X_last[:, np.minimum(i0 + 1, N).tolist()] * ca.DM(w1)
+        X, U = ca.horzcat(x0, X1), ca.horzcat(u_prev, U_last[:, self._j[1:].tolist()])
+        data = self._qp_data.fn.call([X, U, d, SW, self._P_const, self._A_const, p_qp])
+        fn = ca.Function("hvac_predict_qp_data", [*args, X_last, U_last, u_prev, SW, p_qp],
+                         [zn, Pn, air, flow, X, U, d, *data])
+        self._i_p_qp = len(args) + 4
         self._predict_qp = BufferedFunction(fn, fixed={**fixed, self._i_p_qp: self._p})
         self._ekf = ekf
 
@@ -477,16 +494,12 @@ class RtiOsqpSolver:
         its prediction, in one call (:meth:`use_prediction`). Returns the wall time (s)."""
         t0 = time.perf_counter()
         ekf = self._ekf
-        X = shift_nodes(self.X, self._i0, self._w1)
-        U = self.U[self._j]
-        U[0] = u_prev
-        S = self.S[np.minimum(self._j, self.pb.N - 1)]
-        zn, Pt, air, flow, x0, d, Px, Ax, e_dyn, gw2, c_base, y = self._predict_qp(
-            ekf.z, ekf.P, u_cmd, setpoint_c, float(ekf.learning), X[1:], U, self._weights(w_y))
+        zn, Pt, air, flow, X, U, d, Px, Ax, e_dyn, gw2, c_base, y, floor_l = self._predict_qp(
+            ekf.z, ekf.P, u_cmd, setpoint_c, float(ekf.learning), self.X, self.U, u_prev, self._weights(w_y))
         ekf.accept_prediction(zn, Pt, air, flow)
-        X[0] = x0
+        S = self.S[np.minimum(self._j, self.pb.N - 1)]
         self.X, self.U, self.S = X, U, S
-        self._write(X, U, S, d, ref, w_y, Px, Ax, dict(e_dyn=e_dyn, gw2=gw2, c_base=c_base, y=y))
+        self._write(X, U, S, d, ref, w_y, Px, Ax, dict(e_dyn=e_dyn, gw2=gw2, c_base=c_base, y=y, floor_l=floor_l))
         return time.perf_counter() - t0
 
     def reset(self) -> None:
@@ -528,30 +541,14 @@ class RtiOsqpSolver:
         self._write(X, U, S, d, ref, w_y, Px, Ax, data)
 
     def _write(self, X, U, S, d, ref, w_y, Px, Ax, data) -> None:
-        """Put a linearisation's values into OSQP and keep what the feedback needs."""
-        self._linearise_floor(U, Ax, data)
+        """Put a linearisation's values into OSQP and keep what the feedback needs (stage 0's flow-floor
+        row coefficients among them)."""
+        self._floor_a0 = Ax[self._A_floor_slots[:self.nz_stage]]
         self._core.update_matrices(Px, Ax)
         self._workspace_used = True
-        self.l[self._r_dyn_flat] = data["e_dyn"]
-        self.u[self._r_dyn_flat] = data["e_dyn"]
+        self.l[self._r_dyn_rows] = self.u[self._r_dyn_rows] = data["e_dyn"]
         self._prepared = dict(data=data, d=d.copy(), w_y=w_y.copy(), ref=np.array(ref, float))
         self._z_lin = np.concatenate([X.ravel(), U.ravel(), S])
-
-    def _linearise_floor(self, U: np.ndarray, Ax: np.ndarray, data: dict) -> None:
-        """The flow floor's rows at the linearisation (stages 0..N-1): the heater command's slope into
-        ``Ax``, the lower bound without the flow-offset change (:meth:`_floor_bounds` adds it), and stage
-        0's row coefficients."""
-        n = self.r_floor.size
-        if not n:
-            return
-        pb = self.pb
-        heater_u = U[:n, pb.i_heater_cmd]
-        value, slope = pb.floor_linearisation(heater_u)
-        Ax[self._floor_heater_slots] -= pb.floor_scale * slope
-        # flow = c_base + G z (the residual's constant part): G z - slope u >= floor - slope u_lin - c_base
-        c_flow = data["c_base"][:n, Y_FLOW]
-        self._floor_l = pb.floor_scale * (value - slope * heater_u - c_flow)
-        self._floor_a0 = Ax[self._A_floor_slots[:self.nz_stage]]
 
     def _floor_bounds(self, d: np.ndarray, x0: np.ndarray, u_lo: np.ndarray, u_hi: np.ndarray) -> None:
         """Lower bounds of the floor rows with the flow offset's change since the linearisation. Stage 0's
@@ -560,7 +557,7 @@ class RtiOsqpSolver:
         where that is below the floor (after a fallback, say); the rows of stage 1 on hold it in full."""
         if self.r_floor.size:
             dd = d[D_OFFSETS[1]] - self._prepared["d"][D_OFFSETS[1]]
-            self.l[self.r_floor] = self._floor_l - self.pb.floor_scale * dd
+            self.l[self.r_floor] = self._prepared["data"]["floor_l"] - self.pb.floor_scale * dd
             a_x, a_u = self._floor_a0[:self.pb.nx], self._floor_a0[self.pb.nx:]
             most = float(a_x @ x0 + np.maximum(a_u * u_lo[0], a_u * u_hi[0]).sum())
             self.l[self.r_floor[0]] = min(self.l[self.r_floor[0]], most - FLOOR_TOLERANCE_LS)
@@ -604,10 +601,9 @@ class RtiOsqpSolver:
             return SolveResult(False, "forced failure", prep_time_s=prep,
                                feedback_time_s=time.perf_counter() - t0 - prep)
         N, nx, nu = self.pb.N, self.pb.nx, self.pb.nu
-        self.l[self.r_x0] = x0
-        self.u[self.r_x0] = x0
-        self.l[self.r_u] = u_lo
-        self.u[self.r_u] = u_hi
+        self.l[:nx] = self.u[:nx] = x0  # rows r_x0
+        self.l[self._r_u_rows] = u_lo.ravel()
+        self.u[self._r_u_rows] = u_hi.ravel()
         iterations = 0
         solves = 0
         status = "unsolved"

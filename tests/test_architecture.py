@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import os
 import re
-import shutil
 import subprocess
 import sys
 import tomllib
@@ -17,17 +16,14 @@ from pathlib import Path
 
 import pytest
 
+from hvac_mpc.benchmarks.step_versions import installed_layout
+
 ROOT = Path(__file__).resolve().parents[1]
 LINT = Path(sys.executable).with_name("lint-imports")
 
 
 def _installed_layout(dest: Path) -> Path:
-    cfg = tomllib.loads((ROOT / "pyproject.toml").read_text())
-    ignore = shutil.ignore_patterns("__pycache__")
-    shutil.copytree(ROOT / "hvac_mpc", dest / "hvac_mpc", ignore=ignore)
-    for package, folder in cfg["tool"]["setuptools"]["package-dir"].items():
-        shutil.copytree(ROOT / folder, dest / package.replace(".", "/"), ignore=ignore)
-    return dest
+    return installed_layout(ROOT, dest)
 
 
 def _lint(tree: Path) -> subprocess.CompletedProcess:

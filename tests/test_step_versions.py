@@ -1,0 +1,33 @@
+"""The side-by-side benchmark of two code versions (benchmarks/step_versions.py)."""
+
+from __future__ import annotations
+
+import pytest
+
+from hvac_mpc.benchmarks import step_versions
+
+
+def test_a_version_is_an_import_root_or_a_revision(tmp_path):
+    root = step_versions.installed_layout(step_versions.REPOSITORY, tmp_path / "root")
+    assert (root / "hvac_mpc" / "mpc" / "rti_osqp.py").is_file()
+    assert (root / "hvac_mpc" / "benchmarks" / "step_versions.py").is_file()
+    assert step_versions.import_root(str(root), tmp_path / "unused") == root.resolve()
+    with pytest.raises(ValueError, match="'no-such-revision' is n"):
+        step_versions.import_root("no-such-revision", tmp_path / "bad")
+
+
+def test_a_bad_version_is_refused_with_its_name(capsys):
+    assert step_versions.main(["--before", "no-such-revision", "--steps", "3"]) == 2
+    assert "no-such-revision" in capsys.readouterr().out
+    assert step_versions.main(["--before", "HEAD", "--steps", "2"]) == 2
+
+
+@pytest.mark.slow
+def test_the_same_code_side_by_side_gives_the_same_commands(tmp_path):
+    """The installed version against a copy of itself: two processes in lockstep, the same commands and cost."""
+    root = step_versions.installed_layout(step_versions.REPOSITORY, tmp_path / "root")
+    out = step_versions.side_by_side({"before": root, "after": None}, steps=4, seed=1)
+    assert out["command_difference"] == 0.0
+    assert out["before"]["cost"] == out["after"]["cost"] > 0.0
+    assert out["before"]["total_iterations"] == out["after"]["total_iterations"] > 0
+    assert out["before"]["thread_median_ms"] > 0.0 and out["median_ratio"] > 0.0
