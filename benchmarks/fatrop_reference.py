@@ -30,7 +30,10 @@ Settings, and why (docs/architecture.md, 'Solver comparison'):
 * ``jit``: the NLP's functions as generated C (:func:`hvac_mpc.mpc.codegen.compiled_nlpsol`, as
   IPOPT's ``--jit``). The solver is set up without CasADi's ``expand`` (the NLP is SX already): with
   it the solver wrapped the loaded library in an SX function and tried to differentiate it
-  (``nlp_grad``), which generated code cannot, and the set-up raised in ``Function::factory``.
+  (``nlp_grad``), which generated code cannot, and the set-up raised in ``Function::factory``. The
+  code is large (21.5 MB of C): built at -O0 it runs slower than the interpreter; the -O1 build
+  did not finish within the compiler's 30-minute limit on the loaded two-core machine, where the
+  solver falls back to the interpreter (the reason in ``codegen``).
 """
 
 from __future__ import annotations
