@@ -212,6 +212,8 @@ def test_fatrop_solves_the_reference_changes_of_the_solve_time_scenario_to_ipopt
     from hvac_mpc.benchmarks.fatrop_reference import FatropSolver
     from hvac_mpc.mpc.ipopt_reference import IpoptReferenceSolver
 
+    with pytest.raises(ValueError, match="obj_scaling"):
+        FatropSolver(pb, obj_scaling=0.0)
     fa, ip = FatropSolver(pb), IpoptReferenceSolver(pb, warm_start_init_point=False)
     d = np.array([32.0, 4.6, 0.0, 0.0])
     for command, ref in SCENARIO_CHANGES:
