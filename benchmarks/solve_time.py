@@ -16,9 +16,11 @@ description'):
 * ``do-mpc``: do-mpc given the description's functions (optional extra ``compare``;
   :mod:`hvac_mpc.benchmarks.dompc_reference`).
 
-With ``--jit`` IPOPT's NLP functions run as generated C, compiled once and cached (the build time
-is reported apart, as ``codegen_build_s``, not in the step times); fatrop stays interpreted (its
-structure detection needs the symbolic NLP, :mod:`hvac_mpc.benchmarks.fatrop_reference`).
+With ``--jit`` IPOPT's and fatrop's NLP functions run as generated C, compiled once and cached (the
+build time is reported apart, as ``codegen_build_s``, not in the step times). fatrop gets the objective
+scaling of IPOPT and the tolerance that stops it as close to the optimum
+(:mod:`hvac_mpc.benchmarks.fatrop_reference`); after the loops its cost is compared per step with
+IPOPT's from the same state and start (``agreement`` in its result).
 
 Every result carries its solver's settings (``settings``: tolerances, compiled or not, and
 ``description``: what it is built from); ``shared_description`` in the JSON summarises the
@@ -236,8 +238,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-dompc", action="store_true", help="skip do-mpc")
     parser.add_argument("--no-fatrop", action="store_true", help="skip fatrop")
     parser.add_argument("--jit", action="store_true",
-                        help="IPOPT with its NLP functions as generated C (built once, cached on disk; "
-                             "the first build takes minutes and is reported apart)")
+                        help="IPOPT and fatrop with their NLP functions as generated C (built once, cached on "
+                             "disk; the first build takes minutes and is reported apart)")
     parser.add_argument("--no-codegen", action="store_true",
                         help="run the RTI's QP data and estimator in CasADi's interpreter")
     parser.add_argument("--no-suboptimality", action="store_true",
@@ -283,11 +285,18 @@ def _run(args: argparse.Namespace, steps: int, cost_seeds: int) -> int:
     notes = []
     if not args.no_ipopt:
         contenders.append(("ipopt", make_ipopt))
+    fatrop_recorders: list = []  # fatrop's starts and answers, for the per-step comparison with IPOPT
     if not getattr(args, "no_fatrop", False):
-        from .fatrop_reference import FatropSolver
-        contenders.append(("fatrop", lambda: MpcController(
-            settings=ipopt_settings, model=model, solver_factory=lambda pb: FatropSolver(
-                pb, tol=ipopt_settings.ipopt_tol, max_iter=ipopt_settings.ipopt_max_iter))))
+        from .fatrop_reference import IPOPT_TOL_FACTOR, FatropSolver, StartRecorder, agreement, agreement_line
+
+        def make_fatrop() -> MpcController:
+            ctrl = MpcController(settings=ipopt_settings, model=model, solver_factory=lambda pb: FatropSolver(
+                pb, tol=IPOPT_TOL_FACTOR * ipopt_settings.ipopt_tol, max_iter=ipopt_settings.ipopt_max_iter,
+                jit=jit))
+            ctrl.solver = StartRecorder(ctrl.solver)
+            fatrop_recorders.append(ctrl.solver)
+            return ctrl
+        contenders.append(("fatrop", make_fatrop))
     if not args.no_dompc:
         try:
             from .dompc_reference import DoMpcSolver, _import_do_mpc
@@ -320,6 +329,9 @@ def _run(args: argparse.Namespace, steps: int, cost_seeds: int) -> int:
         print(f"per-step suboptimality: rti for {steps} steps, then converged IPOPT from each step's state ...",
               flush=True)
         rti["suboptimality"] = rti_suboptimality(make_rti, steps, args.seed, jit)
+    if fatrop_recorders:
+        print(f"fatrop against IPOPT per step: IPOPT from fatrop's {steps} states and starts ...", flush=True)
+        by_name["fatrop"]["agreement"] = agreement(fatrop_recorders[-1].inner.pb, fatrop_recorders[-1].records)
     print_table(results)
     figures = headline(results)
     for line in figures.pop("lines"):
@@ -338,6 +350,8 @@ def _run(args: argparse.Namespace, steps: int, cost_seeds: int) -> int:
               + ", ".join(f"seed {c['seed']} {c['rti_vs_ipopt_pct']:+.2f} %" for c in seeds_cost)
               + f"; median {float(np.median([c['rti_vs_ipopt_pct'] for c in seeds_cost])):+.2f} %, "
               f"largest RTI excess {max(c['rti_vs_ipopt_pct'] for c in seeds_cost):+.2f} %")
+    if fatrop_recorders:
+        print(agreement_line(by_name["fatrop"]["agreement"]))
     for note in notes:
         print(note)
     out = {"steps": steps, "seed": args.seed, "threads": args.threads, "scenario_inlet_c": INLET_C,

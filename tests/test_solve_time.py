@@ -66,6 +66,13 @@ def test_benchmark_runs_all_contenders_side_by_side_and_writes_json(tmp_path, ca
         assert np.isfinite(r["cost"]["total"]) and r["cost"]["total"] > 0
         assert "cost_vs_ipopt_pct" in r
     assert names[2] == "fatrop"
+    # fatrop: IPOPT's objective scaling, solves every step, to IPOPT's cost from the same state and start
+    fatrop, ipopt = data["results"][2], data["results"][1]
+    assert fatrop["settings"]["obj_scaling"] == ipopt["settings"]["obj_scaling"]
+    assert fatrop["fallback_steps"] == 0
+    ag = fatrop["agreement"]
+    assert ag["compared"] == ag["steps"] == 4 and ag["fatrop_failures"] == ag["ipopt_failures"] == 0
+    assert max(abs(ag["rel_diff_min"]), abs(ag["rel_diff_max"])) < 1e-3
     for r in data["results"]:
         assert isinstance(r["settings"]["compiled"], bool)
         assert r["settings"]["description"].startswith("StageOcp")

@@ -180,7 +180,7 @@ def test_ipopt_and_fatrop_built_from_the_description_reach_the_same_optimum(pb):
 
     x0, u_prev, d, ref, w_y, lo, hi = _state(pb)
     ip = IpoptReferenceSolver(pb, tol=1e-10, obj_scaling=1.0)
-    fa = FatropSolver(pb, tol=1e-10)
+    fa = FatropSolver(pb, tol=1e-10, obj_scaling=1.0)
     ri = ip.feedback(x0, u_prev, d, ref, w_y, lo, hi)
     rf = fa.feedback(x0, u_prev, d, ref, w_y, lo, hi)
     assert ri.ok and rf.ok and ri.iterations > 0 and rf.iterations > 0
@@ -194,3 +194,36 @@ def test_ipopt_and_fatrop_built_from_the_description_reach_the_same_optimum(pb):
     assert np.max(np.abs(rf.X - ri.X)) < 1e-5
     for solver in (ip, fa):
         assert solver.settings["description"].startswith("StageOcp")
+
+
+#: The solve-time scenario's reference changes on which fatrop failed with its objective unscaled
+#: (status 1 from 60, 120 and 180 s on), each with the command the loop held before it (W, W, %).
+SCENARIO_CHANGES = (
+    (Command(205.0, 0.0, 86.0, 100.0, 53.0, 49.0), Reference.from_split(20.0, 0.025, (0.2, 0.5, 0.3))),
+    (Command(254.0, 0.0, 58.0, 100.0, 87.0, 100.0), Reference.from_split(24.0, 0.03, (0.5, 0.2, 0.3))),
+    (Command(288.0, 0.0, 75.0, 100.0, 56.0, 64.0), Reference.from_split(22.0, 0.02, (0.3, 0.3, 0.4))),
+)
+
+
+def test_fatrop_solves_the_reference_changes_of_the_solve_time_scenario_to_ipopts_cost(pb):
+    """From the steady state at the command held before each change (inlet 32 degC, water 4.6 degC) and a
+    cold start, fatrop at its benchmark settings converges and reaches IPOPT's cost; unscaled (before
+    the objective scaling) it failed on all three (line search, then restoration)."""
+    from hvac_mpc.benchmarks.fatrop_reference import FatropSolver
+    from hvac_mpc.mpc.ipopt_reference import IpoptReferenceSolver
+
+    with pytest.raises(ValueError, match="obj_scaling"):
+        FatropSolver(pb, obj_scaling=0.0)
+    fa, ip = FatropSolver(pb), IpoptReferenceSolver(pb, warm_start_init_point=False)
+    d = np.array([32.0, 4.6, 0.0, 0.0])
+    for command, ref in SCENARIO_CHANGES:
+        u_prev = pb.scale_u(command.vector())
+        x0 = pb.scale_x(pb.model.steady_state(command.vector(), d))
+        lo, hi = pb.input_bounds(command.vector())
+        args = (x0, u_prev, d, pb.reference_vector(ref), pb.output_weights(ref), lo, hi)
+        fa.reset(), ip.reset()
+        rf, ri = fa.feedback(*args), ip.feedback(*args)
+        assert rf.ok, (ref, rf.status)
+        assert ri.ok and rf.iterations <= 100
+        assert rf.extra["objective"] == pytest.approx(ri.extra["objective"], rel=1e-4)
+        assert abs(pb.unscale_u(rf.U[0]) - pb.unscale_u(ri.U[0])).max() < 1.0  # the move applied (W, %)
