@@ -8,18 +8,21 @@ with the RTI as configured by default except for the settings each variant names
 the comparison does not move with the defaults):
 
 * ``inline``: the reachable flow (:mod:`hvac_mpc.mpc.priorities`) solved inside the step that needs
-  it, OSQP capped at 400 iterations per QP with a QP at the cap a failure (the settings before);
+  it, OSQP capped at 400 iterations per QP with a QP at the cap a failure (earlier settings);
 * ``reach_thread``: that solve started in the step on a second thread and applied from the next
   step on (``reach_deferred=True, reach_background=True``);
 * ``reach_thread_cap60``: as well, OSQP capped at 60 iterations per QP with the iterate at the cap
-  the QP's answer (``osqp_max_iter=60, osqp_accept_max_iter=True``).
+  the QP's answer (``osqp_max_iter=60, osqp_accept_max_iter=True``);
+* ``changes_thread``: ``reach_thread`` with the solve at a change of the references on the second thread
+  too, the step answering from the last solve (``reach_changes_deferred=True``);
+* ``changes_thread_cap60``: both (the cap of 60 is a setting, not a default).
 
 The variants run alternately, ``--rounds`` times each, on at most two cores (the solve-time
 benchmark's limit). Per step: the wall time of ``MpcController.step`` and the CPU time of the thread
 that runs it (``time.thread_time``; the process CPU time would count the second thread's solve too),
 the cold first step excluded; per loop the closed-loop cost (as ``solve-time`` computes it), the
-reachable-flow solves and the OSQP iterations of the slowest steps. The ``reach_thread`` commands are
-checked against ``reach_deferred=True`` without the thread (the same bit for bit).
+reachable-flow solves and the OSQP iterations of the slowest steps. The commands of ``reach_thread`` and
+``changes_thread_cap60`` are checked against the same settings without the thread (the same bit for bit).
 """
 
 from __future__ import annotations
@@ -41,11 +44,18 @@ from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings  # noqa: E402
 
 from . import solve_time  # noqa: E402
 
-BEFORE = {"reach_deferred": False, "reach_background": False, "osqp_max_iter": 400, "osqp_accept_max_iter": False}
+BEFORE = {"reach_deferred": False, "reach_background": False, "reach_changes_deferred": False, "osqp_max_iter": 400,
+          "osqp_accept_max_iter": False}
 VARIANTS = {"inline": BEFORE,
             "reach_thread": {**BEFORE, "reach_deferred": True, "reach_background": True},
             "reach_thread_cap60": {**BEFORE, "reach_deferred": True, "reach_background": True, "osqp_max_iter": 60,
-                                   "osqp_accept_max_iter": True}}
+                                   "osqp_accept_max_iter": True},
+            "changes_thread": {**BEFORE, "reach_deferred": True, "reach_background": True,
+                               "reach_changes_deferred": True},
+            "changes_thread_cap60": {**BEFORE, "reach_deferred": True, "reach_background": True,
+                                     "reach_changes_deferred": True, "osqp_max_iter": 60, "osqp_accept_max_iter": True}}
+#: The variants whose commands are checked against the same settings without the second thread.
+THREADED = ("reach_thread", "changes_thread_cap60")
 
 
 def run_loop(settings: MpcSettings, steps: int, seed: int) -> dict[str, Any]:
@@ -105,9 +115,10 @@ def main(argv: list[str] | None = None) -> int:
                   f" | thread CPU median {c['median_ms']:.2f} p99 {c['p99_ms']:.2f} max {c['max_ms']:.2f} ms"
                   f" | solves {len(loop['solves'])}, cost {loop['cost']:.2f}"
                   f" | OSQP iterations, largest {rows[name][-1]['osqp_iterations_top'][:4]}", flush=True)
-    same = bool(np.array_equal(loops["reach_thread"]["commands"], run_loop(
-        MpcSettings(**{**VARIANTS["reach_thread"], "reach_background": False}), args.steps, args.seed)["commands"]))
-    print(f"reach_thread commands equal to the deferred solve on the step's own thread: {same}")
+    same = all(np.array_equal(loops[name]["commands"], run_loop(
+        MpcSettings(**{**VARIANTS[name], "reach_background": False}), args.steps, args.seed)["commands"])
+        for name in THREADED)
+    print(f"{' and '.join(THREADED)} commands equal to the deferred solve on the step's own thread: {same}")
     costs = {name: [rows[name][0]["cost"]] for name in VARIANTS}
     for seed in range(args.seed + 1, args.seed + args.cost_seeds):
         for name, extra in VARIANTS.items():

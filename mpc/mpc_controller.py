@@ -70,6 +70,12 @@ SOLVERS = ("rti", "sqp", "ipopt")
 #: term holds it back (2 w_Q e_Q 0.19 (L/s)/W against 2 w_e P / (100 W)^2), so flow still comes before
 #: energy.
 OUT_OF_REACH_FLOW_WEIGHT = 0.01
+#: Heater command (W) below which an inexact QP answer (OSQP stopped at its iteration bound) leaves the heater
+#: off where it is off. ASSUMPTION: an iterate at the bound is within a few watts of the QP's solution in the
+#: heater (2.8 W measured once in the summer pull-down, where the solution is 0 W), and where heat is wanted the
+#: QP asks for tens of watts within a step (the heater's rate limit is 60 W/s); a demand below this
+#: bound is delayed by a step, not lost (the next QP goes on from the shifted plan).
+INEXACT_HEATER_OFF_W = 10.0
 
 
 @dataclass(frozen=True)
@@ -94,8 +100,11 @@ class MpcSettings:
         osqp_accept_max_iter: take OSQP's iterate at ``osqp_max_iter`` as the QP's answer (an inexact
             QP step; the next step's QP goes on from it) instead of a failure and the fallback chain:
             with a low cap (``osqp_max_iter=60``), a deterministic bound on a step's OSQP iterations.
-            Off: measured with 60, the inexact iterates let the heater command leave zero in the
-            summer pull-down (2.8 W, ``tests/test_cabin.py``; README "Solve time").
+            Off: measured with 60, the heating step down at low flow of ``tests/test_mpc.py`` settles in
+            117 s instead of 62 s (100: 117 s, 150: 111 s; docs/architecture.md 'Slow steps'). An answer
+            taken at the cap does not switch the heater on: a heater command below
+            :data:`INEXACT_HEATER_OFF_W` from it is taken as off while the heater is off in the command
+            in force.
         sqp_max_iter, sqp_tol: SQP iteration cap and step tolerance (scaled variables).
         levenberg_marquardt: weight of lm * |u_k - u_k_lin|^2 (scaled inputs, every stage) added to
             each QP: damps Gauss-Newton steps along the flat directions the redundant actuators
@@ -135,10 +144,14 @@ class MpcSettings:
         reach_deferred: a periodic reachable-flow re-solve (the references unchanged) started in one
             step is applied from the next step on (that step answers from the previous solve); the
             commands do not depend on where or how fast the solve runs. A change of the references
-            is solved inside its step (``mpc/priorities.py``).
+            is solved inside its step (``mpc/priorities.py``) unless ``reach_changes_deferred``.
         reach_background: with ``reach_deferred``, run that solve on a second thread between the two
             steps, off the step's critical path (:mod:`hvac_mpc.mpc.background`); the commands are
             those of ``reach_background=False`` bit for bit.
+        reach_changes_deferred: with ``reach_deferred`` (ignored without), the solve at a change of the
+            references too: the step answers from the last solve (with none, the flow reference as it
+            is) and the new answer is used from the next step on
+            (:meth:`~.priorities.ReachableFlow.check`; docs/architecture.md 'Slow steps').
         flow_trade_c: the most supply temperature (degC) a flow error may buy through valve a while the
             blower closes it at its rate limit: the flow weights are cut for the step where the error
             would buy more (:func:`hvac_mpc.mpc.priorities.flow_weight_factor`; with ``priorities`` only;
@@ -176,6 +189,7 @@ class MpcSettings:
     reach_skip_unmoved: bool = False
     reach_deferred: bool = True
     reach_background: bool = True
+    reach_changes_deferred: bool = True
     flow_trade_c: float | None = 0.05
 
     def __post_init__(self) -> None:
@@ -220,7 +234,8 @@ class MpcSettings:
         if not isinstance(self.ekf, EkfSettings):
             raise InvalidSettings(f"{p}.ekf must be an EkfSettings")
         self.ekf.validate(f"{p}.ekf")
-        for flag in ("priorities", "reach_skip_unmoved", "reach_deferred", "reach_background", "osqp_accept_max_iter",
+        for flag in ("priorities", "reach_skip_unmoved", "reach_deferred", "reach_background", "reach_changes_deferred",
+                     "osqp_accept_max_iter",
                      "osqp_check_dualgap"):
             if not isinstance(getattr(self, flag), bool):
                 raise InvalidSettings(f"{p}.{flag} must be True or False")
@@ -305,7 +320,9 @@ class MpcController:
         pb = self.problem
         self.reach = ReachableFlow(pb.model, pb.u_lo_phys, pb.u_hi_phys, pb.heater_max_phys, self.params,
                                    every_s=s.reach_every_s, skip_unmoved=s.reach_skip_unmoved,
-                                   deferred=s.reach_deferred, background=s.reach_background) if s.priorities else None
+                                   deferred=s.reach_deferred, background=s.reach_background,
+                                   changes_deferred=s.reach_changes_deferred and s.reach_deferred
+                                   ) if s.priorities else None
         self.heater_bound = HeaterOffBound(self.params, s.dt_s)
         self.temp_reach = SaturatedTemperature(pb.i_heater_cmd, pb.i_valve_a, s.dt_s)
         self.codegen = getattr(self.solver, "codegen", None) or CodegenReport()
@@ -447,6 +464,9 @@ class MpcController:
             status = f"deadline missed ({feedback_elapsed:.3f} s > {s.deadline_s} s)"
         if sol.ok:
             u_cmd = pb.unscale_u(sol.U[0])
+            if (sol.extra.get("inexact") and not pb.heating(self.u_prev)
+                    and u_cmd[pb.i_heater_cmd] < INEXACT_HEATER_OFF_W):
+                u_cmd[pb.i_heater_cmd] = 0.0
             if not np.all(np.isfinite(u_cmd)):
                 sol.ok = False
                 status = "non-finite command"

@@ -40,9 +40,12 @@ the start of the next check (the next control step), which in between answers fr
 solve; with ``background`` as well the solve runs on a second thread meanwhile
 (:mod:`hvac_mpc.mpc.background`), off the step's critical path. Deferred answers are the same with
 and without the thread: the solve's inputs are copied when it starts, and the next check waits for
-it. A change of the references is still solved inside its step: one step of tracking an unreachable
-flow reference at a reference change doubled the quick mismatch suite's temperature IAE ratio on
-flow_out_of_reach (median over the variants 0.77 -> 1.52, measured with every solve deferred).
+it. A change of the references is solved inside its step unless ``changes_deferred``: one step of
+tracking an unreachable flow reference at a reference change doubled the quick mismatch suite's
+temperature IAE ratio on flow_out_of_reach (median over the variants 0.77 -> 1.52, measured with every
+solve deferred, before the flow weights were cut while a flow error is closed: :func:`flow_weight_factor`).
+With ``changes_deferred`` that solve too is started in its step and applied from the next one, the step
+answering from the last solve meanwhile (docs/architecture.md 'Slow steps': the median 0.788 -> 0.782).
 """
 
 from __future__ import annotations
@@ -110,11 +113,15 @@ class ReachableFlow:
     def __init__(self, model: HvacModel, u_lo: np.ndarray, u_hi: np.ndarray, heater_temp_max_c: float,
                  params: Parameters, every_s: float = 10.0, check_fraction: float = 0.6, margin: float = 0.02,
                  temp_tolerance_c: float = 0.2, max_iter: int = 60, saturated_s: float = 5.0,
-                 skip_unmoved: bool = False, deferred: bool = False, background: bool = False):
+                 skip_unmoved: bool = False, deferred: bool = False, background: bool = False,
+                 changes_deferred: bool = False):
         if background and not deferred:
             raise ValueError("ReachableFlow: background=True needs deferred=True (the result is used one check later)")
+        if changes_deferred and not deferred:
+            raise ValueError("ReachableFlow: changes_deferred=True needs deferred=True")
         self.model = model
         self.deferred = bool(deferred)
+        self.changes_deferred = bool(changes_deferred)
         self.background = bool(background)
         self._pending: BackgroundCall | None = None
         self.skip_unmoved = bool(skip_unmoved)
@@ -225,7 +232,9 @@ class ReachableFlow:
         w0 = self._w if self._w is not None else np.concatenate([x, u])
         # copies: the model parameters may change before a deferred solve has run
         args = (w0.copy(), np.concatenate([d, [temp_ref_c, a_cap_pct], self._p]), np.array(d, float), temp_ref_c)
-        if self.deferred and periodic:
+        if self.deferred and (periodic or self.changes_deferred):
+            # a change answers from the last solve meanwhile: the reachable flow moves little with the
+            # temperature reference (0.27 L/s per degC, MATERIAL_CHANGE); without one, the reference as it is
             self._pending = BackgroundCall(self._solve, args, thread=self.background)
             return self._last if failed else self._limit(flow_ref_m3s, flow_now)
         if not self._apply(self._solve(*args)):

@@ -136,6 +136,7 @@ class RtiOsqpSolver:
         accept_max_iter: take OSQP's iterate at ``max_iter`` (status "maximum iterations reached")
             as the QP's answer instead of a failure: an inexact QP step, as the real-time iteration
             takes an inexact NLP step; the next QP starts from it (primal shifted, dual kept).
+            ``SolveResult.extra["inexact"]`` says when the step's answer is such an iterate.
         codegen: evaluate the QP data as generated C (:func:`.codegen.compiled`, cached on disk);
             otherwise (or without a compiler) CasADi's interpreter runs the same functions.
             ``self.codegen`` reports what happened.
@@ -608,6 +609,7 @@ class RtiOsqpSolver:
         solves = 0
         status = "unsolved"
         z = None
+        inexact = False
         for it in range(max_qps):
             if it > 0:
                 prep += self._relinearise(z, x0, d, ref, w_y, u_prev)
@@ -634,6 +636,7 @@ class RtiOsqpSolver:
                 z = None
                 break
             z = np.array(x)
+            inexact = status_val == 7  # taken at the cap without meeting even OSQP's inaccurate tolerance
             if not np.isfinite(z).all():
                 status = "non-finite solution"
                 z = None
@@ -650,7 +653,7 @@ class RtiOsqpSolver:
         self.X, self.U, self.S = X, U, S
         return SolveResult(True, status, X=X.copy(), U=U.copy(), S=S.copy(), iterations=iterations,
                            qp_solves=solves, prep_time_s=prep, feedback_time_s=feedback,
-                           extra={"cold_start": cold})
+                           extra={"cold_start": cold, "inexact": inexact})
 
     def _limit_time(self, remaining_s: float, budget_s: float) -> None:
         """OSQP's time limit: what remains of the feedback budget, set again only when it has shrunk

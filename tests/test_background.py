@@ -117,8 +117,9 @@ def _loop(settings: MpcSettings, steps: int = 14):
 
 
 def test_periodic_reach_solves_run_off_the_step_and_the_commands_do_not_depend_on_the_thread():
-    on_thread = _loop(MpcSettings(codegen=False, reach_deferred=True, reach_background=True))
-    at_once = _loop(MpcSettings(codegen=False, reach_deferred=True, reach_background=False))
+    inline_changes = dict(codegen=False, reach_deferred=True, reach_changes_deferred=False)
+    on_thread = _loop(MpcSettings(**inline_changes, reach_background=True))
+    at_once = _loop(MpcSettings(**inline_changes, reach_background=False))
     assert np.array_equal(on_thread[0], at_once[0]) and on_thread[1] == at_once[1]
     assert len(on_thread[2]) == len(at_once[2]) == 3
     assert all(main and in_step for main, in_step in at_once[2])
@@ -128,3 +129,33 @@ def test_periodic_reach_solves_run_off_the_step_and_the_commands_do_not_depend_o
     # when the deferred answer is used (one check later) is held by the test above, on the check itself
     with pytest.raises(InvalidSettings, match="reach_background"):
         MpcSettings(reach_deferred=False, reach_background=True)
+
+
+def test_with_changes_deferred_a_new_reference_answers_from_the_last_solve_and_then_from_its_own():
+    inline, x, u, d = _reach_setup()
+    _, x1, _, d1 = _reach_setup(15.0)
+    pb = _default_problem()
+    deferred = ReachableFlow(pb.model, pb.u_lo_phys, pb.u_hi_phys, pb.heater_max_phys, Parameters(), deferred=True,
+                             changes_deferred=True)
+    # no solve before: the first check tracks the reference as it is, the next one answers as the inline check
+    assert deferred.check(x, u, d, 18.0, 200 * M3H, 100.0, 1.0).flow_m3s is None
+    first = inline.check(x, u, d, 18.0, 200 * M3H, 100.0, 1.0)
+    assert first.flow_m3s is not None and deferred.check(x, u, d, 18.0, 200 * M3H, 100.0, 1.0) == first
+    before = inline._reachable
+    # a new temperature reference with moved inputs: the deferred check answers from the last solve first
+    moved = inline.check(x1, u, d1, 17.0, 200 * M3H, 100.0, 1.0)
+    assert inline._reachable > before + 1 * M3H
+    assert deferred.check(x1, u, d1, 17.0, 200 * M3H, 100.0, 1.0) != moved and deferred._reachable == before
+    assert deferred.check(x1, u, d1, 17.0, 200 * M3H, 100.0, 1.0) == moved
+    with pytest.raises(ValueError, match="deferred"):
+        ReachableFlow(pb.model, pb.u_lo_phys, pb.u_hi_phys, pb.heater_max_phys, Parameters(), changes_deferred=True)
+
+
+def test_by_default_no_reach_solve_runs_on_the_step_and_the_commands_do_not_depend_on_the_thread():
+    on_thread = _loop(MpcSettings(codegen=False))
+    at_once = _loop(MpcSettings(codegen=False, reach_background=False))
+    assert np.array_equal(on_thread[0], at_once[0]) and on_thread[1] == at_once[1]
+    assert len(on_thread[2]) == 3 and not any(main for main, _ in on_thread[2])
+    # without deferred solves the setting has nothing to defer: a change is solved in its step
+    assert not MpcController(settings=MpcSettings(codegen=False, reach_deferred=False,
+                                                  reach_background=False)).reach.changes_deferred
