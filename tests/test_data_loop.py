@@ -325,6 +325,35 @@ def test_clean_log_gets_nothing_added(tmp_path_factory):
 
 
 @pytest.mark.slow
+def test_clean_log_without_the_water_column_gets_nothing_and_the_supply_error_of_the_noise(tmp_path):
+    """The nominal box logged without its water temperature: the model's water follows the chiller's two-point
+    control, so the +-1 C cycling is explained by the nominal model and nothing is added (measured on the seed-23
+    2 h log: 0.247 C held-out supply RMS before, 0.052 C, the noise, now; this 40 min log 0.855 and 0.083 C)."""
+    path = tmp_path / "nowater.csv"
+    simulate_log(path, "nominal", duration_s=2400.0, seed=11, omit=("water_temp_c",))
+    res = identify(load(path), base_effects=DOCUMENTED_EFFECTS, quick=True)
+    assert res.accepted == [] and res.terms == ()
+    e = res.holdout_errors()["supply_temp_c"]
+    assert e["rms_after"] < 0.15, e  # measured 0.083 C (the noise 0.05 C); 0.855 C with the water ramped to the set point
+
+
+@pytest.mark.slow
+def test_slower_chiller_without_the_water_column_is_named_and_halves_the_supply_error(tmp_path):
+    """The box's chiller ramps at half the thesis's slopes (``chiller_slow``) and the log holds no water temperature:
+    under the two-point control the nominal refit absorbs part of the slower water (k_p -38 % on the seed-23 2 h log)
+    and the fit of the slopes from there is local, so ``chiller_asymmetry`` is screened from each of its grid points
+    at the refit and at the starting parameters (measured on that log: nothing named, 1.649 C held-out RMS, before;
+    named, 1.649 -> 0.051 C, now)."""
+    path = tmp_path / "slow_nowater.csv"
+    simulate_log(path, "chiller_slow", duration_s=2400.0, seed=11, omit=("water_temp_c",))
+    res = identify(load(path), base_effects=DOCUMENTED_EFFECTS, quick=True, discover=False)
+    assert "chiller_asymmetry" in [a.name for a in res.accepted]
+    assert res.params.water_rise_rate_c_per_s == pytest.approx(0.5 * 0.00702, rel=0.2)
+    e = res.holdout_errors()["supply_temp_c"]
+    assert e["rms_after"] <= 0.5 * e["rms_before"], e
+
+
+@pytest.mark.slow
 def test_delay_is_named_and_halves_the_supply_error(tmp_path_factory):
     res = identified(tmp_path_factory, "delay_3s")
     assert [a.name for a in res.accepted] == ["transport_delay:supply_temp_c"]
