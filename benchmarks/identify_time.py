@@ -43,8 +43,9 @@ def _load() -> str:
 
 
 #: Suffixes of a log name: ``+bad`` bad rows injected, ``+hot`` the "hot_heater" excitation (the heater
-#: body past the PTC's knee), ``+noptc`` identification starts without the PTC power fall (it must find it).
-FLAGS = ("bad", "hot", "noptc")
+#: body past the PTC's knee), ``+noptc`` identification starts without the PTC power fall (it must find it),
+#: ``+nowater`` the log without the water-temperature column (a box without that sensor).
+FLAGS = ("bad", "hot", "noptc", "nowater")
 
 
 @dataclass(frozen=True)
@@ -55,6 +56,7 @@ class LogCase:
     excitation: str = "steps"
     bad_rows: bool = False
     base_effects: tuple[str, ...] = DOCUMENTED_EFFECTS
+    omit: tuple[str, ...] = ()
 
 
 def log_case(name: str) -> LogCase:
@@ -67,7 +69,8 @@ def log_case(name: str) -> LogCase:
     variant = Variant(log_shift_samples=int(base.split("_", 1)[1])) if base.startswith("shift_") else base
     get_variant(variant)  # an unknown name: ValueError naming the allowed ones
     effects = tuple(e for e in DOCUMENTED_EFFECTS if not ("noptc" in flags and e == "ptc_power_fall"))
-    return LogCase(variant, "hot_heater" if "hot" in flags else "steps", "bad" in flags, effects)
+    return LogCase(variant, "hot_heater" if "hot" in flags else "steps", "bad" in flags, effects,
+                   ("water_temp_c",) if "nowater" in flags else ())
 
 
 def time_one(name: str, duration_s: float, seed: int, folder: Path) -> dict:
@@ -75,7 +78,7 @@ def time_one(name: str, duration_s: float, seed: int, folder: Path) -> dict:
     path = folder / f"{name}.csv"
     case = log_case(name)
     simulate_log(path, case.variant, duration_s=duration_s, seed=seed, excitation=case.excitation,
-                 bad_rows=case.bad_rows)
+                 bad_rows=case.bad_rows, omit=case.omit)
     t0, c0 = time.perf_counter(), cpu_seconds()
     log = log_data.load(path)
     load_wall, load_cpu = time.perf_counter() - t0, cpu_seconds() - c0
@@ -102,7 +105,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--variant", action="append", default=None,
                         help="hvac_mpc.mismatch variant, or shift_N for a log shifted by N samples; suffixes +bad (bad "
-                             "rows), +hot (heater past the PTC's knee), +noptc (start without the PTC fall) (repeatable)")
+                             "rows), +hot (heater past the PTC's knee), +noptc (start without the PTC fall), +nowater "
+                             "(no water-temperature column) (repeatable)")
     parser.add_argument("--duration", type=float, default=7200.0, help="log length, s (default 7200)")
     parser.add_argument("--seed", type=int, default=5)
     parser.add_argument("--threads", type=int, default=2, choices=(1, 2), help="cores to use (default 2)")

@@ -152,7 +152,8 @@ def prepare(columns: Mapping[str, np.ndarray], holdout_fraction: float = 1 / 3, 
     water = _smoothed(columns, "water_temp_c", dt)
     notes.append(f"water_temp_c logged: used as a measured disturbance (smoothed over {WATER_SMOOTHING_S:g} s) in "
                  "place of the modelled chiller" if water is not None else
-                 "water_temp_c not logged: the model's chiller ramp towards the set point is used")
+                 "water_temp_c not logged: the model's water follows the chiller's two-point control from the first set "
+                 "point (compressor on; ASSUMPTION: the box's start), docs/identification.md")
     cabin = _smoothed(columns, "cabin_temp_c", dt)
     if cabin is not None:
         notes.append(f"cabin_temp_c logged: offered to term discovery (smoothed over {WATER_SMOOTHING_S:g} s)")

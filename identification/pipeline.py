@@ -24,6 +24,7 @@ Procedure (stated in the report):
 
 from __future__ import annotations
 
+import dataclasses
 import multiprocessing
 import os
 import time
@@ -204,10 +205,25 @@ def _gains(post: OutputPost, new=()) -> list[str]:
 
 def _score_model(fitter: Fitter, current: Fit, free: list[FreeParam], cand: Candidate) -> tuple[Fit | None, str]:
     effects = current.effects | frozenset(cand.effects)
-    p0 = _grid_start(fitter, effects, current.p, current.post, cand)
+    if cand.screen_each and len(cand.grid) > 1:
+        # every grid point screened from the current parameters and from the starting ones (a nominal refit may have
+        # absorbed part of the effect), the best screened fit kept
+        starts = (current.p, np.array(fitter.base.vector()))
+        fits = [_score_from(fitter, current, free, cand, effects, _grid_start(fitter, effects, p, current.post,
+                                                                            dataclasses.replace(cand, grid=(g,))))
+                for g in cand.grid for p in starts]
+        good = [f for f in fits if f[0] is not None]
+        return min(good, key=lambda f: f[0].cost_train) if good else fits[0]
+    return _score_from(fitter, current, free, cand, effects, _grid_start(fitter, effects, current.p, current.post, cand))
+
+
+def _score_from(fitter: Fitter, current: Fit, free: list[FreeParam], cand: Candidate, effects,
+                p0: np.ndarray) -> tuple[Fit | None, str]:
     visible = fitter.identifiable(effects, p0, current.post, cand.params, current.terms)
     if not visible:
         return None, "its parameters do not change the logged outputs here (not observable)"
+    if cand.screen_each:  # the free parameters' sensitivities at the grid point, not at the current model
+        current = dataclasses.replace(current, effects=effects, p=p0, extra={})
     return _screen_and_fit(fitter, current, free, effects, p0, list(visible), current.post,
                            flow_side="volume_flow_m3s" in cand.signature)
 

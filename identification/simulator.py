@@ -9,17 +9,24 @@ Everything is built once per model structure as CasADi functions of the full par
 - one-step innovations of an extended Kalman filter on the same model (for the statistics).
 
 When the log holds ``water_temp_c`` it replaces the chiller state at every step (a measured
-disturbance), so the chiller's hysteresis does not enter the residual.
+disturbance), so the chiller's hysteresis does not enter the residual. When it does not, the chiller's
+two-point control (``two_point``, on by default) drives the model's water as in the simulated plant (the
+relay and the thesis's rising and falling slopes, effect ``chiller_asymmetry``): the ramp target of every
+sample follows the relay (:func:`hvac_mpc.models.chiller.two_point_targets`, recomputed for the rates and
+band of each parameter vector) instead of the logged set point, from the water at the first set point with
+the compressor on (ASSUMPTION: the plant's start; docs/identification.md, "Logs without the water
+temperature").
 """
 
 from __future__ import annotations
 
+from types import SimpleNamespace
 from typing import Iterable, Sequence
 
 import casadi as ca
 import numpy as np
 
-from hvac_mpc.models import valves
+from hvac_mpc.models import chiller, valves
 from hvac_mpc.models.box import INPUTS, HvacModel
 from hvac_mpc.models.parameters import Parameters
 
@@ -29,6 +36,9 @@ from .log_data import LogData
 INTERNALS = ("heater_temp_c", "mass_flow_kgs", "bypass_fraction", "core_mass_flow_kgs", "motor_rise_c",
              "blower_out_temp_c", "cooler_out_temp_c", "heater_out_temp_c", "heater_electric_w",
              "cooler_drive_c", "heater_rise_c", "mix_temp_c")
+
+#: Parameters of the chiller's two-point control (:func:`hvac_mpc.models.chiller.two_point_targets`).
+CHILLER_PARAMETERS = ("water_rate_c_per_s", "water_rise_rate_c_per_s", "water_fall_rate_c_per_s", "chiller_band_c")
 
 #: ASSUMPTION: EKF process-noise standard deviations per state and second (tuning, not physics).
 PROCESS_NOISE = {"motor_rise_c": 2e-3, "water_temp_c": 2e-3, "heater_temp_c": 0.05, "supply_sensor_c": 0.01,
@@ -42,10 +52,14 @@ class Simulator:
     """One model structure (effects) over one log; ``outputs`` are the logged outputs to predict."""
 
     def __init__(self, log: LogData, params: Parameters, effects: Iterable[str], outputs: Sequence[str],
-                 terms: tuple = ()):
+                 terms: tuple = (), two_point: bool = True):
+        """``two_point``: without a logged water temperature, the model's water follows the chiller's two-point
+        control (module docstring); False: it ramps to the logged set point and stays there."""
         self.log = log
         self.params = params
-        self.effects = frozenset(effects)
+        self.two_point = bool(two_point and log.water_temp_c is None)
+        # the two-point control as the plant has it (models/plant.py): the relay and the thesis's two water slopes
+        self.effects = frozenset(effects) | ({"chiller_asymmetry"} if self.two_point else frozenset())
         self.terms = tuple(terms)
         self.model = HvacModel(params, self.effects, dt_s=log.dt_s, substeps=2, terms=self.terms)
         self.outputs = tuple(outputs)
@@ -56,6 +70,9 @@ class Simulator:
         self._y_idx = [m.outputs.index(o) for o in self.outputs]
         self._iw = m.states.index("water_temp_c")
         self._flag = 1.0 if log.water_temp_c is not None else 0.0
+        self._i_target = 2 * self.nu + m.disturbances.index("chiller_setpoint_c")
+        self._i_chiller = [self.names.index(k) for k in CHILLER_PARAMETERS]
+        self._z_cache: tuple[tuple, np.ndarray] | None = None
         n = log.n
         water = log.water_temp_c if log.water_temp_c is not None else np.zeros(n)
         d = np.zeros((n, self.nd))
@@ -81,6 +98,29 @@ class Simulator:
     def _split_z(self, z):
         nu, nd = self.nu, self.nd
         return z[:nu], z[nu:2 * nu], z[2 * nu:2 * nu + nd], z[2 * nu + nd], z[2 * nu + nd + 1]
+
+    def z_for(self, p: np.ndarray) -> np.ndarray:
+        """The per-row inputs of the mapped functions for parameters ``p``: with ``two_point``, the set-point row
+        holds the two-point control's ramp targets for ``p``'s water rates and band (cached per value)."""
+        if not self.two_point:
+            return self.z
+        key = tuple(float(p[i]) for i in self._i_chiller)
+        if self._z_cache is None or self._z_cache[0] != key:
+            prm = SimpleNamespace(**dict(zip(CHILLER_PARAMETERS, key)))
+            sp = self.log.chiller_setpoint_c
+            z = self.z.copy()
+            z[self._i_target] = chiller.two_point_targets(sp, sp[0], self.log.dt_s, prm,
+                                                          asymmetric="chiller_asymmetry" in self.effects)
+            self._z_cache = (key, z)
+        return self._z_cache[1]
+
+    def _first_row(self, p: np.ndarray) -> np.ndarray:
+        """Inputs of the first row for the steady state; with ``two_point`` the water pinned to the first set point."""
+        z0 = self.z_for(p)[:, 0].copy()
+        if self.two_point:
+            z0[2 * self.nu + self.nd] = self.log.chiller_setpoint_c[0]
+            z0[2 * self.nu + self.nd + 1] = 1.0
+        return z0
 
     def _params(self, z, p):
         """The parameter vector with the logged cabin temperature in place of ``cabin_temp_c`` (when logged)."""
@@ -130,7 +170,7 @@ class Simulator:
     # ------------------------------------------------------------------ steady state
     def initial_state(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Steady state at the first row and its Jacobian with respect to ``p`` (n_x x n_p)."""
-        z0 = self.z[:, 0]
+        z0 = self._first_row(p)
         log = self.log
         x = np.zeros(self.nx)
         x[self.model.states.index("motor_rise_c")] = 1.0
@@ -159,7 +199,7 @@ class Simulator:
     def _settle_by_simulation(self, p: np.ndarray) -> np.ndarray:
         x = np.full(self.nx, float(self.log.inlet_temp_c[0]))
         x[self.model.states.index("motor_rise_c")] = 0.0
-        z0 = self.z[:, 0]
+        z0 = self._first_row(p)
         for _ in range(4000):
             x = np.asarray(self.f_step(x, z0, p)).ravel()
         return x
@@ -168,7 +208,7 @@ class Simulator:
     def simulate(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Free-run outputs (n x n_y) and states (n x n_x; state k is the state at row k)."""
         x0, _ = self.initial_state(p)
-        xs, ys = self.f_sim(x0, self.z, p)
+        xs, ys = self.f_sim(x0, self.z_for(p), p)
         xs = np.asarray(xs).T
         states = np.vstack([x0[None, :], xs[:-1]])
         return np.asarray(ys).T, states
@@ -204,7 +244,7 @@ class Simulator:
         x0, dx0 = self.initial_state(p)
         s0 = dx0 @ e
         xa0 = np.concatenate([x0, s0.ravel(order="F")])
-        _, out = self._aug(idx)(xa0, self.z, p, scale)
+        _, out = self._aug(idx)(xa0, self.z_for(p), p, scale)
         out = np.asarray(out).T
         y = out[:, :self.ny]
         dy = out[:, self.ny:].reshape(self.log.n, self.ny, n_theta, order="F")
@@ -213,7 +253,7 @@ class Simulator:
     def internals(self, p: np.ndarray, states: np.ndarray) -> dict[str, np.ndarray]:
         """Derived regressors along a free run (heater temperature, mass flow, bypass ...)."""
         f = self.f_internals.map(self.log.n)
-        vals = np.asarray(f(states.T, self.z, p)).T
+        vals = np.asarray(f(states.T, self.z_for(p), p)).T
         out = {k: vals[:, i] for i, k in enumerate(INTERNALS)}
         out["network_resistance_kg_m7"] = network_resistance(self.params, self.log.u)
         return out
@@ -267,7 +307,7 @@ class Simulator:
         ym = y_meas if post is None else post.undo(y_meas)
         mask = np.isfinite(ym).astype(float)
         ym = np.where(mask > 0, ym, 0.0)
-        _, out = self._ekf()(np.concatenate([x0, p0.ravel()]), self.z, p, ym.T, mask.T,
+        _, out = self._ekf()(np.concatenate([x0, p0.ravel()]), self.z_for(p), p, ym.T, mask.T,
                              np.asarray(r_var, float), q)
         out = np.asarray(out).T
         nu = out[:, :self.ny]

@@ -218,17 +218,25 @@ def _cell(x) -> str:
     return format(float(x), ".7g")
 
 
-def write_csv(path: Path, rows: list[list]) -> None:
-    """Write the log with its header; None is an empty field."""
+#: Columns a log may leave out (``simulate_log(..., omit=...)``): the optional sensors.
+OPTIONAL_COLUMNS = ("water_temp_c", "heater_outlet_temp_c", "cabin_temp_c", "heater_power_w", "chiller_setpoint_c")
+
+
+def write_csv(path: Path, rows: list[list], omit: tuple[str, ...] = ()) -> None:
+    """Write the log with its header; None is an empty field; the columns in ``omit`` are left out."""
+    keep = [i for i, c in enumerate(COLUMNS) if c not in omit]
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(COLUMNS)
-        w.writerows([_cell(x) for x in row] for row in rows)
+        w.writerow([COLUMNS[i] for i in keep])
+        w.writerows([_cell(row[i]) for i in keep] for row in rows)
 
 
 def simulate_log(path: str | Path, variant: str | Variant = "nominal", duration_s: float = 7200, seed: int = 0,
-                 excitation: str = "steps", bad_rows: bool = False) -> dict:
+                 excitation: str = "steps", bad_rows: bool = False, omit: tuple[str, ...] = ()) -> dict:
     """Excite the box open loop for ``duration_s`` s and write a 1 Hz CSV log to ``path``.
+
+    ``omit``: optional sensor columns (:data:`OPTIONAL_COLUMNS`) the log leaves out, as a box without
+    that sensor would (e.g. ``("water_temp_c",)``: no chiller water reading).
 
     Returns what the log holds: the variant and its fields, row counts, the output shift and, with
     ``bad_rows``, what was injected (missing cells, a dropout, duplicated and non-monotone timestamps,
@@ -237,6 +245,9 @@ def simulate_log(path: str | Path, variant: str | Variant = "nominal", duration_
     name, var = get_variant(variant)
     if excitation not in EXCITATIONS:
         raise ValueError(f"unknown excitation {excitation!r}; allowed: {', '.join(EXCITATIONS)}")
+    bad_columns = [c for c in omit if c not in OPTIONAL_COLUMNS]
+    if bad_columns:
+        raise ValueError(f"omit: column(s) {bad_columns} cannot be left out; allowed: {', '.join(OPTIONAL_COLUMNS)}")
     n = int(round(duration_s))
     if n < 2 or (bad_rows and n < MIN_BAD_ROWS_DURATION_S):
         raise ValueError(f"duration_s must be at least {MIN_BAD_ROWS_DURATION_S if bad_rows else 2} s, got {duration_s}")
@@ -250,8 +261,8 @@ def simulate_log(path: str | Path, variant: str | Variant = "nominal", duration_
     rows = _rows(applied, schedule.setpoint_c, sensors, n, pad, shift)
     injected = inject_bad_rows(rows, rng_bad) if bad_rows else {}
     path = Path(path)
-    write_csv(path, rows)
+    write_csv(path, rows, tuple(omit))
     return {"path": str(path), "variant": name, "variant_fields": var.as_dict(), "seed": seed,
             "duration_s": float(n), "excitation": excitation, "samples": n, "rows_written": len(rows),
-            "columns": list(COLUMNS), "log_shift_samples": shift,
+            "columns": [c for c in COLUMNS if c not in omit], "log_shift_samples": shift,
             "input_to_flow_lag_samples": 1 + shift, "bad_rows": bool(bad_rows), "injected": injected}

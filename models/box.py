@@ -21,7 +21,7 @@ import numpy as np
 from hvac_mpc.contract import INPUTS
 
 from . import air, blower, bypass, chiller, heater, sensors, valves
-from .discovered import DiscoveredTerm, terms_at
+from .discovered import DiscoveredTerm, core_outlet_bounded_c, terms_at
 from .parameters import Parameters
 
 STATES = ("motor_rise_c", "water_temp_c", "heater_temp_c", "supply_sensor_c")
@@ -174,9 +174,11 @@ class HvacModel:
 
         t_blower = t_in + sx["motor_rise_c"]
         t_cooler = chiller.cooler_outlet_c(t_blower, sx["water_temp_c"], prm)
-        if self.terms:  # discovered terms on the air leaving the core, before the split (models/discovered.py)
-            t_cooler = t_cooler + terms_at(self.terms, "cooler_out", dict(
-                t_in=t_in, t_blower=t_blower, t_water=sx["water_temp_c"], mass_flow=mass_flow, core_share=1.0 - b))
+        if any(t.location == "cooler_out" for t in self.terms):  # discovered terms on the air leaving the core,
+            # before the split, the outlet held between the air entering the core and the water (models/discovered.py)
+            t_cooler = core_outlet_bounded_c(t_cooler + terms_at(self.terms, "cooler_out", dict(
+                t_in=t_in, t_blower=t_blower, t_water=sx["water_temp_c"], mass_flow=mass_flow, core_share=1.0 - b)),
+                t_blower, sx["water_temp_c"])
         p_el = heater.electric_power_w(su["heater_cmd_w"], sx["heater_temp_c"], prm, ptc="ptc_power_fall" in e)
         core_flow = (1.0 - b) * mass_flow
         t_heater_out = heater.air_outlet_c(sx["heater_temp_c"], t_cooler, core_flow, prm)

@@ -46,3 +46,28 @@ def cooler_outlet_c(air_in_c, water_c, p):
 def cooler_fit_inlet_c(p) -> float:
     """Inlet temperature at which the thesis cooler fit and the effectiveness form agree."""
     return p.cooler_offset_c / (1.0 - p.cooler_slope)
+
+
+def two_point_targets(setpoint_c, water0_c: float, dt_s: float, p, asymmetric: bool = False, on: bool = True):
+    """Ramp targets of the two-point chiller control along a set-point sequence (numpy, degC per sample).
+
+    The water temperature of a box whose chiller is under two-point control (effect 'chiller_hysteresis') is an
+    autonomous function of the set points: it ramps at the water rate towards the target of
+    :func:`hysteresis_target_c`, and the relay switches at set point -+ band. Simulated here sample by sample from
+    ``water0_c`` with the compressor ``on`` (the plant's start), each sample a straight ramp at the model's rate
+    (the rising and falling slopes if ``asymmetric``). Returned: the target the model's water state ramps to in
+    each sample, so a model fed these targets in place of the set point carries the two-point control while its
+    water ramp stays a differentiable function of the rates (docs/identification.md, "Logs without the water
+    temperature").
+    """
+    import numpy as np
+    sp = np.asarray(setpoint_c, float)
+    targets = np.empty_like(sp)
+    water = float(water0_c)
+    rise = p.water_rise_rate_c_per_s if asymmetric else p.water_rate_c_per_s
+    fall = p.water_fall_rate_c_per_s if asymmetric else p.water_rate_c_per_s
+    for k, s in enumerate(sp):
+        target, on = hysteresis_target_c(water, float(s), on, p)
+        targets[k] = target
+        water = water + (-fall * dt_s if on else rise * dt_s)
+    return targets

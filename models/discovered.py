@@ -127,3 +127,17 @@ def terms_at(terms, location: str, q: Mapping[str, Any]) -> Any:
         if t.location == location:
             total = total + t.value(q)
     return total
+
+
+def core_outlet_bounded_c(t_out_c: Any, t_air_in_c: Any, t_water_c: Any) -> Any:
+    """The cooler core's outlet air with a discovered term, held between the air entering the core and the water
+    (degC; CasADi or numpy). A core is a passive heat exchanger: its outlet air cannot leave the range of its two
+    inlet streams (second law). A term fitted on a log holds inside that range where the log lies; extrapolated
+    (a linear term in the air temperature, far outside the log's inlet temperatures) it can leave it, and the model
+    would then heat or cool the air beyond both streams (docs/identification.md, "A term at the cooler core's
+    outlet")."""
+    import casadi as ca
+    if isinstance(t_out_c, (ca.SX, ca.MX, ca.DM)):
+        return ca.fmin(ca.fmax(t_out_c, ca.fmin(t_air_in_c, t_water_c)), ca.fmax(t_air_in_c, t_water_c))
+    import numpy as np
+    return np.clip(t_out_c, np.minimum(t_air_in_c, t_water_c), np.maximum(t_air_in_c, t_water_c))

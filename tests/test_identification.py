@@ -115,6 +115,31 @@ def test_refined_model_file_predicts_a_fresh_log_better(tmp_path_factory, tmp_pa
     assert errs["refined"] < 0.5 * errs["nominal"], errs
 
 
+def test_without_the_water_column_the_model_carries_the_chillers_two_point_control(tmp_path):
+    """A log of the nominal box without the water-temperature column (a box without that sensor), set points 5 and
+    20 C: the model's water follows the chiller's two-point control (relay about the set point +- band, the
+    thesis's two slopes) from the first set point and matches the box's water, which the same log with the column
+    shows; ramping to the set point and stopping there (``two_point=False``, the model before) misses the +-1 C
+    cycling, and the supply temperature with it."""
+    simulate_log(tmp_path / "w.csv", "nominal", duration_s=3600, seed=5)
+    simulate_log(tmp_path / "nw.csv", "nominal", duration_s=3600, seed=5, omit=("water_temp_c",))
+    water = load(tmp_path / "w.csv").water_temp_c
+    log = load(tmp_path / "nw.csv")
+    assert log.water_temp_c is None and np.ptp(log.chiller_setpoint_c) == 15.0
+    p = np.array(Parameters().vector())
+    measured = log.outputs["supply_temp_c"][120:]
+    errs = {}
+    for two_point in (True, False):
+        sim = Simulator(log, Parameters(), DOCUMENTED_EFFECTS, ("supply_temp_c",), two_point=two_point)
+        y, states = sim.simulate(p)
+        w = states[120:, sim.model.states.index("water_temp_c")]
+        errs[two_point] = (np.sqrt(np.mean((w - water[120:]) ** 2)), np.sqrt(np.nanmean((y[120:, 0] - measured) ** 2)))
+    assert errs[True][0] < 0.1 and errs[False][0] > 0.3, errs  # water RMS, C (measured 0.028 and 0.55)
+    assert errs[True][1] < 0.5 * errs[False][1], errs  # supply RMS (measured 0.055 and 0.216 C)
+    with pytest.raises(ValueError, match="omit"):
+        simulate_log(tmp_path / "x.csv", "nominal", duration_s=700, omit=("supply_temp_c",))
+
+
 def test_thesis_tables_loop_reduces_table_6_errors_on_held_out_rows(tmp_path):
     res = thesis_tables.run()
     t6 = td.table6()
