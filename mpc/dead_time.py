@@ -14,8 +14,9 @@ The estimate moves only when the window holds a response (the root mean square o
 changes over the window above ``min_excitation_c`` per sample) and another candidate explains the
 reading clearly better than the current one (residual below ``switch_ratio`` times the current
 one's); while nothing moves it stays where it is. Of candidates that explain the reading about
-equally (within ``TIE_RATIO``) the shortest is taken. Pure numpy, no model code: the estimator
-feeds it.
+equally (within ``TIE_RATIO``) the shortest is taken. A starting value (``initial_steps``, or
+``prior_steps`` where none is given) gives way only to a clearly better candidate, not to a tie.
+Pure numpy, no model code: the estimator feeds it.
 """
 
 from __future__ import annotations
@@ -42,10 +43,14 @@ class DeadTimeEstimator:
     SUBDIVISION = 2
 
     def __init__(self, max_steps: int, sensor_tau_s: float, dt_s: float = 1.0, window_s: float = 60.0,
-                 min_excitation_c: float = 0.05, switch_ratio: float = 0.7, initial_steps: float = 0.0):
+                 min_excitation_c: float = 0.05, switch_ratio: float = 0.7, initial_steps: float = 0.0,
+                 prior_steps: float = 0.0):
         """``initial_steps``: the estimate before the readings move it (samples; e.g. a delay identified from
-        a log, docs/identification.md), rounded to the nearest candidate."""
+        a log, docs/identification.md), rounded to the nearest candidate; it gives way only to a clearly
+        better candidate, not to a tie. ``prior_steps``: the same for a dead time assumed, not identified,
+        where no ``initial_steps`` is given (samples)."""
         self.initial_steps = float(initial_steps)
+        self.prior_steps = float(prior_steps)
         self.max_steps = int(max_steps)
         self.dt_s = float(dt_s)
         self.lag = math.exp(-self.dt_s / float(sensor_tau_s))  # exact first-order lag over one sample
@@ -60,7 +65,8 @@ class DeadTimeEstimator:
         self._i0 = np.floor(self.candidates).astype(int)
         self._w1 = self.candidates - self._i0
         self._i1 = np.minimum(self._i0 + 1, self.max_steps)
-        self._best = int(np.argmin(np.abs(self.candidates - self.initial_steps)))
+        start = self.initial_steps if self.initial_steps > 0.0 else self.prior_steps
+        self._best = int(np.argmin(np.abs(self.candidates - start)))
         self._at_start = self._best > 0  # still at a given starting value
         self._air = None  # model air, newest first (max_steps + 1 samples)
         self._pred = np.zeros(n)  # each candidate's predicted reading for the next sample

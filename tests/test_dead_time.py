@@ -47,12 +47,16 @@ def run_filter(variant: str, settings: EkfSettings | None = None, seed: int = 3)
                                               ("delay_5s", 5.0)])
 def test_dead_time_found_from_the_independent_box(variant, delay_s):
     dead, _ = run_filter(variant)
-    # nothing moves before the first valve step: the estimate stays at none
+    # nothing moves before the first valve step: the estimate stays at none ...
     assert np.all(dead[:HOLD_S] == 0.0)
-    # within 15 s of the first step it is within half a sample of the box's delay, and from the
-    # second step on it is the delay
-    assert np.all(np.abs(dead[HOLD_S + 15:] - delay_s) <= 0.5)
-    assert np.all(dead[2 * HOLD_S:] == delay_s)
+    # ... or at a prior (docs/robustness.md sec. 2.4), which the first step's response replaces
+    primed, _ = run_filter(variant, EkfSettings(dead_time_prior_s=1.5))
+    assert np.all(primed[:HOLD_S] == 1.5)
+    for est in (dead, primed):
+        # within 15 s of the first step it is within half a sample of the box's delay, and from the
+        # second step on it is the delay
+        assert np.all(np.abs(est[HOLD_S + 15:] - delay_s) <= 0.5)
+        assert np.all(est[2 * HOLD_S:] == delay_s)
 
 
 def test_dead_time_is_not_a_mixed_air_offset():
@@ -82,11 +86,32 @@ def test_without_a_response_the_estimate_stays():
     assert est.seconds == 0.0 and np.all(np.isnan(est.residuals))
 
 
+def test_the_prior_dead_time_stands_until_a_response_shows_another():
+    """The prior is the estimate while the readings hold no response; a response that another dead time
+    explains clearly better (none here: shorter, as well as longer) replaces it."""
+    est = DeadTimeEstimator(max_steps=6, sensor_tau_s=5.73, prior_steps=3.0)
+    rng = np.random.default_rng(0)
+    reading = 20.0
+    for k in range(200):
+        air = 20.0 if k < 100 else 17.0  # a 3 C step of the air at 100 s, seen without delay
+        est.push_air(air)
+        reading += (1.0 - est.lag) * (air - reading)
+        est.observe(reading + 0.01 * rng.standard_normal())
+        if k < 100:
+            assert est.seconds == 3.0
+    assert est.seconds == 0.0
+
+
 def test_dead_time_settings_are_checked():
     with pytest.raises(InvalidSettings, match="ekf.dead_time_max_s"):
         MpcSettings(ekf=EkfSettings(dead_time_max_s=-1.0))
     with pytest.raises(InvalidSettings, match="ekf.dead_time_window_s"):
         MpcSettings(ekf=EkfSettings(dead_time_window_s=0.0))
+    with pytest.raises(InvalidSettings, match="ekf.dead_time_prior_s"):
+        MpcSettings(ekf=EkfSettings(dead_time_prior_s=-0.5))
+    # a model that names its transport delay needs no prior
+    told = DisturbanceEkf(HvacModel(Parameters().replace(transport_delay_s=3.0)), EkfSettings(dead_time_prior_s=1.5))
+    assert told.dead_time_prior_s == 0.0 and told.dead_time_s == 0.0
     # 0 turns the handling off: no register, the plain filter
     ekf = DisturbanceEkf(HvacModel(Parameters()), EkfSettings(dead_time_max_s=0.0))
     assert ekf.nz == ekf.nc

@@ -15,7 +15,7 @@ from hvac_mpc import cli
 from hvac_mpc.benchmarks import bench, metrics, mismatch_suite, plant_seam, scenarios as S
 from hvac_mpc.benchmarks.simulate import simulate
 from hvac_mpc.contract import Command, Reference, StepResult
-from hvac_mpc.mismatch import make_plant
+from hvac_mpc.mismatch import Variant, make_plant
 from hvac_mpc.models import HvacModel, Parameters
 from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
 from hvac_mpc.mpc.priorities import ReachableFlow
@@ -461,6 +461,35 @@ def test_a_capped_reachable_flow_solve_keeps_the_last_converged_answer():
     assert capped.flow_m3s == first.flow_m3s
     reach.solver = converged
     assert reach.check(x, u, d, 16.0, ref, 100.0, 1.0).flow_m3s != first.flow_m3s  # converged again: taken
+
+
+#: A box with a dead time, a duct loss and the literal cooler fit, as ``combo_delay_loss_cooler`` but with other
+#: values and not in the suite's registry (ASSUMPTION: picked to differ, not to be hard).
+UNLISTED_DELAY_LOSS_COOLER = Variant(transport_delay_s=2.0, duct_loss_ua_w_per_k=4.0, cooler_literal_fit=True)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("variant", ["combo_delay_loss_cooler", UNLISTED_DELAY_LOSS_COOLER],
+                         ids=["combo_delay_loss_cooler", "unlisted_2s_4wk_cooler"])
+def test_flow_out_of_reach_with_a_dead_time_no_response_has_shown(variant):
+    """200 m3/h at 18 C, out of reach, on a box with a dead time the MPC is not told: no temperature step
+    excites the dead-time estimate, and unhonoured the dead time turns the sensor noise into ringing (1.10 of
+    the baseline's IAE on combo_delay_loss_cooler with the defaults, 0.99 on the unlisted box). A prior of
+    1.5 s (``EkfSettings.dead_time_prior_s``, not a default: it costs the built-in plant's flow_split_changes,
+    docs/robustness.md sec. 2.4) holds both well below the baseline (0.80 and 0.88 measured). The deadline is
+    lifted: the test is about the loop, not the machine's load (a missed deadline hands a step to the
+    fallback chain)."""
+    from hvac_mpc.mpc.estimator import EkfSettings
+
+    sc = S.flow_out_of_reach().quick()
+    settings = MpcSettings(deadline_s=10.0, ekf=EkfSettings(dead_time_prior_s=1.5))
+    mpc = lambda c: MpcController(Parameters(), dataclasses.replace(settings, initial_command=c))  # noqa: E731
+    res, tr = bench.run_benchmark([sc], {"baseline": bench.baseline_factory(), "mpc": mpc}, 0,
+                                  plant_factory=functools.partial(make_plant, variant))
+    cell = res["scenarios"][sc.name]
+    assert cell["ratios"]["temp_iae_cs"] <= 0.95
+    assert mismatch_suite.out_of_reach_steady(tr[sc.name]["mpc"], sc)["steady_temp_error_max_c"] <= 0.3
+    assert cell["mpc"]["figures"]["fallbacks"] == 0 and cell["mpc"]["figures"]["violations_total"] == 0
 
 
 def test_heater_never_runs_below_the_minimum_flow_when_the_temperature_is_out_of_reach():
