@@ -480,7 +480,7 @@ class MpcController:
         # project onto bounds, rate limits and the trapped-air cap (np.clip costs ~10 us on 6 values)
         u_cmd = np.minimum(np.maximum(u_cmd, bounds[0]), bounds[1])
         self.u_prev = u_cmd
-        self._note_temperature_reach(measurement, ref, u_cmd, hi)
+        self._note_temperature_reach(measurement, ref, u_cmd, bounds[1])
         # --- prediction and preparation of the next step
         prep_time = sol.prep_time_s
         self._prepared_for_next = False

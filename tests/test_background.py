@@ -107,7 +107,7 @@ def _loop(settings: MpcSettings, steps: int = 14):
         in_step[0] = True
         res = ctrl.step(plant.read(), solve_time.reference_at(float(k), HIGH_FLOW))
         in_step[0] = False
-        assert res.stats["fallback"] is None
+        assert res.stats["fallback"] is None, res.stats["status"]
         plant.apply(res.command)
         plant.advance()
         commands.append(res.command.vector())
