@@ -18,6 +18,9 @@ import numpy as np
 from scipy.optimize import least_squares
 
 VALVES = ("m", "f", "w")
+#: Parameter holding each valve's curve shift (% of travel; sign convention: :func:`effective_angle`).
+SHIFT_PARAMS = {"a": "valve_a_shift_pct", "m": "valve_m_shift_pct", "f": "valve_f_shift_pct",
+                "w": "valve_w_shift_pct"}
 
 
 @functools.lru_cache(maxsize=32)
@@ -84,6 +87,29 @@ def angle_pct(resistance_kg_m7, coeffs) -> np.ndarray:
         value, slope = _log_resistance_and_slope(a, coeffs)
         a = np.clip(a - (value - target) / slope, 0.0, 100.0)
     return a if np.ndim(resistance_kg_m7) else float(a[0])
+
+
+def effective_angle(angle_pct, shift_pct):
+    """Angle (%) at which a valve's curve is read when the curve is moved ``shift_pct`` % of travel.
+
+    ASSUMPTION (sign convention, docs/model.md sec. 1): a positive shift moves the curve to the right, so
+    the valve acts ``shift_pct`` less open than commanded; a valve cannot be read beyond its stops, so the
+    angle is clipped to 0..100 %. CasADi or numpy input.
+    """
+    if any(isinstance(x, (ca.SX, ca.MX, ca.DM)) for x in (angle_pct, shift_pct)):
+        return ca.fmin(ca.fmax(angle_pct - shift_pct, 0.0), 100.0)
+    return np.clip(np.asarray(angle_pct, float) - shift_pct, 0.0, 100.0)
+
+
+def commanded_angle(effective_pct, shift_pct):
+    """Inverse of :func:`effective_angle` within the stops: the command (%) that reads the curve at
+    ``effective_pct`` (clipped to 0..100 %; numpy)."""
+    return np.clip(np.asarray(effective_pct, float) + shift_pct, 0.0, 100.0)
+
+
+def shifted_angles(angles_pct, p) -> list:
+    """Effective angles of valves m, f, w for commanded ``angles_pct`` with the shifts of parameters ``p``."""
+    return [effective_angle(angles_pct[i], getattr(p, SHIFT_PARAMS[v])) for i, v in enumerate(VALVES)]
 
 
 def curves(p) -> dict[str, tuple[float, ...]]:

@@ -34,6 +34,9 @@ class ValveMap:
     def __init__(self, params: Parameters, alpha: float = 0.25, segments: int = 12, table_points: int = 4001):
         self.alpha = float(alpha)
         self.coeffs = valves.curves(params)
+        # a shifted valve curve (Parameters.valve_*_shift_pct) is read at the effective angle, so the opening
+        # stays near-linear in the conductance of the valve as it acts
+        self.shifts = {name: float(getattr(params, valves.SHIFT_PARAMS[name])) for name in VALVE_NAMES}
         self.knots = np.linspace(0.0, 1.0, segments + 1)
         self._pchip: dict[str, PchipInterpolator] = {}
         self._v_tab: dict[str, np.ndarray] = {}
@@ -76,11 +79,11 @@ class ValveMap:
         return out
 
     def opening_exact(self, name: str, theta_pct) -> np.ndarray:
-        """v(theta) from the fitted resistance curve (numpy)."""
-        c = self.coeffs[name]
-        g = 1.0 / np.sqrt(valves.resistance(np.asarray(theta_pct, float), c))
-        g0 = 1.0 / np.sqrt(valves.resistance(0.0, c))
-        g1 = 1.0 / np.sqrt(valves.resistance(100.0, c))
+        """v(theta) from the fitted resistance curve read at the effective angle (numpy)."""
+        c, s = self.coeffs[name], self.shifts[name]
+        g = 1.0 / np.sqrt(valves.resistance(valves.effective_angle(theta_pct, s), c))
+        g0 = 1.0 / np.sqrt(valves.resistance(valves.effective_angle(0.0, s), c))
+        g1 = 1.0 / np.sqrt(valves.resistance(valves.effective_angle(100.0, s), c))
         return self.alpha * np.asarray(theta_pct, float) / 100.0 + (1.0 - self.alpha) * (g - g0) / (g1 - g0)
 
     def _inverse_exact(self, name: str, v: np.ndarray) -> np.ndarray:

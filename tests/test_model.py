@@ -115,6 +115,46 @@ def test_outlet_flows_sum_to_total():
             assert min(y["flow_m_m3s"], y["flow_f_m3s"], y["flow_w_m3s"]) > 0
 
 
+SHIFTS = {"valve_a_shift_pct": 10.0, "valve_m_shift_pct": 10.0, "valve_f_shift_pct": 10.0, "valve_w_shift_pct": 10.0}
+
+
+def test_a_shifted_valve_curve_is_read_at_the_commanded_angle_less_the_shift():
+    """Parameters.valve_*_shift_pct: every output of the model with the valve curves moved 10 % of travel equals
+    the unshifted model's 10 % less open; a command inside the shift reads the closed end of the curve."""
+    effects = ("fan_curve", "valve_leakage", "ptc_power_fall")
+    shifted, plain = HvacModel(P.replace(**SHIFTS), effects), HvacModel(P, effects)
+    d = plain.d_vector(25.0, 5.0)
+    for u in ([150.0, 100.0, 50.0, 40.0, 30.0, 60.0], [250.0, 0.0, 90.0, 100.0, 15.0, 70.0]):
+        u = np.array(u)
+        less_open = u - np.r_[0.0, 0.0, 10.0, 10.0, 10.0, 10.0]
+        y_shifted = shifted.y(shifted.steady_state(u, d), u, d)
+        np.testing.assert_allclose(y_shifted, plain.y(plain.steady_state(less_open, d), less_open, d), rtol=1e-6)
+        assert not np.allclose(y_shifted, plain.y(plain.steady_state(u, d), u, d), rtol=1e-3)
+    inside, closed = np.array([150.0, 0.0, 100.0, 5.0, 50.0, 50.0]), np.array([150.0, 0.0, 90.0, 0.0, 40.0, 40.0])
+    np.testing.assert_allclose(shifted.y(shifted.steady_state(inside, d), inside, d),
+                               plain.y(plain.steady_state(closed, d), closed, d), rtol=1e-6)
+
+
+@pytest.mark.parametrize("valve", ["m", "f", "w"])
+def test_the_mpc_valve_map_follows_a_shifted_curve(valve):
+    """The MPC's opening v is near-linear in the conductance of the valve as it acts: built on the shifted curve,
+    the normalised conductance the model reads at the angle sent for v stays within 0.15 of v; a map that ignored
+    the shift would be off by about 0.2 or more."""
+    from hvac_mpc.mpc.valve_map import ValveMap
+
+    params = P.replace(**SHIFTS)
+    coeffs = valves.curves(params)[valve]
+
+    def conductance(theta):  # normalised over the command's travel, as the model reads the valve
+        g = lambda t: 1.0 / np.sqrt(valves.resistance(valves.effective_angle(t, 10.0), coeffs))  # noqa: E731
+        return (g(theta) - g(0.0)) / (g(100.0) - g(0.0))
+
+    v = np.linspace(0.0, 1.0, 201)
+    err_shifted = np.abs(conductance(ValveMap(params).angle(valve, v)) - v).max()
+    err_plain = np.abs(conductance(ValveMap(P).angle(valve, v)) - v).max()
+    assert err_shifted < 0.15 and err_plain > 0.18 and err_shifted < 0.7 * err_plain, (err_shifted, err_plain)
+
+
 def test_density_and_flow_sensor_formula():
     assert air.density_kgm3(20.0, P) == pytest.approx(1.23 - 0.004395 * 20)
     v = air.flow_from_pressure_m3s(30.0, 20.0, P)
