@@ -87,7 +87,8 @@ def time_one(name: str, duration_s: float, seed: int, folder: Path) -> dict:
     added = [a.name for a in res.accepted] + [f"term {t.formula()}" for t in res.terms]
     return {"log": name, "wall_s": wall, "cpu_s": cpu, "added": added, "supply_rms_before": e["rms_before"],
             "supply_rms_after": e["rms_after"], "supply_max_before": e["max_before"], "supply_max_after": e["max_after"],
-            "flow_rms_before": flow.get("rms_before", float("nan")), "flow_rms_after": flow.get("rms_after", float("nan")),
+            "flow_rms_before": flow.get("rms_before", float("nan")),
+            "flow_rms_after": flow.get("rms_after", float("nan")),
             "added_params": {k: round(v, 3) for a in res.accepted for k, v in a.params.items()},
             "timing_shift_samples": res.timing_shift_samples,
             "moved": {c["name"]: round(c["change"], 4) for c in res.parameter_confidence if c["moved"]},

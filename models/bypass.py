@@ -32,8 +32,9 @@ def mix_c(bypass, bypass_c, core_c):
 
 
 def trap_closed(valve_a_pct, p):
-    """Smooth indicator that valve a sits in saturation and closes off the air pocket."""
-    return 0.5 * (1.0 + ca.tanh((valve_a_pct - p.trap_threshold_pct) / 0.5))
+    """Smooth indicator that valve a sits in saturation and closes off the air pocket (its effective angle, the
+    command less ``p.valve_a_shift_pct``, above the threshold)."""
+    return 0.5 * (1.0 + ca.tanh((valve_a_pct - p.valve_a_shift_pct - p.trap_threshold_pct) / 0.5))
 
 
 def trap_rate_c_per_s(trap_c, heater_c, mix_air_c, valve_a_pct, p):
