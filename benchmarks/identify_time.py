@@ -84,10 +84,15 @@ def time_one(name: str, duration_s: float, seed: int, folder: Path) -> dict:
     load_wall, load_cpu = time.perf_counter() - t0, cpu_seconds() - c0
     res = identify(log, base_effects=case.base_effects)
     wall, cpu = time.perf_counter() - t0, cpu_seconds() - c0
-    e = res.holdout_errors()["supply_temp_c"]
+    errors = res.holdout_errors()
+    e = errors["supply_temp_c"]
+    flow = errors.get("volume_flow_m3s", {})
     added = [a.name for a in res.accepted] + [f"term {t.formula()}" for t in res.terms]
     return {"log": name, "wall_s": wall, "cpu_s": cpu, "added": added, "supply_rms_before": e["rms_before"],
             "supply_rms_after": e["rms_after"], "supply_max_before": e["max_before"], "supply_max_after": e["max_after"],
+            "flow_rms_before": flow.get("rms_before", float("nan")),
+            "flow_rms_after": flow.get("rms_after", float("nan")),
+            "added_params": {k: round(v, 3) for a in res.accepted for k, v in a.params.items()},
             "timing_shift_samples": res.timing_shift_samples,
             "moved": {c["name"]: round(c["change"], 4) for c in res.parameter_confidence if c["moved"]},
             "timings_s": dict(res.timings, load_s=load_wall, load_cpu_s=load_cpu),
@@ -125,7 +130,9 @@ def main(argv: list[str] | None = None) -> int:
             r = time_one(name, args.duration, args.seed, Path(tmp))
             rows.append(r)
             print(f"{name:28s} wall {r['wall_s']:6.1f} s, CPU {r['cpu_s']:6.1f} s  added {r['added'] or ['nothing']}  "
-                  f"supply RMS {r['supply_rms_before']:.3f} -> {r['supply_rms_after']:.3f} C"
+                  f"supply RMS {r['supply_rms_before']:.3f} -> {r['supply_rms_after']:.3f} C, flow RMS "
+                  f"{1e3 * r['flow_rms_before']:.2f} -> {1e3 * r['flow_rms_after']:.2f} l/s"
+                  + (f"  params {r['added_params']}" if r["added_params"] else "")
                   + (f"  shift {r['timing_shift_samples']} sample(s)" if r["timing_shift_samples"] else "")
                   + (f"  moved {r['moved']}" if r["moved"] else ""),
                   flush=True)

@@ -34,9 +34,9 @@ from .refined_model import compare
 #: Variants run by default: a delay, an effect outside the library with the cabin temperature logged
 #: (duct loss), one outside it without (cooler core independent of the inlet air), the PTC fall, a
 #: bypass split depending on the flow (in the library, left out of the thesis model and the nominal
-#: MPC's prediction) and several together.
+#: MPC's prediction), several together, and valve curves shifted 10 % of travel (the model's valve-curve shifts).
 DEFAULT_VARIANTS = ("delay_3s", "duct_loss", "cooler_literal", "ptc_fall", "bypass_flow", "combo_delay_loss_cooler",
-                    "combo_heater_chiller_delay")
+                    "combo_heater_chiller_delay", "valve_shift")
 #: Plant variant and starting effects of each case (the documented physics unless said otherwise).
 CASES = {"ptc_fall": ("nominal", ("fan_curve", "valve_leakage"))}
 

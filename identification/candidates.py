@@ -3,6 +3,7 @@
 Each candidate nests the current model (its "null" is the model without it):
 
 - effects the model implements as switches (``HvacModel`` effects, docs/model.md sec. 5);
+- valve-curve shifts (valve a on the temperatures, the outlet valves on the total flow);
 - generic effects: sensor lag mismatch (the thermocouple time constant), transport delay
   (integer samples on one output), output offset and drift (on one output), and a gain on the
   logged heater power (the heater draws a constant share of what the model says).
@@ -89,6 +90,19 @@ def _needs_outlet_valves(log: LogData, _effects) -> str | None:
     if np.ptp(mfw, axis=0).max() < 30.0:
         return "outlet valves m, f, w hardly moved"
     return None
+
+
+def _needs_valve_a(log: LogData, _effects) -> str | None:
+    if np.ptp(_col(log, "valve_a_pct")) < 30.0:
+        return "valve a hardly moved"
+    return None
+
+
+def _needs_flow_network(log: LogData, effects) -> str | None:
+    if "fan_curve" not in effects:
+        return ("moves the outlet valves' resistances, which show in the total flow only together with fan_curve "
+                "(the split between the outlets is not logged)")
+    return _needs_outlet_valves(log, effects)
 
 
 def _needs_fan_curve(log: LogData, effects) -> str | None:
@@ -178,6 +192,31 @@ MODEL_CANDIDATES = (
               signature=("supply_temp_c",), regressor="water_temp_c", requires=_needs_no_water_log, screen_each=True),
 )
 
+#: Range (% of travel) a valve-curve shift is fitted in.
+SHIFT_RANGE_PCT = 30.0
+
+
+def _shift(valve: str) -> FreeParam:
+    return FreeParam(f"valve_{valve}_shift_pct", "lin", 5.0, -SHIFT_RANGE_PCT, SHIFT_RANGE_PCT)
+
+
+#: Valve-curve shifts (Parameters.valve_*_shift_pct): valve a on the temperatures (the bypass split), the outlet
+#: valves m, f, w each on the total flow (their resistances through the fan curve; the log holds no outlet flow).
+VALVE_SHIFT_CANDIDATES = (
+    Candidate("valve_shift:a", "parameter",
+              "valve a's curve shifted: the bypass split acts as at another angle than commanded",
+              "thesis sec. 4.5.1 (fig. 36, bypass split over the valve angle); servo mounting or calibration",
+              params=(_shift("a"),), grid=({"valve_a_shift_pct": 0.0}, {"valve_a_shift_pct": -10.0},
+                                           {"valve_a_shift_pct": 10.0}),
+              signature=("supply_temp_c", "heater_outlet_temp_c"), regressor="valve_a_pct", requires=_needs_valve_a),
+    Candidate("valve_shift:outlets", "parameter",
+              "outlet valves' curves shifted: valves m, f, w act as at other angles than commanded",
+              "thesis tables 3-5 (resistance over the valve angle); servo mounting or calibration",
+              params=tuple(_shift(v) for v in "mfw"),
+              grid=tuple({f"valve_{v}_shift_pct": x for v in "mfw"} for x in (0.0, -10.0, 10.0)),
+              signature=("volume_flow_m3s",), regressor="network_resistance_kg_m7", requires=_needs_flow_network),
+)
+
 GENERIC_CANDIDATES = (
     Candidate("sensor_lag", "parameter",
               "supply thermocouple time constant differs from 5.73 s (sensor lag mismatch)",
@@ -222,5 +261,5 @@ def gain_candidates(outputs) -> tuple[Candidate, ...]:
 
 def library(outputs) -> tuple[Candidate, ...]:
     """All candidates for a log with these outputs."""
-    return (MODEL_CANDIDATES + GENERIC_CANDIDATES + delay_candidates(outputs) + gain_candidates(outputs)
-            + bias_candidates(outputs))
+    return (MODEL_CANDIDATES + GENERIC_CANDIDATES + VALVE_SHIFT_CANDIDATES + delay_candidates(outputs)
+            + gain_candidates(outputs) + bias_candidates(outputs))

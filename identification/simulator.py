@@ -381,7 +381,8 @@ def shift(values: np.ndarray, lag: int) -> np.ndarray:
 def network_resistance(params: Parameters, u: np.ndarray) -> np.ndarray:
     """Parallel network resistance of valves m, f, w (thesis sec. 5.2 formula) per row, kg/m^7."""
     curves = valves.curves(params)
-    g = sum(1.0 / np.sqrt(valves.resistance(u[:, INPUTS.index(f"valve_{v}_pct")], curves[v])) for v in valves.VALVES)
+    angles = valves.shifted_angles([u[:, INPUTS.index(f"valve_{v}_pct")] for v in valves.VALVES], params)
+    g = sum(1.0 / np.sqrt(valves.resistance(a, curves[v])) for a, v in zip(angles, valves.VALVES))
     return 1.0 / g ** 2
 
 

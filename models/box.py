@@ -159,8 +159,8 @@ class HvacModel:
         p_b = su["blower_power_w"]
         a = su["valve_a_pct"]
 
-        g = valves.branch_conductances([su["valve_m_pct"], su["valve_f_pct"], su["valve_w_pct"]], prm,
-                                       self._curves, leakage="valve_leakage" in e)
+        angles = valves.shifted_angles([su["valve_m_pct"], su["valve_f_pct"], su["valve_w_pct"]], prm)
+        g = valves.branch_conductances(angles, prm, self._curves, leakage="valve_leakage" in e)
         b0 = bypass.bypass_fraction(a, prm)
         flow = blower.open_flow_m3s(p_b, prm) * blower.core_flow_factor(b0, prm)
         if "fan_curve" in e:

@@ -9,9 +9,11 @@ def bypass_fraction(valve_a_pct, p):
     """Fraction b(a) of air bypassing core and heater, b = 0.9 (1 - a/100)^1.3.
 
     a = 100 % sends all air through the core. b <= 0.9 (thesis fig. 36: at least 10 % always
-    crosses the core); the exponent is an ASSUMPTION standing in for fig. 36.
+    crosses the core); the exponent is an ASSUMPTION standing in for fig. 36. The curve is read at
+    a - ``p.valve_a_shift_pct`` (a shifted valve curve; sign convention of models/valves.py
+    ``effective_angle``: positive acts less open), clipped to the stops.
     """
-    opening = ca.fmin(ca.fmax(1.0 - valve_a_pct / 100.0, 0.0), 1.0)
+    opening = ca.fmin(ca.fmax(1.0 - (valve_a_pct - p.valve_a_shift_pct) / 100.0, 0.0), 1.0)
     return p.bypass_max * (opening + 1e-9) ** p.bypass_exponent
 
 
@@ -30,8 +32,9 @@ def mix_c(bypass, bypass_c, core_c):
 
 
 def trap_closed(valve_a_pct, p):
-    """Smooth indicator that valve a sits in saturation and closes off the air pocket."""
-    return 0.5 * (1.0 + ca.tanh((valve_a_pct - p.trap_threshold_pct) / 0.5))
+    """Smooth indicator that valve a sits in saturation and closes off the air pocket (its effective angle, the
+    command less ``p.valve_a_shift_pct``, above the threshold)."""
+    return 0.5 * (1.0 + ca.tanh((valve_a_pct - p.valve_a_shift_pct - p.trap_threshold_pct) / 0.5))
 
 
 def trap_rate_c_per_s(trap_c, heater_c, mix_air_c, valve_a_pct, p):

@@ -8,6 +8,7 @@ TOML layout (JSON with the same keys is read too)::
     [parameters]            # Parameters fields that differ from the defaults (transport_delay_s included)
     fan_k_kg_m7 = 94206.1
     transport_delay_s = 3.0
+    valve_a_shift_pct = 9.9 # a shifted valve curve (% of travel, positive: acts less open; 0 when absent)
 
     [model]
     effects = ["fan_curve"] # HvacModel effects to switch on

@@ -74,6 +74,19 @@ class Parameters:
     bypass_max: float = _p(0.9, "thesis sec. 4.5.1 (fig. 36: at least 10 % crosses the core)", 0, 1)
     bypass_exponent: float = _p(1.3, "ASSUMPTION docs/model.md sec. 1 (fig. 36 stand-in)", 0.2, 5)
 
+    # --- valve curve shifts (% of servo travel; 0 in the thesis model, set by identification) ---------
+    # ASSUMPTION (sign convention): a positive shift moves the valve's curve to the right, so the valve acts
+    # that much less open than commanded: its curve is read at clip(angle - shift, 0, 100) %
+    # (models/valves.py effective_angle; docs/model.md sec. 1).
+    valve_a_shift_pct: float = _p(
+        0.0, "ASSUMPTION valve a's curve (bypass split) moved this many % of travel; positive: acts less open", -50, 50)
+    valve_m_shift_pct: float = _p(
+        0.0, "ASSUMPTION valve m's curve (table 3) moved this many % of travel; positive: acts less open", -50, 50)
+    valve_f_shift_pct: float = _p(
+        0.0, "ASSUMPTION valve f's curve (table 4) moved this many % of travel; positive: acts less open", -50, 50)
+    valve_w_shift_pct: float = _p(
+        0.0, "ASSUMPTION valve w's curve (table 5) moved this many % of travel; positive: acts less open", -50, 50)
+
     # --- sensors ---------------------------------------------------------------------
     tau_tc_s: float = _p(5.73, "thesis sec. 5.4.1 (thermocouple tau_TC, fig. 44)", 0.1, 500)
     tau_slow_sensor_s: float = _p(100.4, "thesis sec. 2.4 (old sensor tau_s, fig. 14)", 1, 1000)

@@ -18,6 +18,9 @@ import numpy as np
 from scipy.optimize import least_squares
 
 VALVES = ("m", "f", "w")
+#: Parameter holding each valve's curve shift (% of travel; sign convention: :func:`effective_angle`).
+SHIFT_PARAMS = {"a": "valve_a_shift_pct", "m": "valve_m_shift_pct", "f": "valve_f_shift_pct",
+                "w": "valve_w_shift_pct"}
 
 
 @functools.lru_cache(maxsize=32)
@@ -84,6 +87,38 @@ def angle_pct(resistance_kg_m7, coeffs) -> np.ndarray:
         value, slope = _log_resistance_and_slope(a, coeffs)
         a = np.clip(a - (value - target) / slope, 0.0, 100.0)
     return a if np.ndim(resistance_kg_m7) else float(a[0])
+
+
+def effective_angle(angle_pct, shift_pct):
+    """Angle (%) at which a valve's curve is read when the curve is moved ``shift_pct`` % of travel.
+
+    ASSUMPTION (sign convention, docs/model.md sec. 1): a positive shift moves the curve to the right, so
+    the valve acts ``shift_pct`` less open than commanded; a valve cannot be read beyond its stops, so the
+    angle is clipped to 0..100 % (numpy; the model's own reading is :func:`shifted_angles`).
+    """
+    return np.clip(np.asarray(angle_pct, float) - shift_pct, 0.0, 100.0)
+
+
+def commanded_angle(effective_pct, shift_pct):
+    """Inverse of :func:`effective_angle` within the stops: the command (%) that reads the curve at
+    ``effective_pct`` (clipped to 0..100 %; numpy)."""
+    return np.clip(np.asarray(effective_pct, float) + shift_pct, 0.0, 100.0)
+
+
+def acting_travel(shift_pct: float) -> tuple[float, float]:
+    """Commanded angles (%) over which a valve with its curve shifted by ``shift_pct`` moves at all:
+    [max(0, shift), min(100, 100 + shift)]; outside it the effective angle sits at a stop."""
+    return max(0.0, float(shift_pct)), min(100.0, 100.0 + float(shift_pct))
+
+
+def shifted_angles(angles_pct, p) -> list:
+    """Angles (%) at which the model reads the curves of valves m, f, w: the commands less the shifts of parameters
+    ``p``, not clipped. ASSUMPTION: beyond the tables' range the fitted curves are read as they continue; at the
+    closed end they are flat (within 0.4 % for m and f, 1.8 % for w at 10 % of travel beyond), at the open end
+    valve m's keeps falling (16 % lower at 110 %), which only a negative shift reaches. Clipping like
+    :func:`effective_angle` would put a kink at the stops of the unshifted model, where the MPC's openings sit
+    (at a stop the derivative would halve), and the nominal solvers' iterations would change."""
+    return [angles_pct[i] - getattr(p, SHIFT_PARAMS[v]) for i, v in enumerate(VALVES)]
 
 
 def curves(p) -> dict[str, tuple[float, ...]]:

@@ -59,7 +59,7 @@ import casadi as ca
 import numpy as np
 
 from hvac_mpc.validation import Check, InvalidValue, finite_in
-from hvac_mpc.models import heater
+from hvac_mpc.models import heater, valves
 from hvac_mpc.models.box import INPUT_LOWER, INPUTS, MODEL_EFFECTS, HvacModel, input_upper, rk4
 from hvac_mpc.models.parameters import Parameters
 
@@ -284,10 +284,12 @@ def trap_cap_pct(heater_temp_c: float, heater_in_c: float, heater_cmd_w: float, 
     heater the pocket holds cold air and a may use its full travel (cooling needs it). This is
     a constraint rather than a model of the pocket: its tanh switch would make the
     linearisations of the real-time iteration unreliable. (The thesis capped a at 80 % in
-    heating mode for the same reason.)
+    heating mode for the same reason.) The threshold is on the valve's effective angle, so a
+    shifted valve-a curve (``valve_a_shift_pct``, models/valves.py) moves the cap on the command by
+    the shift.
     """
     warm = (heater_temp_c - heater_in_c > spec.trap_warm_c) or heater_cmd_w > 1.0
-    return params.trap_threshold_pct - spec.trap_margin_pct if warm else 100.0
+    return min(100.0, params.trap_threshold_pct - spec.trap_margin_pct + params.valve_a_shift_pct) if warm else 100.0
 
 
 class HeaterOffBound:
@@ -376,6 +378,10 @@ class TrackingProblem:
         self.u_sc[self.valve_mask] = 0.5
         self.u_lo_phys = np.array([INPUT_LOWER[n] for n in INPUTS])
         self.u_hi_phys = np.array([input_upper(self.params)[n] for n in INPUTS])
+        # valve a with a shifted curve is decided over the travel where it acts: at a command inside the shift the
+        # prediction's gradient in valve a is zero and the iteration could not leave it (models/valves.py)
+        ia = INPUTS.index("valve_a_pct")
+        self.u_lo_phys[ia], self.u_hi_phys[ia] = valves.acting_travel(self.params.valve_a_shift_pct)
         self.u_lo, self.u_hi = self.scale_u(self.u_lo_phys), self.scale_u(self.u_hi_phys)
         self._u_lo_tiled = np.tile(self.u_lo, (self.N, 1))
         self._u_hi_tiled = np.tile(self.u_hi, (self.N, 1))

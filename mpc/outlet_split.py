@@ -110,10 +110,12 @@ def optimise_resistances(total_m3s: float, reference_m3s: Sequence[float], gamma
     return tuple(float(v) for v in r), float(sol.fun / scale), bool(sol.success), int(sol.nit)
 
 
-def resistances_to_angles(resistances_kg_m7: Sequence[float], coeffs: dict) -> tuple[float, float, float]:
-    """Servo angles m, f, w in % (0..100) for resistances, through the fitted curves of tables 3-5."""
-    return tuple(float(valves.angle_pct(r, coeffs[v]))  # type: ignore[return-value]
-                 for r, v in zip(resistances_kg_m7, valves.VALVES))
+def resistances_to_angles(resistances_kg_m7: Sequence[float], coeffs: dict,
+                          shifts_pct: Sequence[float] = (0.0, 0.0, 0.0)) -> tuple[float, float, float]:
+    """Servo angles m, f, w in % (0..100) for resistances, through the fitted curves of tables 3-5, each
+    moved by its curve shift ``shifts_pct`` (Parameters.valve_*_shift_pct; models/valves.py)."""
+    return tuple(float(valves.commanded_angle(valves.angle_pct(r, coeffs[v]), s))  # type: ignore[return-value]
+                 for r, v, s in zip(resistances_kg_m7, valves.VALVES, shifts_pct))
 
 
 def outlet_split(total_m3s: float, reference_m3s: Sequence[float] | None, params: Parameters | None = None,
@@ -124,7 +126,8 @@ def outlet_split(total_m3s: float, reference_m3s: Sequence[float] | None, params
     (free split): then the valves stay fully open (:data:`OPEN_ANGLES_PCT`) with the flows the
     open network gives. ``coeffs`` are the fitted valve curves (default from ``params``).
     """
-    coeffs = coeffs or valves.curves(params or Parameters())
+    params = params or Parameters()
+    coeffs = coeffs or valves.curves(params)
     if reference_m3s is None:
         r_open = tuple(float(valves.resistance(100.0, coeffs[v])) for v in valves.VALVES)
         total = total_m3s if math.isfinite(total_m3s) and total_m3s > 0 else 0.0
@@ -132,4 +135,6 @@ def outlet_split(total_m3s: float, reference_m3s: Sequence[float] | None, params
         return SplitResult(r_open, flows, dp, 0.0, OPEN_ANGLES_PCT, True, 0)  # type: ignore[arg-type]
     r, cost, success, nit = optimise_resistances(total_m3s, reference_m3s, gamma)
     flows, dp = outlet_flows_m3s(r, total_m3s)
-    return SplitResult(r, flows, dp, cost, resistances_to_angles(r, coeffs), success, nit)  # type: ignore[arg-type]
+    shifts = tuple(getattr(params, valves.SHIFT_PARAMS[v]) for v in valves.VALVES)
+    return SplitResult(r, flows, dp, cost, resistances_to_angles(r, coeffs, shifts), success,  # type: ignore[arg-type]
+                       nit)

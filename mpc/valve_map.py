@@ -34,26 +34,40 @@ class ValveMap:
     def __init__(self, params: Parameters, alpha: float = 0.25, segments: int = 12, table_points: int = 4001):
         self.alpha = float(alpha)
         self.coeffs = valves.curves(params)
+        # a shifted valve curve (Parameters.valve_*_shift_pct) is read at the effective angle, and the opening spans
+        # the travel where the valve acts (models/valves.py acting_travel): near-linear in the conductance of the
+        # valve as it acts, and never inside the shift, where the prediction's gradient would be zero
+        self.shifts = {name: float(getattr(params, valves.SHIFT_PARAMS[name])) for name in VALVE_NAMES}
+        self.travel = {name: valves.acting_travel(self.shifts[name]) for name in VALVE_NAMES}
         self.knots = np.linspace(0.0, 1.0, segments + 1)
         self._pchip: dict[str, PchipInterpolator] = {}
         self._v_tab: dict[str, np.ndarray] = {}
         self._t_tab: dict[str, np.ndarray] = {}
         v_fine = np.linspace(0.0, 1.0, table_points)
         for name in VALVE_NAMES:
+            lo, hi = self.travel[name]
             theta = self._inverse_exact(name, self.knots)
-            theta[0], theta[-1] = 0.0, 100.0
+            theta[0], theta[-1] = lo, hi
             pchip = PchipInterpolator(self.knots, theta)
             self._pchip[name] = pchip
             self._v_tab[name] = v_fine
-            self._t_tab[name] = np.clip(np.maximum.accumulate(pchip(v_fine)), 0.0, 100.0)
+            self._t_tab[name] = np.clip(np.maximum.accumulate(pchip(v_fine)), lo, hi)
         # the three tables side by side, each shifted by its own offset, so that one np.interp call
-        # converts all three valves (the controller's hot path, docs/architecture.md 'One control step')
+        # converts all three valves (the controller's hot path, docs/architecture.md 'One control step');
+        # angles outside the acting travel map to the end openings 0 and 1
         self._offset = np.arange(len(VALVE_NAMES), dtype=float)
         self._v_stack = np.concatenate([v_fine + 2.0 * i for i in range(len(VALVE_NAMES))])
-        t_ends = [np.append(self._t_tab[n], 100.0) if self._t_tab[n][-1] < 100.0 else self._t_tab[n]
-                  for n in VALVE_NAMES]
+        t_ends, v_ends = [], []
+        for name in VALVE_NAMES:
+            t, v = self._t_tab[name], v_fine
+            if t[0] > 0.0:
+                t, v = np.r_[0.0, t], np.r_[0.0, v]
+            if t[-1] < 100.0:
+                t, v = np.r_[t, 100.0], np.r_[v, 1.0]
+            t_ends.append(t)
+            v_ends.append(v)
         self._t_stack = np.concatenate([t + 200.0 * i for i, t in enumerate(t_ends)])
-        self._v_of_t = np.concatenate([np.append(v_fine, 1.0)[:len(t)] for t in t_ends])
+        self._v_of_t = np.concatenate(v_ends)
         self._t_of_v = np.concatenate([self._t_tab[n] for n in VALVE_NAMES])
 
     def theta_expr(self, name: str, v, margin: float = 0.05):
@@ -76,15 +90,16 @@ class ValveMap:
         return out
 
     def opening_exact(self, name: str, theta_pct) -> np.ndarray:
-        """v(theta) from the fitted resistance curve (numpy)."""
-        c = self.coeffs[name]
-        g = 1.0 / np.sqrt(valves.resistance(np.asarray(theta_pct, float), c))
-        g0 = 1.0 / np.sqrt(valves.resistance(0.0, c))
-        g1 = 1.0 / np.sqrt(valves.resistance(100.0, c))
-        return self.alpha * np.asarray(theta_pct, float) / 100.0 + (1.0 - self.alpha) * (g - g0) / (g1 - g0)
+        """v(theta) from the fitted resistance curve read at the effective angle, over the acting travel (numpy)."""
+        c, s = self.coeffs[name], self.shifts[name]
+        lo, hi = self.travel[name]
+        g = 1.0 / np.sqrt(valves.resistance(valves.effective_angle(theta_pct, s), c))
+        g0 = 1.0 / np.sqrt(valves.resistance(valves.effective_angle(lo, s), c))
+        g1 = 1.0 / np.sqrt(valves.resistance(valves.effective_angle(hi, s), c))
+        return self.alpha * (np.asarray(theta_pct, float) - lo) / (hi - lo) + (1.0 - self.alpha) * (g - g0) / (g1 - g0)
 
     def _inverse_exact(self, name: str, v: np.ndarray) -> np.ndarray:
-        lo, hi = np.zeros_like(v), np.full_like(v, 100.0)
+        lo, hi = np.full_like(v, self.travel[name][0]), np.full_like(v, self.travel[name][1])
         for _ in range(60):
             mid = 0.5 * (lo + hi)
             below = self.opening_exact(name, mid) < v
