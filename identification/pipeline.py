@@ -39,7 +39,7 @@ from hvac_mpc.models.parameters import Parameters
 
 from . import discovery, localise, timing
 from . import statistics as st
-from .candidates import MODEL_CANDIDATES, Candidate, library
+from .candidates import MIN_ABS_VALUE, MODEL_CANDIDATES, Candidate, library
 from .discovery import CABIN_CANDIDATES
 from .diagnostics import diagnose, innovations_nll
 from .fitting import FLOW_PARAMS, IDENTIFIED_REL_SE, NOMINAL_FREE, Fit, Fitter, FreeParam, parameter_confidence
@@ -474,6 +474,10 @@ def _gate(r: CandidateResult) -> str:
                 f"{r.primary_output} (needs {100 * need:.0f} %)")
     if not r.bic_change < 0:
         return f"information criterion on the training rows does not fall (change {r.bic_change:+.1f})"
+    least = MIN_ABS_VALUE.get(r.name)
+    if least is not None and r.params and max(abs(v) for v in r.params.values()) < least:
+        return (f"its parameters stay below {least:g} in size ({', '.join(f'{k} {v:+.2f}' for k, v in r.params.items())}): "
+                "a calibration of the nominal parameters, not the effect")
     return ""
 
 
