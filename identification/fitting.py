@@ -181,17 +181,8 @@ class Fitter:
         y_gain = y0.copy()  # the outputs a gain multiplies (without their offsets, which it does not)
         y0 = OutputPost(self.outputs, self.log.time_s, bias=kept).apply(y0)
         bias_idx = [self.outputs.index(o) for o in bias_outputs]
-        extra = []
-        for j in bias_idx:
-            block = np.zeros((self.log.n, len(self.outputs), 2))
-            block[:, j, 0] = self.sigma[j]
-            block[:, j, 1] = self.sigma[j] * post.ramp
-            extra.append(block)
         gain_idx = [self.outputs.index(o) for o in gain_outputs]
-        for j in gain_idx:  # y_j -> (1 + theta) y_j: the column is the output itself
-            block = np.zeros((self.log.n, len(self.outputs), 1))
-            block[:, j, 0] = np.nan_to_num(y_gain[:, j])
-            extra.append(block)
+        extra = self._offset_gain_columns(bias_idx, gain_idx, y_gain, post.ramp)
         if extra:
             d = np.concatenate([d] + extra, axis=2)
         ok = np.isfinite(self.y_meas) & self.log.train[:, None]
@@ -223,6 +214,23 @@ class Fitter:
             if np.isfinite(fit.cost_train) and fit.cost_train <= float(r @ r):
                 break
         return best
+
+    def _offset_gain_columns(self, bias_idx: Sequence[int], gain_idx: Sequence[int], y_gain: np.ndarray | None,
+                             ramp: np.ndarray) -> list[np.ndarray]:
+        """Jacobian columns (n, outputs, k) of the fitted offsets and gains: per offset output a constant and a
+        drift (``ramp``) in units of its sigma, per gain output the output itself (``y_gain``, without the
+        offsets a gain does not multiply: y_j -> (1 + theta) y_j)."""
+        cols = []
+        for j in bias_idx:
+            block = np.zeros((self.log.n, len(self.outputs), 2))
+            block[:, j, 0] = self.sigma[j]
+            block[:, j, 1] = self.sigma[j] * ramp
+            cols.append(block)
+        for j in gain_idx:
+            block = np.zeros((self.log.n, len(self.outputs), 1))
+            block[:, j, 0] = np.nan_to_num(y_gain[:, j])
+            cols.append(block)
+        return cols
 
     @staticmethod
     def _kept_bias(post: OutputPost, gain_outputs: Sequence[str]) -> dict:
@@ -313,15 +321,7 @@ class Fitter:
                 cols.append(dy)
             elif gain_idx:
                 y = post.apply(sim.simulate(p)[0])
-            for k, j in enumerate(bias_idx):
-                block = np.zeros((self.log.n, len(self.outputs), 2))
-                block[:, j, 0] = self.sigma[j]
-                block[:, j, 1] = self.sigma[j] * ramp
-                cols.append(block)
-            for k, j in enumerate(gain_idx):
-                block = np.zeros((self.log.n, len(self.outputs), 1))
-                block[:, j, 0] = np.nan_to_num(y[:, j])
-                cols.append(block)
+            cols += self._offset_gain_columns(bias_idx, gain_idx, y if gain_idx else None, ramp)
             d = np.concatenate(cols, axis=2) if cols else np.zeros((self.log.n, len(self.outputs), 0))
             d = np.where(ok[:, :, None], d / self.sigma[None, :, None], 0.0)
             return d[train].reshape(-1, d.shape[2])

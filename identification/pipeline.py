@@ -377,12 +377,7 @@ def _score_round(fitter: Fitter, current: Fit, current_free, lib, rnd: int, say,
         res.fit = fit
         res.params = {k: v for k, v in _new_params(fitter, fit, current).items()
                       if k in {fp.name for fp in cand.params}}
-        if cand.kind == "delay":
-            res.delay_s = fit.post.delays[cand.output] * log.dt_s
-        if cand.kind == "bias":
-            res.bias = fit.post.bias[cand.output]
-        if cand.kind == "gain":
-            res.gain = fit.post.gain[cand.output]
+        _record_own(res, cand, fit, log.dt_s)
         res.cost_train, res.cost_holdout = fit.cost_train, fit.cost_holdout
         res.train_reduction = 1.0 - fit.cost_train / current.cost_train
         res.explained_holdout = (current.cost_holdout - fit.cost_holdout) / structured if structured > 0 else 0.0
@@ -394,6 +389,16 @@ def _score_round(fitter: Fitter, current: Fit, current_free, lib, rnd: int, say,
         res.dof = {"delay": 1, "bias": 2, "gain": 1}.get(cand.kind, len(res.params) or len(cand.params))
         res.bic_change = _bic_change(fitter, fit, current, res.dof, res.primary_output)
     return results
+
+
+def _record_own(res: CandidateResult, cand: Candidate, fit: Fit, dt_s: float) -> None:
+    """The candidate's own result in ``fit``, by kind: its delay (s), its offset and drift, or its gain."""
+    if cand.kind == "delay":
+        res.delay_s = fit.post.delays[cand.output] * dt_s
+    if cand.kind == "bias":
+        res.bias = fit.post.bias[cand.output]
+    if cand.kind == "gain":
+        res.gain = fit.post.gain[cand.output]
 
 
 def _score_one(fitter: Fitter, current: Fit, current_free, cand: Candidate) -> tuple[Fit | None, str]:
@@ -532,12 +537,7 @@ def _forward(fitter: Fitter, nominal: Fit, free: list[FreeParam], lib, max_effec
                 r.explained_primary = _output_share(fitter, current, polished, r.primary_output)
                 r.params = {k: v for k, v in _new_params(fitter, polished, current).items()
                             if k in {fp.name for fp in cand.params}}
-                if cand.kind == "delay":
-                    r.delay_s = polished.post.delays[cand.output] * fitter.log.dt_s
-                if cand.kind == "bias":
-                    r.bias = polished.post.bias[cand.output]
-                if cand.kind == "gain":
-                    r.gain = polished.post.gain[cand.output]
+                _record_own(r, cand, polished, fitter.log.dt_s)
             r.bic_change = _bic_change(fitter, r.fit, current, r.dof, r.primary_output)
             r.lr = nll_current - nll
             r.p_value = float(stats.chi2.sf(r.lr, r.dof)) if r.lr > 0 else 1.0

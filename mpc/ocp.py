@@ -288,7 +288,7 @@ def trap_cap_pct(heater_temp_c: float, heater_in_c: float, heater_cmd_w: float, 
     shifted valve-a curve (``valve_a_shift_pct``, models/valves.py) moves the cap on the command by
     the shift.
     """
-    warm = (heater_temp_c - heater_in_c > spec.trap_warm_c) or heater_cmd_w > 1.0
+    warm = (heater_temp_c - heater_in_c > spec.trap_warm_c) or heater_cmd_w > HEATING_CMD_W
     return min(100.0, params.trap_threshold_pct - spec.trap_margin_pct + params.valve_a_shift_pct) if warm else 100.0
 
 
@@ -315,7 +315,7 @@ class HeaterOffBound:
 
     def update(self, heater_est_c: float, heater_in_c: float, heater_cmd_w: float, mass_flow_kgs: float) -> float:
         """The heater temperature the guard should use (degC), after one sample under ``heater_cmd_w``."""
-        if self.bound_c is None or heater_cmd_w > 1.0 or not math.isfinite(self.bound_c):
+        if self.bound_c is None or heater_cmd_w > HEATING_CMD_W or not math.isfinite(self.bound_c):
             self.bound_c = float(heater_est_c)
         else:
             tau = float(heater.time_constant_s(max(float(mass_flow_kgs), 1e-3), self.params))

@@ -51,6 +51,7 @@ answering from the last solve meanwhile (docs/architecture.md 'Slow steps': the 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import casadi as ca
 import numpy as np
@@ -97,6 +98,16 @@ def flow_weight_factor(flow_error_m3s: float, flow_weight: float, temp_weight: f
     pull = flow_weight * abs(flow_error_m3s) / FLOW_RESIDUAL_SCALE_M3S
     limit = temp_weight * TEMP_PER_FLOW_VIA_VALVE_A_C_PER_LPS * trade_c
     return 1.0 if pull <= limit else limit / pull
+
+
+class Solution(NamedTuple):
+    """One reachable-flow solve: the steady state of the largest flow (stacked x, u), its flow (m3/s), its
+    supply-temperature error against the reference (degC) and whether IPOPT converged."""
+
+    w: np.ndarray
+    flow_m3s: float
+    temp_error_c: float
+    converged: bool
 
 
 @dataclass
@@ -241,10 +252,9 @@ class ReachableFlow:
             return self._last
         return self._limit(flow_ref_m3s, flow_now)
 
-    def _solve(self, w0: np.ndarray, p: np.ndarray, d: np.ndarray, temp_ref_c: float) -> tuple | None:
-        """The steady state of the largest flow (stacked x, u), its flow (m3/s), its temperature error
-        (degC) and whether the solve converged; ``None`` where the solve gives no finite answer. Touches no state of this object: it may
-        run on a second thread while the controller goes on."""
+    def _solve(self, w0: np.ndarray, p: np.ndarray, d: np.ndarray, temp_ref_c: float) -> Solution | None:
+        """The solve from ``w0``, or ``None`` where it gives no finite answer. Touches no state of this object:
+        it may run on a second thread while the controller goes on."""
         try:
             sol = self.solver(x0=w0, p=p, lbx=self.lbx, ubx=self.ubx, lbg=self.lbg, ubg=self.ubg)
             w = np.asarray(sol["x"]).ravel()
@@ -254,7 +264,7 @@ class ReachableFlow:
             return None
         if not (np.all(np.isfinite(w)) and np.isfinite(flow) and np.isfinite(temp)):
             return None
-        return w, flow, temp - temp_ref_c, converged
+        return Solution(w, flow, temp - temp_ref_c, converged)
 
     def _solution_out(self, w: np.ndarray, d: np.ndarray, p: np.ndarray) -> np.ndarray:
         """Flow and temperature of a solution (m3/s, degC), through the solve's own function object."""
@@ -262,17 +272,17 @@ class ReachableFlow:
         out = self._out_fn(w[:self.nx], w[self.nx:], d, p[nd + 2:])
         return np.array([float(out[0]), float(out[1])])
 
-    def _apply(self, result: tuple | None) -> bool:
+    def _apply(self, result: Solution | None) -> bool:
         """Take a solve's answer; without one, track the reference as it is (False)."""
         if result is None:
             self._last = Reach(None, {})
             return False
-        if self._w is not None and not result[3]:
+        if self._w is not None and not result.converged:
             # stopped short (iteration cap): keep the last converged answer and warm start (quick mismatch suite,
             # blower_weak with the flow out of reach: a capped solve said -7 m3/h was reachable, the MPC cut
             # the blower to 30 W and heated)
             return True
-        self._w, self._reachable, self._temp_error = result[:3]
+        self._w, self._reachable, self._temp_error = result.w, result.flow_m3s, result.temp_error_c
         return True
 
     def _converged(self) -> bool:
