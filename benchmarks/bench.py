@@ -26,7 +26,7 @@ from hvac_mpc.contract import Command
 
 from . import criteria, metrics, mismatch_suite, plant_seam, report, scenarios as scenario_defs
 from .perturbation import MAGNITUDE_RANGE, perturb_parameters
-from .simulate import Trace, actuator_bounds, plant_seed, simulate
+from .simulate import DETERMINISTIC_DEADLINE_S, Trace, actuator_bounds, plant_seed, simulate
 
 DT_S = 1.0
 
@@ -45,19 +45,23 @@ def baseline_factory() -> Callable[[Command], object]:
     return lambda initial_command: BaselineController(Parameters(), dt_s=DT_S)
 
 
-def mpc_factory(params: Parameters | None = None) -> Callable[[Command], object]:
+def mpc_factory(params: Parameters | None = None,
+                deadline_s: float = DETERMINISTIC_DEADLINE_S) -> Callable[[Command], object]:
     """Factory of the MPC (``hvac_mpc.mpc.mpc_controller``) on the nominal parameters (or ``params``,
     e.g. a lab's parameter file with its transport delay) and default settings.
 
-    Its only non-default setting is ``initial_command``, the command in force on the plant when
-    the scenario starts (the MPC rate-limits its first move from it).
+    Its non-default settings are ``initial_command``, the command in force on the plant when the
+    scenario starts (the MPC rate-limits its first move from it), and ``deadline_s``: by default
+    :data:`DETERMINISTIC_DEADLINE_S`, so the run depends on the iteration caps, not on the machine's
+    load (``hvac-mpc bench --deadline-s 0.5`` runs with the box's wall-clock deadline and fallbacks).
     """
     try:
         from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
     except ImportError as exc:
         raise RuntimeError(f"the MPC hvac_mpc.mpc.mpc_controller.MpcController is not available: {exc}")
     chosen = params or Parameters()
-    return lambda initial_command: MpcController(chosen, MpcSettings(initial_command=initial_command))
+    return lambda initial_command: MpcController(chosen, MpcSettings(initial_command=initial_command,
+                                                                     deadline_s=deadline_s))
 
 
 def describe_controller(ctrl) -> str:
@@ -269,8 +273,22 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", metavar="FILE", default=None,
                         help="model file (hvac-mpc identify): also run the MPC with this refined model against the "
                              "nominal MPC on the independent box --model-plant (section in the report)")
+    parser.add_argument("--deadline-s", type=float, default=None, metavar="S",
+                        help="the MPC's wall-clock deadline per step in s, with the fallbacks when a step misses "
+                             "it (the box's default is 0.5); default: none, the run is bounded by iteration caps "
+                             "only, so its figures do not depend on the machine's load")
     parser.add_argument("--model-plant", metavar="VARIANT", default="nominal",
                         help="hvac_mpc.mismatch variant the --model comparison runs on (default: nominal)")
+
+
+def mpc_deadline(args: argparse.Namespace) -> float:
+    """``--deadline-s`` checked (0 < s <= 3600), or the deterministic default."""
+    value = getattr(args, "deadline_s", None)
+    if value is None:
+        return DETERMINISTIC_DEADLINE_S
+    if not 0.0 < value <= DETERMINISTIC_DEADLINE_S:
+        raise ValueError(f"--deadline-s must be within (0, {DETERMINISTIC_DEADLINE_S:g}] s, got {value}")
+    return value
 
 
 def run(args: argparse.Namespace) -> int:
@@ -284,7 +302,7 @@ def run(args: argparse.Namespace) -> int:
         if getattr(args, "plant", None):
             plant_factory = plant_seam.load_factory(args.plant)
         chosen = scenario_defs.select(args.scenario, quick=args.quick)
-        factories = {"baseline": baseline_factory(), "mpc": mpc_factory(mpc_parameters(args))}
+        factories = {"baseline": baseline_factory(), "mpc": mpc_factory(mpc_parameters(args), mpc_deadline(args))}
         if args.model:
             from . import refined_model
             refined_model.check(args.model, args.model_plant)
@@ -331,7 +349,7 @@ def run_mismatch_suite(args: argparse.Namespace) -> int:
               f"{list(known)}", file=sys.stderr)
         return 2
     try:
-        factories = {"baseline": baseline_factory(), "mpc": mpc_factory(mpc_parameters(args))}
+        factories = {"baseline": baseline_factory(), "mpc": mpc_factory(mpc_parameters(args), mpc_deadline(args))}
     except (ValueError, RuntimeError) as exc:
         print(f"hvac-mpc bench: {exc}", file=sys.stderr)
         return 2
@@ -383,6 +401,8 @@ def _argv_from(args: argparse.Namespace) -> list[str]:
         argv += ["--mpc-params", args.mpc_params]
     if getattr(args, "suite", None):
         argv += ["--suite", args.suite]
+    if getattr(args, "deadline_s", None) is not None:
+        argv += ["--deadline-s", f"{args.deadline_s:g}"]
     if getattr(args, "model", None):
         argv += ["--model", str(args.model), "--model-plant", args.model_plant]
     return argv

@@ -21,7 +21,7 @@ from hvac_mpc.models.model_file import load as load_model
 from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
 
 from .scenarios import Scenario
-from .simulate import plant_seed
+from .simulate import DETERMINISTIC_DEADLINE_S, plant_seed
 
 
 def closed_loop_iae(scenario: Scenario, controller, variant: str, seed: int, dt_s: float = 1.0) -> dict[str, float]:
@@ -76,7 +76,7 @@ def compare(model_path: str | Path, variant: str, scenarios: Sequence[Scenario],
            "transport_delay_s": refined.transport_delay_s, "scenarios": {}}
     runs = ("nominal", "refined") + (("nominal_as_identified", "refined_as_identified") if attribution else ())
     for sc in scenarios:
-        settings = MpcSettings(initial_command=sc.initial_command)
+        settings = MpcSettings(initial_command=sc.initial_command, deadline_s=DETERMINISTIC_DEADLINE_S)
         bare = _without(settings, refined.absent)
         ctrl = {"nominal": lambda: MpcController(settings=settings),
                 "refined": lambda: MpcController(settings=settings, model=refined),

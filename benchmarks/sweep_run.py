@@ -25,13 +25,9 @@ import numpy as np
 from hvac_mpc.models.parameters import Parameters
 
 from . import metrics
-from .simulate import actuator_bounds, plant_seed, simulate
+from .simulate import DETERMINISTIC_DEADLINE_S, actuator_bounds, plant_seed, simulate
 from .sweep_spec import RunSpec, file_hash, scenario_of
 
-#: MpcSettings.deadline_s for sweeps and replays: the largest the settings accept (1 h), so no
-#: solution is ever discarded for its wall time and the OSQP time limit never binds; the
-#: iteration caps (osqp_max_iter, cold_start_qps, reference_change_qps) bound each step instead.
-DETERMINISTIC_DEADLINE_S = 3600.0
 DT_S = 1.0
 
 #: Figures of ``metrics.run_figures`` stored per run (its flat ``figures``), plus the sweep's own.

@@ -252,6 +252,7 @@ def test_cli_quick_scenario_end_to_end(tmp_path, capsys):
     assert data["meta"]["command"] == f"hvac-mpc bench --quick --scenario summer_cooling_steps --out {out} --seed 2"
     assert data["meta"]["quick"] is True and data["meta"]["seed"] == 2
     assert "MpcController" in data["meta"]["controller_settings"]["mpc"]
+    assert "deadline_s=3600.0" in data["meta"]["controller_settings"]["mpc"]  # no wall-clock fallback by default
     assert data["meta"]["controller_settings"]["baseline"] == "BaselineController"
     sc = data["scenarios"]["summer_cooling_steps"]
     keys = {"temp_iae_cs", "air_temp_iae_cs", "temp_time_to_band_max_s", "temp_overshoot_max_c", "flow_iae_m3",
@@ -289,6 +290,9 @@ def test_cli_unknown_scenario_fails_cleanly(tmp_path, capsys):
     assert "unknown name" in capsys.readouterr().err
     assert cli.main(["bench", "--quick", "--seed", "-1", "--out", str(tmp_path / "x")]) == 2
     assert "--seed" in capsys.readouterr().err
+    for bad in ("0", "-0.5", "7200", "nan"):
+        assert cli.main(["bench", "--quick", "--deadline-s", bad, "--out", str(tmp_path / "x")]) == 2
+        assert "--deadline-s must be within (0, 3600] s" in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
 
 

@@ -76,7 +76,7 @@ def _run(ctrl, plant, start_k, steps):
 
 
 def test_a_reset_controller_answers_exactly_as_a_new_one():
-    settings = MpcSettings(codegen=False)
+    settings = MpcSettings(codegen=False, deadline_s=3600.0)  # no wall-clock fallback on a loaded machine
     used = MpcController(settings=settings)
     plant = SimulatedPlant(seed=5, environment=Environment(solve_time.INLET_C, 5.0))
     plant.settle(solve_time.INITIAL)
@@ -105,7 +105,7 @@ def test_a_step_makes_one_qp_and_three_calls_into_generated_code_with_one_qp_per
     from hvac_mpc.mpc.casadi_eval import BufferedFunction
 
     def run(fused: bool):
-        ctrl = MpcController(settings=MpcSettings(codegen=False, reference_change_qps=1))
+        ctrl = MpcController(settings=MpcSettings(codegen=False, reference_change_qps=1, deadline_s=3600.0))
         if not fused:
             ctrl.solver._predict_qp = None  # the estimator's prediction and the QP data apart
         hot = {id(f): name for name, f in (
@@ -166,7 +166,7 @@ def test_steady_steps_end_in_osqps_first_pass_and_the_settings_reach_osqp():
     fast = dict(osqp_scaling=4, osqp_check_dualgap=False, osqp_first_pass_iter=4)
 
     def run(**kw):
-        ctrl = MpcController(settings=MpcSettings(codegen=False, **kw))
+        ctrl = MpcController(settings=MpcSettings(codegen=False, deadline_s=3600.0, **kw))
         loop = solve_time.Loop(ctrl, seed=7)
         stats = []
         for k in range(40):
