@@ -63,12 +63,14 @@ def _without(settings: MpcSettings, effects: Sequence[str]) -> MpcSettings:
 
 
 def compare(model_path: str | Path, variant: str, scenarios: Sequence[Scenario], seed: int = 0,
-            attribution: bool = False) -> dict:
+            attribution: bool = False, deadline_s: float | None = None) -> dict:
     """Nominal against refined MPC per scenario: IAEs and the ratio refined / nominal (``total["run_ratio"]``: the
     same over whole runs, warm-up included, :func:`closed_loop_iae`). ``attribution`` adds
     both MPCs without the effects the file says the box lacks (``absent``, e.g. the controller's own
     ``bypass_flow``): ``nominal_as_identified`` and ``refined_as_identified``, what separates the file's content
-    from the controller's own structure (docs/identification.md, "The refined model in the controller")."""
+    from the controller's own structure (docs/identification.md, "The refined model in the controller").
+    ``deadline_s``: both MPCs' feedback deadline (None: :data:`DETERMINISTIC_DEADLINE_S`, so a loaded machine's
+    slow steps do not go to the fallback and the comparison depends on the models alone)."""
     refined = load_model(model_path)
     out = {"model_file": str(model_path), "plant_variant": variant, "seed": seed,
            "effects": list(refined.effects), "absent": list(refined.absent),
@@ -76,7 +78,8 @@ def compare(model_path: str | Path, variant: str, scenarios: Sequence[Scenario],
            "transport_delay_s": refined.transport_delay_s, "scenarios": {}}
     runs = ("nominal", "refined") + (("nominal_as_identified", "refined_as_identified") if attribution else ())
     for sc in scenarios:
-        settings = MpcSettings(initial_command=sc.initial_command, deadline_s=DETERMINISTIC_DEADLINE_S)
+        settings = MpcSettings(initial_command=sc.initial_command,
+                               deadline_s=DETERMINISTIC_DEADLINE_S if deadline_s is None else float(deadline_s))
         bare = _without(settings, refined.absent)
         ctrl = {"nominal": lambda: MpcController(settings=settings),
                 "refined": lambda: MpcController(settings=settings, model=refined),

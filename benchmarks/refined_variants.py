@@ -42,15 +42,16 @@ CASES = {"ptc_fall": ("nominal", ("fan_curve", "valve_leakage"))}
 
 
 def run_one(name: str, folder: Path, seed: int, duration_s: float, scenario_names: list[str] | None,
-            quick: bool = True) -> dict:
+            quick: bool = True, deadline_s: float | None = None) -> dict:
     """Log, identification, model file and closed-loop comparison of one variant (``quick``: the scenarios'
-    quick versions, their first segments only)."""
+    quick versions, their first segments only; ``deadline_s``: the MPCs' feedback deadline, None the default)."""
     variant, effects = CASES.get(name, (name, DOCUMENTED_EFFECTS))
     path = folder / f"{name}.csv"
     simulate_log(path, variant, duration_s=duration_s, seed=seed)
     res = identify(log_data.load(path), Parameters(), effects)
     model = write_model_file(folder / f"{name}.toml", res.params, res.effects, res.extras, res.terms, res.absent)
-    cmp = compare(model, variant, scenarios.select(scenario_names, quick=quick), seed=0, attribution=True)
+    cmp = compare(model, variant, scenarios.select(scenario_names, quick=quick), seed=0, attribution=True,
+                  deadline_s=deadline_s)
     e = res.holdout_errors()["supply_temp_c"]
     return {"case": name, "variant": variant, "added": [a.name for a in res.accepted], "absent": list(res.absent),
             "terms": [t.formula() for t in res.terms], "term_words": [t.description for t in res.terms],
@@ -69,11 +70,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--duration", type=float, default=7200.0, help="log length, s (default 7200)")
     parser.add_argument("--seed", type=int, default=5, help="seed of the identification log (default 5)")
     parser.add_argument("--json", type=Path, default=None, help="write the results here")
+    parser.add_argument("--deadline", type=float, default=None,
+                        help="the MPCs' feedback deadline, s (default: 3600, no wall-clock fallback, so the ratios do "
+                             "not depend on the machine's load; 0.5 is the box's)")
     args = parser.parse_args(argv)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.variant or DEFAULT_VARIANTS:
-            r = run_one(name, Path(tmp), args.seed, args.duration, args.scenario, quick=not args.full)
+            r = run_one(name, Path(tmp), args.seed, args.duration, args.scenario, quick=not args.full,
+                        deadline_s=args.deadline)
             rows.append(r)
             t = r["comparison"]["total"]
             print(f"{name:26s} added {r['added'] + r['terms'] or ['nothing']}", flush=True)

@@ -276,6 +276,18 @@ def _delay_to_estimator(settings: MpcSettings, params: Parameters) -> tuple[MpcS
     return dataclasses.replace(settings, ekf=ekf), params.replace(transport_delay_s=0.0)
 
 
+def _heater_inlet_function(model: HvacModel) -> Callable | None:
+    """(x, u, d) -> air entering the heater (degC) of ``model`` where discovered terms change it (a term at the
+    cooler core's outlet), else None (the cooler equation alone, as the trapped-air guard reads it)."""
+    if not any(t.location == "cooler_out" for t in model.terms):
+        return None
+    import casadi as ca
+    x, u, d = (ca.SX.sym(n, len(s)) for n, s in (("x", model.states), ("u", model.inputs),
+                                                  ("d", model.disturbances)))
+    t_cooler = model.algebraic(x, u, d, model.params)["t_cooler"]
+    return ca.Function("heater_inlet", [x, u, d], [t_cooler])
+
+
 class MpcController:
     """Receding-horizon controller of all six actuators (Controller protocol).
 
@@ -324,6 +336,7 @@ class MpcController:
                                    changes_deferred=s.reach_changes_deferred and s.reach_deferred
                                    ) if s.priorities else None
         self.heater_bound = HeaterOffBound(self.params, s.dt_s)
+        self._heater_inlet = _heater_inlet_function(pb.model)
         self.temp_reach = SaturatedTemperature(pb.i_heater_cmd, pb.i_valve_a, s.dt_s)
         self.codegen = getattr(self.solver, "codegen", None) or CodegenReport()
         if s.codegen:
@@ -559,11 +572,16 @@ class MpcController:
 
     def _trap_cap(self, measurement: Measurement | None = None) -> float:
         """Valve a cap (%) of the trapped-air guard, with the heater temperature bounded by what was
-        commanded (:class:`HeaterOffBound`; the measured flow sets the heater's time constant)."""
+        commanded (:class:`HeaterOffBound`; the measured flow sets the heater's time constant). The air
+        entering the heater is the prediction model's, discovered terms at the core outlet included."""
         e, m = self.ekf, self.problem.model
         x = e.x
-        t_blower = e.inlet_temp_c + x[m.states.index("motor_rise_c")]
-        heater_in = float(chiller.cooler_outlet_c(t_blower, x[e.i_water], self.params))
+        if self._heater_inlet is None:
+            t_blower = e.inlet_temp_c + x[m.states.index("motor_rise_c")]
+            heater_in = float(chiller.cooler_outlet_c(t_blower, x[e.i_water], self.params))
+        else:
+            d = np.array([e.inlet_temp_c, x[e.i_water], 0.0, e.flow_offset_m3s])
+            heater_in = float(self._heater_inlet(x, self.u_prev, d))
         cmd = float(self.u_prev[self.problem.i_heater_cmd])
         flow = finite_or(getattr(measurement, "volume_flow_m3s", None), 0.0)
         mass_flow = float(air.density_kgm3(e.inlet_temp_c, self.params)) * max(flow, 0.0)

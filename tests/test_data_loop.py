@@ -153,6 +153,33 @@ def test_mpc_with_the_literal_cooler_term_heats_as_well_as_the_nominal_mpc():
     assert known["temp_iae_cs"] < 1.05 * nominal["temp_iae_cs"], (known, nominal)
 
 
+def test_trapped_air_guard_reads_the_heater_inlet_with_the_core_outlet_term():
+    """The guard counts the heater as warm when its body is ``trap_warm_c`` (5 C) above the air entering it. On the
+    box whose core outlet does not depend on the inlet air (``cooler_literal``; inlet 10 C, water 5 C) that air is
+    the literal fit's 10.1 C (hvac_mpc.mismatch, the truth), so a heater body at 14 C is not warm and valve a keeps
+    its whole travel. The guard read the cooler equation without the discovered term (6.3 C there) and capped
+    valve a at 90 % with the MPC that has the term in its model."""
+    from hvac_mpc.contract import Command, Measurement
+    from hvac_mpc.mismatch import physics
+    from hvac_mpc.mpc.mpc_controller import MpcSettings
+
+    prm = Parameters()
+    term = DiscoveredTerm("cooler_outlet_term", "cooler_out", ("core_in", "one"),
+                          (-(1.0 - prm.cooler_slope), prm.cooler_offset_c), "literal cooler fit")
+    refined = RefinedModel(prm, ("ptc_power_fall", "fan_curve", "valve_leakage"), (term,), absent=("bypass_flow",))
+    ctrl = MpcController(settings=MpcSettings(initial_command=Command(60.0, 0.0, 50.0, 100.0, 100.0, 100.0)),
+                         model=refined)
+    ctrl.ekf.initialise(Measurement(0.0, 12.0, 0.011, 10.0, water_temp_c=5.0), ctrl.u_prev, 5.0)
+    x = ctrl.ekf.x
+    heater_in_box = physics.cooler_outlet_c(10.0 + x[ctrl.problem.model.states.index("motor_rise_c")], 5.0,
+                                            literal_fit=True)
+    ctrl.ekf.z[ctrl.problem.i_heater] = heater_in_box + 4.0
+    assert ctrl._trap_cap() == 100.0
+    ctrl.heater_bound.reset()
+    ctrl.ekf.z[ctrl.problem.i_heater] = heater_in_box + 6.0  # warm: capped at the threshold less the margin
+    assert ctrl._trap_cap() == pytest.approx(prm.trap_threshold_pct - ctrl.settings.ocp.trap_margin_pct)
+
+
 CABIN_TERM = DiscoveredTerm("duct_cabin", "supply_air", ("cabin_minus_mix_over_mass_flow",), (0.003,),
                             "duct-to-cabin exchange")
 
