@@ -96,7 +96,7 @@ def time_one(name: str, duration_s: float, seed: int, folder: Path) -> dict:
             "timing_shift_samples": res.timing_shift_samples,
             "moved": {c["name"]: round(c["change"], 4) for c in res.parameter_confidence if c["moved"]},
             "timings_s": dict(res.timings, load_s=load_wall, load_cpu_s=load_cpu),
-            "terms_in_words": [t.description for t in res.terms]}
+            "terms_in_words": [t.description for t in res.terms], "notes": list(res.notes)}
 
 
 PARTS = ("load", "nominal_fit", "diagnostics", "candidates", "discovery", "final_diagnostics")

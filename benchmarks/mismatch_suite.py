@@ -17,6 +17,8 @@ from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
+from hvac_mpc.mismatch.variants import UNSHAPED_VARIANTS
+
 from . import report, scenarios as scenario_defs
 
 #: The ratios of the matrix: (figure key, column label).
@@ -33,7 +35,7 @@ OUT_OF_REACH_TEMP_TOL_C = 0.3
 
 
 #: Registered variants the suite leaves out: not among the variants issue 11 names (the data loop uses them).
-NOT_IN_SUITE = ("bypass_flow",)
+NOT_IN_SUITE = ("bypass_flow",) + UNSHAPED_VARIANTS
 
 
 def variant_names() -> list[str]:

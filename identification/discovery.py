@@ -16,8 +16,10 @@ There the reading sees a feature through the heater's air node and body and the 
 feature's view is its response through the model itself: the fit's free run with a small probe term
 ``c f`` at the core outlet, minus the run without it, over ``c`` (the model is linear in the core outlet
 but for the PTC curve, so this is the regression's exact column up to that curvature; the whole-model
-refit afterwards takes the rest). Discovery runs the selection at both places and keeps the place whose
-best term lowers the held-out error more.
+refit afterwards takes the rest). A term can also sit in the heater body's energy balance (location
+``heater_body``, a heat flow in W: a conductance to the surroundings, a share of the electric power), seen the
+same way. Discovery runs the selection at every place and keeps the place whose best term lowers the held-out
+error most.
 
 Selection (docs/identification.md, "discovery"): the order in which features enter comes from
 the LARS-lasso path of scikit-learn (``sklearn.linear_model.lars_path``, standardised features,
@@ -44,7 +46,7 @@ MIN_STEP_GAIN = 0.05
 #: Features the selection may use (the whole vocabulary but the constant, which is always in).
 CANDIDATES = ("mix", "inlet", "inv_mass_flow", "mix_over_mass_flow", "inlet_minus_mix_over_mass_flow", "core_share",
               "core_share_x_blower_out", "core_share_x_water", "mass_flow", "mix_x_mass_flow",
-              "heater_power_over_mass_flow")
+              "heater_power_over_mass_flow", "body_minus_mix")
 #: Features offered only when the log carries the cabin temperature (without it they are a combination of
 #: ``inv_mass_flow`` and ``mix_over_mass_flow`` at the assumed ``Parameters.cabin_temp_c``).
 CABIN_CANDIDATES = ("cabin_minus_mix_over_mass_flow",)
@@ -52,9 +54,18 @@ CABIN_CANDIDATES = ("cabin_minus_mix_over_mass_flow",)
 #: ``core_in_minus_water``: with the cooler's effectiveness free, a step of it is the direction T_w - T_core_in,
 #: so they add nothing to the span; offered anyway, the selection hands part of the correction to that step,
 #: which the whole-model refit does not follow (cooler_literal seed 17: 0.215 C with ``water``, 0.061 without).
-COOLER_CANDIDATES = ("core_in", "mass_flow", "core_in_minus_water_x_mass_flow")
-#: Probe coefficient per feature unit for the cooler-outlet views: about 0.2 C at the core outlet.
+COOLER_CANDIDATES = ("core_in", "mass_flow", "core_in_minus_water_x_mass_flow", "core_in_minus_water_x_core_flow")
+#: Features the selection may use in the heater body's balance (the constant is always in): a conductance to the
+#: surroundings at the inlet air's temperature, a share of the electric power.
+HEATER_CANDIDATES = ("body_minus_inlet", "heater_power")
+#: Features the selection may use on the air entering the box (the constant, an inlet sensor's offset, is always in);
+#: the cabin's share only when the log carries the cabin temperature (cabin air drawn in behind the inlet sensor).
+BOX_IN_CANDIDATES = ("inlet",)
+#: Features per location where a term is seen through the model's own response (:func:`probe_view`).
+PROBED = {"cooler_out": COOLER_CANDIDATES, "heater_body": HEATER_CANDIDATES, "box_in": BOX_IN_CANDIDATES}
+#: Probe coefficient per feature unit for those views: about 0.2 C at the core outlet, a few W into the heater body.
 PROBE = {"1": 0.2, "C": 0.01, "kg/s": 4.0, "C kg/s": 0.2}
+PROBE_BODY = {"1": 2.0, "C": 0.05, "W": 0.02}
 #: Most features in one term.
 MAX_FEATURES = 4
 #: Prefixes of the LARS path scored on the held-out rows (a term holds at most this many features).
@@ -80,7 +91,7 @@ def features(fitter: Fitter, fit: Fit) -> dict[str, np.ndarray]:
     internals = sim.internals(fit.p, fit.states)
     log = fitter.log
     water = log.water_temp_c if log.water_temp_c is not None else fit.states[:, sim.model.states.index("water_temp_c")]
-    q = {"t_mix": internals["mix_temp_c"], "t_in": log.inlet_temp_c, "t_blower": internals["blower_out_temp_c"],
+    q = {"t_mix": internals["mix_temp_c"], "t_body": internals["heater_temp_c"], "t_in": log.inlet_temp_c, "t_blower": internals["blower_out_temp_c"],
          "t_water": water, "mass_flow": internals["mass_flow_kgs"], "core_share": 1.0 - internals["bypass_fraction"],
          "p_el": internals["heater_electric_w"],
          "t_cabin": log.cabin_temp_c if log.cabin_temp_c is not None else fit.p[fitter.names.index("cabin_temp_c")]}
@@ -101,14 +112,17 @@ def sensor_view(fitter: Fitter, fit: Fit, feats: dict[str, np.ndarray]) -> dict[
     return {k: shift(_lfilter_lag(v, tau, fitter.log.dt_s), delay) for k, v in feats.items()}
 
 
-def cooler_view(fitter: Fitter, fit: Fit, names=COOLER_CANDIDATES + ("one",)) -> dict[str, np.ndarray]:
-    """Each cooler-outlet feature as the supply reading shows it: response per unit coefficient (n,)."""
+def probe_view(fitter: Fitter, fit: Fit, location: str, names=None) -> dict[str, np.ndarray]:
+    """Each feature of ``location`` (a key of :data:`PROBED`) as the supply reading shows it: the model's response
+    per unit coefficient (n,)."""
+    names = _candidates(fitter, location) + ("one",) if names is None else names
+    probes = PROBE_BODY if location == "heater_body" else PROBE
     j = fitter.outputs.index("supply_temp_c")
     y0 = fitter.simulator(fit.effects, fit.terms).simulate(fit.p)[0][:, j]
     out = {}
     for f in names:
-        c = PROBE[FEATURES[f][1]]
-        probe = DiscoveredTerm("probe_" + f, "cooler_out", (f,), (c,))
+        c = probes[FEATURES[f][1]]
+        probe = DiscoveredTerm("probe_" + f, location, (f,), (c,))
         y = fitter.simulator(fit.effects, fit.terms + (probe,)).simulate(fit.p)[0][:, j]
         out[f] = shift((y - y0) / c, fit.post.delays.get("supply_temp_c", 0))
     return out
@@ -116,14 +130,16 @@ def cooler_view(fitter: Fitter, fit: Fit, names=COOLER_CANDIDATES + ("one",)) ->
 
 def views(fitter: Fitter, fit: Fit, location: str, names=None) -> dict[str, np.ndarray]:
     """The features of ``location`` as the supply reading shows them (linear in the coefficients)."""
-    if location == "cooler_out":
-        return cooler_view(fitter, fit) if names is None else cooler_view(fitter, fit, tuple(names))
+    if location in PROBED:
+        return probe_view(fitter, fit, location, None if names is None else tuple(names))
     return sensor_view(fitter, fit, features(fitter, fit))
 
 
 def _candidates(fitter: Fitter, location: str) -> tuple[str, ...]:
-    if location == "cooler_out":
-        return COOLER_CANDIDATES
+    if location == "box_in" and fitter.log.cabin_temp_c is not None:
+        return BOX_IN_CANDIDATES + ("cabin_minus_inlet",)
+    if location in PROBED:
+        return PROBED[location]
     return CANDIDATES + (CABIN_CANDIDATES if fitter.log.cabin_temp_c is not None else ())
 
 
@@ -180,6 +196,10 @@ def select(fitter: Fitter, fit: Fit, dy_free: np.ndarray | None = None, location
 def describe_term(chosen: list[str], coef: np.ndarray, location: str = "supply_air") -> str:
     """The term in words (and physically, when it has the form of a heat loss to surroundings)."""
     words = " plus ".join(FEATURES[f][0] for f in chosen)
+    if location == "heater_body":
+        return _describe_body(chosen, coef, words)
+    if location == "box_in":
+        return _describe_box_in(chosen, coef, words)
     if location == "cooler_out":
         text = f"an additive term on the {LOCATIONS[location][0]}, linear in {words} and a constant"
         c = dict(zip(chosen, coef))
@@ -201,11 +221,36 @@ def describe_term(chosen: list[str], coef: np.ndarray, location: str = "supply_a
                  f"about {ua:.2f} W/K (dT = UA/(m_dot c_p) (T_cabin - T_mix), T_cabin the logged cabin temperature)")
     if set(chosen) & {"core_share", "core_share_x_blower_out", "core_share_x_water"}:
         text += "; it acts on the air through the cooler core (an error of the core outlet temperature)"
+    if "body_minus_mix" in c:
+        text += (f"; the supply reading follows the heater body by {c['body_minus_mix']:+.3f} C/C of its excess over the "
+                 "mixed air (the sensor seeing the heater body, by radiation or conduction)")
+    return text
+
+
+def _describe_box_in(chosen: list[str], coef: np.ndarray, words: str) -> str:
+    text = (f"an additive term on the air entering the box (the logged inlet temperature is the air outside it), "
+            f"linear in {words} and a constant")
+    share = dict(zip(chosen, coef)).get("cabin_minus_inlet", 0.0)
+    if 0.0 < share < 1.0:
+        text += (f"; it has the form of a share of about {share:.2f} of cabin air drawn into the box behind the inlet "
+                 "sensor (recirculation, a leak)")
+    return text
+
+
+def _describe_body(chosen: list[str], coef: np.ndarray, words: str) -> str:
+    text = f"an additive heat flow into the heater body, linear in {words} and a constant"
+    c = dict(zip(chosen, coef))
+    if c.get("body_minus_inlet", 0.0) < 0:
+        text += (f"; it has the form of a heat loss of the body to surroundings at the inlet air's temperature with a "
+                 f"conductance of about {-c['body_minus_inlet']:.2f} W/K")
+    if "heater_power" in c:
+        text += f"; {c['heater_power']:+.3f} of the electric power goes into the body beyond k_p's share"
     return text
 
 
 #: Name of the discovered term per location.
-TERM_NAMES = {"supply_air": "supply_residual_term", "cooler_out": "cooler_outlet_term"}
+TERM_NAMES = {"supply_air": "supply_residual_term", "cooler_out": "cooler_outlet_term", "heater_body": "heater_body_term",
+              "box_in": "box_inlet_term"}
 
 
 def term_from(chosen: list[str], coef: np.ndarray, name: str | None = None, location: str = "supply_air"

@@ -45,10 +45,12 @@ class OperatingPoint:
     heater_ua_w_per_k: float
     motor_target_c: float
     network_dp_pa: float                   # pressure drop over the outlet valves
+    cooler_effectiveness: float = k.COOLER_SLOPE
 
 
 def operating_point(u: np.ndarray, inlet_c: float, variant: Variant, net: ph.ValveNetwork) -> OperatingPoint:
-    """Flows and heater coupling for command ``u`` (``INPUTS`` order, already clipped)."""
+    """Flows and heater coupling for command ``u`` (``INPUTS`` order, already clipped); ``inlet_c``: the air
+    entering the box (degC)."""
     blower, heater, a, m, f, w = (float(x) for x in u)
     shift = variant.valve_shift_pct
     bypass = ph.bypass_fraction(ph.effective_angle(a, shift))
@@ -61,11 +63,13 @@ def operating_point(u: np.ndarray, inlet_c: float, variant: Variant, net: ph.Val
     # the flow follows the valve's geometric split; the mixing share may depend on the flow too
     bypass = ph.flow_dependent_bypass(bypass, mass, variant.bypass_flow_exponent)
     core = (1.0 - bypass) * mass * k.CP_AIR
+    effectiveness = (ph.cooler_effectiveness_ntu((1.0 - bypass) * mass, variant.cooler_ntu) if variant.cooler_ntu > 0.0
+                     else k.COOLER_SLOPE)
     return OperatingPoint(
         blower_w=blower, heater_cmd_w=heater, bypass=bypass, shares=tuple(x / g_total for x in g),
         volume_flow_m3s=flow, mass_flow_kgs=mass, core_capacity_w_per_k=core,
         heater_ua_w_per_k=ph.heater_effective_ua(k.HEATER_KA_W_PER_K, core),
-        motor_target_c=ph.motor_gain_c(blower), network_dp_pa=r_net * flow ** 2)
+        motor_target_c=ph.motor_gain_c(blower), network_dp_pa=r_net * flow ** 2, cooler_effectiveness=effectiveness)
 
 
 @dataclass
@@ -188,6 +192,8 @@ class IndependentBox:
             self.chiller_setpoint_c = _finite("chiller_setpoint_c", chiller_setpoint_c)
         if cabin_temp_c is not None:
             self.cabin_temp_c = _finite("cabin_temp_c", cabin_temp_c)
+            if self.variant.recirculation_share:
+                self._op = self._operating_point()
 
     def settle(self, command: Command | None = None) -> None:
         """Put the box at rest for ``command`` (or the current one): every state at its steady value,
@@ -196,30 +202,38 @@ class IndependentBox:
             self.apply(command)
         op, v = self._op, self.variant
         rise = op.motor_target_c
-        cooled = ph.cooler_outlet_c(self.inlet_temp_c + rise, self.chiller_setpoint_c, v.cooler_literal_fit)
+        cooled = ph.cooler_outlet_c(self._entering_c() + rise, self.chiller_setpoint_c, v.cooler_literal_fit,
+                                    op.cooler_effectiveness)
         heater = ph.heater_steady_c(cooled, op.heater_cmd_w, op.heater_ua_w_per_k, v.heater_power_scale,
-                                    v.ptc_power_fall)
+                                    v.ptc_power_fall, v.heater_wall_ua_w_per_k, self._entering_c())
         self.state = BoxState(rise, self.chiller_setpoint_c, True, heater, 0.0)
         mixed = self._mixed_c()
         self._delay.clear()
         self._delay.extend([mixed] * self._delay_n)
-        self.state.sensor_c = self._supply_air_c(mixed)
+        self.state.sensor_c = self._sensor_target_c(self._supply_air_c(mixed))
         self._y = self._outputs()
 
     # ------------------------------------------------------------------ internals
     def _operating_point(self) -> OperatingPoint:
-        return operating_point(self._u, self.inlet_temp_c, self.variant, self._net)
+        return operating_point(self._u, self._entering_c(), self.variant, self._net)
+
+    def _entering_c(self) -> float:
+        """Air entering the box (the logged inlet air unless cabin air is drawn in behind the sensor)."""
+        return ph.entering_air_c(self.inlet_temp_c, self.cabin_temp_c, self.variant.recirculation_share)
+
+    def _sensor_target_c(self, supply_air_c: float) -> float:
+        return ph.thermocouple_target_c(supply_air_c, self.state.heater_temp_c, self.variant.tc_radiation_share)
 
     def _cooled_c(self) -> float:
-        return ph.cooler_outlet_c(self.inlet_temp_c + self.state.motor_rise_c, self.state.water_temp_c,
-                                  self.variant.cooler_literal_fit)
+        return ph.cooler_outlet_c(self._entering_c() + self.state.motor_rise_c, self.state.water_temp_c,
+                                  self.variant.cooler_literal_fit, self._op.cooler_effectiveness)
 
     def _heated_c(self, cooled_c: float) -> float:
         return ph.heater_air_outlet_c(self.state.heater_temp_c, cooled_c, k.HEATER_KA_W_PER_K,
                                       self._op.core_capacity_w_per_k)
 
     def _mixed_c(self) -> float:
-        return ph.mix_c(self._op.bypass, self.inlet_temp_c + self.state.motor_rise_c,
+        return ph.mix_c(self._op.bypass, self._entering_c() + self.state.motor_rise_c,
                         self._heated_c(self._cooled_c()))
 
     def _supply_air_c(self, arriving_c: float) -> float:
@@ -233,13 +247,15 @@ class IndependentBox:
     def _substep(self) -> None:
         s, op, v, h = self.state, self._op, self.variant, self._h
         cooled = self._cooled_c()
-        mixed = ph.mix_c(op.bypass, self.inlet_temp_c + s.motor_rise_c, self._heated_c(cooled))
+        entering = self._entering_c()
+        mixed = ph.mix_c(op.bypass, entering + s.motor_rise_c, self._heated_c(cooled))
         arriving = self._arriving_c(mixed)
         if self._delay_n:
             self._delay.append(mixed)
-        s.sensor_c = ph.relax(s.sensor_c, self._supply_air_c(arriving), self._sensor_factor)
+        s.sensor_c = ph.relax(s.sensor_c, self._sensor_target_c(self._supply_air_c(arriving)), self._sensor_factor)
         s.heater_temp_c = ph.heater_body_step(s.heater_temp_c, cooled, op.heater_cmd_w, op.heater_ua_w_per_k, h,
-                                              v.heater_power_scale, v.ptc_power_fall)
+                                              v.heater_power_scale, v.ptc_power_fall, v.heater_wall_ua_w_per_k,
+                                              entering)
         s.motor_rise_c = ph.relax(s.motor_rise_c, op.motor_target_c, self._motor_factor)
         s.chiller_cooling = ph.chiller_relay(s.water_temp_c, self.chiller_setpoint_c, s.chiller_cooling)
         s.water_temp_c = ph.chiller_ramp(s.water_temp_c, self.chiller_setpoint_c, s.chiller_cooling, h,
@@ -249,7 +265,7 @@ class IndependentBox:
         s, op, v = self.state, self._op, self.variant
         cooled = self._cooled_c()
         heated = self._heated_c(cooled)
-        mixed = ph.mix_c(op.bypass, self.inlet_temp_c + s.motor_rise_c, heated)
+        mixed = ph.mix_c(op.bypass, self._entering_c() + s.motor_rise_c, heated)
         supply_air = self._supply_air_c(self._arriving_c(mixed))
         outlet_total = op.volume_flow_m3s
         if v.outlet_density_correction:

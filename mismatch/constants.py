@@ -36,6 +36,8 @@ CHILLER_FALL_C_PER_S = 0.00682   # thesis 4.2: falling ramp (mean of both: 0.006
 CHILLER_BAND_C = 1.0             # ASSUMPTION (docs/model.md sec. 1): two-point control +-1 C around the set point
 COOLER_SLOPE = 0.7564            # thesis 4.2: T_a = 0.7564 T_w + 6.312
 COOLER_OFFSET_C = 6.312          # thesis 4.2
+COOLER_NTU_REF_KGS = 0.03        # ASSUMPTION: core mass flow at which Variant.cooler_ntu holds
+COOLER_NTU_EXPONENT = 0.4        # ASSUMPTION: NTU ~ (core mass flow)^-0.4 (air-side film coefficient ~ m^0.6)
 
 # ---------------------------------------------------------------- heater (thesis 4.3, 4.4; 2.3)
 HEATER_MASS_KG = 0.243           # thesis 4.4: m_h = 243 g

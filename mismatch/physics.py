@@ -177,15 +177,30 @@ def valve_network() -> ValveNetwork:
 # ================================================================= cooler, heater, mixing, duct
 
 
-def cooler_outlet_c(air_in_c: float, water_c: float, literal_fit: bool = False) -> float:
+def cooler_outlet_c(air_in_c: float, water_c: float, literal_fit: bool = False,
+                    effectiveness: float = k.COOLER_SLOPE) -> float:
     """Air temperature after the cooler core (degC).
 
-    Nominal: effectiveness form T_in + 0.7564 (T_w - T_in), equal to the thesis 4.2 fit at 25.9 C inlet.
+    Nominal: effectiveness form T_in + 0.7564 (T_w - T_in), equal to the thesis 4.2 fit at 25.9 C inlet
+    (``effectiveness``: another one, e.g. :func:`cooler_effectiveness_ntu`).
     ``literal_fit``: the thesis 4.2 fit 0.7564 T_w + 6.312 as it stands, whatever the inlet air.
     """
     if literal_fit:
         return k.COOLER_SLOPE * water_c + k.COOLER_OFFSET_C
-    return air_in_c + k.COOLER_SLOPE * (water_c - air_in_c)
+    return air_in_c + effectiveness * (water_c - air_in_c)
+
+
+def cooler_effectiveness_ntu(core_mass_flow_kgs: float, ntu_ref: float) -> float:
+    """Effectiveness of a core whose number of transfer units is ``ntu_ref`` at the reference core mass flow and
+    falls as (core mass flow)^-0.4 (air-side film coefficient ~ m^0.6; ASSUMPTION): 1 - exp(-NTU), the water side
+    taken as isothermal (its capacity flow far above the air's)."""
+    ntu = ntu_ref * (max(core_mass_flow_kgs, 1e-6) / k.COOLER_NTU_REF_KGS) ** -k.COOLER_NTU_EXPONENT
+    return 1.0 - math.exp(-ntu)
+
+
+def entering_air_c(inlet_c: float, cabin_c: float, recirculation_share: float) -> float:
+    """Air entering the box (degC): the inlet air with a share of cabin air drawn in behind the inlet sensor."""
+    return inlet_c + recirculation_share * (cabin_c - inlet_c)
 
 
 def heater_effective_ua(ka_w_per_k: float, capacity_flow_w_per_k: float) -> float:
@@ -230,30 +245,33 @@ def _heater_power_line(cmd_w: float, body_c: float, scale: float, power_fall: bo
 
 
 def heater_body_step(body_c: float, air_in_c: float, cmd_w: float, ua_w_per_k: float, dt_s: float,
-                     scale: float = 1.0, power_fall: bool = True) -> float:
-    """Heater body temperature (degC) after ``dt_s``: m_h c_h dT/dt = k_p P(T) - UA (T - T_in) (thesis 4.3).
+                     scale: float = 1.0, power_fall: bool = True, wall_ua_w_per_k: float = 0.0,
+                     wall_c: float = 0.0) -> float:
+    """Heater body temperature (degC) after ``dt_s``: m_h c_h dT/dt = k_p P(T) - UA (T - T_in) (thesis 4.3),
+    less a loss ``wall_ua_w_per_k`` (T - T_wall) to the box walls at ``wall_c``.
 
     P(T) is linearised on its active branch and the linear equation solved exactly: stable for any step.
     """
     p0, p1 = _heater_power_line(cmd_w, body_c, scale, power_fall)
     capacity = k.HEATER_MASS_KG * k.HEATER_CP
-    gain = k.HEATER_KP * p1 + ua_w_per_k
-    target = (k.HEATER_KP * p0 + ua_w_per_k * air_in_c) / gain
+    gain = k.HEATER_KP * p1 + ua_w_per_k + wall_ua_w_per_k
+    target = (k.HEATER_KP * p0 + ua_w_per_k * air_in_c + wall_ua_w_per_k * wall_c) / gain
     return relax(body_c, target, math.exp(-gain * dt_s / capacity))
 
 
 def heater_steady_c(air_in_c: float, cmd_w: float, ua_w_per_k: float, scale: float = 1.0,
-                    power_fall: bool = True) -> float:
-    """Heater body temperature (degC) at rest: k_p P(T) = UA (T - T_in), in closed form.
+                    power_fall: bool = True, wall_ua_w_per_k: float = 0.0, wall_c: float = 0.0) -> float:
+    """Heater body temperature (degC) at rest: k_p P(T) = UA (T - T_in) + UA_wall (T - T_wall), in closed form.
 
-    k_p P(T) - UA (T - T_in) falls strictly with T, so the root is on the command branch if the
+    The right side minus the left rises strictly with T, so the root is on the command branch if the
     PTC can deliver the command there, else on the PTC's falling line.
     """
-    on_command = air_in_c + k.HEATER_KP * scale * cmd_w / ua_w_per_k
+    ua, g = ua_w_per_k, wall_ua_w_per_k
+    on_command = air_in_c + (k.HEATER_KP * scale * cmd_w - g * (air_in_c - wall_c)) / (ua + g)
     if ptc_available_w(on_command, power_fall) >= cmd_w:
         return on_command
     p1 = k.HEATER_KP * scale * k.HEATER_MAX_W / (k.PTC_ZERO_C - k.PTC_KNEE_C)
-    return (p1 * k.PTC_ZERO_C + ua_w_per_k * air_in_c) / (p1 + ua_w_per_k)
+    return (p1 * k.PTC_ZERO_C + ua * air_in_c + g * wall_c) / (p1 + ua + g)
 
 
 def mix_c(bypass: float, bypass_air_c: float, core_air_c: float) -> float:
@@ -269,6 +287,12 @@ def duct_outlet_c(air_c: float, cabin_c: float, ua_w_per_k: float, mass_flow_kgs
     if ua_w_per_k <= 0.0:
         return air_c
     return cabin_c + (air_c - cabin_c) * math.exp(-ua_w_per_k / (mass_flow_kgs * k.CP_AIR))
+
+
+def thermocouple_target_c(air_c: float, body_c: float, radiation_share: float) -> float:
+    """Temperature (degC) the thermocouple settles at in air at ``air_c`` seeing the heater body at ``body_c``:
+    the air plus ``radiation_share`` of the body's excess (radiation; 0 = the air)."""
+    return air_c + radiation_share * (body_c - air_c)
 
 
 # ================================================================= chiller (thesis 2.2, 4.2)

@@ -172,7 +172,10 @@ class HvacModel:
         mass_flow = air.density_kgm3(t_in, prm) * flow
         b = bypass.flow_dependent_bypass(b0, mass_flow, prm) if "bypass_flow" in e else b0
 
-        t_blower = t_in + sx["motor_rise_c"]
+        t_enter = t_in  # discovered terms on the air entering the box (models/discovered.py)
+        if any(t.location == "box_in" for t in self.terms):
+            t_enter = t_in + terms_at(self.terms, "box_in", dict(t_in=t_in, t_cabin=prm.cabin_temp_c))
+        t_blower = t_enter + sx["motor_rise_c"]
         t_cooler = chiller.cooler_outlet_c(t_blower, sx["water_temp_c"], prm)
         if any(t.location == "cooler_out" for t in self.terms):  # discovered terms on the air leaving the core,
             # before the split, the outlet held between the air entering the core and the water (models/discovered.py)
@@ -189,7 +192,7 @@ class HvacModel:
         if self.terms:
             t_supply = t_supply + terms_at(self.terms, "supply_air", dict(
                 t_mix=t_mix, t_in=t_in, t_blower=t_blower, t_water=sx["water_temp_c"], mass_flow=mass_flow,
-                core_share=1.0 - b, p_el=p_el, t_cabin=prm.cabin_temp_c))
+                core_share=1.0 - b, p_el=p_el, t_cabin=prm.cabin_temp_c, t_body=sx["heater_temp_c"]))
         t_duct = sx[self.delay_states[-1]] if self.delay_states else t_supply
         outlet = valves.split_flows(flow, g)
         return dict(prm=prm, sx=sx, su=su, sd=sd, flow=flow, mass_flow=mass_flow, bypass=b,
@@ -208,6 +211,10 @@ class HvacModel:
             "heater_temp_c": heater.body_rate_c_per_s(sx["heater_temp_c"], q["t_heater_out"], q["p_el"], prm),
             "supply_sensor_c": sensors.lag_rate(sx["supply_sensor_c"], q["t_duct"], prm.tau_tc_s),
         }
+        if any(t.location == "heater_body" for t in self.terms):  # a discovered heat flow into the body (W)
+            rates["heater_temp_c"] = rates["heater_temp_c"] + terms_at(self.terms, "heater_body", dict(
+                t_body=sx["heater_temp_c"], t_in=sd["inlet_temp_c"], p_el=q["p_el"])) / (
+                prm.heater_mass_kg * prm.heater_c_j_per_kgk)
         if self.delay_states:
             tau = ca.fmax(prm.transport_delay_s, 1e-3) / len(self.delay_states)
             upstream = q["t_supply"]

@@ -20,7 +20,10 @@ from typing import Any, Callable, Mapping
 #: Where a term can be added: name -> (what it changes, unit of the term).
 LOCATIONS = {"supply_air": ("mixed supply air temperature after mixing (supply-air energy balance)", "C"),
              "cooler_out": ("air temperature leaving the cooler core, before the split between heater path and "
-                            "bypass (cooler energy balance)", "C")}
+                            "bypass (cooler energy balance)", "C"),
+             "heater_body": ("heat flow into the heater body (heater energy balance)", "W"),
+             "box_in": ("air temperature entering the box, before the blower, the bypass and the cooler core (the "
+                        "logged inlet temperature is the air outside it)", "C")}
 
 
 def _f(description: str, unit: str, fn: Callable[[Mapping[str, Any]], Any]) -> tuple[str, str, Callable]:
@@ -30,7 +33,7 @@ def _f(description: str, unit: str, fn: Callable[[Mapping[str, Any]], Any]) -> t
 #: Feature vocabulary: name -> (words, unit, function of the quantities ``q``). ``q`` keys:
 #: t_mix (C, not at ``cooler_out``), t_in (C, inlet), t_blower (C, after the motor), t_water (C), mass_flow (kg/s),
 #: core_share (1 - bypass fraction), p_el (W, heater electric power), t_cabin (C, cabin air: the logged
-#: cabin temperature in identification, ``Parameters.cabin_temp_c`` in the model).
+#: cabin temperature in identification, ``Parameters.cabin_temp_c`` in the model), t_body (C, heater body).
 FEATURES: dict[str, tuple[str, str, Callable]] = {
     "one": _f("a constant", "1", lambda q: 1.0 + 0.0 * q["t_in"]),
     "inv_mass_flow": _f("one over the mass flow", "s/kg", lambda q: 1.0 / q["mass_flow"]),
@@ -58,12 +61,25 @@ FEATURES: dict[str, tuple[str, str, Callable]] = {
                               lambda q: q["t_blower"] - q["t_water"]),
     "core_in_minus_water_x_mass_flow": _f("core inlet air minus water temperature times the mass flow", "C kg/s",
                                           lambda q: (q["t_blower"] - q["t_water"]) * q["mass_flow"]),
+    "core_in_minus_water_x_core_flow": _f("core inlet air minus water temperature times the mass flow through the core",
+                                          "C kg/s", lambda q: (q["t_blower"] - q["t_water"]) * q["mass_flow"]
+                                          * q["core_share"]),
+    "body_minus_mix": _f("heater body minus mixed air temperature", "C", lambda q: q["t_body"] - q["t_mix"]),
+    "body_minus_inlet": _f("heater body minus inlet air temperature", "C", lambda q: q["t_body"] - q["t_in"]),
+    "heater_power": _f("heater electric power", "W", lambda q: q["p_el"]),
+    "cabin_minus_inlet": _f("cabin minus inlet air temperature", "C", lambda q: q["t_cabin"] - q["t_in"]),
 }
 
 #: Features a ``cooler_out`` term may use: functions of the quantities known before the cooler core's outlet
 #: (t_in, t_blower, t_water, mass_flow, core_share).
 COOLER_OUT_FEATURES = ("one", "inlet", "core_in", "water", "core_in_minus_water", "mass_flow",
-                       "core_in_minus_water_x_mass_flow", "core_share")
+                       "core_in_minus_water_x_mass_flow", "core_in_minus_water_x_core_flow", "core_share")
+#: Features a ``heater_body`` term may use: the body, the inlet air and the electric power (t_body, t_in, p_el).
+HEATER_BODY_FEATURES = ("one", "body_minus_inlet", "heater_power")
+#: Locations whose terms are restricted to the quantities known there.
+#: Features a ``box_in`` term may use: the logged inlet and the cabin temperature (t_in, t_cabin).
+BOX_IN_FEATURES = ("one", "inlet", "cabin_minus_inlet")
+LOCATION_FEATURES = {"cooler_out": COOLER_OUT_FEATURES, "heater_body": HEATER_BODY_FEATURES, "box_in": BOX_IN_FEATURES}
 
 
 def coefficient_unit(feature: str, location: str = "supply_air") -> str:
@@ -91,10 +107,12 @@ class DiscoveredTerm:
         unknown = [f for f in self.features if f not in FEATURES]
         if unknown:
             raise ValueError(f"discovered term {self.name!r}: feature(s) {unknown} unknown; allowed: {list(FEATURES)}")
-        misplaced = [f for f in self.features if self.location == "cooler_out" and f not in COOLER_OUT_FEATURES]
+        allowed = LOCATION_FEATURES.get(self.location, tuple(FEATURES))
+        misplaced = [f for f in self.features if f not in allowed]
         if misplaced:
-            raise ValueError(f"discovered term {self.name!r}: feature(s) {misplaced} not known at the cooler outlet; "
-                             f"allowed there: {list(COOLER_OUT_FEATURES)}")
+            raise ValueError(f"discovered term {self.name!r}: feature(s) {misplaced} not known at the "
+                             f"{self.location.replace('_out', ' outlet').replace('_', ' ')}; "
+                             f"allowed there: {list(allowed)}")
         if len(self.features) != len(self.coefficients):
             raise ValueError(f"discovered term {self.name!r}: {len(self.features)} features but "
                              f"{len(self.coefficients)} coefficients")

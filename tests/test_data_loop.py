@@ -86,6 +86,27 @@ def test_discovered_term_enters_the_supply_air_balance():
     assert y1[plain.outputs.index("volume_flow_m3s")] == y0[plain.outputs.index("volume_flow_m3s")]
 
 
+def test_heater_body_term_is_a_heat_flow_in_the_body_balance():
+    """A ``heater_body`` term (W) loses heat from the body: at rest the body is cooler by the term over the body's
+    conductances, the air gets the heat that is left, and with the heater off and the body at the air's temperature
+    a conductance to the inlet air moves nothing."""
+    loss = DiscoveredTerm("wall", "heater_body", ("body_minus_inlet", "one"), (-0.3, 0.0))
+    plain, refined = HvacModel(Parameters()), HvacModel(Parameters(), terms=(loss,))
+    u = np.array([150.0, 150.0, 100.0, 100.0, 100.0, 100.0])
+    d = plain.d_vector(25.0, 20.0)
+    x0, x1 = plain.steady_state(u, d), refined.steady_state(u, d)
+    i_body = plain.states.index("heater_temp_c")
+    out = plain.outputs.index("heater_outlet_temp_c")
+    y0, y1 = plain.y(x0, u, d), refined.y(x1, u, d)
+    assert x1[i_body] < x0[i_body] - 1.0 and y1[out] < y0[out]
+    xdot = np.asarray(refined.ode(x0, u, d, refined.p_default)).ravel()
+    p = Parameters()
+    assert xdot[i_body] == pytest.approx(-0.3 * (x0[i_body] - 25.0) / (p.heater_mass_kg * p.heater_c_j_per_kgk),
+                                         rel=1e-9)
+    with pytest.raises(ValueError, match="heater body"):
+        DiscoveredTerm("bad", "heater_body", ("mix", "one"), (1.0, 0.0))
+
+
 def test_cooler_outlet_term_acts_before_the_split_and_reaches_the_heater():
     """A term at the core outlet that turns the effectiveness form into the thesis's literal fit
     (0.7564 T_w + 6.312 whatever the inlet air): the air leaving the heater (heater off) follows it, the
@@ -415,6 +436,19 @@ def test_literal_cooler_fit_is_added_as_a_term_at_the_core_outlet(tmp_path_facto
     assert c.get("core_in") == pytest.approx(-(1.0 - Parameters().cooler_slope), abs=0.05)
     e = res.holdout_errors()["supply_temp_c"]
     assert e["rms_after"] <= 0.5 * e["rms_before"]
+
+
+@pytest.mark.slow
+def test_thermocouple_seeing_the_heater_body_is_added_as_a_term(tmp_path_factory):
+    """An effect outside the library the discovery was not shaped on (``tc_radiation``: the thermocouple reads
+    3 % of the heater body's excess over the air): found as a supply-air term on the heater body's excess over
+    the mixed air (docs/identification.md, "Effects the discovery was not shaped on")."""
+    res = identified(tmp_path_factory, "tc_radiation")
+    body = [t for t in res.terms if "body_minus_mix" in t.features]
+    assert len(body) == 1 and res.discovery["accepted"]
+    assert dict(zip(body[0].features, body[0].coefficients))["body_minus_mix"] == pytest.approx(0.03, abs=0.01)
+    e = res.holdout_errors()["supply_temp_c"]
+    assert e["rms_after"] <= 0.5 * e["rms_before"], e
 
 
 @pytest.mark.slow

@@ -173,6 +173,52 @@ def test_blower_gain_scales_flow(name, ratio):
         assert var.read().volume_flow_m3s / nom.read().volume_flow_m3s == pytest.approx(ratio, rel=1e-9)
 
 
+def test_fouled_cooler_effectiveness_falls_with_the_core_flow():
+    """``cooler_fouled``: effectiveness 1 - exp(-NTU), NTU 1.0 at 0.03 kg/s through the core, ~ m^-0.4."""
+    eff = {}
+    for blower in (60.0, 250.0):
+        p = box("cooler_fouled", inlet_temp_c=30.0, chiller_setpoint_c=5.0)
+        p.settle(Command(blower, 0.0, 100.0))
+        t = p.truth()
+        core = (1.0 - t["bypass_fraction"]) * t["mass_flow_kgs"]
+        air_in = 30.0 + t["motor_rise_c"]
+        eff[blower] = (air_in - t["cooler_outlet_temp_c"]) / (air_in - t["water_temp_c"])
+        assert eff[blower] == pytest.approx(1.0 - math.exp(-1.0 * (core / 0.03) ** -0.4), rel=1e-9)
+    assert eff[250.0] < 0.7564 < eff[60.0]  # fouled at high flow, better than the thesis's at low flow
+
+
+def test_recirculated_cabin_air_enters_behind_the_inlet_sensor():
+    nom, rec = box(inlet_temp_c=32.0), box("recirculation", inlet_temp_c=32.0)
+    for p in (nom, rec):
+        p.settle(Command(150.0, 0.0, 0.0))  # full bypass: the supply air is the entering air plus the motor rise
+    tn, tr = nom.truth(), rec.truth()
+    entering = 32.0 + 0.15 * (rec.cabin_temp_c - 32.0)
+    assert rec.read().hvac_inlet_temp_c == pytest.approx(32.0, abs=0.3)  # the sensor reads the outside air
+    core_share = 1.0 - tr["bypass_fraction"]
+    assert tr["mixed_air_temp_c"] - tn["mixed_air_temp_c"] == pytest.approx(
+        (entering - 32.0) * (1.0 - core_share * 0.7564), rel=0.02)
+
+
+def test_thermocouple_reads_part_of_the_heater_body_by_radiation():
+    p = box("tc_radiation")
+    p.settle(HEATING)
+    t = p.truth()
+    assert t["heater_temp_c"] > t["supply_air_temp_c"] + 20.0
+    assert t["supply_temp_c"] == pytest.approx(
+        t["supply_air_temp_c"] + 0.03 * (t["heater_temp_c"] - t["supply_air_temp_c"]), rel=1e-9)
+
+
+def test_heater_wall_loss_takes_heat_from_the_body():
+    """``heater_wall_loss``: k_p P = UA (T_h - T_air) + 0.3 W/K (T_h - T_entering) at rest, below the PTC knee."""
+    p = box("heater_wall_loss", inlet_temp_c=25.0)
+    p.settle(Command(300.0, 150.0, 100.0))
+    t = p.truth()
+    assert t["heater_temp_c"] < K.PTC_KNEE_C
+    heat_air = ((1.0 - t["bypass_fraction"]) * t["mass_flow_kgs"] * K.CP_AIR
+                * (t["heater_outlet_temp_c"] - t["cooler_outlet_temp_c"]))
+    assert K.HEATER_KP * t["heater_power_w"] - heat_air == pytest.approx(0.3 * (t["heater_temp_c"] - 25.0), rel=1e-6)
+
+
 def test_valve_shift_acts_like_a_less_open_valve():
     shifted, nom = box("valve_shift"), box()
     shifted.settle(Command(150.0, 0.0, 50.0, 60.0, 40.0, 70.0))
@@ -234,7 +280,9 @@ def test_thermocouple_time_constant(name, scale):
 def test_registry_names_and_every_variant_runs():
     expected = {"nominal", "delay_1s", "delay_3s", "delay_5s", "duct_loss", "cooler_literal", "tc_fast", "tc_slow",
                 "blower_weak", "blower_strong", "valve_shift", "heater_weak", "chiller_slow",
-                "combo_delay_loss_cooler", "combo_tc_blower_valve", "combo_heater_chiller_delay", "bypass_flow"}
+                "combo_delay_loss_cooler", "combo_tc_blower_valve", "combo_heater_chiller_delay", "bypass_flow",
+                "cooler_fouled", "recirculation", "tc_radiation", "heater_wall_loss", "combo_recirc_delay_valve",
+                "combo_radiation_tc_heater"}
     assert set(VARIANTS) == expected
     assert VARIANTS["nominal"] == Variant()
     assert VARIANTS["combo_heater_chiller_delay"].differences() == {
