@@ -278,8 +278,8 @@ def _delay_to_estimator(settings: MpcSettings, params: Parameters) -> tuple[MpcS
 
 def _heater_inlet_function(model: HvacModel) -> Callable | None:
     """(x, u, d) -> air entering the heater (degC) of ``model`` where discovered terms change it (a term at the
-    cooler core's outlet), else None (the cooler equation alone, as the trapped-air guard reads it)."""
-    if not any(t.location == "cooler_out" for t in model.terms):
+    cooler core's outlet or on the air entering the box), else None (the cooler equation alone, as the trapped-air guard reads it)."""
+    if not any(t.location in ("cooler_out", "box_in") for t in model.terms):
         return None
     import casadi as ca
     x, u, d = (ca.SX.sym(n, len(s)) for n, s in (("x", model.states), ("u", model.inputs),

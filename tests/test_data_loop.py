@@ -6,6 +6,7 @@ Fast part: about 15 s (short logs, no identification run). Slow part: 30 min log
 per session in quick mode.
 """
 
+import dataclasses
 import json
 
 import numpy as np
@@ -597,3 +598,28 @@ def test_ptc_power_fall_is_named_on_a_log_that_runs_the_heater_hot(tmp_path, var
         assert names == ["ptc_power_fall"]
     e = res.holdout_errors()["supply_temp_c"]
     assert e["rms_after"] <= max(0.5 * e["rms_before"], 1.1 * res.sigma["supply_temp_c"]), e
+
+
+def test_mpc_runs_with_a_discovered_term_at_every_place():
+    """Terms at the four places discovery uses (supply air, heater body, the air entering the box, the core outlet)
+    build into the MPC's prediction and estimator, and it controls the independent box with them: 40 steps of the
+    winter heating scenario's start (10 s warm-up, 30 s of the first step), no fallback, finite commands; the trapped-air guard reads the heater inlet
+    through the model when a term sits before the heater (a box-inlet term)."""
+    from hvac_mpc.benchmarks import scenarios
+    from hvac_mpc.benchmarks.simulate import simulate
+    from hvac_mpc.mismatch import make_plant
+    from hvac_mpc.mpc.mpc_controller import MpcSettings
+
+    terms = (DiscoveredTerm("radiation", "supply_air", ("body_minus_mix",), (0.03,)),
+             DiscoveredTerm("wall_loss", "heater_body", ("body_minus_inlet",), (-0.28,)),
+             DiscoveredTerm("recirculation", "box_in", ("inlet", "one"), (-0.15, 3.6)),
+             DiscoveredTerm("literal_cooler", "cooler_out", ("core_in", "one"), (-0.24, 6.3)))
+    sc = dataclasses.replace(scenarios.winter_heating_steps(), quick_warmup_s=10.0, quick_segment_s=30.0,
+                             quick_segments=1).quick()
+    ctrl = MpcController(settings=MpcSettings(initial_command=sc.initial_command, deadline_s=3600.0),
+                         model=RefinedModel(terms=terms))
+    trace = simulate(sc, ctrl, Parameters(), seed=3, plant=make_plant("nominal", seed=3))
+    assert len(trace.fallback) == 40 and np.all(np.isfinite(trace.applied)) and trace.fallback == [None] * len(trace.fallback)
+    assert {t.location for t in ctrl.problem.model.terms} == {"supply_air", "heater_body", "box_in", "cooler_out"}
+    inlet_only = MpcController(model=RefinedModel(terms=terms[2:3]))
+    assert inlet_only._heater_inlet is not None
