@@ -247,6 +247,7 @@ class ReachableFlow:
             # a change answers from the last solve meanwhile: the reachable flow moves little with the
             # temperature reference (0.27 L/s per degC, MATERIAL_CHANGE); without one, the reference as it is
             self._pending = BackgroundCall(self._solve, args, thread=self.background)
+            self.undecided = not periodic
             return self._last if failed else self._limit(flow_ref_m3s, flow_now)
         if not self._apply(self._solve(*args)):
             return self._last
@@ -292,6 +293,7 @@ class ReachableFlow:
 
     def _collect(self) -> bool:
         """Apply the deferred solve of the previous check, waiting for it; True where it gave no answer."""
+        self.undecided = False
         if self._pending is None:
             return False
         pending, self._pending = self._pending, None
@@ -301,6 +303,8 @@ class ReachableFlow:
         """Wait for a running solve (the solver must not run twice at once) and forget its answer."""
         pending = getattr(self, "_pending", None)
         self._pending = None
+        #: a changed reference's solve is running: the step answers from an earlier one (or none)
+        self.undecided = False
         if pending is not None:
             pending.result()
 
