@@ -38,7 +38,7 @@ import osqp
 import scipy.sparse as sp
 
 from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
-from hvac_mpc.mpc.rti_osqp import RtiOsqpSolver
+from hvac_mpc.mpc.rti_osqp import RtiOsqpSolver, _OsqpCore
 
 from . import solve_time
 
@@ -215,7 +215,7 @@ def objective(qp: dict, lay: Layout, z: np.ndarray) -> float:
 
 
 class OsqpReplay:
-    """One OSQP workspace handed the recorded QPs in order, as the controller does (``_OsqpCore``)."""
+    """One OSQP workspace handed the recorded QPs in order through the controller's own calls (``_OsqpCore``)."""
 
     def __init__(self, qps: list[dict], lay: Layout):
         first = qps[0]
@@ -223,16 +223,16 @@ class OsqpReplay:
         P = sp.csc_matrix((first["Px"], *lay.P_pattern[:2]), shape=lay.P_pattern[2])  # explicit zeros kept
         self.solver.setup(P, first["q"], lay.A(first["Ax"]),
                           first["l"], first["u"], **lay.settings)
-        self.core = self.solver._solver
+        self.core = _OsqpCore(self.solver)
 
     def solve(self, qp: dict) -> tuple[float, int, np.ndarray]:
         t0 = time.thread_time()
-        self.core.update_data_mat(P_x=qp["Px"], P_i=None, A_x=qp["Ax"], A_i=None)
-        self.core.update_data_vec(q=qp["q"], l=qp["l"], u=qp["u"])
-        self.core.warm_start(qp["warm"], None)
-        self.core.solve()
+        self.core.update_matrices(qp["Px"], qp["Ax"])
+        self.core.update_vectors(qp["q"], qp["l"], qp["u"])
+        self.core.warm_start(qp["warm"])
+        _, _, iterations, x = self.core.solve()
         elapsed = time.thread_time() - t0
-        return elapsed, int(self.core.info.iter), np.array(self.core.solution.x)
+        return elapsed, int(iterations), np.array(x)
 
 
 class DaqpRoute:

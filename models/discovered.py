@@ -76,9 +76,9 @@ COOLER_OUT_FEATURES = ("one", "inlet", "core_in", "water", "core_in_minus_water"
                        "core_in_minus_water_x_mass_flow", "core_in_minus_water_x_core_flow", "core_share")
 #: Features a ``heater_body`` term may use: the body, the inlet air and the electric power (t_body, t_in, p_el).
 HEATER_BODY_FEATURES = ("one", "body_minus_inlet", "heater_power")
-#: Locations whose terms are restricted to the quantities known there.
 #: Features a ``box_in`` term may use: the logged inlet and the cabin temperature (t_in, t_cabin).
 BOX_IN_FEATURES = ("one", "inlet", "cabin_minus_inlet")
+#: Locations whose terms are restricted to the quantities known there.
 LOCATION_FEATURES = {"cooler_out": COOLER_OUT_FEATURES, "heater_body": HEATER_BODY_FEATURES, "box_in": BOX_IN_FEATURES}
 
 

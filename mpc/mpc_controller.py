@@ -287,7 +287,8 @@ def _delay_to_estimator(settings: MpcSettings, params: Parameters) -> tuple[MpcS
 
 def _heater_inlet_function(model: HvacModel) -> Callable | None:
     """(x, u, d) -> air entering the heater (degC) of ``model`` where discovered terms change it (a term at the
-    cooler core's outlet or on the air entering the box), else None (the cooler equation alone, as the trapped-air guard reads it)."""
+    cooler core's outlet or on the air entering the box), else None (the cooler equation alone, as the trapped-air
+    guard reads it)."""
     if not any(t.location in ("cooler_out", "box_in") for t in model.terms):
         return None
     import casadi as ca
@@ -584,15 +585,16 @@ class MpcController:
     def _trap_cap(self, measurement: Measurement | None = None) -> float:
         """Valve a cap (%) of the trapped-air guard, with the heater temperature bounded by what was
         commanded (:class:`HeaterOffBound`; the measured flow sets the heater's time constant). The air
-        entering the heater is the prediction model's, discovered terms at the core outlet included."""
+        entering the heater is the prediction model's, discovered terms at the core outlet or on the air
+        entering the box included."""
         e, m = self.ekf, self.problem.model
         x = e.x
         if self._heater_inlet is None:
             t_blower = e.inlet_temp_c + x[m.states.index("motor_rise_c")]
             heater_in = float(chiller.cooler_outlet_c(t_blower, x[e.i_water], self.params))
         else:
-            d = np.array([e.inlet_temp_c, x[e.i_water], 0.0, e.flow_offset_m3s])
-            heater_in = float(self._heater_inlet(x, self.u_prev, d))
+            # the chiller set point and the mixed-air offset do not reach the heater inlet: the water state stands in
+            heater_in = float(self._heater_inlet(x, self.u_prev, self._disturbance(float(x[e.i_water]))))
         cmd = float(self.u_prev[self.problem.i_heater_cmd])
         flow = finite_or(getattr(measurement, "volume_flow_m3s", None), 0.0)
         mass_flow = float(air.density_kgm3(e.inlet_temp_c, self.params)) * max(flow, 0.0)

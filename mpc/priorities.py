@@ -119,7 +119,11 @@ class Reach:
 
 
 class ReachableFlow:
-    """Largest steady total flow with the supply temperature at its reference, on the controller's model."""
+    """Largest steady total flow with the supply temperature at its reference, on the controller's model.
+
+    ``undecided``: a changed reference's solve is running (``changes_deferred``) and the check answered from an
+    earlier solve, or from none; the controller then trades no flow for temperature (docs/robustness.md sec. 2.6).
+    """
 
     def __init__(self, model: HvacModel, u_lo: np.ndarray, u_hi: np.ndarray, heater_temp_max_c: float,
                  params: Parameters, every_s: float = 10.0, check_fraction: float = 0.6, margin: float = 0.02,
@@ -303,7 +307,6 @@ class ReachableFlow:
         """Wait for a running solve (the solver must not run twice at once) and forget its answer."""
         pending = getattr(self, "_pending", None)
         self._pending = None
-        #: a changed reference's solve is running: the step answers from an earlier one (or none)
         self.undecided = False
         if pending is not None:
             pending.result()
