@@ -42,21 +42,39 @@ CASES = {"ptc_fall": ("nominal", ("fan_curve", "valve_leakage"))}
 
 
 def run_one(name: str, folder: Path, seed: int, duration_s: float, scenario_names: list[str] | None,
-            quick: bool = True, deadline_s: float | None = None) -> dict:
+            quick: bool = True, deadline_s: float | None = None, attribution: bool = True) -> dict:
     """Log, identification, model file and closed-loop comparison of one variant (``quick``: the scenarios'
-    quick versions, their first segments only; ``deadline_s``: the MPCs' feedback deadline, None the default)."""
+    quick versions, their first segments only; ``deadline_s``: the MPCs' feedback deadline, None the default;
+    ``attribution``: both MPCs once more without the effects the file lists as absent)."""
     variant, effects = CASES.get(name, (name, DOCUMENTED_EFFECTS))
     path = folder / f"{name}.csv"
     simulate_log(path, variant, duration_s=duration_s, seed=seed)
     res = identify(log_data.load(path), Parameters(), effects)
     model = write_model_file(folder / f"{name}.toml", res.params, res.effects, res.extras, res.terms, res.absent)
-    cmp = compare(model, variant, scenarios.select(scenario_names, quick=quick), seed=0, attribution=True,
+    cmp = compare(model, variant, scenarios.select(scenario_names, quick=quick), seed=0, attribution=attribution,
                   deadline_s=deadline_s)
     e = res.holdout_errors()["supply_temp_c"]
     return {"case": name, "variant": variant, "added": [a.name for a in res.accepted], "absent": list(res.absent),
             "terms": [t.formula() for t in res.terms], "term_words": [t.description for t in res.terms],
             "supply_rms_before": e["rms_before"], "supply_rms_after": e["rms_after"],
             "model_file": model.read_text(), "comparison": cmp}
+
+
+def _print_details(r: dict) -> None:
+    """Per scenario, both MPCs (and without the absent effects where those runs were made)."""
+    t = r["comparison"]["total"]
+    attributed = "ratio_as_identified" in t
+    if attributed:
+        print(f"{'':26s} absent {r['absent'] or ['nothing']}; both MPCs without them: thermocouple IAE nominal "
+              f"{t['nominal_as_identified']['temp_iae_cs']:.1f}, refined {t['refined_as_identified']['temp_iae_cs']:.1f} "
+              f"C s (ratio {t['ratio_as_identified']:.3f})", flush=True)
+    print(f"{'':28s}{'scenario':24s} {'nominal':>7s} {'refined':>7s} C s  flow nominal refined m3"
+          + (f"   | without absent: {'nominal':>7s} {'refined':>7s} C s" if attributed else ""), flush=True)
+    for sc, s in r["comparison"]["scenarios"].items():
+        print(f"{'':28s}{sc:24s} {s['nominal']['temp_iae_cs']:7.1f} {s['refined']['temp_iae_cs']:7.1f} C s  "
+              f"flow {s['nominal']['flow_iae_m3']:.3f} {s['refined']['flow_iae_m3']:.3f} m3"
+              + (f"   | {s['nominal_as_identified']['temp_iae_cs']:7.1f} {s['refined_as_identified']['temp_iae_cs']:7.1f} "
+                 f"C s" if attributed else ""), flush=True)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -73,12 +91,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--deadline", type=float, default=None,
                         help="the MPCs' feedback deadline, s (default: 3600, no wall-clock fallback, so the ratios do "
                              "not depend on the machine's load; 0.5 is the box's)")
+    parser.add_argument("--no-attribution", action="store_true",
+                        help="skip the runs of both MPCs without the effects the file lists as absent (half the time)")
     args = parser.parse_args(argv)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.variant or DEFAULT_VARIANTS:
             r = run_one(name, Path(tmp), args.seed, args.duration, args.scenario, quick=not args.full,
-                        deadline_s=args.deadline)
+                        deadline_s=args.deadline, attribution=not args.no_attribution)
             rows.append(r)
             t = r["comparison"]["total"]
             print(f"{name:26s} added {r['added'] + r['terms'] or ['nothing']}", flush=True)
@@ -88,16 +108,7 @@ def main(argv: list[str] | None = None) -> int:
                   f"{t['refined']['flow_iae_m3']:.2f} m3; whole runs (warm-up included) "
                   f"{t['nominal']['run_temp_iae_cs']:.1f} / {t['refined']['run_temp_iae_cs']:.1f} C s "
                   f"(ratio {t['run_ratio']:.3f})", flush=True)
-            print(f"{'':26s} absent {r['absent'] or ['nothing']}; both MPCs without them: thermocouple IAE nominal "
-                  f"{t['nominal_as_identified']['temp_iae_cs']:.1f}, refined {t['refined_as_identified']['temp_iae_cs']:.1f} "
-                  f"C s (ratio {t['ratio_as_identified']:.3f})", flush=True)
-            print(f"{'':28s}{'scenario':24s} {'nominal':>7s} {'refined':>7s} C s  flow nominal refined m3   "
-                  f"| without absent: {'nominal':>7s} {'refined':>7s} C s", flush=True)
-            for sc, s in r["comparison"]["scenarios"].items():
-                print(f"{'':28s}{sc:24s} {s['nominal']['temp_iae_cs']:7.1f} {s['refined']['temp_iae_cs']:7.1f} C s  "
-                      f"flow {s['nominal']['flow_iae_m3']:.3f} {s['refined']['flow_iae_m3']:.3f} m3   | "
-                      f"{s['nominal_as_identified']['temp_iae_cs']:7.1f} {s['refined_as_identified']['temp_iae_cs']:7.1f} "
-                      f"C s", flush=True)
+            _print_details(r)
     if args.json:
         args.json.write_text(json.dumps(rows, indent=2))
     return 0

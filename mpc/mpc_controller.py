@@ -298,6 +298,19 @@ def _heater_inlet_function(model: HvacModel) -> Callable | None:
     return ca.Function("heater_inlet", [x, u, d], [t_cooler])
 
 
+def _heater_body_rate_function(model: HvacModel) -> Callable | None:
+    """(x, u, d) -> the heater body's rate of change (degC/s) of ``model`` where a discovered term adds a heat flow
+    to the body (a ``heater_body`` term), else None (the trapped-air guard's bound relaxes towards the air then,
+    :class:`~.ocp.HeaterOffBound`)."""
+    if not any(t.location == "heater_body" for t in model.terms):
+        return None
+    import casadi as ca
+    x, u, d = (ca.SX.sym(n, len(s)) for n, s in (("x", model.states), ("u", model.inputs),
+                                                  ("d", model.disturbances)))
+    rate = model.ode(x, u, d, model.p_default)[model.states.index("heater_temp_c")]
+    return ca.Function("heater_body_rate", [x, u, d], [rate])
+
+
 class MpcController:
     """Receding-horizon controller of all six actuators (Controller protocol).
 
@@ -347,6 +360,7 @@ class MpcController:
                                    ) if s.priorities else None
         self.heater_bound = HeaterOffBound(self.params, s.dt_s)
         self._heater_inlet = _heater_inlet_function(pb.model)
+        self._heater_body_rate = _heater_body_rate_function(pb.model)
         self.temp_reach = SaturatedTemperature(pb.i_heater_cmd, pb.i_valve_a, s.dt_s)
         self.codegen = getattr(self.solver, "codegen", None) or CodegenReport()
         if s.codegen:
@@ -598,10 +612,25 @@ class MpcController:
         cmd = float(self.u_prev[self.problem.i_heater_cmd])
         flow = finite_or(getattr(measurement, "volume_flow_m3s", None), 0.0)
         mass_flow = float(air.density_kgm3(e.inlet_temp_c, self.params)) * max(flow, 0.0)
-        heater = self.heater_bound.update(float(x[m.states.index("heater_temp_c")]), heater_in, cmd, mass_flow)
+        heater = self.heater_bound.update(float(x[m.states.index("heater_temp_c")]), heater_in, cmd, mass_flow,
+                                          body_rate=self._body_rate_at(x))
         if self.settings.bound_heater_estimate and cmd <= HEATING_CMD_W:
             e.bound_state("heater_temp_c", *sorted((heater_in, self.heater_bound.bound_c)))
         return trap_cap_pct(heater, heater_in, cmd, self.params, self.settings.ocp)
+
+    def _body_rate_at(self, x: np.ndarray) -> Callable[[float], float] | None:
+        """The heater body's rate (degC/s) as a function of its temperature, the other states ``x`` and the command
+        in force held, where the model adds a heat flow to the body (else None)."""
+        if self._heater_body_rate is None:
+            return None
+        i_heater = self.problem.model.states.index("heater_temp_c")
+        d = self._disturbance(float(x[self.ekf.i_water]))
+        state = np.array(x, float)
+
+        def rate(t_body_c: float) -> float:
+            state[i_heater] = t_body_c
+            return float(self._heater_body_rate(state, self.u_prev, d))
+        return rate
 
     def _fallback_command(self, measurement: Measurement, ref: Reference | None) -> tuple[np.ndarray, str]:
         """Shifted previous plan while it lasts, then the thesis baseline, then the last command."""

@@ -53,7 +53,7 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass, field, fields
-from typing import Any
+from typing import Any, Callable
 
 import casadi as ca
 import numpy as np
@@ -292,6 +292,15 @@ def trap_cap_pct(heater_temp_c: float, heater_in_c: float, heater_cmd_w: float, 
     return min(100.0, params.trap_threshold_pct - spec.trap_margin_pct + params.valve_a_shift_pct) if warm else 100.0
 
 
+def rk4_scalar(rate: Callable[[float], float], value: float, dt_s: float) -> float:
+    """One RK4 step of dv/dt = rate(v) over ``dt_s``."""
+    k1 = rate(value)
+    k2 = rate(value + 0.5 * dt_s * k1)
+    k3 = rate(value + 0.5 * dt_s * k2)
+    k4 = rate(value + dt_s * k3)
+    return value + dt_s / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+
+
 class HeaterOffBound:
     """Upper bound of the heater body temperature from what was commanded, for the trapped-air guard.
 
@@ -302,7 +311,10 @@ class HeaterOffBound:
     only relax towards the air reaching it, with its time constant (thesis sec. 4.3-4.4,
     :func:`hvac_mpc.models.heater.time_constant_s`), so while the heater is off the guard uses the
     lesser of the estimate and that relaxation from the estimate at switch-off. While the heater is on
-    the estimate stands (docs/robustness.md sec. 1).
+    the estimate stands (docs/robustness.md sec. 1). Where the prediction model adds a discovered heat flow to
+    the body (a ``heater_body`` term, models/discovered.py), ``update`` takes the model's body balance
+    (``body_rate``) instead: the relaxation above knows only the air, and a term that adds heat would put the
+    bound below the body.
     """
 
     def __init__(self, params: Parameters, dt_s: float):
@@ -313,10 +325,16 @@ class HeaterOffBound:
     def reset(self) -> None:
         self.bound_c: float | None = None
 
-    def update(self, heater_est_c: float, heater_in_c: float, heater_cmd_w: float, mass_flow_kgs: float) -> float:
-        """The heater temperature the guard should use (degC), after one sample under ``heater_cmd_w``."""
+    def update(self, heater_est_c: float, heater_in_c: float, heater_cmd_w: float, mass_flow_kgs: float,
+               body_rate: Callable[[float], float] | None = None) -> float:
+        """The heater temperature the guard should use (degC), after one sample under ``heater_cmd_w``.
+        ``body_rate``: the body's rate of change (degC/s) at a body temperature (degC) under the inputs in force,
+        from the prediction model; the bound then follows it over the sample (RK4) instead of the relaxation
+        towards ``heater_in_c``."""
         if self.bound_c is None or heater_cmd_w > HEATING_CMD_W or not math.isfinite(self.bound_c):
             self.bound_c = float(heater_est_c)
+        elif body_rate is not None:
+            self.bound_c = float(rk4_scalar(body_rate, self.bound_c, self.dt_s))
         else:
             tau = float(heater.time_constant_s(max(float(mass_flow_kgs), 1e-3), self.params))
             self.bound_c = heater_in_c + (self.bound_c - heater_in_c) * math.exp(-self.dt_s / tau)
