@@ -15,6 +15,8 @@ description'):
   (:mod:`hvac_mpc.benchmarks.fatrop_reference`);
 * ``do-mpc``: do-mpc given the description's functions (optional extra ``compare``;
   :mod:`hvac_mpc.benchmarks.dompc_reference`).
+* ``rti-acados`` (``--acados``): the real-time iteration through acados, built from the description
+  (:mod:`hvac_mpc.mpc.rti_acados`; optional, installed apart), with its own per-step suboptimality.
 
 With ``--jit`` IPOPT's and fatrop's NLP functions run as generated C, compiled once and cached (the
 build time is reported apart, as ``codegen_build_s``, not in the step times). fatrop gets the objective
@@ -244,6 +246,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="run the RTI's QP data and estimator in CasADi's interpreter")
     parser.add_argument("--no-suboptimality", action="store_true",
                         help="skip the per-step suboptimality of the RTI against converged IPOPT")
+    parser.add_argument("--acados", action="store_true",
+                        help="also the RTI through acados (SQP_RTI, HPIPM; optional, installed apart: "
+                             "hvac_mpc.mpc.rti_acados.INSTALL_COMMAND), with its own per-step suboptimality")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -283,6 +288,9 @@ def _run(args: argparse.Namespace, steps: int, cost_seeds: int) -> int:
             pb, tol=ipopt_settings.ipopt_tol, max_iter=ipopt_settings.ipopt_max_iter, jit=jit))
     contenders: list[tuple[str, Callable[[], MpcController]]] = [("rti", make_rti)]
     notes = []
+    make_acados = _acados_contender(args, rti_settings, model, notes)
+    if make_acados is not None:
+        contenders.append(("rti-acados", make_acados))
     if not args.no_ipopt:
         contenders.append(("ipopt", make_ipopt))
     fatrop_recorders: list = []  # fatrop's starts and answers, for the per-step comparison with IPOPT
@@ -329,6 +337,10 @@ def _run(args: argparse.Namespace, steps: int, cost_seeds: int) -> int:
         print(f"per-step suboptimality: rti for {steps} steps, then converged IPOPT from each step's state ...",
               flush=True)
         rti["suboptimality"] = rti_suboptimality(make_rti, steps, args.seed, jit)
+    if make_acados is not None and not getattr(args, "no_suboptimality", False):
+        print(f"per-step suboptimality: rti-acados for {steps} steps, then converged IPOPT from each step's state ...",
+              flush=True)
+        by_name["rti-acados"]["suboptimality"] = rti_suboptimality(make_acados, steps, args.seed, jit)
     if fatrop_recorders:
         print(f"fatrop against IPOPT per step: IPOPT from fatrop's {steps} states and starts ...", flush=True)
         by_name["fatrop"]["agreement"] = agreement(fatrop_recorders[-1].inner.pb, fatrop_recorders[-1].records)
@@ -336,10 +348,10 @@ def _run(args: argparse.Namespace, steps: int, cost_seeds: int) -> int:
     figures = headline(results)
     for line in figures.pop("lines"):
         print(line)
-    if "suboptimality" in rti:
-        so = rti["suboptimality"]
-        print(f"RTI suboptimality per step against converged IPOPT from the same state ({so['steps']} steps, "
-              f"IPOPT failures {so['ipopt_failures']}):")
+    for r in (r for r in results if "suboptimality" in r):
+        so = r["suboptimality"]
+        print(f"{r['controller']} suboptimality per step against converged IPOPT from the same state "
+              f"({so['steps']} steps, IPOPT failures {so['ipopt_failures']}):")
         for name in ("decision", "plan"):
             if name in so:
                 v = so[name]
@@ -361,6 +373,22 @@ def _run(args: argparse.Namespace, steps: int, cost_seeds: int) -> int:
     args.json.write_text(json.dumps(out, indent=2))
     print(f"wrote {args.json}")
     return 0
+
+
+def _acados_contender(args: argparse.Namespace, settings: MpcSettings, model, notes: list[str]):
+    """The acados RTI's controller factory for ``--acados`` (the OSQP RTI's settings where they apply), or None
+    (not asked for, or acados missing: the reason goes into ``notes``)."""
+    if not getattr(args, "acados", False):
+        return None
+    from hvac_mpc.mpc.rti_acados import AcadosMissing, RtiAcadosSolver, load_acados
+    try:
+        load_acados()
+    except AcadosMissing as exc:
+        notes.append(f"rti-acados skipped: {exc}")
+        return None
+    return lambda: MpcController(settings=settings, model=model, solver_factory=lambda pb: RtiAcadosSolver(
+        pb, lm_inputs=settings.levenberg_marquardt, cold_start_qps=settings.cold_start_qps,
+        reference_change_qps=settings.reference_change_qps))
 
 
 def shared_description(results: list[dict[str, Any]]) -> dict[str, Any]:

@@ -1,0 +1,139 @@
+"""The RTI through acados (mpc/rti_acados.py): built from the stage-wise description, its QP answer is the
+OSQP RTI's at the same linearisation point.
+
+acados is an optional extra installed apart (``hvac_mpc.mpc.rti_acados.INSTALL_COMMAND``): without it the
+tests that need it skip, naming the command. The solver is generated and compiled once per structure and
+cached on disk (the first build of the horizon below takes about two minutes, hence ``slow``; later runs
+load it in about a second).
+"""
+
+import numpy as np
+import pytest
+
+from hvac_mpc.contract import Command, Reference
+from hvac_mpc.models import Parameters
+from hvac_mpc.mpc.ocp import OcpSpec, TrackingProblem
+from hvac_mpc.mpc.rti_acados import INSTALL_COMMAND, AcadosMissing, RtiAcadosSolver, load_acados
+from hvac_mpc.mpc.rti_osqp import RtiOsqpSolver
+
+#: A short horizon with three substep variants (1, 2 and 4 RK4 substeps per stage, and 8 at the last).
+DURATIONS_S = (1.0, 1.0, 2.0, 8.0, 16.0, 32.0)
+LM = 0.1
+#: Operating points: cooling (heater off, heater rows inactive) and heating (heater on: flow floor and PTC rows).
+POINTS = {"cooling": (Command(150.0, 0.0, 70.0, 100.0, 100.0, 100.0), Reference(14.0, 0.04)),
+          "heating": (Command(200.0, 1500.0, 40.0, 60.0, 100.0, 100.0), Reference(30.0, 0.03))}
+
+
+def test_missing_install_names_the_install_command(monkeypatch, tmp_path):
+    monkeypatch.setenv("HVAC_MPC_ACADOS_DIR", str(tmp_path))
+    with pytest.raises(AcadosMissing) as err:
+        load_acados()
+    assert INSTALL_COMMAND.replace("<dir>", str(tmp_path)) in str(err.value)
+    assert "HVAC_MPC_ACADOS_DIR" in str(err.value)
+
+
+@pytest.fixture(scope="module")
+def pb():
+    try:
+        load_acados()
+    except AcadosMissing as exc:
+        pytest.skip(f"acados is not installed: {exc}")
+    return TrackingProblem(Parameters(), OcpSpec(stage_durations_s=DURATIONS_S))
+
+
+@pytest.fixture(scope="module")
+def acados(pb):
+    return RtiAcadosSolver(pb, lm_inputs=LM, qp_tol=1e-9, qp_iter_max=100)
+
+
+def _point(pb, name):
+    command, reference = POINTS[name]
+    u_phys = command.vector()
+    x = pb.scale_x(pb.placeholder_state())
+    u_prev, d = pb.scale_u(u_phys), np.array([25.0, 5.0, 0.0, 0.0])
+    ref = pb.reference_vector(reference)
+    w_y = pb.heating_weights(pb.output_weights(reference), heating=pb.heating(u_phys))
+    lo, hi = pb.input_bounds(u_phys)
+    return x, u_prev, d, ref, w_y, lo, hi
+
+
+def _solve(solver, pb, name):
+    """Prepare at a point, then the feedback from a nearby estimate (the QP's initial-state row moves)."""
+    x, u_prev, d, ref, w_y, lo, hi = _point(pb, name)
+    solver.reset()
+    solver.prepare(x, u_prev, d, ref, w_y)
+    return solver.feedback(x + 0.02, u_prev, d, ref, w_y, lo, hi)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", sorted(POINTS))
+def test_qp_answer_equals_the_osqp_rtis(pb, acados, name):
+    osqp_rti = RtiOsqpSolver(pb, eps=1e-9, max_iter=200000, lm_inputs=LM)
+    ro, ra = _solve(osqp_rti, pb, name), _solve(acados, pb, name)
+    assert ro.ok and ra.ok, (ro.status, ra.status)
+    np.testing.assert_allclose(ra.U, ro.U, atol=2e-5)
+    np.testing.assert_allclose(ra.X, ro.X, atol=2e-5)
+    np.testing.assert_allclose(ra.S, ro.S[:-1], atol=2e-5)  # acados' S: stages 1..N-1 (the terminal one apart)
+
+
+@pytest.mark.slow
+def test_same_inputs_give_the_same_iterations_status_and_answer(pb, acados):
+    first, second = _solve(acados, pb, "heating"), _solve(acados, pb, "heating")
+    assert first.ok and second.ok
+    assert first.iterations == second.iterations and 0 < first.iterations <= 100
+    assert first.extra["acados_status"] == second.extra["acados_status"] == 0
+    np.testing.assert_array_equal(first.U, second.U)
+
+
+@pytest.mark.slow
+def test_a_cold_start_takes_the_asked_iterations_and_a_second_solver_loads_the_cached_build(pb, acados):
+    solver = RtiAcadosSolver(pb, lm_inputs=LM, cold_start_qps=3)
+    assert solver.codegen.outcomes["acados_ocp"] == "cached"  # the module's solver built it
+    x, u_prev, d, ref, w_y, lo, hi = _point(pb, "cooling")
+    res = solver.feedback(x, u_prev, d, ref, w_y, lo, hi)  # no preparation before: a cold start
+    assert res.ok and res.extra["cold_start"] and res.qp_solves == 3
+    again = solver.feedback(x, u_prev, d, ref, w_y, lo, hi)
+    assert again.ok and not again.extra["cold_start"] and again.qp_solves == 1
+
+
+@pytest.mark.slow
+def test_failure_on_purpose_reports_it(pb, acados):
+    acados.fail_next = 1
+    x, u_prev, d, ref, w_y, lo, hi = _point(pb, "cooling")
+    res = acados.feedback(x, u_prev, d, ref, w_y, lo, hi)
+    assert not res.ok and res.status == "forced failure" and acados.fail_next == 0
+
+
+def _solve_time(tmp_path, *extra):
+    from hvac_mpc.cli import main
+    out = tmp_path / "solve_time.json"
+    assert main(["solve-time", "--steps", "4", "--no-ipopt", "--no-fatrop", "--no-dompc", "--no-suboptimality",
+                 "--acados", "--json", str(out), *extra]) == 0
+    import json
+    return json.loads(out.read_text())
+
+
+def test_solve_time_without_acados_says_how_to_install_it(tmp_path, monkeypatch):
+    monkeypatch.setenv("HVAC_MPC_ACADOS_DIR", str(tmp_path / "none"))
+    data = _solve_time(tmp_path)
+    assert [r["controller"] for r in data["results"]] == ["rti"]
+    assert any(n.startswith("rti-acados skipped") and "pip install --no-deps --target" in n for n in data["notes"])
+
+
+@pytest.mark.slow
+def test_solve_time_runs_acados_beside_the_osqp_rti_and_records_its_settings(pb, acados, tmp_path):
+    data = _solve_time(tmp_path)
+    by_name = {r["controller"]: r for r in data["results"]}
+    r = by_name["rti-acados"]
+    assert r["fallback_steps"] == 0 and r["steps"] == 4
+    assert r["settings"]["qp_solver"] == "PARTIAL_CONDENSING_HPIPM" and r["settings"]["nlp_solver"] == "SQP_RTI"
+    assert r["settings"]["description"].startswith("StageOcp") and data["shared_description"]["all_share"]
+    assert r["median_ratio_vs_rti"] > 0
+
+
+@pytest.mark.parametrize("option, value", [("hpipm_mode", "FAST"), ("cond_n", 0), ("warm_start", 3),
+                                           ("disturbances", "input"), ("qp_tol", 0.0)])
+def test_bad_options_are_named_before_anything_is_built(option, value):
+    pb = TrackingProblem(Parameters(), OcpSpec(stage_durations_s=DURATIONS_S))
+    with pytest.raises(ValueError, match=option):
+        RtiAcadosSolver(pb, **{option: value})
