@@ -697,7 +697,7 @@ class _Side:
     parameter count."""
 
     member: Member
-    alone: Fit
+    alone_fit: Fit
     primary: str
     dof: int
     result: CandidateResult | None = None
@@ -711,9 +711,12 @@ class _Side:
     def name(self) -> str:
         return self.member.name
 
-    def alone_share(self) -> float:
-        """Share of its primary output's held-out structure it removed alone (negative: it made the fit worse)."""
-        return float(self.record["explained_holdout"] if self.term is not None else self.result.explained_primary)
+    def alone(self) -> str:
+        """What it did alone, in words: the share of its primary output's held-out structure it removed (negative:
+        it made the fit worse)."""
+        share = float(self.record["explained_holdout"] if self.term is not None else self.result.explained_primary)
+        return (f"removed {100 * share:.0f} % of the held-out structure of {self.primary}" if np.isfinite(share)
+                else f"left {self.primary} without held-out structure to remove")
 
 
 def _candidate_side(fitter: Fitter, current: Fit, r: CandidateResult, cand: Candidate) -> _Side | None:
@@ -852,7 +855,7 @@ def _pair_gate(fitter: Fitter, current: Fit, fit: Fit, sides: list[_Side], lr: f
     if p_value >= ALPHA / m:
         return f"not significant on the training rows (p = {p_value:.2g} >= {ALPHA / m:.2g})", info
     for sd, other in zip(sides, sides[::-1]):
-        before = fitter.structure(other.alone.y)
+        before = fitter.structure(other.alone_fit.y)
         share = (before - fitter.structure(fit.y)) / before if before > 0 else 0.0
         info[f"needed_{sd.name}"] = share
         if share < FORWARD_MIN:
@@ -865,7 +868,8 @@ def _pair_gate(fitter: Fitter, current: Fit, fit: Fit, sides: list[_Side], lr: f
 
 
 def _pair_step(fitter: Fitter, current: Fit, free: list[FreeParam], lib, rejected_terms, room: int, quick: bool,
-               rnd: int, say, notes: list[str]):
+               rnd: int, say, notes: list[str]
+               ) -> tuple[Fit, list[FreeParam], list[CandidateResult], dict | None, list[dict]]:
     """Pairs of effects that only help together (procedure step 7 of the module docstring). Returns the model, its
     free parameters, the candidates kept (as results of round ``rnd``), the record of a term kept with one, and the
     refit pairs' records."""
@@ -883,8 +887,8 @@ def _pair_step(fitter: Fitter, current: Fit, free: list[FreeParam], lib, rejecte
     dy = fitter.raw_sensitivity(current.effects, current.p, free, current.terms) if dy is None else dy
     frame = Frame(fitter.y_meas, fitter.sigma, fitter.log.train, fitter.log.holdout)
     ranked, _ = screen_pairs(frame, current.y, current.post.apply(np.zeros(dy.shape[:2]), dy)[1],
-                                   np.array([fp.name in FLOW_PARAMS for fp in free]), [sd.member for sd in sides],
-                                   FORWARD_MIN, exclude)
+                             np.array([fp.name in FLOW_PARAMS for fp in free]), [sd.member for sd in sides],
+                             FORWARD_MIN, exclude)
     top = [([sides[i] for i in st_.members], st_) for st_ in ranked[:PAIR_REFIT]]
     say(f"pairs: {m} screened jointly, refitting {', '.join(' + '.join(sd.name for sd in two) for two, _ in top)}")
     if not top:
@@ -911,9 +915,8 @@ def _accept_pair(fitter: Fitter, current: Fit, free: list[FreeParam], sides: lis
     kept, term_record = [], None
     for sd, other in zip(sides, sides[::-1]):
         together = _output_share(fitter, current, fit, sd.primary)
-        why = (f"accepted only jointly with {other.name}: alone (the other missing) it removed "
-               f"{100 * sd.alone_share():.0f} % of the held-out structure of {sd.primary}, together they remove "
-               f"{100 * together:.0f} % (information criterion {info[f'bic_change_{sd.primary}']:+.1f}, "
+        why = (f"accepted only jointly with {other.name}: alone (the other missing) it {sd.alone()}, together "
+               f"they remove {100 * together:.0f} % (information criterion {info[f'bic_change_{sd.primary}']:+.1f}, "
                f"p = {info['p_value']:.2g}); the two mask each other, this log identifies them only together")
         notes.append(f"pairs: {sd.name} {why}")
         if sd.term is not None:
@@ -952,11 +955,9 @@ def _step_errors(fitter: Fitter, nominal: Fit, accepted, discovered: dict | None
     the last step ends at the final model)."""
     steps, prev = [], nominal
     term_added = bool(discovered and discovered.get("accepted") and not discovered.get("jointly_with"))
-    named = set()
+    names = [a.name for a in accepted]
+    accepted = [a for i, a in enumerate(accepted) if a.jointly_with not in names[:i]]  # a pair's second: the first's step
     for i, a in enumerate(accepted):
-        if a.jointly_with in named:  # the second of a pair: its step is the first's
-            continue
-        named.add(a.name)
         last = i == len(accepted) - 1 and not term_added
         fit = final if last or a.fit is None else a.fit
         steps.append({"added": a.name + (f" + {a.jointly_with} (jointly)" if a.jointly_with else ""),

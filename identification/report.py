@@ -282,8 +282,12 @@ def _markdown(res: IdentificationResult, data: dict, model_name: str) -> list[st
             md.append(f"- **{a.name}**: {a.description} ({a.source}); {what}. {a.reason}.")
     else:
         md.append("- No effect of the library was added.")
+    joint = res.discovery or {}
     for t in res.terms:
-        md.append(f"- **discovered term {t.name}** (not in the library): {t.description}; `{t.formula()}`.")
+        with_ = joint.get("jointly_with") if joint.get("term", {}).get("name") == t.name else ""
+        md.append(f"- **discovered term {t.name}** (not in the library): {t.description}; `{t.formula()}`."
+                  + (f" Kept only jointly with {with_}: alone it made the held-out error worse (the two mask each "
+                     "other; this log identifies them only together)." if with_ else ""))
     md += ["", f"Effects to enable: `{list(res.effects)}`; model file: `{model_name}` (load with "
            "`hvac_mpc.identification.load_model_file`).", ""]
     if res.extras:

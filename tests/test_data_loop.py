@@ -571,6 +571,12 @@ def test_two_effects_that_mask_each_other_are_found_together(tmp_path):
     assert term.location == "box_in" and share == pytest.approx(0.15, abs=0.03)
     e = res.holdout_errors()["supply_temp_c"]
     assert e["rms_after"] < 0.2 * e["rms_before"], e
+    from hvac_mpc.identification.report import write_report
+
+    files = write_report(res, tmp_path / "out", plots=False)
+    assert "Kept only jointly with valve_shift:a" in files["report"].read_text()
+    (kept,) = [p for p in json.loads(files["summary"].read_text())["pairs"] if p["status"] == "accepted"]
+    assert kept["members"] == ["valve_shift:a", "term box_inlet_term"]
 
 
 #: The documented physics without the PTC power fall: identification must find the fall itself.
