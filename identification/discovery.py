@@ -112,20 +112,40 @@ def sensor_view(fitter: Fitter, fit: Fit, feats: dict[str, np.ndarray]) -> dict[
     return {k: shift(_lfilter_lag(v, tau, fitter.log.dt_s), delay) for k, v in feats.items()}
 
 
+def _probe_responses(fitter: Fitter, fit: Fit, location: str, names) -> np.ndarray:
+    """The model's free-run response on every logged output per unit coefficient of each feature in ``names`` at
+    ``location`` (a key of :data:`PROBED`), before the output corrections (n, outputs, len(names))."""
+    probes = PROBE_BODY if location == "heater_body" else PROBE
+    y0 = fitter.simulator(fit.effects, fit.terms).simulate(fit.p)[0]
+    out = np.zeros(y0.shape + (len(names),))
+    for k, f in enumerate(names):
+        c = probes[FEATURES[f][1]]
+        probe = DiscoveredTerm("probe_" + f, location, (f,), (c,))
+        out[:, :, k] = (fitter.simulator(fit.effects, fit.terms + (probe,)).simulate(fit.p)[0] - y0) / c
+    return out
+
+
 def probe_view(fitter: Fitter, fit: Fit, location: str, names=None) -> dict[str, np.ndarray]:
     """Each feature of ``location`` (a key of :data:`PROBED`) as the supply reading shows it: the model's response
     per unit coefficient (n,)."""
     names = _candidates(fitter, location) + ("one",) if names is None else names
-    probes = PROBE_BODY if location == "heater_body" else PROBE
     j = fitter.outputs.index("supply_temp_c")
-    y0 = fitter.simulator(fit.effects, fit.terms).simulate(fit.p)[0][:, j]
-    out = {}
-    for f in names:
-        c = probes[FEATURES[f][1]]
-        probe = DiscoveredTerm("probe_" + f, location, (f,), (c,))
-        y = fitter.simulator(fit.effects, fit.terms + (probe,)).simulate(fit.p)[0][:, j]
-        out[f] = shift((y - y0) / c, fit.post.delays.get("supply_temp_c", 0))
-    return out
+    resp = _probe_responses(fitter, fit, location, names)
+    return {f: shift(resp[:, j, k], fit.post.delays.get("supply_temp_c", 0)) for k, f in enumerate(names)}
+
+
+def term_columns(fitter: Fitter, fit: Fit, term: DiscoveredTerm) -> np.ndarray:
+    """The Jacobian of every logged output of ``fit`` (its output corrections applied) in ``term``'s coefficients
+    (n, outputs, features): exact, the outputs are linear in them (but for the PTC curve's bend). A term after the
+    mixing point changes the supply reading only; one at the other places the heater outlet too."""
+    if term.location in PROBED:
+        resp = _probe_responses(fitter, fit, term.location, term.features)
+        return fit.post.apply(np.zeros(resp.shape[:2]), resp)[1]
+    view = sensor_view(fitter, fit, features(fitter, fit))
+    cols = np.zeros((fitter.log.n, len(fitter.outputs), len(term.features)))
+    for k, f in enumerate(term.features):
+        cols[:, fitter.outputs.index("supply_temp_c"), k] = view[f]
+    return cols
 
 
 def views(fitter: Fitter, fit: Fit, location: str, names=None) -> dict[str, np.ndarray]:

@@ -182,7 +182,7 @@ class Fitter:
         y0 = OutputPost(self.outputs, self.log.time_s, bias=kept).apply(y0)
         bias_idx = [self.outputs.index(o) for o in bias_outputs]
         gain_idx = [self.outputs.index(o) for o in gain_outputs]
-        extra = self._offset_gain_columns(bias_idx, gain_idx, y_gain, post.ramp)
+        extra = self.offset_gain_columns(bias_idx, gain_idx, y_gain, post.ramp)
         if extra:
             d = np.concatenate([d] + extra, axis=2)
         ok = np.isfinite(self.y_meas) & self.log.train[:, None]
@@ -194,12 +194,7 @@ class Fitter:
         best = None
         for scale in (1.0, 0.5, 0.25, 0.0):
             theta = scale * step
-            p = p0.copy()
-            for k, fp in enumerate(all_free):
-                i = self.names.index(fp.name)
-                lo, hi = fp.bounds()
-                v = p0[i] * math.exp(np.clip(theta[k], -3.0, 3.0)) if fp.transform == "log" else p0[i] + fp.scale * theta[k]
-                p[i] = min(max(v, lo), hi)
+            p = self.step_params(p0, all_free, theta)
             trial = post.copy()
             trial.bias.update(kept)
             for k, j in enumerate(bias_idx):
@@ -213,9 +208,21 @@ class Fitter:
                 best = fit
             if np.isfinite(fit.cost_train) and fit.cost_train <= float(r @ r):
                 break
+        best.extra["start_p"] = p0.copy()  # where the step started (a pair's linear screening starts there too)
         return best
 
-    def _offset_gain_columns(self, bias_idx: Sequence[int], gain_idx: Sequence[int], y_gain: np.ndarray | None,
+    def step_params(self, p0: np.ndarray, free: Sequence[FreeParam], theta: np.ndarray) -> np.ndarray:
+        """The parameter vector ``p0`` moved by a step ``theta`` of the scaled ``free`` parameters (their first
+        ``len(free)`` entries; a log step at most e^3), within each parameter's bounds."""
+        p = p0.copy()
+        for k, fp in enumerate(free):
+            i = self.names.index(fp.name)
+            lo, hi = fp.bounds()
+            v = p0[i] * math.exp(np.clip(theta[k], -3.0, 3.0)) if fp.transform == "log" else p0[i] + fp.scale * theta[k]
+            p[i] = min(max(v, lo), hi)
+        return p
+
+    def offset_gain_columns(self, bias_idx: Sequence[int], gain_idx: Sequence[int], y_gain: np.ndarray | None,
                              ramp: np.ndarray) -> list[np.ndarray]:
         """Jacobian columns (n, outputs, k) of the fitted offsets and gains: per offset output a constant and a
         drift (``ramp``) in units of its sigma, per gain output the output itself (``y_gain``, without the
@@ -321,7 +328,7 @@ class Fitter:
                 cols.append(dy)
             elif gain_idx:
                 y = post.apply(sim.simulate(p)[0])
-            cols += self._offset_gain_columns(bias_idx, gain_idx, y if gain_idx else None, ramp)
+            cols += self.offset_gain_columns(bias_idx, gain_idx, y if gain_idx else None, ramp)
             d = np.concatenate(cols, axis=2) if cols else np.zeros((self.log.n, len(self.outputs), 0))
             d = np.where(ok[:, :, None], d / self.sigma[None, :, None], 0.0)
             return d[train].reshape(-1, d.shape[2])

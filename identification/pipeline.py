@@ -18,8 +18,15 @@ Procedure (stated in the report):
    (alpha = 0.01, Bonferroni over the round). Candidates whose held-out corrections correlate with
    the kept one above ``SAME_RESIDUAL_CORR`` are reported as explaining the same residual.
 6. Term discovery (:mod:`.discovery`) when the supply temperature stays structured; one more
-   forward pass when a term was added; then a backward pass re-testing every kept effect.
-7. Whatever structure remains is located (:mod:`.localise`) instead of being named.
+   forward pass when a term was added.
+7. Pairs (:mod:`.pairs`): when the last forward round kept nothing and structure remains, the best candidates of
+   that round (by the training cost their screening step removed, also those that made the held-out fit worse)
+   and the discovered terms that lost their whole-model refit are screened in pairs, each pair by one linearised
+   joint step with the free parameters; at most ``PAIR_REFIT`` are refit fully, best first, and the first that passes
+   the forward step's gates (its parameters counted together, Bonferroni over the pairs screened) and in which each
+   member removes ``FORWARD_MIN`` of the held-out structure the other leaves alone is kept; the report says that
+   its members were identified only jointly. Then a backward pass re-tests every kept effect.
+8. Whatever structure remains is located (:mod:`.localise`) instead of being named.
 """
 
 from __future__ import annotations
@@ -29,7 +36,7 @@ import multiprocessing
 import os
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Iterable
+from typing import TYPE_CHECKING, Callable, Iterable
 
 import numpy as np
 from scipy import stats
@@ -44,7 +51,11 @@ from .discovery import CABIN_CANDIDATES
 from .diagnostics import diagnose, innovations_nll
 from .fitting import FLOW_PARAMS, IDENTIFIED_REL_SE, NOMINAL_FREE, Fit, Fitter, FreeParam, parameter_confidence
 from .log_data import LogData
+from .pairs import Frame, Member, Step, screen_pairs
 from .simulator import OutputPost, Simulator, shift
+
+if TYPE_CHECKING:
+    from hvac_mpc.models.discovered import DiscoveredTerm
 
 #: The box's documented physics the identification starts from: the PTC power fall (thesis sec. 2.3)
 #: and the flow network (fan curve and closed-valve leaks, thesis sec. 3.2, tables 3-6); the
@@ -77,6 +88,10 @@ BIAS_MIN = 0.3
 SAME_RESIDUAL_CORR = 0.9
 #: Largest transport delay scanned, s.
 MAX_DELAY_S = 30.0
+#: Candidates of the last round offered to the pair step (the most training cost removed by their screening step).
+PAIR_CANDIDATES = 4
+#: Pairs refit fully, in the order of their linearised joint step, until one passes the gates.
+PAIR_REFIT = 2
 
 
 @dataclass
@@ -108,6 +123,7 @@ class CandidateResult:
     bic_change: float = float("nan")      # information criterion with it minus without (training rows)
     same_as: str = ""                     # candidate that explains the same residual
     backward_share: float = float("nan")  # held-out structure its removal costs with the others in
+    jointly_with: str = ""                # accepted only together with this candidate or term (the pair step)
     fit: Fit | None = None
 
     def summary(self) -> dict:
@@ -137,6 +153,7 @@ class IdentificationResult:
     timing_shift_samples: int = 0
     steps: list = field(default_factory=list)
     parameter_confidence: list = field(default_factory=list)  # fitting.parameter_confidence of the final fit
+    pairs: list = field(default_factory=list)  # the pair step's refit pairs (_pair_step), empty if it did not run
 
     @property
     def sigma(self) -> dict[str, float]:
@@ -552,6 +569,7 @@ def _forward(fitter: Fitter, nominal: Fit, free: list[FreeParam], lib, max_effec
             if not r.reason and (best is None or r.cost_holdout < best.cost_holdout):
                 best = r
         if best is None:
+            current.extra["open_round"] = results  # scored against current, nothing kept: the pair step's members
             break
         best.status = "accepted"
         best.reason = (f"removes {100 * best.explained_holdout:.0f} % of the held-out structure, information "
@@ -610,13 +628,15 @@ def _backward(fitter: Fitter, current: Fit, free: list[FreeParam], accepted: lis
 
 
 def _discover(fitter: Fitter, current: Fit, free: list[FreeParam], quick: bool, say, notes: list[str]
-              ) -> tuple[Fit, dict | None]:
-    """Term discovery on the supply temperature when its residual stays structured (:mod:`.discovery`)."""
+              ) -> tuple[Fit, dict | None, list[tuple[Fit, dict]]]:
+    """Term discovery on the supply temperature when its residual stays structured (:mod:`.discovery`). Returns the
+    model, the record of the term kept (or of the best place) and the terms refit and rejected, each with its fit
+    (for the pair step)."""
     if "supply_temp_c" not in fitter.outputs:
-        return current, None
+        return current, None, []
     ratios = diagnostics_ratio(fitter, current)
     if ratios < STRUCTURE_MIN:
-        return current, None
+        return current, None, []
     say("discovery: sparse regression of the supply residual on physical features")
     dy = fitter.raw_sensitivity(current.effects, current.p, [fp for fp in free if fp.name not in FLOW_PARAMS],
                                 current.terms)
@@ -633,7 +653,8 @@ def _discover(fitter: Fitter, current: Fit, free: list[FreeParam], quick: bool, 
     if not tried[0][0]:
         notes.append("discovery: no prefix of the LARS path lowers the held-out supply error by "
                      f"{100 * discovery.MIN_STEP_GAIN:.0f} % (LARS path order: {tried[0][2]['path_order'][:5]})")
-        return current, tried[0][2]
+        return current, tried[0][2], []
+    rejected = []
     for chosen, coef, record in [t for t in tried if t[0]][:PLACES_TRIED]:
         fit = _fit_term(fitter, current, free, discovery.term_from(chosen, coef, location=record["location"]),
                         record, quick)
@@ -641,10 +662,11 @@ def _discover(fitter: Fitter, current: Fit, free: list[FreeParam], quick: bool, 
             fit.free = tuple(fp.name for fp in free)
             notes.append(f"discovery: added {record['term']['name']}: {record['formula']} ({record['words']}); "
                          f"removes {100 * record['explained_holdout']:.0f} % of the held-out structure of supply_temp_c")
-            return fit, record
+            return fit, record, []
+        rejected.append((fit, record))
         notes.append(f"discovery: term {record['formula']} rejected (removes {100 * record['explained_holdout']:.0f} % "
                      f"of the held-out structure, information criterion {record['bic_change']:+.1f})")
-    return current, tried[0][2]
+    return current, tried[0][2], rejected
 
 
 def _fit_term(fitter: Fitter, current: Fit, free: list[FreeParam], term, record: dict, quick: bool) -> Fit:
@@ -667,6 +689,256 @@ def _fit_term(fitter: Fitter, current: Fit, free: list[FreeParam], term, record:
     return fit
 
 
+@dataclass
+class _Side:
+    """One member of a pair: a candidate of the last round (``result``, ``cand``, its own parameters ``own`` and the
+    parameter vector its screening step started from) or a discovered term that lost its whole-model refit
+    (``term``, ``record``); its linearisation at the current fit, its fit alone, its primary output and its
+    parameter count."""
+
+    member: Member
+    alone_fit: Fit
+    primary: str
+    dof: int
+    result: CandidateResult | None = None
+    cand: Candidate | None = None
+    own: tuple[FreeParam, ...] = ()
+    start_p: np.ndarray | None = None
+    term: DiscoveredTerm | None = None
+    record: dict | None = None
+
+    @property
+    def name(self) -> str:
+        return self.member.name
+
+    def alone(self) -> str:
+        """What it did alone, in words: the share of its primary output's held-out structure it removed (negative:
+        it made the fit worse)."""
+        share = float(self.record["explained_holdout"] if self.term is not None else self.result.explained_primary)
+        return (f"removed {100 * share:.0f} % of the held-out structure of {self.primary}" if np.isfinite(share)
+                else f"left {self.primary} without held-out structure to remove")
+
+
+def _candidate_side(fitter: Fitter, current: Fit, r: CandidateResult, cand: Candidate) -> _Side | None:
+    """A candidate of the last round linearised at ``current``: its start (grid point, delay) and its own columns
+    (parameters' sensitivities, offset and drift, gain), as its screening step had them."""
+    y_raw = current.extra.get("y_raw")
+    if y_raw is None:
+        y_raw = fitter.simulator(current.effects, current.terms).simulate(current.p)[0]
+    y0, cols, own, start = current.y, np.zeros(current.y.shape + (0,)), (), None
+    j = fitter.outputs.index(cand.output) if cand.output else None
+    if cand.kind in ("model", "parameter"):
+        own = tuple(fp for fp in cand.params if fp.name in r.params)
+        if not own:
+            return None
+        start = r.fit.extra.get("start_p", current.p)
+        effects = current.effects | frozenset(cand.effects)
+        y0, cols = current.post.apply(fitter.simulator(effects, current.terms).simulate(start)[0],
+                                      fitter.raw_sensitivity(effects, start, own, current.terms))
+    elif cand.kind == "delay":
+        y0 = r.fit.post.apply(y_raw)
+    elif cand.kind == "bias":
+        cols = fitter.offset_gain_columns([j], [], None, current.post.ramp)[0]
+    else:  # gain: the column is the output without its offsets
+        post = current.post.copy()
+        post.bias.pop(cand.output, None)
+        cols = fitter.offset_gain_columns([], [j], post.apply(y_raw), current.post.ramp)[0]
+    member = Member(cand.name, y0, cols, "volume_flow_m3s" in cand.signature or _moves_flow(fitter, cols))
+    return _Side(member, r.fit, r.primary_output, r.dof, r, cand, own, start)
+
+
+def _moves_flow(fitter: Fitter, cols: np.ndarray) -> bool:
+    """Whether a member's own columns move the logged flow on the training rows (scaled column norm at least 1, the
+    rule of :meth:`~.fitting.Fitter.identifiable`): valve a's shift does, through the core's flow loss, though its
+    signature is on the temperatures. Such a member's pair is refit with the flow equation's parameters."""
+    if "volume_flow_m3s" not in fitter.outputs or cols.shape[2] == 0:
+        return False
+    j = fitter.outputs.index("volume_flow_m3s")
+    ok = np.isfinite(fitter.y_meas[:, j]) & fitter.log.train
+    return bool(np.any(np.sqrt(np.sum((cols[ok, j, :] / fitter.sigma[j]) ** 2, axis=0)) >= 1.0))
+
+
+def _term_side(fitter: Fitter, current: Fit, alone: Fit, record: dict) -> _Side:
+    """A discovered term that lost its whole-model refit, linearised at ``current`` (its coefficients from 0)."""
+    t = alone.terms[-1]
+    cols = discovery.term_columns(fitter, current, t)
+    return _Side(Member(f"term {t.name}", current.y, cols), alone, "supply_temp_c", len(t.features),
+                 term=t, record=record)
+
+
+def _pair_sides(fitter: Fitter, current: Fit, open_round: list[CandidateResult], lib, rejected_terms
+                ) -> list[_Side]:
+    """The pair step's members: the ``PAIR_CANDIDATES`` candidates of the last round whose screening step removed
+    the most training cost (whatever it did on the held-out rows), and the discovered terms that lost their
+    whole-model refit."""
+    scored = sorted((r for r in open_round if r.fit is not None), key=lambda r: -r.train_reduction)
+    sides = [_candidate_side(fitter, current, r, next(c for c in lib if c.name == r.name))
+             for r in scored[:PAIR_CANDIDATES]]
+    return [sd for sd in sides if sd is not None] + [_term_side(fitter, current, f, rec) for f, rec in rejected_terms]
+
+
+@dataclass
+class _PairModel:
+    """A pair's structure and its start for the full refit (the linearised step applied)."""
+
+    effects: frozenset
+    p: np.ndarray
+    post: OutputPost
+    free: list[FreeParam]
+    bias: list[str]
+    gain: list[str]
+    term: DiscoveredTerm | None
+
+
+def _pair_model(fitter: Fitter, current: Fit, free: list[FreeParam], sides: list[_Side], step: Step
+                ) -> _PairModel:
+    """The structure of ``current`` with both members in, started at the linearised joint step ``step``."""
+    flow = any(sd.member.flow_side for sd in sides)
+    moved = [(fp, step.theta[k]) for k, fp in enumerate(free) if flow or fp.name not in FLOW_PARAMS]
+    p, effects, post = current.p.copy(), current.effects, current.post.copy()
+    model = _PairModel(effects, p, post, [fp for fp, _ in moved], [], [], None)
+    k = len(free)
+    for sd in sides:
+        theta = step.theta[k:k + sd.member.cols.shape[2]]
+        k += len(theta)
+        if sd.term is not None:
+            model.term = discovery.term_from(list(sd.term.features[:-1]), theta, sd.term.name, sd.term.location)
+        elif sd.cand.kind in ("model", "parameter"):
+            model.effects |= frozenset(sd.cand.effects)
+            for fp, th in zip(sd.own, theta):
+                i = fitter.names.index(fp.name)
+                p[i] = sd.start_p[i]
+                moved.append((fp, th))
+        elif sd.cand.kind == "delay":
+            post.delays[sd.cand.output] = sd.result.fit.post.delays[sd.cand.output]
+        else:
+            (model.bias if sd.cand.kind == "bias" else model.gain).append(sd.cand.output)
+    model.free = [fp for fp, _ in moved]
+    model.p = fitter.step_params(p, model.free, np.array([th for _, th in moved]))
+    return model
+
+
+def _refit_pair(fitter: Fitter, current: Fit, model: _PairModel, quick: bool) -> Fit:
+    """The whole model refit with both members (a term's coefficients alternated with the refit, as in discovery)."""
+    term, p, post = model.term, model.p, model.post
+    for _ in range(DISCOVERY_ALTERNATIONS if term else 1):
+        terms = current.terms + ((term,) if term else ())
+        fit = fitter.fit(model.effects, p, model.free, post, bias_outputs=model.bias, max_nfev=6 if quick else 8,
+                         terms=terms, gain_outputs=_gains(post, model.gain))
+        p, post = fit.p, fit.post
+        if term:
+            term = discovery.refit_coefficients(fitter, fit, term)
+    if term:
+        fit = fitter.evaluate(model.effects, p, post, fit.free, terms=current.terms + (term,))
+    return fit
+
+
+def _pair_gate(fitter: Fitter, current: Fit, fit: Fit, sides: list[_Side], lr: float, m: int) -> tuple[str, dict]:
+    """Why a refit pair cannot be kept ('' if it can), and its figures: the forward step's gates with both members'
+    parameters counted together (each member's primary output), and each member must remove ``FORWARD_MIN`` of the
+    held-out structure the other leaves alone."""
+    q = sum(sd.dof for sd in sides)
+    p_value = float(stats.chi2.sf(lr, q)) if lr > 0 else 1.0
+    info = {"explained_holdout": (current.cost_holdout - fit.cost_holdout) / max(fitter.structure(current.y), 1e-300),
+            "lr": lr, "dof": q, "p_value": p_value, "p_threshold": ALPHA / m}
+    if not fit.cost_holdout < current.cost_holdout:
+        return "does not lower the held-out error", info
+    for sd in sides:
+        need = BIAS_MIN if sd.cand is not None and sd.cand.kind == "bias" else FORWARD_MIN
+        share, bic = _output_share(fitter, current, fit, sd.primary), _bic_change(fitter, fit, current, q, sd.primary)
+        info[f"explained_{sd.primary}"], info[f"bic_change_{sd.primary}"] = share, bic
+        if share < need:
+            return (f"removes {100 * share:.0f} % of the held-out structure of {sd.primary} (needs "
+                    f"{100 * need:.0f} %)"), info
+        if not bic < 0:
+            return f"information criterion on the training rows of {sd.primary} does not fall ({bic:+.1f})", info
+    if p_value >= ALPHA / m:
+        return f"not significant on the training rows (p = {p_value:.2g} >= {ALPHA / m:.2g})", info
+    for sd, other in zip(sides, sides[::-1]):
+        before = fitter.structure(other.alone_fit.y)
+        share = (before - fitter.structure(fit.y)) / before if before > 0 else 0.0
+        info[f"needed_{sd.name}"] = share
+        if share < FORWARD_MIN:
+            return (f"{sd.name} removes {100 * share:.0f} % of the held-out structure {other.name} leaves alone "
+                    f"(needs {100 * FORWARD_MIN:.0f} %): the pair is {other.name} with a passenger"), info
+        least = MIN_ABS_VALUE.get(sd.name)
+        if least is not None and max(abs(fit.p[fitter.names.index(fp.name)]) for fp in sd.own) < least:
+            return f"{sd.name}'s parameters stay below {least:g} in size", info
+    return "", info
+
+
+def _pair_step(fitter: Fitter, current: Fit, free: list[FreeParam], lib, rejected_terms, room: int, quick: bool,
+               rnd: int, say, notes: list[str]
+               ) -> tuple[Fit, list[FreeParam], list[CandidateResult], dict | None, list[dict]]:
+    """Pairs of effects that only help together (procedure step 7 of the module docstring). Returns the model, its
+    free parameters, the candidates kept (as results of round ``rnd``), the record of a term kept with one, and the
+    refit pairs' records."""
+    open_round = current.extra.get("open_round")
+    c_o, n_o = fitter.output_costs(current.y)
+    if open_round is None or room < 1 or not np.any(c_o / np.maximum(n_o, 1) >= STRUCTURE_MIN):
+        return current, free, [], None, []
+    sides = _pair_sides(fitter, current, open_round, lib, rejected_terms)
+    exclude = [(a, b) for a in range(len(sides)) for b in range(a + 1, len(sides))
+               if (sides[a].term is None) == (sides[b].term is None) and (sides[a].term is not None or room < 2)]
+    m = len(sides) * (len(sides) - 1) // 2 - len(exclude)
+    if m < 1:
+        return current, free, [], None, []
+    dy = current.extra.get("dy_free")
+    dy = fitter.raw_sensitivity(current.effects, current.p, free, current.terms) if dy is None else dy
+    frame = Frame(fitter.y_meas, fitter.sigma, fitter.log.train, fitter.log.holdout)
+    ranked, _ = screen_pairs(frame, current.y, current.post.apply(np.zeros(dy.shape[:2]), dy)[1],
+                             np.array([fp.name in FLOW_PARAMS for fp in free]), [sd.member for sd in sides],
+                             FORWARD_MIN, exclude)
+    top = [([sides[i] for i in st_.members], st_) for st_ in ranked[:PAIR_REFIT]]
+    say(f"pairs: {m} screened jointly, refitting {', '.join(' + '.join(sd.name for sd in two) for two, _ in top)}")
+    if not top:
+        notes.append(f"pairs: {m} pairs of {', '.join(sd.name for sd in sides)} screened jointly; in none does each "
+                     f"member remove {100 * FORWARD_MIN:.0f} % of the held-out structure the other leaves alone")
+    records, nll_current = [], innovations_nll(fitter, current)[2] if top else 0.0
+    for two, st_ in top:  # best linearised step first; the first pair that passes the gates is kept
+        fit = _refit_pair(fitter, current, _pair_model(fitter, current, free, two, st_), quick)
+        reason, info = _pair_gate(fitter, current, fit, two, nll_current - innovations_nll(fitter, fit)[2], m)
+        records.append(dict(info, members=[sd.name for sd in two], screened_pairs=m, status="rejected" if reason else
+                            "accepted", reason=reason, linear_holdout_cost=float(st_.cost_holdout.sum()),
+                            linear_joint_share=st_.joint_share, cost_holdout=fit.cost_holdout))
+        notes.append(f"pairs: {' + '.join(records[-1]['members'])} {records[-1]['status']}"
+                     + (f" ({reason})" if reason else ""))
+        if not reason:
+            return (*_accept_pair(fitter, current, free, two, fit, info, rnd, notes), records)
+    return current, free, [], None, records
+
+
+def _accept_pair(fitter: Fitter, current: Fit, free: list[FreeParam], sides: list[_Side], fit: Fit, info: dict,
+                 rnd: int, notes: list[str]) -> tuple[Fit, list[FreeParam], list[CandidateResult], dict | None]:
+    """Keeps a pair: its candidates as accepted results, its term in the model; says that they were found only
+    jointly and how each fared alone."""
+    kept, term_record = [], None
+    for sd, other in zip(sides, sides[::-1]):
+        together = _output_share(fitter, current, fit, sd.primary)
+        why = (f"accepted only jointly with {other.name}: alone (the other missing) it {sd.alone()}, together "
+               f"they remove {100 * together:.0f} % (information criterion {info[f'bic_change_{sd.primary}']:+.1f}, "
+               f"p = {info['p_value']:.2g}); the two mask each other, this log identifies them only together")
+        notes.append(f"pairs: {sd.name} {why}")
+        if sd.term is not None:
+            t = fit.terms[-1]
+            term_record = dict(sd.record, term=t.as_dict(), formula=t.formula(), words=t.description,
+                               explained_holdout=together, bic_change=info["bic_change_supply_temp_c"], accepted=True,
+                               jointly_with=other.name)
+            continue
+        acc = dataclasses.replace(sd.result, round=rnd, status="accepted", reason=why, jointly_with=other.name,
+                                  fit=fit, cost_train=fit.cost_train, cost_holdout=fit.cost_holdout,
+                                  explained_holdout=info["explained_holdout"], explained_primary=together,
+                                  bic_change=info[f"bic_change_{sd.primary}"], lr=info["lr"], dof=info["dof"],
+                                  p_value=info["p_value"], p_threshold=info["p_threshold"],
+                                  params={fp.name: float(fit.p[fitter.names.index(fp.name)]) for fp in sd.own})
+        _record_own(acc, sd.cand, fit, fitter.log.dt_s)
+        kept.append(acc)
+        free = free + [fp for fp in sd.own if fp not in free]
+    fit.states = fitter.simulator(fit.effects, fit.terms).simulate(fit.p)[1]
+    fit.free = tuple(fp.name for fp in free)
+    return fit, free, kept, term_record
+
+
 def _errors(fitter: Fitter, before: Fit, after_y: np.ndarray) -> dict:
     out = {}
     ho = fitter.log.holdout
@@ -682,11 +954,14 @@ def _step_errors(fitter: Fitter, nominal: Fit, accepted, discovered: dict | None
     """Held-out RMS and max error per output before and after each added effect (in the order added;
     the last step ends at the final model)."""
     steps, prev = [], nominal
-    term_added = bool(discovered and discovered.get("accepted"))
+    term_added = bool(discovered and discovered.get("accepted") and not discovered.get("jointly_with"))
+    names = [a.name for a in accepted]
+    accepted = [a for i, a in enumerate(accepted) if a.jointly_with not in names[:i]]  # a pair's second: the first's step
     for i, a in enumerate(accepted):
         last = i == len(accepted) - 1 and not term_added
         fit = final if last or a.fit is None else a.fit
-        steps.append({"added": a.name, "holdout": _errors(fitter, prev, fit.y)})
+        steps.append({"added": a.name + (f" + {a.jointly_with} (jointly)" if a.jointly_with else ""),
+                      "holdout": _errors(fitter, prev, fit.y)})
         prev = fit
     if term_added:
         steps.append({"added": f"term {discovered['term']['name']}", "holdout": _errors(fitter, prev, final.y)})
@@ -734,8 +1009,9 @@ class _Clock:
 
 def identify(log: LogData, base: Parameters | None = None, base_effects: Iterable[str] = (),
              quick: bool = False, max_effects: int = 4, progress: Callable[[str], None] | None = None,
-             discover: bool = True) -> IdentificationResult:
-    """Run the whole procedure of the module docstring on a prepared log."""
+             discover: bool = True, pairs: bool = True) -> IdentificationResult:
+    """Run the whole procedure of the module docstring on a prepared log (``pairs``: its step 7, the pairs of
+    effects that only help together)."""
     say = progress or (lambda _msg: None)
     clock = _Clock()
     base = base or Parameters()
@@ -753,9 +1029,9 @@ def identify(log: LogData, base: Parameters | None = None, base_effects: Iterabl
     lib = library(fitter.outputs)
     current, current_free, accepted, rounds = _forward(fitter, nominal, free, lib, max_effects, quick, say, notes)
     clock.lap("candidates")
-    discovered = None
+    discovered, rejected_terms = None, []
     if discover:
-        current, discovered = _discover(fitter, current, current_free, quick, say, notes)
+        current, discovered, rejected_terms = _discover(fitter, current, current_free, quick, say, notes)
     clock.lap("discovery")
     if discovered and discovered.get("accepted") and len(accepted) < max_effects:
         # with the term in, effects its residual hid may now show: one more forward pass
@@ -764,6 +1040,15 @@ def identify(log: LogData, base: Parameters | None = None, base_effects: Iterabl
                                                             first_round=len(rounds) + 1)
         accepted += more
         rounds += more_rounds
+    clock.lap("candidates")
+    pair_records = []
+    if pairs:
+        current, current_free, joint, joint_term, pair_records = _pair_step(
+            fitter, current, current_free, lib, rejected_terms, max_effects - len(accepted), quick, len(rounds) + 1,
+            say, notes)
+        accepted += joint
+        discovered = joint_term or discovered
+    clock.lap("pairs")
     current, current_free = _backward(fitter, current, current_free, accepted, lib, base, quick, say, notes)
     clock.lap("candidates")
     final = current
@@ -791,6 +1076,7 @@ def identify(log: LogData, base: Parameters | None = None, base_effects: Iterabl
     res.discovery = discovered
     res.timing_shift_samples = shift_samples
     res.parameter_confidence = confidence
+    res.pairs = pair_records
     return res
 
 

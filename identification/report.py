@@ -208,6 +208,7 @@ def summary(res: IdentificationResult) -> dict:
         "steps": res.steps,
         "discovered_terms": [dict(t.as_dict(), formula=t.formula()) for t in res.terms],
         "discovery": res.discovery,
+        "pairs": res.pairs,
         "log_checks": {"bad_rows": log.bad_rows, "timing_shift_samples": res.timing_shift_samples,
                        "timing_shift_s": res.timing_shift_samples * log.dt_s},
         "candidates": [[r.summary() for r in rnd] for rnd in res.rounds],
@@ -281,8 +282,12 @@ def _markdown(res: IdentificationResult, data: dict, model_name: str) -> list[st
             md.append(f"- **{a.name}**: {a.description} ({a.source}); {what}. {a.reason}.")
     else:
         md.append("- No effect of the library was added.")
+    joint = res.discovery or {}
     for t in res.terms:
-        md.append(f"- **discovered term {t.name}** (not in the library): {t.description}; `{t.formula()}`.")
+        with_ = joint.get("jointly_with") if joint.get("term", {}).get("name") == t.name else ""
+        md.append(f"- **discovered term {t.name}** (not in the library): {t.description}; `{t.formula()}`."
+                  + (f" Kept only jointly with {with_}: alone it made the held-out error worse (the two mask each "
+                     "other; this log identifies them only together)." if with_ else ""))
     md += ["", f"Effects to enable: `{list(res.effects)}`; model file: `{model_name}` (load with "
            "`hvac_mpc.identification.load_model_file`).", ""]
     if res.extras:
@@ -330,7 +335,11 @@ def _markdown(res: IdentificationResult, data: dict, model_name: str) -> list[st
            f"{SAME_RESIDUAL_CORR} are reported as explaining the same residual. Then term discovery on the supply "
            "temperature if its residual stays structured (a sparse LARS path over physical features, the size "
            "chosen on the held-out rows, the term refit with the whole model), one more forward pass if a term was "
-           "added, and a backward pass that re-tests each kept effect with the others in.",
+           "added; when the last round kept nothing and structure remains, pairs of its best candidates and of the "
+           "discovered terms that lost their refit are screened jointly (one linearised step each) and the best "
+           "refit, a pair kept on the same gates if each member also earns its share with the other in (effects "
+           "that mask each other, identified only together); then a backward pass that re-tests each kept effect "
+           "with the others in.",
            "5. Whatever structure remains is located instead of being named: the residual is regressed on each "
            "model equation's drive, on every logged signal (a missing input dependence, e.g. on a column the model "
            "does not use) and on their products; the terms that also hold on the held-out rows name the equation "

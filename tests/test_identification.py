@@ -374,3 +374,57 @@ def test_a_valve_shift_below_two_percent_of_travel_names_no_effect(shifts, named
     assert (reason == "") == named
     if not named:
         assert "below 2" in reason and "valve_m_shift_pct -1.37" in reason
+
+
+def _masking_case(seed: int = 0):
+    """Two effects a and b that only help together, on one output: the logged residual is a + b; the one free
+    parameter's column F follows a + b on the training rows (plus a shape of its own) and its opposite on the held-out
+    rows, so with either effect missing the fit takes F and extrapolates it the wrong way. A third member d is the
+    whole residual (alone it is enough), a fourth c a shape that explains nothing. A flow-equation column G equals b."""
+    from hvac_mpc.identification.pairs import Frame, Member
+
+    n, split = 1200, 800
+    t = np.arange(n, dtype=float)
+    a, b = np.sin(2 * np.pi * t / 300.0), np.sin(2 * np.pi * t / 170.0 + 1.0)
+    own = np.sin(2 * np.pi * t / 77.0)
+    train = t < split
+    f = np.where(train, a + b, -(a + b)) + own
+    rng = np.random.default_rng(seed)
+    y_cur = np.zeros((n, 1))
+    y_meas = (a + b + 0.05 * rng.standard_normal(n))[:, None]
+    frame = Frame(y_meas, np.array([0.05]), train, ~train)
+    j_free = np.stack([f, b], axis=1)[:, None, :]
+    col = lambda x: x[:, None, None]  # noqa: E731
+    members = [Member("a", y_cur, col(a)), Member("b", y_cur, col(b)), Member("c", y_cur, col(np.cos(t / 9.0))),
+               Member("d", y_cur, col(a + b))]
+    return frame, y_cur, j_free, np.array([False, True]), members
+
+
+def test_pair_screening_finds_two_effects_that_only_help_together_and_leaves_passengers_out():
+    """The linearised joint step (hvac_mpc.identification.pairs): a and b each make the held-out error worse alone
+    (the free parameter takes the other's place on the training rows), together they remove it; a pair of d (enough
+    alone) with another member is d with a passenger and is not offered; the flow equation's column joins no
+    temperature-side member."""
+    from hvac_mpc.identification.pairs import screen_pairs
+
+    frame, y_cur, j_free, flow_cols, members = _masking_case()
+    ranked, singles = screen_pairs(frame, y_cur, j_free, flow_cols, members, min_share=0.1)
+    current = frame.structure(y_cur)
+    assert singles[0].structure > current and singles[1].structure > current  # each alone: worse
+    assert singles[3].structure < 0.01 * current                               # d alone: enough
+    assert all(s.theta[1] == 0.0 for s in singles)                            # G (flow side) left out
+    assert ranked and ranked[0].members == (0, 1)
+    assert ranked[0].structure < 0.01 * current and ranked[0].joint_share > 0.9
+    np.testing.assert_allclose(ranked[0].theta[2:], [1.0, 1.0], atol=0.05)     # a and b at their true size
+    assert all(3 not in s.members for s in ranked)                             # d plus a passenger: not offered
+
+
+def test_pair_screening_uses_the_flow_column_for_a_flow_side_member():
+    """A member on the flow side takes the flow equation's column into its step: with G (= b) free, a alone is enough."""
+    import dataclasses
+
+    from hvac_mpc.identification.pairs import score
+
+    frame, y_cur, j_free, flow_cols, members = _masking_case()
+    alone = score(frame, y_cur, j_free, flow_cols, [dataclasses.replace(members[0], flow_side=True)], (0,))
+    assert alone.structure < 0.01 * frame.structure(y_cur) and alone.theta[1] == pytest.approx(1.0, abs=0.05)
