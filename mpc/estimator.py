@@ -34,7 +34,11 @@ and the MPC predicts with it (:attr:`DisturbanceEkf.bypass_flow_exponent`). With
 supply temperature is a constant the mixed-air offset takes as well, so it is learned only while the
 flow moves (the model's flow more than ``bypass_flow_gate`` in log from its running mean); otherwise
 it is a constant to the filter (its column of the Jacobians and its row of the gain zeroed, its
-correlations dropped, its variance kept). docs/robustness.md sec. 1.
+correlations dropped, its variance kept). docs/robustness.md sec. 1. With ``bypass_flow_anchored`` the
+split's reference flow is a state too (its logarithm, no process noise, no variance: the filter does not
+estimate it): before each measurement update it moves towards the model's mass flow, and the mixed-air
+offset takes the model's change at the command in force, so the exponent acts only on a flow away from the
+recent one, never on the level (docs/robustness.md sec. 2.7).
 
 Chiller water (``water_prediction``): ``"hold"`` treats the water temperature as a random walk
 (the chiller's two-point switching is unknown to the model, thesis sec. 2.2); ``"setpoint"``
@@ -116,6 +120,18 @@ class EkfSettings:
     deviation ``bypass_flow_exponent_sd``, random walk ``q_bypass_flow_exponent`` per sample;
     ``bypass_flow_gate`` the least |ln(flow / running mean of the flow)| for it to be learned,
     ``bypass_flow_window_s`` that running mean's time constant (s). ASSUMPTIONS.
+
+    ``bypass_flow_anchored`` (with ``learn_bypass_flow``): the split's reference mass flow
+    (``Parameters.bypass_ref_mass_flow_kgs``) is a state of the filter that follows the model's mass flow
+    with the time constant ``bypass_flow_window_s``, the mixed-air offset taking the change of the model's
+    mixed air as it moves (module docstring). At the flow in force the exponent then does not move the
+    model's air at all: it is told only by a flow that differs from the recent one, and learning it cannot
+    step the prediction; the MPC predicts a planned flow change with it. ``bypass_flow_exponent_min`` /
+    ``_max``: the range the estimate is held in (the prior within it). ``bypass_flow_after_response``: learn
+    only once the dead-time estimate has seen a response (:attr:`~.dead_time.DeadTimeEstimator.informed`;
+    always with the dead-time handling off). ``motor_sd_after_response_c``: once a response is seen, the
+    motor rise's standard deviation is raised to this (degC; 0: never), for ``initial_sd_motor_c`` small
+    until the timing of a response is known. docs/robustness.md sec. 2.7.
     """
 
     q_motor_c: float = 0.01
@@ -149,6 +165,7 @@ class EkfSettings:
     bypass_flow_window_s: float = 10.0
     bypass_flow_anchored: bool = False
     bypass_flow_after_response: bool = False
+    bypass_flow_after_s: float = 0.0
     bypass_flow_exponent_min: float = -3.0
     bypass_flow_exponent_max: float = 3.0
 
@@ -164,7 +181,7 @@ class EkfSettings:
                 check_number(f"{prefix}.{f.name}", value, *BYPASS_FLOW_EXPONENT_RANGE)
                 continue
             if f.name in ("dead_time_max_s", "dead_time_min_s", "dead_time_prior_s", "q_heater_outlet_offset_c",
-                          "motor_sd_after_response_c"):
+                          "motor_sd_after_response_c", "bypass_flow_after_s"):
                 check_number(f"{prefix}.{f.name}", value, 0.0, 30.0)
                 continue
             if f.name == "dead_time_initial_s":
@@ -229,6 +246,7 @@ class DisturbanceEkf:
         self._log_flow_mean: float | None = None
         self.learning = False  # the bypass-flow exponent's gate: the flow moves
         self._motor_released = False  # the motor rise's variance raised once a response was seen
+        self._age_s = 0.0  # time since initialise
         self._mix = BufferedFunction(self.mix_fn, fixed={3: self.p}) if self.anchors_bypass_flow else None
 
     def _d(self, z, setpoint):
@@ -393,6 +411,7 @@ class DisturbanceEkf:
         self._log_flow_mean = None
         self.learning = False
         self._motor_released = False
+        self._age_s = 0.0
 
     def use_functions(self, predict_fn, update_fn) -> None:
         """Evaluate the time and measurement updates with these functions (the same signatures as
@@ -424,6 +443,7 @@ class DisturbanceEkf:
     def accept_prediction(self, z_next: np.ndarray, P_next_t: np.ndarray, air: np.ndarray, flow: np.ndarray) -> None:
         """Take the time update's results (as the time-update function returns them, ``P`` column-major)."""
         self.z, self.P = z_next, P_next_t.T  # buffers are column-major
+        self._age_s += self.dt_s
         if self.n_hist:
             self.dead_time.push_air(float(air[0]))
         if self.learns_bypass_flow and not self.anchors_bypass_flow:
@@ -442,8 +462,9 @@ class DisturbanceEkf:
     def _set_learning(self, flow_moves: bool) -> None:
         """Learn the exponent while the flow moves (and, with ``bypass_flow_after_response``, once the dead-time
         estimate has seen a response); otherwise it is a constant to the filter, without correlations."""
-        seen = self.dead_time.informed or not self.n_hist or not self.settings.bypass_flow_after_response
-        self.learning = bool(flow_moves and seen)
+        s = self.settings
+        seen = self.dead_time.informed or not self.n_hist or not s.bypass_flow_after_response
+        self.learning = bool(flow_moves and seen and self._age_s >= s.bypass_flow_after_s)
         if not self.learning:  # a constant to the filter: no correlation with the other states
             self._decorrelate(self.i_exponent)
 

@@ -22,16 +22,19 @@ BLOWER_STEPS_W = (120.0, 280.0, 80.0, 220.0, 140.0, 300.0)
 HOLD_S = 30
 
 
-def learn_on_box(exponent: float, prior: float, seed: int = 3, anchored: bool = False) -> np.ndarray:
+def learn_on_box(exponent: float, prior: float, seed: int = 3, anchored: bool = False, after_s: float = 0.0,
+                 exponent_max: float = 3.0) -> np.ndarray:
     """The estimator fed open loop by the independent box whose split has ``exponent``; per sample the
-    learned exponent (``anchored``: EkfSettings.bypass_flow_anchored)."""
+    learned exponent (``anchored``, ``after_s``, ``exponent_max``: the EkfSettings fields
+    bypass_flow_anchored, bypass_flow_after_s, bypass_flow_exponent_max)."""
     plant = make_plant(Variant(bypass_flow_exponent=exponent), seed=seed)
     plant.set_environment(inlet_temp_c=32.0, chiller_setpoint_c=5.0)
     commands = [Command(b, 0.0, 50.0, 100.0, 100.0, 100.0) for b in BLOWER_STEPS_W]
     plant.settle(commands[0])
     ekf = DisturbanceEkf(HvacModel(Parameters(), ("bypass_flow",)),
                          EkfSettings(learn_bypass_flow=True, bypass_flow_exponent_prior=prior,
-                                     bypass_flow_anchored=anchored))
+                                     bypass_flow_anchored=anchored, bypass_flow_after_s=after_s,
+                                     bypass_flow_exponent_max=exponent_max))
     learned = []
     feed_open_loop(ekf, plant, commands, HOLD_S, lambda e: learned.append(e.bypass_flow_exponent))
     return np.array(learned)
@@ -88,6 +91,17 @@ def test_anchored_exponent_moves_the_prediction_only_away_from_the_recent_flow()
     ekf._move_anchor(more_flow, 5.0)
     assert ekf.z[ekf.i_anchor] > anchor + 0.01
     assert air(ekf.z, more_flow) == pytest.approx(before, abs=1e-9)
+
+
+def test_the_exponent_is_learned_only_after_the_start_up_and_within_its_range():
+    """``bypass_flow_after_s``: no learning before that long since the start (the filter's own start-up);
+    ``bypass_flow_exponent_min``/``_max``: the estimate held in its range (the box's 0.4 above a cap of 0.3)."""
+    late = learn_on_box(0.4, 0.0, anchored=True, after_s=HOLD_S * len(BLOWER_STEPS_W))
+    assert np.all(late == 0.0)
+    capped = learn_on_box(0.4, 0.0, anchored=True, exponent_max=0.3)
+    assert capped.max() == pytest.approx(0.3) and 0.25 < capped[-1] <= 0.3
+    with pytest.raises(InvalidSettings, match="ekf.bypass_flow_exponent_prior must lie within"):
+        EkfSettings(bypass_flow_exponent_min=0.5).validate()
 
 
 def test_the_box_split_depends_on_the_flow_only_with_the_exponent():
