@@ -131,7 +131,11 @@ class EkfSettings:
     only once the dead-time estimate has seen a response (:attr:`~.dead_time.DeadTimeEstimator.informed`;
     always with the dead-time handling off). ``motor_sd_after_response_c``: once a response is seen, the
     motor rise's standard deviation is raised to this (degC; 0: never), for ``initial_sd_motor_c`` small
-    until the timing of a response is known. docs/robustness.md sec. 2.7.
+    until the timing of a response is known. ``bypass_flow_after_s``: no learning in the first seconds after
+    :meth:`~DisturbanceEkf.initialise` (the filter's own start-up). ``bypass_flow_commit_at_rest``: the
+    parameters handed to the prediction (:meth:`~DisturbanceEkf.model_parameters`) take the learned exponent
+    only while it is not being learned, so a flow change is predicted with the value from before it, never a
+    half-learned one. docs/robustness.md sec. 2.7.
     """
 
     q_motor_c: float = 0.01
@@ -166,6 +170,7 @@ class EkfSettings:
     bypass_flow_anchored: bool = False
     bypass_flow_after_response: bool = False
     bypass_flow_after_s: float = 0.0
+    bypass_flow_commit_at_rest: bool = False
     bypass_flow_exponent_min: float = -3.0
     bypass_flow_exponent_max: float = 3.0
 
@@ -173,7 +178,7 @@ class EkfSettings:
         for f in fields(self):
             value = getattr(self, f.name)
             if f.name in ("use_heater_outlet", "learn_bypass_flow", "bypass_flow_anchored",
-                          "bypass_flow_after_response"):
+                          "bypass_flow_after_response", "bypass_flow_commit_at_rest"):
                 if not isinstance(value, bool):
                     raise InvalidSettings(f"{prefix}.{f.name} must be True or False")
                 continue
@@ -247,6 +252,7 @@ class DisturbanceEkf:
         self.learning = False  # the bypass-flow exponent's gate: the flow moves
         self._motor_released = False  # the motor rise's variance raised once a response was seen
         self._age_s = 0.0  # time since initialise
+        self._committed = s.bypass_flow_exponent_prior  # the exponent at the end of the last flow change
         self._mix = BufferedFunction(self.mix_fn, fixed={3: self.p}) if self.anchors_bypass_flow else None
 
     def _d(self, z, setpoint):
@@ -412,6 +418,7 @@ class DisturbanceEkf:
         self.learning = False
         self._motor_released = False
         self._age_s = 0.0
+        self._committed = s.bypass_flow_exponent_prior
 
     def use_functions(self, predict_fn, update_fn) -> None:
         """Evaluate the time and measurement updates with these functions (the same signatures as
@@ -467,6 +474,7 @@ class DisturbanceEkf:
         self.learning = bool(flow_moves and seen and self._age_s >= s.bypass_flow_after_s)
         if not self.learning:  # a constant to the filter: no correlation with the other states
             self._decorrelate(self.i_exponent)
+            self._committed = float(self.z[self.i_exponent])
 
     def _release_motor(self) -> None:
         """Once the dead-time estimate has seen a response (or with no dead-time handling), raise the motor
@@ -579,6 +587,8 @@ class DisturbanceEkf:
         """The model parameters (``HvacModel.p_default`` order) with the bypass-flow exponent the
         filter uses (or ``exponent``), for a prediction consistent with the estimate."""
         p = self.p.copy()
+        if exponent is None and self.learns_bypass_flow and self.settings.bypass_flow_commit_at_rest:
+            exponent = self._committed  # the prediction takes a learned value only once its flow change is over
         if self.adapts_bypass_flow:
             p[self.i_exponent_p] = self.bypass_flow_exponent if exponent is None else exponent
         if self.anchors_bypass_flow and self.z is not None:

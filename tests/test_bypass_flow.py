@@ -104,6 +104,30 @@ def test_the_exponent_is_learned_only_after_the_start_up_and_within_its_range():
         EkfSettings(bypass_flow_exponent_min=0.5).validate()
 
 
+def test_the_prediction_takes_a_learned_exponent_only_once_its_flow_change_is_over():
+    """``bypass_flow_commit_at_rest``: while the flow moves the filter learns the exponent, but the parameters
+    it hands the prediction keep the value from before the change; once the flow has settled (the gate shut)
+    they take the learned value, so no transient is met with a half-learned exponent."""
+    plant = make_plant(Variant(bypass_flow_exponent=0.4), seed=3)
+    plant.set_environment(inlet_temp_c=32.0, chiller_setpoint_c=5.0)
+    commands = [Command(b, 0.0, 50.0, 100.0, 100.0, 100.0) for b in BLOWER_STEPS_W]
+    plant.settle(commands[0])
+    ekf = DisturbanceEkf(HvacModel(Parameters(), ("bypass_flow",)),
+                         EkfSettings(learn_bypass_flow=True, bypass_flow_anchored=True, bypass_flow_commit_at_rest=True))
+    i = ekf.i_exponent_p
+    rows = []
+    feed_open_loop(ekf, plant, commands, HOLD_S,
+                   lambda e: rows.append((e.bypass_flow_exponent, e.model_parameters()[i], e.learning)))
+    learned, used, moving = (np.array(c) for c in zip(*rows))
+    assert moving.any() and not moving.all() and not moving[0]
+    during = np.flatnonzero(moving)
+    assert np.all(used[during] == used[during - 1])  # held while the flow moves ...
+    assert np.abs(learned[during] - used[during]).max() > 0.1  # ... while the filter learns
+    at_rest = ~moving
+    assert np.allclose(used[at_rest], learned[at_rest])
+    assert abs(used[-1] - 0.4) < 0.1  # the box's value, once the steps are over
+
+
 def test_the_box_split_depends_on_the_flow_only_with_the_exponent():
     low, high = Command(80.0, 0.0, 50.0, 100.0, 100.0, 100.0), Command(300.0, 0.0, 50.0, 100.0, 100.0, 100.0)
     share = {}
