@@ -585,7 +585,9 @@ class DisturbanceEkf:
 
     def model_parameters(self, exponent: float | None = None) -> np.ndarray:
         """The model parameters (``HvacModel.p_default`` order) with the bypass-flow exponent the
-        filter uses (or ``exponent``), for a prediction consistent with the estimate."""
+        filter uses (or ``exponent``; with ``bypass_flow_commit_at_rest`` the value from the end of the last flow
+        change) and, anchored, the split's reference mass flow at the anchor, for a prediction consistent with
+        the estimate."""
         p = self.p.copy()
         if exponent is None and self.learns_bypass_flow and self.settings.bypass_flow_commit_at_rest:
             exponent = self._committed  # the prediction takes a learned value only once its flow change is over
