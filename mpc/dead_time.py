@@ -77,6 +77,7 @@ class DeadTimeEstimator:
         self._sss = np.zeros(n)
         self._ssy = np.zeros(n)
         self.residuals = np.full(n, np.nan)
+        self.informed = False  # the window has held a response (the candidates ranked at least once)
 
     @property
     def steps(self) -> float:
@@ -118,6 +119,7 @@ class DeadTimeEstimator:
         if np.min(sss) / w < self.min_var:
             self.residuals[:] = np.nan
             return self.steps
+        self.informed = True
         # least-squares gain per candidate; a response of the wrong sign explains nothing
         res = np.where(ssy > 0.0, self._syy - ssy ** 2 / sss, self._syy)
         self.residuals = res / w

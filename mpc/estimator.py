@@ -34,7 +34,11 @@ and the MPC predicts with it (:attr:`DisturbanceEkf.bypass_flow_exponent`). With
 supply temperature is a constant the mixed-air offset takes as well, so it is learned only while the
 flow moves (the model's flow more than ``bypass_flow_gate`` in log from its running mean); otherwise
 it is a constant to the filter (its column of the Jacobians and its row of the gain zeroed, its
-correlations dropped, its variance kept). docs/robustness.md sec. 1.
+correlations dropped, its variance kept). docs/robustness.md sec. 1. With ``bypass_flow_anchored`` the
+split's reference flow is a state too (its logarithm, no process noise, no variance: the filter does not
+estimate it): before each measurement update it moves towards the model's mass flow, and the mixed-air
+offset takes the model's change at the command in force, so the exponent acts only on a flow away from the
+recent one, never on the level (docs/robustness.md sec. 2.7).
 
 Chiller water (``water_prediction``): ``"hold"`` treats the water temperature as a random walk
 (the chiller's two-point switching is unknown to the model, thesis sec. 2.2); ``"setpoint"``
@@ -116,10 +120,27 @@ class EkfSettings:
     deviation ``bypass_flow_exponent_sd``, random walk ``q_bypass_flow_exponent`` per sample;
     ``bypass_flow_gate`` the least |ln(flow / running mean of the flow)| for it to be learned,
     ``bypass_flow_window_s`` that running mean's time constant (s). ASSUMPTIONS.
+
+    ``bypass_flow_anchored`` (with ``learn_bypass_flow``): the split's reference mass flow
+    (``Parameters.bypass_ref_mass_flow_kgs``) is a state of the filter that follows the model's mass flow
+    with the time constant ``bypass_flow_window_s``, the mixed-air offset taking the change of the model's
+    mixed air as it moves (module docstring). At the flow in force the exponent then does not move the
+    model's air at all: it is told only by a flow that differs from the recent one, and learning it cannot
+    step the prediction; the MPC predicts a planned flow change with it. ``bypass_flow_exponent_min`` /
+    ``_max``: the range the estimate is held in (the prior within it). ``bypass_flow_after_response``: learn
+    only once the dead-time estimate has seen a response (:attr:`~.dead_time.DeadTimeEstimator.informed`;
+    always with the dead-time handling off). ``motor_sd_after_response_c``: once a response is seen, the
+    motor rise's standard deviation is raised to this (degC; 0: never), for ``initial_sd_motor_c`` small
+    until the timing of a response is known. ``bypass_flow_after_s``: no learning in the first seconds after
+    :meth:`~DisturbanceEkf.initialise` (the filter's own start-up). ``bypass_flow_commit_at_rest``: the
+    parameters handed to the prediction (:meth:`~DisturbanceEkf.model_parameters`) take the learned exponent
+    only while it is not being learned, so a flow change is predicted with the value from before it, never a
+    half-learned one. docs/robustness.md sec. 2.7.
     """
 
     q_motor_c: float = 0.01
     initial_sd_motor_c: float = 0.5
+    motor_sd_after_response_c: float = 0.0
     q_water_c: float = 0.01
     q_heater_c: float = 0.1
     q_sensor_c: float = 0.02
@@ -146,18 +167,26 @@ class EkfSettings:
     q_bypass_flow_exponent: float = 1e-3
     bypass_flow_gate: float = 0.05
     bypass_flow_window_s: float = 10.0
+    bypass_flow_anchored: bool = False
+    bypass_flow_after_response: bool = False
+    bypass_flow_after_s: float = 0.0
+    bypass_flow_commit_at_rest: bool = False
+    bypass_flow_exponent_min: float = -3.0
+    bypass_flow_exponent_max: float = 3.0
 
     def validate(self, prefix: str = "ekf") -> None:
         for f in fields(self):
             value = getattr(self, f.name)
-            if f.name in ("use_heater_outlet", "learn_bypass_flow"):
+            if f.name in ("use_heater_outlet", "learn_bypass_flow", "bypass_flow_anchored",
+                          "bypass_flow_after_response", "bypass_flow_commit_at_rest"):
                 if not isinstance(value, bool):
                     raise InvalidSettings(f"{prefix}.{f.name} must be True or False")
                 continue
-            if f.name == "bypass_flow_exponent_prior":
+            if f.name in ("bypass_flow_exponent_prior", "bypass_flow_exponent_min", "bypass_flow_exponent_max"):
                 check_number(f"{prefix}.{f.name}", value, *BYPASS_FLOW_EXPONENT_RANGE)
                 continue
-            if f.name in ("dead_time_max_s", "dead_time_min_s", "dead_time_prior_s", "q_heater_outlet_offset_c"):
+            if f.name in ("dead_time_max_s", "dead_time_min_s", "dead_time_prior_s", "q_heater_outlet_offset_c",
+                          "motor_sd_after_response_c", "bypass_flow_after_s"):
                 check_number(f"{prefix}.{f.name}", value, 0.0, 30.0)
                 continue
             if f.name == "dead_time_initial_s":
@@ -165,6 +194,10 @@ class EkfSettings:
                 continue
             check_number(f"{prefix}.{f.name}", value, 0.0, 100.0 if f.name != "dead_time_window_s" else 3600.0,
                          lo_open=True)
+        if not self.bypass_flow_exponent_min <= self.bypass_flow_exponent_prior <= self.bypass_flow_exponent_max:
+            raise InvalidSettings(f"{prefix}.bypass_flow_exponent_prior must lie within [{prefix}.bypass_flow_exponent_min, "
+                                  f"{prefix}.bypass_flow_exponent_max] ({self.bypass_flow_exponent_min}, "
+                                  f"{self.bypass_flow_exponent_max}); got {self.bypass_flow_exponent_prior}")
 
 
 class DisturbanceEkf:
@@ -183,11 +216,15 @@ class DisturbanceEkf:
         # the filter's own bypass-flow exponent (the prior, learned if so set) where the model has the effect
         self.adapts_bypass_flow = bool(learn_bypass_flow and "bypass_flow" in model.effects)
         self.learns_bypass_flow = self.adapts_bypass_flow and s.learn_bypass_flow
+        # ... with its reference mass flow a state following the flow (EkfSettings.bypass_flow_anchored)
+        self.anchors_bypass_flow = self.learns_bypass_flow and s.bypass_flow_anchored
+        self.i_ref_p = model.param_names.index("bypass_ref_mass_flow_kgs")
         # model states, disturbance states and, when learned, the bypass-flow exponent
         # ... and the heater outlet reading's own offset (an integrating disturbance per measured output)
         self.has_outlet_offset = bool(s.use_heater_outlet and s.q_heater_outlet_offset_c > 0.0)
-        self.nc = self.nx + 3 + int(self.learns_bypass_flow) + int(self.has_outlet_offset)
+        self.nc = self.nx + 3 + int(self.learns_bypass_flow) + int(self.anchors_bypass_flow) + int(self.has_outlet_offset)
         self.i_exponent = self.nx + 3 if self.learns_bypass_flow else None
+        self.i_anchor = self.nx + 4 if self.anchors_bypass_flow else None  # ln of the reference mass flow (kg/s)
         self.i_outlet_offset = self.nc - 1 if self.has_outlet_offset else None
         self.n_hist = int(round(s.dead_time_max_s / self.dt_s))
         self.nz = self.nc + self.n_hist  # ... and the history of the undelayed thermocouple state
@@ -198,7 +235,7 @@ class DisturbanceEkf:
                    "supply_sensor_c": s.q_sensor_c, "trap_air_temp_c": s.q_trap_c}
         q_state.update({n: s.q_sensor_c for n in model.delay_states})
         q = [q_state[n] for n in names] + [s.q_mix_offset_c, s.q_flow_offset_m3s, s.q_inlet_c]
-        q += [s.q_bypass_flow_exponent] * int(self.learns_bypass_flow)
+        q += [s.q_bypass_flow_exponent] * int(self.learns_bypass_flow) + [0.0] * int(self.anchors_bypass_flow)
         q += [s.q_heater_outlet_offset_c] * int(self.has_outlet_offset) + [HIST_Q_C] * self.n_hist
         self.Q = np.diag(np.square(q))
         # the prior stands for a dead time the parameters do not name: none where they name one
@@ -213,6 +250,10 @@ class DisturbanceEkf:
         self.P: np.ndarray | None = None
         self._log_flow_mean: float | None = None
         self.learning = False  # the bypass-flow exponent's gate: the flow moves
+        self._motor_released = False  # the motor rise's variance raised once a response was seen
+        self._age_s = 0.0  # time since initialise
+        self._committed = s.bypass_flow_exponent_prior  # the exponent at the end of the last flow change
+        self._mix = BufferedFunction(self.mix_fn, fixed={3: self.p}) if self.anchors_bypass_flow else None
 
     def _d(self, z, setpoint):
         x = z[:self.nx]
@@ -238,9 +279,11 @@ class DisturbanceEkf:
         d = self._d(zc, sp)
         x = zc[:nx]
         pm = p
-        if self.learns_bypass_flow:  # the estimated exponent in place of the parameter
-            i = self.i_exponent_p
-            pm = ca.vertcat(p[:i], zc[self.i_exponent], p[i + 1:])
+        if self.learns_bypass_flow:  # the estimated exponent (and anchor) in place of the parameters
+            own = {self.i_exponent_p: zc[self.i_exponent]}
+            if self.anchors_bypass_flow:
+                own[self.i_ref_p] = ca.exp(zc[self.i_anchor])
+            pm = ca.vertcat(*[own.get(i, p[i]) for i in range(p.shape[0])])
         xk = rk4(m.ode, x, u, d, pm, self.dt_s, 2)
         # shift register: the newest history entry is the thermocouple state now, the others move on
         hist = z[nc:]
@@ -255,6 +298,8 @@ class DisturbanceEkf:
         # set one) without the offset state, for the dead time beyond the model's
         air = y[m.outputs.index("duct_air_temp_c")] - zc[nx]
         flow = y[m.outputs.index("volume_flow_m3s")]
+        self.mix_fn = ca.Function("ekf_mix", [z, u, sp, p], [y[m.outputs.index("supply_air_temp_c")],
+                                                          y[m.outputs.index("mass_flow_kgs")]])
         self.f_p = ca.Function("ekf_f", [z, u, sp, p], [zn, ca.jacobian(zn, z), air, flow])
         self.h_p = ca.Function("ekf_h", [z, u, sp, p, c], [meas, ca.jacobian(meas, z)])
         self.h = BufferedFunction(self.h_p, fixed={4: self.c_now})
@@ -337,7 +382,8 @@ class DisturbanceEkf:
         water = finite_or(measurement.water_temp_c, setpoint_c)
         target = water if self.hold_water else setpoint_c
         d = m.d_vector(inlet, target)
-        p = self.model_parameters(self.settings.bypass_flow_exponent_prior)
+        # anchored, the split at the flow in force is the thesis model's whatever the exponent
+        p = self.model_parameters(0.0 if self.anchors_bypass_flow else self.settings.bypass_flow_exponent_prior)
         try:
             x = m.steady_state(u, d, p)
             if not np.all(np.isfinite(x)):
@@ -359,14 +405,20 @@ class DisturbanceEkf:
         p0.update({n: 0.1 for n in m.delay_states})
         s = self.settings
         exponent = [s.bypass_flow_exponent_prior] * int(self.learns_bypass_flow)
+        mass_flow = y["mass_flow_kgs"] * flow / max(y["volume_flow_m3s"], 1e-6)  # the measured flow's
+        anchor = [math.log(max(mass_flow, 1e-5))] * int(self.anchors_bypass_flow)
         outlet = [0.0] * int(self.has_outlet_offset)
-        self.z = np.concatenate([self.z[:self.nx + 3], exponent, outlet, self.z[self.nx + 3:]])
+        self.z = np.concatenate([self.z[:self.nx + 3], exponent, anchor, outlet, self.z[self.nx + 3:]])
         sd = [p0[n] for n in m.states.names] + [0.5, 2e-3, 0.1] + [s.bypass_flow_exponent_sd] * len(exponent)
+        sd += [0.0] * len(anchor)
         sd += [1.0] * len(outlet) + [0.1] * self.n_hist
         self.P = np.diag(np.square(sd))
         self.dead_time.reset()
         self._log_flow_mean = None
         self.learning = False
+        self._motor_released = False
+        self._age_s = 0.0
+        self._committed = s.bypass_flow_exponent_prior
 
     def use_functions(self, predict_fn, update_fn) -> None:
         """Evaluate the time and measurement updates with these functions (the same signatures as
@@ -398,9 +450,10 @@ class DisturbanceEkf:
     def accept_prediction(self, z_next: np.ndarray, P_next_t: np.ndarray, air: np.ndarray, flow: np.ndarray) -> None:
         """Take the time update's results (as the time-update function returns them, ``P`` column-major)."""
         self.z, self.P = z_next, P_next_t.T  # buffers are column-major
+        self._age_s += self.dt_s
         if self.n_hist:
             self.dead_time.push_air(float(air[0]))
-        if self.learns_bypass_flow:
+        if self.learns_bypass_flow and not self.anchors_bypass_flow:
             self._gate(float(flow[0]))
 
     def _gate(self, flow_m3s: float) -> None:
@@ -411,13 +464,48 @@ class DisturbanceEkf:
         if self._log_flow_mean is None:
             self._log_flow_mean = log_flow
         self._log_flow_mean += min(1.0, self.dt_s / s.bypass_flow_window_s) * (log_flow - self._log_flow_mean)
-        self.learning = abs(log_flow - self._log_flow_mean) > s.bypass_flow_gate
+        self._set_learning(abs(log_flow - self._log_flow_mean) > s.bypass_flow_gate)
+
+    def _set_learning(self, flow_moves: bool) -> None:
+        """Learn the exponent while the flow moves (and, with ``bypass_flow_after_response``, once the dead-time
+        estimate has seen a response); otherwise it is a constant to the filter, without correlations."""
+        s = self.settings
+        seen = self.dead_time.informed or not self.n_hist or not s.bypass_flow_after_response
+        self.learning = bool(flow_moves and seen and self._age_s >= s.bypass_flow_after_s)
         if not self.learning:  # a constant to the filter: no correlation with the other states
-            i = self.i_exponent
-            keep = self.P[i, i]
-            self.P[i, :] = 0.0
-            self.P[:, i] = 0.0
-            self.P[i, i] = keep
+            self._decorrelate(self.i_exponent)
+            self._committed = float(self.z[self.i_exponent])
+
+    def _release_motor(self) -> None:
+        """Once the dead-time estimate has seen a response (or with no dead-time handling), raise the motor
+        rise's standard deviation to ``motor_sd_after_response_c`` (if it is below): before, the timing of a
+        response is not known and the filter would take a late one for the motor (docs/robustness.md sec. 2.7)."""
+        sd = self.settings.motor_sd_after_response_c
+        if self._motor_released or sd <= 0.0 or not (self.dead_time.informed or not self.n_hist):
+            return
+        i = self.model.states.index("motor_rise_c")
+        self.P[i, i] = max(self.P[i, i], sd * sd)
+        self._motor_released = True
+
+    def _decorrelate(self, i: int) -> None:
+        """Drop the correlations of filter state ``i`` with the others (its variance kept)."""
+        keep = self.P[i, i]
+        self.P[i, :] = 0.0
+        self.P[:, i] = 0.0
+        self.P[i, i] = keep
+
+    def _move_anchor(self, u: np.ndarray, setpoint_c: float) -> None:
+        """Move the bypass split's reference mass flow towards the model's mass flow (time constant
+        ``bypass_flow_window_s``) and let the mixed-air offset take the change of the model's mixed air, so that
+        the prediction at the command in force does not move: the exponent shapes only the response to a flow
+        that differs from the recent one (``EkfSettings.bypass_flow_anchored``). Opens the exponent's gate."""
+        s, i = self.settings, self.i_anchor
+        air_before, mass_flow = (float(v[0]) for v in self._mix(self.z, u, setpoint_c))
+        log_flow = math.log(max(mass_flow, 1e-5))
+        self.z[i] += min(1.0, self.dt_s / s.bypass_flow_window_s) * (log_flow - self.z[i])
+        air_after = float(self._mix(self.z, u, setpoint_c)[0][0])
+        self.z[self.nx] += air_before - air_after
+        self._set_learning(abs(log_flow - self.z[i]) > s.bypass_flow_gate)
 
     def readings(self, measurement: Measurement) -> tuple[np.ndarray, np.ndarray]:
         """The measured values (order ``MEASURED``, 0 where unused) and which are used (finite and enabled)."""
@@ -430,11 +518,16 @@ class DisturbanceEkf:
         values, ok = self.readings(measurement)
         if not ok.any():
             return 0
+        if self.anchors_bypass_flow:
+            self._move_anchor(u, setpoint_c)
+        self._release_motor()
         zn, Pt = self._update(self.z, self.P, values, ok, u, setpoint_c, self._supply_weights(values[0], ok[0]),
                               float(self.learning))
         self.z, self.P = zn, Pt.T
         if self.learns_bypass_flow:
-            self.z[self.i_exponent] = np.clip(self.z[self.i_exponent], *BYPASS_FLOW_EXPONENT_RANGE)
+            s = self.settings
+            self.z[self.i_exponent] = np.clip(self.z[self.i_exponent], s.bypass_flow_exponent_min,
+                                              s.bypass_flow_exponent_max)
         return int(ok.sum())
 
     def _supply_weights(self, supply_c: float, used: bool) -> np.ndarray:
@@ -463,10 +556,7 @@ class DisturbanceEkf:
         if lo <= value <= hi:
             return
         self.z[i] = min(max(value, lo), hi)
-        keep = self.P[i, i]
-        self.P[i, :] = 0.0
-        self.P[:, i] = 0.0
-        self.P[i, i] = keep
+        self._decorrelate(i)
 
     # ------------------------------------------------------------------ views
     @property
@@ -495,10 +585,16 @@ class DisturbanceEkf:
 
     def model_parameters(self, exponent: float | None = None) -> np.ndarray:
         """The model parameters (``HvacModel.p_default`` order) with the bypass-flow exponent the
-        filter uses (or ``exponent``), for a prediction consistent with the estimate."""
+        filter uses (or ``exponent``; with ``bypass_flow_commit_at_rest`` the value from the end of the last flow
+        change) and, anchored, the split's reference mass flow at the anchor, for a prediction consistent with
+        the estimate."""
         p = self.p.copy()
+        if exponent is None and self.learns_bypass_flow and self.settings.bypass_flow_commit_at_rest:
+            exponent = self._committed  # the prediction takes a learned value only once its flow change is over
         if self.adapts_bypass_flow:
             p[self.i_exponent_p] = self.bypass_flow_exponent if exponent is None else exponent
+        if self.anchors_bypass_flow and self.z is not None:
+            p[self.i_ref_p] = math.exp(float(self.z[self.i_anchor]))
         return p
 
     def healthy(self) -> bool:

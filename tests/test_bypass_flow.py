@@ -22,15 +22,19 @@ BLOWER_STEPS_W = (120.0, 280.0, 80.0, 220.0, 140.0, 300.0)
 HOLD_S = 30
 
 
-def learn_on_box(exponent: float, prior: float, seed: int = 3) -> np.ndarray:
+def learn_on_box(exponent: float, prior: float, seed: int = 3, anchored: bool = False, after_s: float = 0.0,
+                 exponent_max: float = 3.0) -> np.ndarray:
     """The estimator fed open loop by the independent box whose split has ``exponent``; per sample the
-    learned exponent."""
+    learned exponent (``anchored``, ``after_s``, ``exponent_max``: the EkfSettings fields
+    bypass_flow_anchored, bypass_flow_after_s, bypass_flow_exponent_max)."""
     plant = make_plant(Variant(bypass_flow_exponent=exponent), seed=seed)
     plant.set_environment(inlet_temp_c=32.0, chiller_setpoint_c=5.0)
     commands = [Command(b, 0.0, 50.0, 100.0, 100.0, 100.0) for b in BLOWER_STEPS_W]
     plant.settle(commands[0])
     ekf = DisturbanceEkf(HvacModel(Parameters(), ("bypass_flow",)),
-                         EkfSettings(learn_bypass_flow=True, bypass_flow_exponent_prior=prior))
+                         EkfSettings(learn_bypass_flow=True, bypass_flow_exponent_prior=prior,
+                                     bypass_flow_anchored=anchored, bypass_flow_after_s=after_s,
+                                     bypass_flow_exponent_max=exponent_max))
     learned = []
     feed_open_loop(ekf, plant, commands, HOLD_S, lambda e: learned.append(e.bypass_flow_exponent))
     return np.array(learned)
@@ -45,6 +49,83 @@ def test_learned_exponent_converges_to_the_box_from_the_middle_of_the_range(trut
     ends = learned[[HOLD_S * (i + 1) - 1 for i in range(3, len(BLOWER_STEPS_W))]]
     assert np.all(np.abs(ends - truth) < 0.05)
     assert abs(learned[-1] - truth) < 0.5 * abs(0.2 - truth)
+
+
+@pytest.mark.parametrize("truth, prior", [(0.0, 0.2), (0.4, 0.0)])
+def test_anchored_exponent_learns_the_box_without_overshooting_it(truth, prior):
+    """Anchored (the split's reference flow follows the flow, the mixed-air offset taking the level), the
+    exponent is told only by a flow that differs from the recent one: on the first flow step it does not
+    swing past the box's value (unanchored it went to 0.86 for a box's 0.4, to -0.28 for its 0), and it ends
+    near the box's value."""
+    learned = learn_on_box(truth, prior, anchored=True)
+    lo, hi = min(truth, prior), max(truth, prior)
+    assert lo - 0.1 <= learned.min() and learned.max() <= hi + 0.1
+    assert abs(learned[-1] - truth) < 0.1
+    assert np.abs(learn_on_box(truth, prior) - truth).max() > 0.25  # the unanchored swing the anchor removes
+
+
+def test_anchored_exponent_moves_the_prediction_only_away_from_the_recent_flow():
+    """At the flow in force the anchored exponent does not move the model's supply air (so learning it
+    cannot step the prediction), at another flow it does; the anchor follows the flow and the mixed-air
+    offset takes the change, so the supply air the filter explains stays put."""
+    ekf = DisturbanceEkf(HvacModel(Parameters(), ("bypass_flow",)),
+                         EkfSettings(learn_bypass_flow=True, bypass_flow_anchored=True))
+    box = make_plant("nominal", seed=0)
+    box.set_environment(inlet_temp_c=32.0, chiller_setpoint_c=5.0)
+    u = Command(150.0, 0.0, 50.0, 100.0, 100.0, 100.0).vector()
+    box.settle(Command(150.0, 0.0, 50.0, 100.0, 100.0, 100.0))
+    ekf.initialise(box.read(), u, 5.0)
+
+    def air(z, command):
+        return float(ekf.mix_fn(z, command, 5.0, ekf.p)[0])
+
+    z = ekf.z.copy()
+    z[ekf.i_exponent] = 0.8
+    assert air(z, u) == pytest.approx(air(ekf.z, u), abs=1e-9)
+    more_flow = u.copy()
+    more_flow[0] = 300.0
+    assert abs(air(z, more_flow) - air(ekf.z, more_flow)) > 0.1
+    # the anchor moved towards a new flow: the offset takes the model's change, the supply air stays
+    ekf.z[ekf.i_exponent] = 0.8
+    anchor, before = ekf.z[ekf.i_anchor], air(ekf.z, more_flow)
+    ekf._move_anchor(more_flow, 5.0)
+    assert ekf.z[ekf.i_anchor] > anchor + 0.01
+    assert air(ekf.z, more_flow) == pytest.approx(before, abs=1e-9)
+
+
+def test_the_exponent_is_learned_only_after_the_start_up_and_within_its_range():
+    """``bypass_flow_after_s``: no learning before that long since the start (the filter's own start-up);
+    ``bypass_flow_exponent_min``/``_max``: the estimate held in its range (the box's 0.4 above a cap of 0.3)."""
+    late = learn_on_box(0.4, 0.0, anchored=True, after_s=HOLD_S * len(BLOWER_STEPS_W))
+    assert np.all(late == 0.0)
+    capped = learn_on_box(0.4, 0.0, anchored=True, exponent_max=0.3)
+    assert capped.max() == pytest.approx(0.3) and 0.25 < capped[-1] <= 0.3
+    with pytest.raises(InvalidSettings, match="ekf.bypass_flow_exponent_prior must lie within"):
+        EkfSettings(bypass_flow_exponent_min=0.5).validate()
+
+
+def test_the_prediction_takes_a_learned_exponent_only_once_its_flow_change_is_over():
+    """``bypass_flow_commit_at_rest``: while the flow moves the filter learns the exponent, but the parameters
+    it hands the prediction keep the value from before the change; once the flow has settled (the gate shut)
+    they take the learned value, so no transient is met with a half-learned exponent."""
+    plant = make_plant(Variant(bypass_flow_exponent=0.4), seed=3)
+    plant.set_environment(inlet_temp_c=32.0, chiller_setpoint_c=5.0)
+    commands = [Command(b, 0.0, 50.0, 100.0, 100.0, 100.0) for b in BLOWER_STEPS_W]
+    plant.settle(commands[0])
+    ekf = DisturbanceEkf(HvacModel(Parameters(), ("bypass_flow",)),
+                         EkfSettings(learn_bypass_flow=True, bypass_flow_anchored=True, bypass_flow_commit_at_rest=True))
+    i = ekf.i_exponent_p
+    rows = []
+    feed_open_loop(ekf, plant, commands, HOLD_S,
+                   lambda e: rows.append((e.bypass_flow_exponent, e.model_parameters()[i], e.learning)))
+    learned, used, moving = (np.array(c) for c in zip(*rows))
+    assert moving.any() and not moving.all() and not moving[0]
+    during = np.flatnonzero(moving)
+    assert np.all(used[during] == used[during - 1])  # held while the flow moves ...
+    assert np.abs(learned[during] - used[during]).max() > 0.1  # ... while the filter learns
+    at_rest = ~moving
+    assert np.allclose(used[at_rest], learned[at_rest])
+    assert abs(used[-1] - 0.4) < 0.1  # the box's value, once the steps are over
 
 
 def test_the_box_split_depends_on_the_flow_only_with_the_exponent():

@@ -84,6 +84,20 @@ def test_without_a_response_the_estimate_stays():
         est.push_air(20.0)
         est.observe(20.0 + 0.05 * rng.standard_normal())
     assert est.seconds == 0.0 and np.all(np.isnan(est.residuals))
+    assert not est.informed  # nothing to rank: the gates on a response seen stay shut
+
+
+def test_a_response_informs_the_estimate():
+    est = DeadTimeEstimator(max_steps=6, sensor_tau_s=5.73)
+    reading = 20.0
+    for k in range(40):
+        air = 20.0 if k < 20 else 17.0
+        est.push_air(air)
+        reading += (1.0 - est.lag) * (air - reading)
+        est.observe(reading)
+        if k < 20:
+            assert not est.informed
+    assert est.informed
 
 
 def test_the_prior_dead_time_stands_until_a_response_shows_another():
