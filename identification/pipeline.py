@@ -601,9 +601,10 @@ def _forward(fitter: Fitter, nominal: Fit, free: list[FreeParam], lib, max_effec
 
 def _backward(fitter: Fitter, current: Fit, free: list[FreeParam], accepted: list[CandidateResult], lib,
               base: Parameters, quick: bool, say, notes: list[str]) -> tuple[Fit, list[FreeParam]]:
-    """Re-test each kept effect with the others in: refit without it; drop it if the held-out error
-    rises by less than FORWARD_MIN of the structure it leaves."""
-    if len(accepted) < 2:
+    """Re-test each kept effect with the others in (the other effects and the discovered terms): refit
+    without it; drop it if the held-out error rises by less than FORWARD_MIN of the structure it leaves.
+    A lone effect is re-tested too when a term came in after it: the term may explain what it stood in for."""
+    if len(accepted) + len(current.terms) < 2:
         return current, free
     for acc in list(accepted):
         cand = next(c for c in lib if c.name == acc.name)
