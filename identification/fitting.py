@@ -19,6 +19,7 @@ from scipy.optimize import least_squares
 from hvac_mpc.models.parameters import Parameters
 
 from . import statistics as st
+from .pairs import gauss_newton_step
 from .log_data import LogData
 from .simulator import OutputPost, Simulator
 
@@ -185,11 +186,7 @@ class Fitter:
         extra = self.offset_gain_columns(bias_idx, gain_idx, y_gain, post.ramp)
         if extra:
             d = np.concatenate([d] + extra, axis=2)
-        ok = np.isfinite(self.y_meas) & self.log.train[:, None]
-        r = np.where(ok, (self.y_meas - y0) / self.sigma, 0.0)[self.log.train].ravel()
-        jm = np.where(ok[:, :, None], d / self.sigma[None, :, None], 0.0)[self.log.train].reshape(-1, d.shape[2])
-        jtj = jm.T @ jm
-        step = np.linalg.solve(jtj + damping * np.diag(np.diag(jtj) + 1e-12), jm.T @ r)
+        step, cost_start = gauss_newton_step(self.y_meas, y0, d, self.sigma, self.log.train, damping)
         all_free = list(free) + list(own)
         best = None
         for scale in (1.0, 0.5, 0.25, 0.0):
@@ -206,7 +203,7 @@ class Fitter:
             fit = self.evaluate(effects, p, trial, [fp.name for fp in all_free], 1, "one Gauss-Newton step", terms)
             if best is None or fit.cost_train < best.cost_train:
                 best = fit
-            if np.isfinite(fit.cost_train) and fit.cost_train <= float(r @ r):
+            if np.isfinite(fit.cost_train) and fit.cost_train <= cost_start:
                 break
         best.extra["start_p"] = p0.copy()  # where the step started (a pair's linear screening starts there too)
         return best

@@ -87,12 +87,21 @@ def linear_step(frame: Frame, y_cur: np.ndarray, j_free: np.ndarray, members: Se
     ``y_cur``); the step and the outputs it predicts (linear, no simulation)."""
     y_base = y_cur + sum((m.y0 - y_cur for m in members), np.zeros_like(y_cur))
     jac = np.concatenate([j_free] + [m.cols for m in members], axis=2)
-    ok = np.isfinite(frame.y_meas) & frame.train[:, None]
-    r = np.where(ok, (frame.y_meas - y_base) / frame.sigma, 0.0)[frame.train].ravel()
-    jm = np.where(ok[:, :, None], jac / frame.sigma[None, :, None], 0.0)[frame.train].reshape(-1, jac.shape[2])
-    jtj = jm.T @ jm
-    theta = np.linalg.solve(jtj + damping * np.diag(np.diag(jtj) + 1e-12), jm.T @ r)
+    theta, _ = gauss_newton_step(frame.y_meas, y_base, jac, frame.sigma, frame.train, damping)
     return theta, y_base + np.nan_to_num(np.einsum("nok,k->no", jac, theta))
+
+
+def gauss_newton_step(y_meas: np.ndarray, y_start: np.ndarray, jac: np.ndarray, sigma: np.ndarray,
+                      train: np.ndarray, damping: float) -> tuple[np.ndarray, float]:
+    """One Levenberg-Marquardt-damped Gauss-Newton step of the parameters whose output sensitivities are ``jac``
+    (n x outputs x k) from the outputs ``y_start`` (n x outputs), on the training rows (bool per row) with a
+    reading, each output scaled by its noise level ``sigma``; the step and the start's cost (sum of the scaled
+    squared residuals)."""
+    ok = np.isfinite(y_meas) & train[:, None]
+    r = np.where(ok, (y_meas - y_start) / sigma, 0.0)[train].ravel()
+    jm = np.where(ok[:, :, None], jac / sigma[None, :, None], 0.0)[train].reshape(-1, jac.shape[2])
+    jtj = jm.T @ jm
+    return np.linalg.solve(jtj + damping * np.diag(np.diag(jtj) + 1e-12), jm.T @ r), float(r @ r)
 
 
 def score(frame: Frame, y_cur: np.ndarray, j_free: np.ndarray, flow_cols: np.ndarray, members: Sequence[Member],
@@ -123,13 +132,13 @@ def screen_pairs(frame: Frame, y_cur: np.ndarray, j_free: np.ndarray, flow_cols:
         if (a, b) in exclude or (b, a) in exclude:
             continue
         step = score(frame, y_cur, j_free, flow_cols, members, (a, b))
-        step.joint_share = min(_share(singles[b].structure, step.structure),
-                               _share(singles[a].structure, step.structure))
+        step.joint_share = min(structure_share(singles[b].structure, step.structure),
+                               structure_share(singles[a].structure, step.structure))
         if step.structure < s_cur and step.joint_share >= min_share:
             kept.append(step)
     return sorted(kept, key=lambda s: float(s.cost_holdout.sum())), singles
 
 
-def _share(before: float, after: float) -> float:
+def structure_share(before: float, after: float) -> float:
     """Share of the structure ``before`` that ``after`` removes (0 when there is none to remove)."""
     return (before - after) / before if before > 0 else 0.0

@@ -51,7 +51,7 @@ from .discovery import CABIN_CANDIDATES
 from .diagnostics import diagnose, innovations_nll
 from .fitting import FLOW_PARAMS, IDENTIFIED_REL_SE, NOMINAL_FREE, Fit, Fitter, FreeParam, parameter_confidence
 from .log_data import LogData
-from .pairs import Frame, Member, Step, screen_pairs
+from .pairs import Frame, Member, Step, screen_pairs, structure_share
 from .simulator import OutputPost, Simulator, shift
 
 if TYPE_CHECKING:
@@ -628,6 +628,17 @@ def _backward(fitter: Fitter, current: Fit, free: list[FreeParam], accepted: lis
     return current, free
 
 
+def _drop_removed_partners(accepted: list[CandidateResult], discovered: dict | None) -> None:
+    """A pair member whose partner the backward pass removed was kept on its own in the end: it no longer says
+    it was kept only jointly."""
+    names = {a.name for a in accepted}
+    for a in accepted:
+        if a.jointly_with and not a.jointly_with.startswith("term ") and a.jointly_with not in names:
+            a.jointly_with = ""
+    if discovered and discovered.get("jointly_with") and discovered["jointly_with"] not in names:
+        discovered["jointly_with"] = ""
+
+
 def _discover(fitter: Fitter, current: Fit, free: list[FreeParam], quick: bool, say, notes: list[str]
               ) -> tuple[Fit, dict | None, list[tuple[Fit, dict]]]:
     """Term discovery on the supply temperature when its residual stays structured (:mod:`.discovery`). Returns the
@@ -856,8 +867,7 @@ def _pair_gate(fitter: Fitter, current: Fit, fit: Fit, sides: list[_Side], lr: f
     if p_value >= ALPHA / m:
         return f"not significant on the training rows (p = {p_value:.2g} >= {ALPHA / m:.2g})", info
     for sd, other in zip(sides, sides[::-1]):
-        before = fitter.structure(other.alone_fit.y)
-        share = (before - fitter.structure(fit.y)) / before if before > 0 else 0.0
+        share = structure_share(fitter.structure(other.alone_fit.y), fitter.structure(fit.y))
         info[f"needed_{sd.name}"] = share
         if share < FORWARD_MIN:
             return (f"{sd.name} removes {100 * share:.0f} % of the held-out structure {other.name} leaves alone "
@@ -1049,8 +1059,10 @@ def identify(log: LogData, base: Parameters | None = None, base_effects: Iterabl
             say, notes)
         accepted += joint
         discovered = joint_term or discovered
+    current.extra.pop("open_round", None)  # the last round's fits: not kept alive in the final model
     clock.lap("pairs")
     current, current_free = _backward(fitter, current, current_free, accepted, lib, base, quick, say, notes)
+    _drop_removed_partners(accepted, discovered)
     clock.lap("candidates")
     final = current
     diag_after = diag_before if final is nominal else diagnose(fitter, final)
