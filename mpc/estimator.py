@@ -223,9 +223,10 @@ class EkfSettings:
         if self.learn_bypass_flow:
             return
         for name, inert in BYPASS_FLOW_LEARNING_GATES.items():
-            if getattr(self, name) != inert:
-                raise InvalidSettings(f"{prefix}.{name} = {getattr(self, name)!r} shapes the learning of the bypass-flow "
-                                      f"exponent and needs {prefix}.learn_bypass_flow = True (else leave it at {inert!r})")
+            value = getattr(self, name)
+            if value != inert:
+                raise InvalidSettings(f"{prefix}.{name} = {value!r} shapes the learning of the bypass-flow exponent "
+                                      f"and needs {prefix}.learn_bypass_flow = True (else leave it at {inert!r})")
 
 
 class DisturbanceEkf:
