@@ -64,6 +64,14 @@ from .ocp import InvalidSettings, check_number
 HIST_Q_C = 1e-4
 #: Range of the bypass-flow exponent (that of Parameters.bypass_flow_exponent); the estimate is clipped to it.
 BYPASS_FLOW_EXPONENT_RANGE = (-3.0, 3.0)
+#: Ranges of settings with their own: ``bypass_flow_after_s`` (s) at most an hour, a start-up and not a run (the
+#: dead-time estimate's window has the same bound); ``motor_sd_after_response_c`` (degC) at most the largest motor
+#: rise the parameters allow (``Parameters.motor_gain_max_c`` at most 10 degC).
+OWN_RANGES = {"bypass_flow_after_s": (0.0, 3600.0), "motor_sd_after_response_c": (0.0, 10.0)}
+#: Settings that shape the learning of the bypass-flow exponent and do nothing without ``learn_bypass_flow``
+#: (field -> its value that leaves learning as it is).
+BYPASS_FLOW_LEARNING_GATES = {"bypass_flow_anchored": False, "bypass_flow_after_response": False,
+                              "bypass_flow_after_s": 0.0, "bypass_flow_commit_at_rest": False}
 #: Measurement names in the order of the filter's measurement vector.
 MEASURED = ("supply_temp_c", "volume_flow_m3s", "water_temp_c", "hvac_inlet_temp_c", "heater_outlet_temp_c")
 
@@ -130,12 +138,16 @@ class EkfSettings:
     ``_max``: the range the estimate is held in (the prior within it). ``bypass_flow_after_response``: learn
     only once the dead-time estimate has seen a response (:attr:`~.dead_time.DeadTimeEstimator.informed`;
     always with the dead-time handling off). ``motor_sd_after_response_c``: once a response is seen, the
-    motor rise's standard deviation is raised to this (degC; 0: never), for ``initial_sd_motor_c`` small
-    until the timing of a response is known. ``bypass_flow_after_s``: no learning in the first seconds after
-    :meth:`~DisturbanceEkf.initialise` (the filter's own start-up). ``bypass_flow_commit_at_rest``: the
-    parameters handed to the prediction (:meth:`~DisturbanceEkf.model_parameters`) take the learned exponent
+    motor rise's standard deviation is raised to this (degC in [0, 10], the largest motor rise the parameters
+    allow; 0: never), for ``initial_sd_motor_c`` small until the timing of a response is known; it acts with or
+    without the learning. ``bypass_flow_after_s``: no learning in the first seconds after
+    :meth:`~DisturbanceEkf.initialise` (the filter's own start-up; s in [0, 3600]). ``bypass_flow_commit_at_rest``:
+    the parameters handed to the prediction (:meth:`~DisturbanceEkf.model_parameters`) take the learned exponent
     only while it is not being learned, so a flow change is predicted with the value from before it, never a
-    half-learned one. docs/robustness.md sec. 2.7.
+    half-learned one. ``bypass_flow_anchored``, ``bypass_flow_after_response``, ``bypass_flow_after_s`` and
+    ``bypass_flow_commit_at_rest`` shape the learning: set without ``learn_bypass_flow`` they are an error
+    (:meth:`validate`). ``bypass_flow_exponent_min`` < ``bypass_flow_exponent_max``, both in [-3, 3].
+    docs/robustness.md sec. 2.7.
     """
 
     q_motor_c: float = 0.01
@@ -185,19 +197,36 @@ class EkfSettings:
             if f.name in ("bypass_flow_exponent_prior", "bypass_flow_exponent_min", "bypass_flow_exponent_max"):
                 check_number(f"{prefix}.{f.name}", value, *BYPASS_FLOW_EXPONENT_RANGE)
                 continue
-            if f.name in ("dead_time_max_s", "dead_time_min_s", "dead_time_prior_s", "q_heater_outlet_offset_c",
-                          "motor_sd_after_response_c", "bypass_flow_after_s"):
+            if f.name in ("dead_time_max_s", "dead_time_min_s", "dead_time_prior_s", "q_heater_outlet_offset_c"):
                 check_number(f"{prefix}.{f.name}", value, 0.0, 30.0)
+                continue
+            if f.name in OWN_RANGES:
+                check_number(f"{prefix}.{f.name}", value, *OWN_RANGES[f.name])
                 continue
             if f.name == "dead_time_initial_s":
                 check_number(f"{prefix}.{f.name}", value, 0.0, float(self.dead_time_max_s))
                 continue
             check_number(f"{prefix}.{f.name}", value, 0.0, 100.0 if f.name != "dead_time_window_s" else 3600.0,
                          lo_open=True)
+        self._validate_bypass_flow(prefix)
+
+    def _validate_bypass_flow(self, prefix: str) -> None:
+        """The exponent's range before the prior within it; the learning's gates only with the learning."""
+        if not self.bypass_flow_exponent_min < self.bypass_flow_exponent_max:
+            raise InvalidSettings(f"{prefix}.bypass_flow_exponent_min must be less than "
+                                  f"{prefix}.bypass_flow_exponent_max; got {self.bypass_flow_exponent_min} and "
+                                  f"{self.bypass_flow_exponent_max}")
         if not self.bypass_flow_exponent_min <= self.bypass_flow_exponent_prior <= self.bypass_flow_exponent_max:
             raise InvalidSettings(f"{prefix}.bypass_flow_exponent_prior must lie within [{prefix}.bypass_flow_exponent_min, "
                                   f"{prefix}.bypass_flow_exponent_max] ({self.bypass_flow_exponent_min}, "
                                   f"{self.bypass_flow_exponent_max}); got {self.bypass_flow_exponent_prior}")
+        if self.learn_bypass_flow:
+            return
+        for name, inert in BYPASS_FLOW_LEARNING_GATES.items():
+            value = getattr(self, name)
+            if value != inert:
+                raise InvalidSettings(f"{prefix}.{name} = {value!r} shapes the learning of the bypass-flow exponent "
+                                      f"and needs {prefix}.learn_bypass_flow = True (else leave it at {inert!r})")
 
 
 class DisturbanceEkf:
@@ -223,8 +252,11 @@ class DisturbanceEkf:
         # ... and the heater outlet reading's own offset (an integrating disturbance per measured output)
         self.has_outlet_offset = bool(s.use_heater_outlet and s.q_heater_outlet_offset_c > 0.0)
         self.nc = self.nx + 3 + int(self.learns_bypass_flow) + int(self.anchors_bypass_flow) + int(self.has_outlet_offset)
-        self.i_exponent = self.nx + 3 if self.learns_bypass_flow else None
-        self.i_anchor = self.nx + 4 if self.anchors_bypass_flow else None  # ln of the reference mass flow (kg/s)
+        # the disturbance states follow the model states (module docstring)
+        self.i_mix_offset, self.i_flow_offset, self.i_inlet = self.nx, self.nx + 1, self.nx + 2
+        self.i_exponent = self.i_inlet + 1 if self.learns_bypass_flow else None
+        # ln of the reference mass flow (kg/s), next to the exponent
+        self.i_anchor = self.i_exponent + 1 if self.anchors_bypass_flow else None
         self.i_outlet_offset = self.nc - 1 if self.has_outlet_offset else None
         self.n_hist = int(round(s.dead_time_max_s / self.dt_s))
         self.nz = self.nc + self.n_hist  # ... and the history of the undelayed thermocouple state
@@ -248,17 +280,23 @@ class DisturbanceEkf:
         self._build()
         self.z: np.ndarray | None = None
         self.P: np.ndarray | None = None
-        self._log_flow_mean: float | None = None
-        self.learning = False  # the bypass-flow exponent's gate: the flow moves
-        self._motor_released = False  # the motor rise's variance raised once a response was seen
-        self._age_s = 0.0  # time since initialise
-        self._committed = s.bypass_flow_exponent_prior  # the exponent at the end of the last flow change
+        self._restart()
         self._mix = BufferedFunction(self.mix_fn, fixed={3: self.p}) if self.anchors_bypass_flow else None
 
     def _d(self, z, setpoint):
         x = z[:self.nx]
         target = x[self.i_water] if self.hold_water else setpoint
-        return ca.vertcat(z[self.nx + 2], target, z[self.nx], z[self.nx + 1])
+        return ca.vertcat(z[self.i_inlet], target, z[self.i_mix_offset], z[self.i_flow_offset])
+
+    def _restart(self) -> None:
+        """Forget what the last run left besides the state and its covariance: the dead-time estimate, the
+        exponent's gate, start-up clock and committed value, and the motor rise's release."""
+        self.dead_time.reset()
+        self._log_flow_mean: float | None = None
+        self.learning = False  # the bypass-flow exponent's gate: the flow moves
+        self._motor_released = False  # the motor rise's variance raised once a response was seen
+        self._age_s = 0.0  # time since initialise
+        self._committed = self.settings.bypass_flow_exponent_prior  # the exponent at the end of the last flow change
 
     def _build(self) -> None:
         m, nx, nc = self.model, self.nx, self.nc
@@ -293,10 +331,10 @@ class DisturbanceEkf:
         outlet = y[m.outputs.index("heater_outlet_temp_c")]
         if self.has_outlet_offset:
             outlet = outlet + zc[self.i_outlet_offset]
-        meas = ca.vertcat(supply, y[m.outputs.index("volume_flow_m3s")], x[self.i_water], zc[nx + 2], outlet)
+        meas = ca.vertcat(supply, y[m.outputs.index("volume_flow_m3s")], x[self.i_water], zc[self.i_inlet], outlet)
         # the model's air at the thermocouple (after the model's own transport delay, if its parameters
         # set one) without the offset state, for the dead time beyond the model's
-        air = y[m.outputs.index("duct_air_temp_c")] - zc[nx]
+        air = y[m.outputs.index("duct_air_temp_c")] - zc[self.i_mix_offset]
         flow = y[m.outputs.index("volume_flow_m3s")]
         self.mix_fn = ca.Function("ekf_mix", [z, u, sp, p], [y[m.outputs.index("supply_air_temp_c")],
                                                           y[m.outputs.index("mass_flow_kgs")]])
@@ -364,11 +402,11 @@ class DisturbanceEkf:
         return self.z is not None
 
     def reset(self) -> None:
+        """Forget the estimate: the next :meth:`initialise` starts afresh, and until then
+        :meth:`model_parameters` is that of a filter never run (the prior exponent)."""
         self.z = None
         self.P = None
-        self.dead_time.reset()
-        self._log_flow_mean = None
-        self.learning = False
+        self._restart()
 
     @property
     def dead_time_s(self) -> float:
@@ -408,17 +446,12 @@ class DisturbanceEkf:
         mass_flow = y["mass_flow_kgs"] * flow / max(y["volume_flow_m3s"], 1e-6)  # the measured flow's
         anchor = [math.log(max(mass_flow, 1e-5))] * int(self.anchors_bypass_flow)
         outlet = [0.0] * int(self.has_outlet_offset)
-        self.z = np.concatenate([self.z[:self.nx + 3], exponent, anchor, outlet, self.z[self.nx + 3:]])
+        self.z = np.concatenate([self.z[:self.i_inlet + 1], exponent, anchor, outlet, self.z[self.i_inlet + 1:]])
         sd = [p0[n] for n in m.states.names] + [0.5, 2e-3, 0.1] + [s.bypass_flow_exponent_sd] * len(exponent)
         sd += [0.0] * len(anchor)
         sd += [1.0] * len(outlet) + [0.1] * self.n_hist
         self.P = np.diag(np.square(sd))
-        self.dead_time.reset()
-        self._log_flow_mean = None
-        self.learning = False
-        self._motor_released = False
-        self._age_s = 0.0
-        self._committed = s.bypass_flow_exponent_prior
+        self._restart()
 
     def use_functions(self, predict_fn, update_fn) -> None:
         """Evaluate the time and measurement updates with these functions (the same signatures as
@@ -504,7 +537,7 @@ class DisturbanceEkf:
         log_flow = math.log(max(mass_flow, 1e-5))
         self.z[i] += min(1.0, self.dt_s / s.bypass_flow_window_s) * (log_flow - self.z[i])
         air_after = float(self._mix(self.z, u, setpoint_c)[0][0])
-        self.z[self.nx] += air_before - air_after
+        self.z[self.i_mix_offset] += air_before - air_after
         self._set_learning(abs(log_flow - self.z[i]) > s.bypass_flow_gate)
 
     def readings(self, measurement: Measurement) -> tuple[np.ndarray, np.ndarray]:
@@ -565,15 +598,15 @@ class DisturbanceEkf:
 
     @property
     def mix_offset_c(self) -> float:
-        return float(self.z[self.nx])
+        return float(self.z[self.i_mix_offset])
 
     @property
     def flow_offset_m3s(self) -> float:
-        return float(self.z[self.nx + 1])
+        return float(self.z[self.i_flow_offset])
 
     @property
     def inlet_temp_c(self) -> float:
-        return float(self.z[self.nx + 2])
+        return float(self.z[self.i_inlet])
 
     @property
     def bypass_flow_exponent(self) -> float:

@@ -285,6 +285,13 @@ def _delay_to_estimator(settings: MpcSettings, params: Parameters) -> tuple[MpcS
     return dataclasses.replace(settings, ekf=ekf), params.replace(transport_delay_s=0.0)
 
 
+def _model_symbols(model: HvacModel) -> tuple:
+    """CasADi symbols of ``model``'s states, inputs and disturbances (x, u, d)."""
+    import casadi as ca
+    return tuple(ca.SX.sym(n, len(s)) for n, s in (("x", model.states), ("u", model.inputs),
+                                                    ("d", model.disturbances)))
+
+
 def _heater_inlet_function(model: HvacModel) -> Callable | None:
     """(x, u, d) -> air entering the heater (degC) of ``model`` where discovered terms change it (a term at the
     cooler core's outlet or on the air entering the box), else None (the cooler equation alone, as the trapped-air
@@ -292,23 +299,23 @@ def _heater_inlet_function(model: HvacModel) -> Callable | None:
     if not any(t.location in ("cooler_out", "box_in") for t in model.terms):
         return None
     import casadi as ca
-    x, u, d = (ca.SX.sym(n, len(s)) for n, s in (("x", model.states), ("u", model.inputs),
-                                                  ("d", model.disturbances)))
+    x, u, d = _model_symbols(model)
     t_cooler = model.algebraic(x, u, d, model.params)["t_cooler"]
     return ca.Function("heater_inlet", [x, u, d], [t_cooler])
 
 
 def _heater_body_rate_function(model: HvacModel) -> Callable | None:
-    """(x, u, d) -> the heater body's rate of change (degC/s) of ``model`` where a discovered term adds a heat flow
-    to the body (a ``heater_body`` term), else None (the trapped-air guard's bound relaxes towards the air then,
-    :class:`~.ocp.HeaterOffBound`)."""
+    """(x, u, d, p) -> the heater body's rate of change (degC/s) of ``model`` with the model parameters ``p``
+    (``HvacModel.p_default`` order: those the prediction uses, the learned bypass-flow exponent and anchor
+    included) where a discovered term adds a heat flow to the body (a ``heater_body`` term), else None (the
+    trapped-air guard's bound relaxes towards the air then, :class:`~.ocp.HeaterOffBound`)."""
     if not any(t.location == "heater_body" for t in model.terms):
         return None
     import casadi as ca
-    x, u, d = (ca.SX.sym(n, len(s)) for n, s in (("x", model.states), ("u", model.inputs),
-                                                  ("d", model.disturbances)))
-    rate = model.ode(x, u, d, model.p_default)[model.states.index("heater_temp_c")]
-    return ca.Function("heater_body_rate", [x, u, d], [rate])
+    x, u, d = _model_symbols(model)
+    p = ca.SX.sym("p", len(model.p_default))
+    rate = model.ode(x, u, d, p)[model.states.index("heater_temp_c")]
+    return ca.Function("heater_body_rate", [x, u, d, p], [rate])
 
 
 class MpcController:
@@ -586,10 +593,18 @@ class MpcController:
         nothing needs copying."""
         if not self.ekf.learns_bypass_flow:
             return
-        p = self.ekf.model_parameters()
+        p = self._prediction_parameters()
         self.solver.set_parameters(p)
         if self.reach is not None:
             self.reach.set_parameters(p)
+
+    def _prediction_parameters(self) -> np.ndarray:
+        """The model parameters (``HvacModel.p_default`` order) the prediction uses now: the filter's
+        (:meth:`~.estimator.DisturbanceEkf.model_parameters`) where it learns the bypass-flow exponent, else
+        those the problem was built with."""
+        if self.ekf.learns_bypass_flow:
+            return self.ekf.model_parameters()
+        return self.problem.model.p_default
 
     def _disturbance(self, setpoint: float) -> np.ndarray:
         e = self.ekf
@@ -626,10 +641,11 @@ class MpcController:
         i_heater = self.problem.model.states.index("heater_temp_c")
         d = self._disturbance(float(x[self.ekf.i_water]))
         state = np.array(x, float)
+        p = self._prediction_parameters()  # the prediction's: the bound follows the model the QP predicts with
 
         def rate(t_body_c: float) -> float:
             state[i_heater] = t_body_c
-            return float(self._heater_body_rate(state, self.u_prev, d))
+            return float(self._heater_body_rate(state, self.u_prev, d, p))
         return rate
 
     def _fallback_command(self, measurement: Measurement, ref: Reference | None) -> tuple[np.ndarray, str]:

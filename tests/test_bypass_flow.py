@@ -31,10 +31,10 @@ def learn_on_box(exponent: float, prior: float, seed: int = 3, anchored: bool = 
     plant.set_environment(inlet_temp_c=32.0, chiller_setpoint_c=5.0)
     commands = [Command(b, 0.0, 50.0, 100.0, 100.0, 100.0) for b in BLOWER_STEPS_W]
     plant.settle(commands[0])
-    ekf = DisturbanceEkf(HvacModel(Parameters(), ("bypass_flow",)),
-                         EkfSettings(learn_bypass_flow=True, bypass_flow_exponent_prior=prior,
-                                     bypass_flow_anchored=anchored, bypass_flow_after_s=after_s,
-                                     bypass_flow_exponent_max=exponent_max))
+    settings = EkfSettings(learn_bypass_flow=True, bypass_flow_exponent_prior=prior, bypass_flow_anchored=anchored,
+                           bypass_flow_after_s=after_s, bypass_flow_exponent_max=exponent_max)
+    settings.validate()  # the settings an MpcSettings would accept
+    ekf = DisturbanceEkf(HvacModel(Parameters(), ("bypass_flow",)), settings)
     learned = []
     feed_open_loop(ekf, plant, commands, HOLD_S, lambda e: learned.append(e.bypass_flow_exponent))
     return np.array(learned)
@@ -102,6 +102,79 @@ def test_the_exponent_is_learned_only_after_the_start_up_and_within_its_range():
     assert capped.max() == pytest.approx(0.3) and 0.25 < capped[-1] <= 0.3
     with pytest.raises(InvalidSettings, match="ekf.bypass_flow_exponent_prior must lie within"):
         EkfSettings(bypass_flow_exponent_min=0.5).validate()
+
+
+@pytest.mark.parametrize("fields, message", [
+    ({"bypass_flow_exponent_min": 1.0, "bypass_flow_exponent_max": 0.5},
+     r"ekf.bypass_flow_exponent_min must be less than .*ekf.bypass_flow_exponent_max; got 1.0 and 0.5"),
+    ({"bypass_flow_exponent_min": 0.5, "bypass_flow_exponent_max": 0.5}, r"must be less than"),
+    ({"learn_bypass_flow": True, "bypass_flow_after_s": 3601.0},
+     r"ekf.bypass_flow_after_s = 3601.0 is outside the allowed range \[0.0, 3600.0\]"),
+    ({"learn_bypass_flow": True, "bypass_flow_after_s": -1.0}, r"ekf.bypass_flow_after_s = -1.0 is outside"),
+    ({"motor_sd_after_response_c": 11.0}, r"ekf.motor_sd_after_response_c = 11.0 is outside the allowed range "
+                                          r"\[0.0, 10.0\]"),
+    ({"bypass_flow_anchored": True}, r"ekf.bypass_flow_anchored = True shapes the learning .* needs "
+                                     r".*ekf.learn_bypass_flow = True"),
+    ({"bypass_flow_after_response": True}, r"ekf.bypass_flow_after_response = True .*ekf.learn_bypass_flow"),
+    ({"bypass_flow_after_s": 30.0}, r"ekf.bypass_flow_after_s = 30.0 .*ekf.learn_bypass_flow"),
+    ({"bypass_flow_commit_at_rest": True}, r"ekf.bypass_flow_commit_at_rest = True .*ekf.learn_bypass_flow"),
+])
+def test_bad_bypass_flow_settings_are_refused_naming_the_fields(fields, message):
+    """Each bound its own range (the start-up gate up to an hour, the motor deviation up to the largest motor rise),
+    the exponent's range before the prior within it, and the learning's gates only with the learning; an
+    MpcSettings with them is refused and the defaults stand."""
+    with pytest.raises(InvalidSettings, match=message):
+        EkfSettings(**fields).validate()
+    with pytest.raises(InvalidSettings, match=message):
+        MpcSettings(ekf=EkfSettings(**fields))
+    EkfSettings(motor_sd_after_response_c=10.0).validate()  # the motor deviation acts without the learning
+    EkfSettings(learn_bypass_flow=True, bypass_flow_anchored=True, bypass_flow_after_s=3600.0).validate()
+
+
+def test_reset_forgets_the_last_runs_learned_exponent():
+    """After :meth:`DisturbanceEkf.reset` the parameters handed to the prediction are those of a filter never run
+    (the prior exponent), not the value the last run committed, and its start-up gate counts from 0 again."""
+    plant = make_plant(Variant(bypass_flow_exponent=0.4), seed=3)
+    plant.set_environment(inlet_temp_c=32.0, chiller_setpoint_c=5.0)
+    commands = [Command(b, 0.0, 50.0, 100.0, 100.0, 100.0) for b in BLOWER_STEPS_W]
+    plant.settle(commands[0])
+    settings = EkfSettings(learn_bypass_flow=True, bypass_flow_anchored=True, bypass_flow_commit_at_rest=True,
+                           motor_sd_after_response_c=0.5)
+    ekf = DisturbanceEkf(HvacModel(Parameters(), ("bypass_flow",)), settings)
+    fresh = ekf.model_parameters()
+    feed_open_loop(ekf, plant, commands, HOLD_S, lambda e: None)
+    i = ekf.i_exponent_p
+    assert abs(ekf.model_parameters()[i] - 0.4) < 0.1 and ekf._age_s > 0.0 and ekf._motor_released
+    ekf.reset()
+    assert np.array_equal(ekf.model_parameters(), fresh) and fresh[i] == 0.0
+    assert ekf._age_s == 0.0 and not ekf._motor_released and not ekf.learning
+
+
+def test_the_trapped_air_guard_takes_the_heater_body_rate_with_the_learned_parameters():
+    """With a ``heater_body`` term the guard's bound follows the body balance of the model the QP predicts with:
+    the learned exponent and anchor (DisturbanceEkf.model_parameters), not the parameters the problem was built
+    with."""
+    from hvac_mpc.contract import Measurement
+    from hvac_mpc.models.discovered import DiscoveredTerm
+    from hvac_mpc.models.model_file import RefinedModel
+
+    term = DiscoveredTerm("wall", "heater_body", ("body_minus_inlet", "one"), (-0.28, 0.14))
+    ekf = EkfSettings(learn_bypass_flow=True, bypass_flow_anchored=True, bypass_flow_exponent_prior=0.2)
+    ctrl = MpcController(settings=MpcSettings(codegen=False, ekf=ekf,
+                                              initial_command=Command(200.0, 0.0, 50.0, 100.0, 100.0, 100.0)),
+                         model=RefinedModel(Parameters(), ("bypass_flow",), terms=(term,)))
+    e, m = ctrl.ekf, ctrl.problem.model
+    e.initialise(Measurement(0.0, 12.0, 0.03, 10.0, water_temp_c=5.0), ctrl.u_prev, 5.0)
+    e.z[e.i_exponent], e.z[e.i_anchor] = 1.5, np.log(0.01)  # far from what the problem was built with
+    x = np.array(e.x, float)
+    x[m.states.index("heater_temp_c")] = 40.0
+
+    def body_rate(p):
+        return float(m.ode(x, ctrl.u_prev, ctrl._disturbance(5.0), p)[m.states.index("heater_temp_c")])
+
+    guard = ctrl._body_rate_at(e.x)(40.0)
+    assert guard == pytest.approx(body_rate(e.model_parameters()), abs=1e-12)
+    assert abs(guard - body_rate(m.p_default)) > 0.05
 
 
 def test_the_prediction_takes_a_learned_exponent_only_once_its_flow_change_is_over():
