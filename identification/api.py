@@ -15,15 +15,17 @@ from .pipeline import identify as _identify
 
 def identify(log: str | Path | LogData, params: Parameters | None = None, effects: Iterable[str] = (), *,
              mapping: Mapping[str, str] | None = None, holdout_fraction: float = 1 / 3, quick: bool = False,
-             max_effects: int = 4, progress: Callable[[str], None] | None = None) -> IdentificationResult:
+             max_effects: int = 4, progress: Callable[[str], None] | None = None,
+             pairs: bool = True) -> IdentificationResult:
     """Refine the model from a measurement log (a CSV/Parquet path or a prepared :class:`LogData`).
 
     ``params``/``effects``: the starting model (default: the thesis model); ``mapping``: log column ->
     schema column; the last ``holdout_fraction`` of the log is held out from fitting. The result
     holds the effects added, the refit parameters and the held-out errors before and after
     (``result.holdout_errors()``); ``hvac_mpc.identification.report.write_report`` writes the report
-    and the model file.
+    and the model file. ``pairs``: screen pairs of effects that only help together when forward
+    selection keeps nothing more (docs/identification.md, "Effects that only help together").
     """
     data = log if isinstance(log, LogData) else log_data.load(log, mapping, holdout_fraction)
     return _identify(data, params or Parameters(), tuple(effects), quick=quick, max_effects=max_effects,
-                     progress=progress)
+                     progress=progress, pairs=pairs)

@@ -428,3 +428,23 @@ def test_pair_screening_uses_the_flow_column_for_a_flow_side_member():
     frame, y_cur, j_free, flow_cols, members = _masking_case()
     alone = score(frame, y_cur, j_free, flow_cols, [dataclasses.replace(members[0], flow_side=True)], (0,))
     assert alone.structure < 0.01 * frame.structure(y_cur) and alone.theta[1] == pytest.approx(1.0, abs=0.05)
+
+
+def test_command_can_leave_out_the_pair_step(tmp_path, monkeypatch):
+    """``--no-pairs`` reaches the pipeline (the step is on by default); the wiring is checked on what the command
+    hands to ``identify``, the step itself in the pair tests."""
+    from hvac_mpc.identification import pipeline
+
+    seen = []
+
+    def fake_identify(*args, **kwargs):
+        seen.append(kwargs.get("pairs"))
+        raise RuntimeError("stop after the call")
+
+    path = tmp_path / "log.csv"
+    simulate_log(path, "nominal", duration_s=300, seed=5)
+    monkeypatch.setattr(pipeline, "identify", fake_identify)  # the command imports it at its call
+    for extra in ([], ["--no-pairs"]):
+        with pytest.raises(RuntimeError, match="stop after the call"):
+            main(["identify", str(path), "--out", str(tmp_path / "out"), "--quick", "--no-plots", "--quiet", *extra])
+    assert seen == [True, False]
