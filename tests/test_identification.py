@@ -442,7 +442,7 @@ def test_command_can_leave_out_the_pair_step(tmp_path, monkeypatch):
         raise RuntimeError("stop after the call")
 
     path = tmp_path / "log.csv"
-    simulate_log(path, "nominal", duration_s=300, seed=5)
+    simulate_log(path, "nominal", duration_s=700, seed=5)
     monkeypatch.setattr(pipeline, "identify", fake_identify)  # the command imports it at its call
     for extra in ([], ["--no-pairs"]):
         with pytest.raises(RuntimeError, match="stop after the call"):
