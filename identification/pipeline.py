@@ -36,7 +36,7 @@ import multiprocessing
 import os
 import time
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Callable, Iterable
+from typing import Callable, Iterable
 
 import numpy as np
 from scipy import stats
@@ -51,21 +51,18 @@ from .discovery import CABIN_CANDIDATES
 from .diagnostics import diagnose, innovations_nll
 from .fitting import FLOW_PARAMS, IDENTIFIED_REL_SE, NOMINAL_FREE, Fit, Fitter, FreeParam, parameter_confidence
 from .log_data import LogData
-from .pairs import Frame, Member, Step, screen_pairs, structure_share
+from .pair_step import pair_step
+from .selection import (ALPHA, BIAS_MIN, DISCOVERY_ALTERNATIONS, FORWARD_MIN, STRUCTURE_MIN, CandidateResult,
+                        bic_change, gains, output_share, record_own)
 from .simulator import OutputPost, Simulator, shift
-
-if TYPE_CHECKING:
-    from hvac_mpc.models.discovered import DiscoveredTerm
 
 #: The box's documented physics the identification starts from: the PTC power fall (thesis sec. 2.3)
 #: and the flow network (fan curve and closed-valve leaks, thesis sec. 3.2, tables 3-6); the
 #: controller's model carries them too (docs/identification.md).
 DOCUMENTED_EFFECTS = ("ptc_power_fall", "fan_curve", "valve_leakage")
 
-#: Decision thresholds (see the module docstring).
-ALPHA = 0.01
+#: Decision threshold (see the module docstring).
 EXPLAIN_MIN = 0.5
-STRUCTURE_MIN = 1.1
 #: Share of the training structure a candidate must remove with its own parameters alone to be
 #: refitted jointly with the free parameters (screening).
 SCREEN_MIN = 0.05
@@ -73,61 +70,17 @@ SCREEN_MIN = 0.05
 SCREEN_NFEV = 3
 #: Candidates refit fully per round (the best after the joint screening step).
 POLISH = 2
-#: Alternations between the whole-model refit and the discovered term's coefficients.
-DISCOVERY_ALTERNATIONS = 2
 #: Places of a discovered term refit and tested, best held-out prefix first (a place that wins on the linear score
 #: can lose after the whole-model refit; the next one is tried).
 PLACES_TRIED = 2
 #: Processes scoring candidates side by side (the benchmark's budget is two cores).
 WORKERS = 2
-#: Share of the held-out structure a forward step must remove (each kept effect, in the backward pass too).
-FORWARD_MIN = 0.1
-#: The same for an output offset with drift (a generic two-parameter correction must earn more).
-BIAS_MIN = 0.3
 #: Correlation of two candidates' held-out corrections above which they explain the same residual.
 SAME_RESIDUAL_CORR = 0.9
 #: Largest transport delay scanned, s.
 MAX_DELAY_S = 30.0
-#: Candidates of the last round offered to the pair step (the most training cost removed by their screening step).
-PAIR_CANDIDATES = 4
-#: Pairs refit fully, in the order of their linearised joint step, until one passes the gates.
-PAIR_REFIT = 2
 
 
-@dataclass
-class CandidateResult:
-    """How one candidate fared in one round."""
-
-    name: str
-    kind: str
-    round: int
-    status: str                      # skipped | rejected | accepted
-    reason: str = ""
-    description: str = ""
-    source: str = ""
-    regressor: str = ""
-    params: dict = field(default_factory=dict)
-    delay_s: float | None = None
-    bias: tuple | None = None
-    gain: float | None = None
-    cost_train: float = float("nan")
-    cost_holdout: float = float("nan")
-    train_reduction: float = float("nan")     # share of the training cost removed
-    explained_holdout: float = float("nan")   # share of the held-out structure removed
-    primary_output: str = ""
-    explained_primary: float = float("nan")   # share of the primary output's held-out structure removed
-    lr: float = float("nan")
-    dof: int = 0
-    p_value: float = float("nan")
-    p_threshold: float = float("nan")
-    bic_change: float = float("nan")      # information criterion with it minus without (training rows)
-    same_as: str = ""                     # candidate that explains the same residual
-    backward_share: float = float("nan")  # held-out structure its removal costs with the others in
-    jointly_with: str = ""                # accepted only together with this candidate or term (the pair step)
-    fit: Fit | None = None
-
-    def summary(self) -> dict:
-        return {k: v for k, v in self.__dict__.items() if k != "fit"}
 
 
 @dataclass
@@ -153,7 +106,7 @@ class IdentificationResult:
     timing_shift_samples: int = 0
     steps: list = field(default_factory=list)
     parameter_confidence: list = field(default_factory=list)  # fitting.parameter_confidence of the final fit
-    pairs: list = field(default_factory=list)  # the pair step's refit pairs (_pair_step), empty if it did not run
+    pairs: list = field(default_factory=list)  # the pair step's refit pairs (pair_step), empty if it did not run
 
     @property
     def sigma(self) -> dict[str, float]:
@@ -213,14 +166,9 @@ def _screen_and_fit(fitter: Fitter, current: Fit, free: list[FreeParam], effects
         current.extra["dy_free"] = dy_free
     keep = [k for k, fp in enumerate(free) if flow_side or fp.name not in FLOW_PARAMS]
     return fitter.gn_step(effects, p0, [free[k] for k in keep], dy_free[:, :, keep], own, post, bias_outputs,
-                          current.terms, gain_outputs=_gains(post, gain_outputs)), ""
+                          current.terms, gain_outputs=gains(post, gain_outputs)), ""
 
 
-def _gains(post: OutputPost, new=()) -> list[str]:
-    """Outputs whose gain is fitted: ``new`` and those already in ``post`` (refit with every candidate, like the
-    free parameters: a gain kept in an earlier round took up part of what a later effect explains, the PTC fall
-    on the heater power)."""
-    return list(dict.fromkeys(list(new) + list(post.gain)))
 
 
 def _score_model(fitter: Fitter, current: Fit, free: list[FreeParam], cand: Candidate) -> tuple[Fit | None, str]:
@@ -331,29 +279,8 @@ def check_timing(fitter_log: LogData, base: Parameters, base_effects, notes: lis
     return s
 
 
-def _output_share(fitter: Fitter, worse: Fit, better: Fit, output: str) -> float:
-    """Share of ``worse``'s held-out structure on ``output`` (scaled cost beyond the noise) that
-    ``better`` removes."""
-    j = fitter.outputs.index(output)
-    c_w, n = fitter.output_costs(worse.y)
-    c_b, _ = fitter.output_costs(better.y)
-    excess = c_w[j] - n[j]
-    return float((c_w[j] - c_b[j]) / excess) if excess > 0.1 * n[j] else 0.0
 
 
-def _bic_change(fitter: Fitter, new: Fit, current: Fit, q: int, output: str = "supply_temp_c") -> float:
-    """Change of the information criterion on the training rows of ``output`` (the candidate's primary
-    output; negative: the new structure is worth its q parameters): n_eff ln(C_new / C_cur) + q ln(n_eff),
-    BIC form (Schwarz). C is the output's scaled training cost floored at its noise expectation (a cost
-    below it carries no evidence); n_eff the effective sample size of its current residual, since an
-    autocorrelated residual would otherwise count every row as independent evidence. The other outputs
-    are guarded by the held-out gate (the total held-out error must fall)."""
-    c_new, n = fitter.output_costs(new.y, "train")
-    c_cur, _ = fitter.output_costs(current.y, "train")
-    j = fitter.outputs.index(output)
-    n_eff = max(st.effective_n((fitter.y_meas[:, j] - current.y[:, j])[fitter.log.train]), 2.0)
-    ratio = max(c_new[j], n[j]) / max(c_cur[j], n[j], 1e-300)
-    return float(n_eff * np.log(ratio) + q * np.log(n_eff))
 
 
 def _holdout_correction(fitter: Fitter, fit: Fit, current: Fit) -> np.ndarray:
@@ -397,7 +324,7 @@ def _score_round(fitter: Fitter, current: Fit, current_free, lib, rnd: int, say,
         res.fit = fit
         res.params = {k: v for k, v in _new_params(fitter, fit, current).items()
                       if k in {fp.name for fp in cand.params}}
-        _record_own(res, cand, fit, log.dt_s)
+        record_own(res, cand, fit, log.dt_s)
         res.cost_train, res.cost_holdout = fit.cost_train, fit.cost_holdout
         res.train_reduction = 1.0 - fit.cost_train / current.cost_train
         res.explained_holdout = (current.cost_holdout - fit.cost_holdout) / structured if structured > 0 else 0.0
@@ -407,18 +334,10 @@ def _score_round(fitter: Fitter, current: Fit, current_free, lib, rnd: int, say,
         excess = c_o[jp] - n_o[jp]
         res.explained_primary = ((c_o[jp] - c_new[jp]) / excess) if excess > 0.1 * n_o[jp] else float("nan")
         res.dof = {"delay": 1, "bias": 2, "gain": 1}.get(cand.kind, len(res.params) or len(cand.params))
-        res.bic_change = _bic_change(fitter, fit, current, res.dof, res.primary_output)
+        res.bic_change = bic_change(fitter, fit, current, res.dof, res.primary_output)
     return results
 
 
-def _record_own(res: CandidateResult, cand: Candidate, fit: Fit, dt_s: float) -> None:
-    """The candidate's own result in ``fit``, by kind: its delay (s), its offset and drift, or its gain."""
-    if cand.kind == "delay":
-        res.delay_s = fit.post.delays[cand.output] * dt_s
-    if cand.kind == "bias":
-        res.bias = fit.post.bias[cand.output]
-    if cand.kind == "gain":
-        res.gain = fit.post.gain[cand.output]
 
 
 def _score_one(fitter: Fitter, current: Fit, current_free, cand: Candidate) -> tuple[Fit | None, str]:
@@ -480,7 +399,7 @@ def _polish(fitter: Fitter, current: Fit, free, pairs: list, quick: bool) -> lis
         fit = fitter.fit(r.fit.effects, r.fit.p, list(free) + [fp for fp in cand.params], r.fit.post,
                          max_nfev=6 if quick else 8, terms=current.terms,
                          bias_outputs=[cand.output] if cand.kind == "bias" else (),
-                         gain_outputs=_gains(r.fit.post, [cand.output] if cand.kind == "gain" else ()))
+                         gain_outputs=gains(r.fit.post, [cand.output] if cand.kind == "gain" else ()))
         if not fit.cost_train < r.fit.cost_train:
             fit = r.fit
         return _slim(fit), innovations_nll(fitter, fit)[2]
@@ -554,11 +473,11 @@ def _forward(fitter: Fitter, nominal: Fit, free: list[FreeParam], lib, max_effec
             if polished is not r.fit:
                 r.fit, r.cost_train, r.cost_holdout = polished, polished.cost_train, polished.cost_holdout
                 r.explained_holdout = (current.cost_holdout - polished.cost_holdout) / fitter.structure(current.y)
-                r.explained_primary = _output_share(fitter, current, polished, r.primary_output)
+                r.explained_primary = output_share(fitter, current, polished, r.primary_output)
                 r.params = {k: v for k, v in _new_params(fitter, polished, current).items()
                             if k in {fp.name for fp in cand.params}}
-                _record_own(r, cand, polished, fitter.log.dt_s)
-            r.bic_change = _bic_change(fitter, r.fit, current, r.dof, r.primary_output)
+                record_own(r, cand, polished, fitter.log.dt_s)
+            r.bic_change = bic_change(fitter, r.fit, current, r.dof, r.primary_output)
             r.lr = nll_current - nll
             r.p_value = float(stats.chi2.sf(r.lr, r.dof)) if r.lr > 0 else 1.0
             r.p_threshold = ALPHA / m
@@ -611,7 +530,7 @@ def _backward(fitter: Fitter, current: Fit, free: list[FreeParam], accepted: lis
         effects, p, post, free_wo = _without(fitter, current, free, cand, base)
         say(f"backward pass: re-testing {acc.name}")
         fit_wo = fitter.fit(effects, p, free_wo, post, max_nfev=SCREEN_NFEV, terms=current.terms)
-        share = _output_share(fitter, fit_wo, current, acc.primary_output or "supply_temp_c")
+        share = output_share(fitter, fit_wo, current, acc.primary_output or "supply_temp_c")
         acc.backward_share = float(share)
         if share < FORWARD_MIN:
             acc.status = "removed"
@@ -693,261 +612,34 @@ def _fit_term(fitter: Fitter, current: Fit, free: list[FreeParam], term, record:
         term = discovery.refit_coefficients(fitter, fit, term)
     trial_terms = tuple(t for t in current.terms if t.name != term.name) + (term,)
     fit = fitter.evaluate(current.effects, fit.p, current.post, fit.free, terms=trial_terms)
-    gain = _output_share(fitter, current, fit, "supply_temp_c")
+    gain = output_share(fitter, current, fit, "supply_temp_c")
     record.update({"term": term.as_dict(), "formula": term.formula(), "words": term.description,
-                   "explained_holdout": gain, "bic_change": _bic_change(fitter, fit, current, len(term.features))})
+                   "explained_holdout": gain, "bic_change": bic_change(fitter, fit, current, len(term.features))})
     record["accepted"] = bool(gain >= FORWARD_MIN and record["bic_change"] < 0
                               and fit.cost_holdout < current.cost_holdout)
     return fit
 
 
-@dataclass
-class _Side:
-    """One member of a pair: a candidate of the last round (``result``, ``cand``, its own parameters ``own`` and the
-    parameter vector its screening step started from) or a discovered term that lost its whole-model refit
-    (``term``, ``record``); its linearisation at the current fit, its fit alone, its primary output and its
-    parameter count."""
-
-    member: Member
-    alone_fit: Fit
-    primary: str
-    dof: int
-    result: CandidateResult | None = None
-    cand: Candidate | None = None
-    own: tuple[FreeParam, ...] = ()
-    start_p: np.ndarray | None = None
-    term: DiscoveredTerm | None = None
-    record: dict | None = None
-
-    @property
-    def name(self) -> str:
-        return self.member.name
-
-    def alone(self) -> str:
-        """What it did alone, in words: the share of its primary output's held-out structure it removed (negative:
-        it made the fit worse)."""
-        share = float(self.record["explained_holdout"] if self.term is not None else self.result.explained_primary)
-        return (f"removed {100 * share:.0f} % of the held-out structure of {self.primary}" if np.isfinite(share)
-                else f"left {self.primary} without held-out structure to remove")
 
 
-def _candidate_side(fitter: Fitter, current: Fit, r: CandidateResult, cand: Candidate) -> _Side | None:
-    """A candidate of the last round linearised at ``current``: its start (grid point, delay) and its own columns
-    (parameters' sensitivities, offset and drift, gain), as its screening step had them."""
-    y_raw = current.extra.get("y_raw")
-    if y_raw is None:
-        y_raw = fitter.simulator(current.effects, current.terms).simulate(current.p)[0]
-    y0, cols, own, start = current.y, np.zeros(current.y.shape + (0,)), (), None
-    j = fitter.outputs.index(cand.output) if cand.output else None
-    if cand.kind in ("model", "parameter"):
-        own = tuple(fp for fp in cand.params if fp.name in r.params)
-        if not own:
-            return None
-        start = r.fit.extra.get("start_p", current.p)
-        effects = current.effects | frozenset(cand.effects)
-        y0, cols = current.post.apply(fitter.simulator(effects, current.terms).simulate(start)[0],
-                                      fitter.raw_sensitivity(effects, start, own, current.terms))
-    elif cand.kind == "delay":
-        y0 = r.fit.post.apply(y_raw)
-    elif cand.kind == "bias":
-        cols = fitter.offset_gain_columns([j], [], None, current.post.ramp)[0]
-    else:  # gain: the column is the output without its offsets
-        post = current.post.copy()
-        post.bias.pop(cand.output, None)
-        cols = fitter.offset_gain_columns([], [j], post.apply(y_raw), current.post.ramp)[0]
-    member = Member(cand.name, y0, cols, "volume_flow_m3s" in cand.signature or _moves_flow(fitter, cols))
-    return _Side(member, r.fit, r.primary_output, r.dof, r, cand, own, start)
 
 
-def _moves_flow(fitter: Fitter, cols: np.ndarray) -> bool:
-    """Whether a member's own columns move the logged flow on the training rows (scaled column norm at least 1, the
-    rule of :meth:`~.fitting.Fitter.identifiable`): valve a's shift does, through the core's flow loss, though its
-    signature is on the temperatures. Such a member's pair is refit with the flow equation's parameters."""
-    if "volume_flow_m3s" not in fitter.outputs or cols.shape[2] == 0:
-        return False
-    j = fitter.outputs.index("volume_flow_m3s")
-    ok = np.isfinite(fitter.y_meas[:, j]) & fitter.log.train
-    return bool(np.any(np.sqrt(np.sum((cols[ok, j, :] / fitter.sigma[j]) ** 2, axis=0)) >= 1.0))
 
 
-def _term_side(fitter: Fitter, current: Fit, alone: Fit, record: dict) -> _Side:
-    """A discovered term that lost its whole-model refit, linearised at ``current`` (its coefficients from 0)."""
-    t = alone.terms[-1]
-    cols = discovery.term_columns(fitter, current, t)
-    return _Side(Member(f"term {t.name}", current.y, cols), alone, "supply_temp_c", len(t.features),
-                 term=t, record=record)
 
 
-def _pair_sides(fitter: Fitter, current: Fit, open_round: list[CandidateResult], lib, rejected_terms
-                ) -> list[_Side]:
-    """The pair step's members: the ``PAIR_CANDIDATES`` candidates of the last round whose screening step removed
-    the most training cost (whatever it did on the held-out rows), and the discovered terms that lost their
-    whole-model refit."""
-    scored = sorted((r for r in open_round if r.fit is not None), key=lambda r: -r.train_reduction)
-    sides = [_candidate_side(fitter, current, r, next(c for c in lib if c.name == r.name))
-             for r in scored[:PAIR_CANDIDATES]]
-    return [sd for sd in sides if sd is not None] + [_term_side(fitter, current, f, rec) for f, rec in rejected_terms]
 
 
-@dataclass
-class _PairModel:
-    """A pair's structure and its start for the full refit (the linearised step applied)."""
-
-    effects: frozenset
-    p: np.ndarray
-    post: OutputPost
-    free: list[FreeParam]
-    bias: list[str]
-    gain: list[str]
-    term: DiscoveredTerm | None
 
 
-def _pair_model(fitter: Fitter, current: Fit, free: list[FreeParam], sides: list[_Side], step: Step
-                ) -> _PairModel:
-    """The structure of ``current`` with both members in, started at the linearised joint step ``step``."""
-    flow = any(sd.member.flow_side for sd in sides)
-    moved = [(fp, step.theta[k]) for k, fp in enumerate(free) if flow or fp.name not in FLOW_PARAMS]
-    p, effects, post = current.p.copy(), current.effects, current.post.copy()
-    model = _PairModel(effects, p, post, [fp for fp, _ in moved], [], [], None)
-    k = len(free)
-    for sd in sides:
-        theta = step.theta[k:k + sd.member.cols.shape[2]]
-        k += len(theta)
-        if sd.term is not None:
-            model.term = discovery.term_from(list(sd.term.features[:-1]), theta, sd.term.name, sd.term.location)
-        elif sd.cand.kind in ("model", "parameter"):
-            model.effects |= frozenset(sd.cand.effects)
-            for fp, th in zip(sd.own, theta):
-                i = fitter.names.index(fp.name)
-                p[i] = sd.start_p[i]
-                moved.append((fp, th))
-        elif sd.cand.kind == "delay":
-            post.delays[sd.cand.output] = sd.result.fit.post.delays[sd.cand.output]
-        else:
-            (model.bias if sd.cand.kind == "bias" else model.gain).append(sd.cand.output)
-    model.free = [fp for fp, _ in moved]
-    model.p = fitter.step_params(p, model.free, np.array([th for _, th in moved]))
-    return model
 
 
-def _refit_pair(fitter: Fitter, current: Fit, model: _PairModel, quick: bool) -> Fit:
-    """The whole model refit with both members (a term's coefficients alternated with the refit, as in discovery)."""
-    term, p, post = model.term, model.p, model.post
-    for _ in range(DISCOVERY_ALTERNATIONS if term else 1):
-        terms = current.terms + ((term,) if term else ())
-        fit = fitter.fit(model.effects, p, model.free, post, bias_outputs=model.bias, max_nfev=6 if quick else 8,
-                         terms=terms, gain_outputs=_gains(post, model.gain))
-        p, post = fit.p, fit.post
-        if term:
-            term = discovery.refit_coefficients(fitter, fit, term)
-    if term:
-        fit = fitter.evaluate(model.effects, p, post, fit.free, terms=current.terms + (term,))
-    return fit
 
 
-def _pair_gate(fitter: Fitter, current: Fit, fit: Fit, sides: list[_Side], lr: float, m: int) -> tuple[str, dict]:
-    """Why a refit pair cannot be kept ('' if it can), and its figures: the forward step's gates with both members'
-    parameters counted together (each member's primary output), and each member must remove ``FORWARD_MIN`` of the
-    held-out structure the other leaves alone."""
-    q = sum(sd.dof for sd in sides)
-    p_value = float(stats.chi2.sf(lr, q)) if lr > 0 else 1.0
-    info = {"explained_holdout": (current.cost_holdout - fit.cost_holdout) / max(fitter.structure(current.y), 1e-300),
-            "lr": lr, "dof": q, "p_value": p_value, "p_threshold": ALPHA / m}
-    if not fit.cost_holdout < current.cost_holdout:
-        return "does not lower the held-out error", info
-    for sd in sides:
-        need = BIAS_MIN if sd.cand is not None and sd.cand.kind == "bias" else FORWARD_MIN
-        share, bic = _output_share(fitter, current, fit, sd.primary), _bic_change(fitter, fit, current, q, sd.primary)
-        info[f"explained_{sd.primary}"], info[f"bic_change_{sd.primary}"] = share, bic
-        if share < need:
-            return (f"removes {100 * share:.0f} % of the held-out structure of {sd.primary} (needs "
-                    f"{100 * need:.0f} %)"), info
-        if not bic < 0:
-            return f"information criterion on the training rows of {sd.primary} does not fall ({bic:+.1f})", info
-    if p_value >= ALPHA / m:
-        return f"not significant on the training rows (p = {p_value:.2g} >= {ALPHA / m:.2g})", info
-    for sd, other in zip(sides, sides[::-1]):
-        share = structure_share(fitter.structure(other.alone_fit.y), fitter.structure(fit.y))
-        info[f"needed_{sd.name}"] = share
-        if share < FORWARD_MIN:
-            return (f"{sd.name} removes {100 * share:.0f} % of the held-out structure {other.name} leaves alone "
-                    f"(needs {100 * FORWARD_MIN:.0f} %): the pair is {other.name} with a passenger"), info
-        least = MIN_ABS_VALUE.get(sd.name)
-        if least is not None and max(abs(fit.p[fitter.names.index(fp.name)]) for fp in sd.own) < least:
-            return f"{sd.name}'s parameters stay below {least:g} in size", info
-    return "", info
 
 
-def _pair_step(fitter: Fitter, current: Fit, free: list[FreeParam], lib, rejected_terms, room: int, quick: bool,
-               rnd: int, say, notes: list[str]
-               ) -> tuple[Fit, list[FreeParam], list[CandidateResult], dict | None, list[dict]]:
-    """Pairs of effects that only help together (procedure step 7 of the module docstring). Returns the model, its
-    free parameters, the candidates kept (as results of round ``rnd``), the record of a term kept with one, and the
-    refit pairs' records."""
-    open_round = current.extra.get("open_round")
-    c_o, n_o = fitter.output_costs(current.y)
-    if open_round is None or room < 1 or not np.any(c_o / np.maximum(n_o, 1) >= STRUCTURE_MIN):
-        return current, free, [], None, []
-    sides = _pair_sides(fitter, current, open_round, lib, rejected_terms)
-    exclude = [(a, b) for a in range(len(sides)) for b in range(a + 1, len(sides))
-               if (sides[a].term is None) == (sides[b].term is None) and (sides[a].term is not None or room < 2)]
-    m = len(sides) * (len(sides) - 1) // 2 - len(exclude)
-    if m < 1:
-        return current, free, [], None, []
-    dy = current.extra.get("dy_free")
-    dy = fitter.raw_sensitivity(current.effects, current.p, free, current.terms) if dy is None else dy
-    frame = Frame(fitter.y_meas, fitter.sigma, fitter.log.train, fitter.log.holdout)
-    ranked, _ = screen_pairs(frame, current.y, current.post.apply(np.zeros(dy.shape[:2]), dy)[1],
-                             np.array([fp.name in FLOW_PARAMS for fp in free]), [sd.member for sd in sides],
-                             FORWARD_MIN, exclude)
-    top = [([sides[i] for i in st_.members], st_) for st_ in ranked[:PAIR_REFIT]]
-    say(f"pairs: {m} screened jointly, refitting {', '.join(' + '.join(sd.name for sd in two) for two, _ in top)}")
-    if not top:
-        notes.append(f"pairs: {m} pairs of {', '.join(sd.name for sd in sides)} screened jointly; in none does each "
-                     f"member remove {100 * FORWARD_MIN:.0f} % of the held-out structure the other leaves alone")
-    records, nll_current = [], innovations_nll(fitter, current)[2] if top else 0.0
-    for two, st_ in top:  # best linearised step first; the first pair that passes the gates is kept
-        fit = _refit_pair(fitter, current, _pair_model(fitter, current, free, two, st_), quick)
-        reason, info = _pair_gate(fitter, current, fit, two, nll_current - innovations_nll(fitter, fit)[2], m)
-        records.append(dict(info, members=[sd.name for sd in two], screened_pairs=m, status="rejected" if reason else
-                            "accepted", reason=reason, linear_holdout_cost=float(st_.cost_holdout.sum()),
-                            linear_joint_share=st_.joint_share, cost_holdout=fit.cost_holdout))
-        notes.append(f"pairs: {' + '.join(records[-1]['members'])} {records[-1]['status']}"
-                     + (f" ({reason})" if reason else ""))
-        if not reason:
-            return (*_accept_pair(fitter, current, free, two, fit, info, rnd, notes), records)
-    return current, free, [], None, records
 
 
-def _accept_pair(fitter: Fitter, current: Fit, free: list[FreeParam], sides: list[_Side], fit: Fit, info: dict,
-                 rnd: int, notes: list[str]) -> tuple[Fit, list[FreeParam], list[CandidateResult], dict | None]:
-    """Keeps a pair: its candidates as accepted results, its term in the model; says that they were found only
-    jointly and how each fared alone."""
-    kept, term_record = [], None
-    for sd, other in zip(sides, sides[::-1]):
-        together = _output_share(fitter, current, fit, sd.primary)
-        why = (f"accepted only jointly with {other.name}: alone (the other missing) it {sd.alone()}, together "
-               f"they remove {100 * together:.0f} % (information criterion {info[f'bic_change_{sd.primary}']:+.1f}, "
-               f"p = {info['p_value']:.2g}); the two mask each other, this log identifies them only together")
-        notes.append(f"pairs: {sd.name} {why}")
-        if sd.term is not None:
-            t = fit.terms[-1]
-            term_record = dict(sd.record, term=t.as_dict(), formula=t.formula(), words=t.description,
-                               explained_holdout=together, bic_change=info["bic_change_supply_temp_c"], accepted=True,
-                               jointly_with=other.name)
-            continue
-        acc = dataclasses.replace(sd.result, round=rnd, status="accepted", reason=why, jointly_with=other.name,
-                                  fit=fit, cost_train=fit.cost_train, cost_holdout=fit.cost_holdout,
-                                  explained_holdout=info["explained_holdout"], explained_primary=together,
-                                  bic_change=info[f"bic_change_{sd.primary}"], lr=info["lr"], dof=info["dof"],
-                                  p_value=info["p_value"], p_threshold=info["p_threshold"],
-                                  params={fp.name: float(fit.p[fitter.names.index(fp.name)]) for fp in sd.own})
-        _record_own(acc, sd.cand, fit, fitter.log.dt_s)
-        kept.append(acc)
-        free = free + [fp for fp in sd.own if fp not in free]
-    fit.states = fitter.simulator(fit.effects, fit.terms).simulate(fit.p)[1]
-    fit.free = tuple(fp.name for fp in free)
-    return fit, free, kept, term_record
 
 
 def _errors(fitter: Fitter, before: Fit, after_y: np.ndarray) -> dict:
@@ -1054,7 +746,7 @@ def identify(log: LogData, base: Parameters | None = None, base_effects: Iterabl
     clock.lap("candidates")
     pair_records = []
     if pairs:
-        current, current_free, joint, joint_term, pair_records = _pair_step(
+        current, current_free, joint, joint_term, pair_records = pair_step(
             fitter, current, current_free, lib, rejected_terms, max_effects - len(accepted), quick, len(rounds) + 1,
             say, notes)
         accepted += joint

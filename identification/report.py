@@ -19,8 +19,7 @@ from . import localise
 from .diagnostics import regressors
 from .fitting import IDENTIFIED_REL_SE
 from .model_file import write_model_file
-from .pipeline import (ALPHA, EXPLAIN_MIN, FORWARD_MIN, POLISH, SAME_RESIDUAL_CORR, SCREEN_MIN, STRUCTURE_MIN,
-                       IdentificationResult)
+from .pipeline import ALPHA, FORWARD_MIN, POLISH, SAME_RESIDUAL_CORR, STRUCTURE_MIN, IdentificationResult
 
 UNITS = {"supply_temp_c": "C", "volume_flow_m3s": "m3/s", "heater_outlet_temp_c": "C", "heater_power_w": "W"}
 PLOT_EXTRA = "pip install 'hvac-mpc[plot]'"

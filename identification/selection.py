@@ -1,0 +1,103 @@
+"""The rules that keep or drop an effect: the shares of held-out structure a step must remove, the information
+criterion, the significance level, and the record of each candidate's scoring (:class:`CandidateResult`).
+Shared by forward selection, the backward pass (:mod:`.pipeline`) and the pair step (:mod:`.pair_step`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import statistics as st
+from .candidates import Candidate
+from .fitting import Fit, Fitter
+from .simulator import OutputPost
+
+#: Significance level of the EKF likelihood-ratio test, Bonferroni-corrected over a round.
+ALPHA = 0.01
+#: Held-out error over the estimated noise variance above which an output still carries structure.
+STRUCTURE_MIN = 1.1
+#: Alternations between the whole-model refit and the discovered term's coefficients.
+DISCOVERY_ALTERNATIONS = 2
+#: Share of the held-out structure a forward step must remove (each kept effect, in the backward pass too).
+FORWARD_MIN = 0.1
+#: The same for an output offset with drift (a generic two-parameter correction must earn more).
+BIAS_MIN = 0.3
+
+
+@dataclass
+class CandidateResult:
+    """How one candidate fared in one round."""
+
+    name: str
+    kind: str
+    round: int
+    status: str                      # skipped | rejected | accepted
+    reason: str = ""
+    description: str = ""
+    source: str = ""
+    regressor: str = ""
+    params: dict = field(default_factory=dict)
+    delay_s: float | None = None
+    bias: tuple | None = None
+    gain: float | None = None
+    cost_train: float = float("nan")
+    cost_holdout: float = float("nan")
+    train_reduction: float = float("nan")     # share of the training cost removed
+    explained_holdout: float = float("nan")   # share of the held-out structure removed
+    primary_output: str = ""
+    explained_primary: float = float("nan")   # share of the primary output's held-out structure removed
+    lr: float = float("nan")
+    dof: int = 0
+    p_value: float = float("nan")
+    p_threshold: float = float("nan")
+    bic_change: float = float("nan")      # information criterion with it minus without (training rows)
+    same_as: str = ""                     # candidate that explains the same residual
+    backward_share: float = float("nan")  # held-out structure its removal costs with the others in
+    jointly_with: str = ""                # accepted only together with this candidate or term (the pair step)
+    fit: Fit | None = None
+
+    def summary(self) -> dict:
+        return {k: v for k, v in self.__dict__.items() if k != "fit"}
+
+
+def gains(post: OutputPost, new=()) -> list[str]:
+    """Outputs whose gain is fitted: ``new`` and those already in ``post`` (refit with every candidate, like the
+    free parameters: a gain kept in an earlier round took up part of what a later effect explains, the PTC fall
+    on the heater power)."""
+    return list(dict.fromkeys(list(new) + list(post.gain)))
+
+
+def output_share(fitter: Fitter, worse: Fit, better: Fit, output: str) -> float:
+    """Share of ``worse``'s held-out structure on ``output`` (scaled cost beyond the noise) that
+    ``better`` removes."""
+    j = fitter.outputs.index(output)
+    c_w, n = fitter.output_costs(worse.y)
+    c_b, _ = fitter.output_costs(better.y)
+    excess = c_w[j] - n[j]
+    return float((c_w[j] - c_b[j]) / excess) if excess > 0.1 * n[j] else 0.0
+
+
+def bic_change(fitter: Fitter, new: Fit, current: Fit, q: int, output: str = "supply_temp_c") -> float:
+    """Change of the information criterion on the training rows of ``output`` (the candidate's primary
+    output; negative: the new structure is worth its q parameters): n_eff ln(C_new / C_cur) + q ln(n_eff),
+    BIC form (Schwarz). C is the output's scaled training cost floored at its noise expectation (a cost
+    below it carries no evidence); n_eff the effective sample size of its current residual, since an
+    autocorrelated residual would otherwise count every row as independent evidence. The other outputs
+    are guarded by the held-out gate (the total held-out error must fall)."""
+    c_new, n = fitter.output_costs(new.y, "train")
+    c_cur, _ = fitter.output_costs(current.y, "train")
+    j = fitter.outputs.index(output)
+    n_eff = max(st.effective_n((fitter.y_meas[:, j] - current.y[:, j])[fitter.log.train]), 2.0)
+    ratio = max(c_new[j], n[j]) / max(c_cur[j], n[j], 1e-300)
+    return float(n_eff * np.log(ratio) + q * np.log(n_eff))
+
+
+def record_own(res: CandidateResult, cand: Candidate, fit: Fit, dt_s: float) -> None:
+    """The candidate's own result in ``fit``, by kind: its delay (s), its offset and drift, or its gain."""
+    if cand.kind == "delay":
+        res.delay_s = fit.post.delays[cand.output] * dt_s
+    if cand.kind == "bias":
+        res.bias = fit.post.bias[cand.output]
+    if cand.kind == "gain":
+        res.gain = fit.post.gain[cand.output]
