@@ -26,8 +26,9 @@ The OCP is built from the stage-wise description (:class:`~.stage_ocp.StageOcp`)
 * **parameters** per stage: the model parameters, ``dt``, the substep variant and the stage-0 floor factor.
 
 Weights, references and bounds are set at run time: nothing is rebuilt when they change. The generated
-solver is cached per structure (a hash of the functions and the grid) under the code cache; the small C
-helper ``acados_step.c`` (the same folder) moves all stages' data in one call per phase.
+solver is cached per structure (a hash of the functions, the grid and the acados install, :func:`install_id`)
+under the code cache; the small C helper ``acados_step.c`` (the same folder) moves all stages' data in one call
+per phase.
 """
 
 from __future__ import annotations
