@@ -136,8 +136,8 @@ _GENERATION_LOCK = threading.Lock()
 def _generation_env(install: Path, folder: Path):
     """acados' code generator's settings, only while it runs: ``ACADOS_SOURCE_DIR`` and
     ``ACADOS_PYTHON_INTERFACE_PATH`` point at ``install`` (restored after), the working directory is
-    ``folder`` (acados writes relative to it). Process-wide for that time (seconds: the generation of the
-    C, not its compilation), under :data:`_GENERATION_LOCK`."""
+    ``folder`` (acados writes relative to it). Process-wide for that time (the generation of the C, not its
+    compilation, which runs in a child process), under :data:`_GENERATION_LOCK`."""
     values = {"ACADOS_SOURCE_DIR": str(install),
               "ACADOS_PYTHON_INTERFACE_PATH": str(install.parent / "acados_template")}
     with _GENERATION_LOCK:
@@ -590,4 +590,5 @@ def _helper(install: Path, report: CodegenReport) -> ctypes.CDLL:
     return ctypes.CDLL(str(lib))
 
 
-__all__ = ["ACADOS_ENV", "INSTALL_COMMAND", "AcadosMissing", "RtiAcadosSolver", "acados_dir", "load_acados"]
+__all__ = ["ACADOS_ENV", "INSTALL_COMMAND", "AcadosMissing", "RtiAcadosSolver", "acados_dir", "install_id",
+           "load_acados"]

@@ -7,6 +7,9 @@ cached on disk (the first build of the horizon below takes minutes, hence ``slow
 each test gets a solver of its own from the cached build, so no test sees another's state.
 """
 
+import os
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -14,7 +17,8 @@ from hvac_mpc.contract import Command, Reference
 from hvac_mpc.models import Parameters
 from hvac_mpc.mpc.ocp import OcpSpec, TrackingProblem
 from hvac_mpc.mpc import codegen
-from hvac_mpc.mpc.rti_acados import INSTALL_COMMAND, AcadosMissing, RtiAcadosSolver, install_id, load_acados
+from hvac_mpc.mpc.rti_acados import (INSTALL_COMMAND, AcadosMissing, RtiAcadosSolver, _generation_env, _make,
+                                     install_id, load_acados)
 from hvac_mpc.validation import InvalidValue
 from hvac_mpc.mpc.rti_osqp import RtiOsqpSolver
 
@@ -200,3 +204,22 @@ def test_a_failed_compile_names_the_error_and_leaves_nothing_behind(tmp_path):
     with pytest.raises(RuntimeError, match="undeclared_name"):
         codegen.compile_shared(src, lib, ("-O2", "-fPIC", "-shared"))
     assert list(lib.parent.iterdir()) == []
+
+
+def test_generation_settings_hold_only_while_generating(tmp_path, monkeypatch):
+    monkeypatch.setenv("ACADOS_SOURCE_DIR", "/elsewhere/acados")
+    monkeypatch.delenv("ACADOS_PYTHON_INTERFACE_PATH", raising=False)
+    cwd = os.getcwd()
+    install, folder = tmp_path / "acados" / "install", tmp_path / "solver"
+    folder.mkdir()
+    with _generation_env(install, folder):
+        assert os.environ["ACADOS_SOURCE_DIR"] == str(install) and Path(os.getcwd()) == folder
+    assert os.environ["ACADOS_SOURCE_DIR"] == "/elsewhere/acados"
+    assert "ACADOS_PYTHON_INTERFACE_PATH" not in os.environ and os.getcwd() == cwd
+
+
+def test_a_failed_solver_build_names_the_folder_and_make_s_message(tmp_path):
+    (tmp_path / "Makefile").write_text("ocp_shared_lib:\n\t@echo missing_source_file >&2; exit 3\n")
+    with pytest.raises(RuntimeError, match=r"make exit 2.*missing_source_file") as err:
+        _make(tmp_path)
+    assert str(tmp_path) in str(err.value)
