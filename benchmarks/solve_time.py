@@ -16,7 +16,10 @@ description'):
 * ``do-mpc``: do-mpc given the description's functions (optional extra ``compare``;
   :mod:`hvac_mpc.benchmarks.dompc_reference`).
 * ``rti-acados`` (``--acados``): the real-time iteration through acados, built from the description
-  (:mod:`hvac_mpc.mpc.rti_acados`; optional, installed apart), with its own per-step suboptimality.
+  (:mod:`hvac_mpc.mpc.rti_acados`; optional, installed apart), with its own per-step suboptimality;
+  ``--acados-phases`` adds the thread CPU time of its preparations and feedback QPs (``phases`` in its
+  result, :class:`PhaseTimer`). With ``--acados`` fatrop is skipped, a note says why: acados' BLASFEO is
+  loaded process-wide and CasADi's fatrop plugin carries another build of it.
 
 With ``--jit`` IPOPT's and fatrop's NLP functions run as generated C, compiled once and cached (the
 build time is reported apart, as ``codegen_build_s``, not in the step times). fatrop gets the objective
@@ -249,6 +252,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--acados", action="store_true",
                         help="also the RTI through acados (SQP_RTI, HPIPM; optional, installed apart: "
                              "hvac_mpc.mpc.rti_acados.INSTALL_COMMAND), with its own per-step suboptimality")
+    parser.add_argument("--acados-phases", action="store_true",
+                        help="with --acados: thread CPU time of each acados phase (preparation, feedback QP) "
+                             "over the closed loop, in the result's 'phases'")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -288,13 +294,17 @@ def _run(args: argparse.Namespace, steps: int, cost_seeds: int) -> int:
             pb, tol=ipopt_settings.ipopt_tol, max_iter=ipopt_settings.ipopt_max_iter, jit=jit))
     contenders: list[tuple[str, Callable[[], MpcController]]] = [("rti", make_rti)]
     notes = []
-    make_acados = _acados_contender(args, rti_settings, model, notes)
+    phase_timers: list[PhaseTimer] = []
+    make_acados = _acados_contender(args, rti_settings, model, notes, phase_timers)
     if make_acados is not None:
         contenders.append(("rti-acados", make_acados))
     if not args.no_ipopt:
         contenders.append(("ipopt", make_ipopt))
     fatrop_recorders: list = []  # fatrop's starts and answers, for the per-step comparison with IPOPT
-    if not getattr(args, "no_fatrop", False):
+    if make_acados is not None and not getattr(args, "no_fatrop", False):
+        notes.append(FATROP_WITH_ACADOS)
+        print(FATROP_WITH_ACADOS, flush=True)
+    elif not getattr(args, "no_fatrop", False):
         from .fatrop_reference import IPOPT_TOL_FACTOR, FatropSolver, StartRecorder, agreement, agreement_line
 
         def make_fatrop() -> MpcController:
@@ -317,6 +327,8 @@ def _run(args: argparse.Namespace, steps: int, cost_seeds: int) -> int:
     for name, make in contenders:
         print(f"running {name} for {steps} steps ...", flush=True)
         results.append(closed_loop(name, make, steps, args.seed))
+        if name == "rti-acados" and phase_timers:
+            results[-1]["phases"] = phase_timers[0].summary(steps)
     rti = results[0]
     by_name = {r["controller"]: r for r in results}
     for r in results:
@@ -364,6 +376,8 @@ def _run(args: argparse.Namespace, steps: int, cost_seeds: int) -> int:
               f"largest RTI excess {max(c['rti_vs_ipopt_pct'] for c in seeds_cost):+.2f} %")
     if fatrop_recorders:
         print(agreement_line(by_name["fatrop"]["agreement"]))
+    if "phases" in by_name.get("rti-acados", {}):
+        print(phases_line(by_name["rti-acados"]["phases"]))
     for note in notes:
         print(note)
     out = {"steps": steps, "seed": args.seed, "threads": args.threads, "scenario_inlet_c": INLET_C,
@@ -375,9 +389,57 @@ def _run(args: argparse.Namespace, steps: int, cost_seeds: int) -> int:
     return 0
 
 
-def _acados_contender(args: argparse.Namespace, settings: MpcSettings, model, notes: list[str]):
+#: Why ``--acados`` skips fatrop in the same run.
+FATROP_WITH_ACADOS = ("fatrop skipped: with --acados acados' BLASFEO is loaded process-wide beside the BLASFEO of "
+                      "CasADi's fatrop plugin, and two BLASFEO builds in one process may mix; run fatrop without "
+                      "--acados")
+
+
+class PhaseTimer:
+    """Stands in for the acados solver's C helper (``RtiAcadosSolver._step_lib``) and times each
+    ``hvac_solve`` call by phase (1 preparation, 2 feedback) in thread CPU time, with the feedback's HPIPM
+    iterations."""
+
+    def __init__(self, lib):
+        self._lib = lib
+        self.cpu_s: dict[int, list[float]] = {1: [], 2: []}
+        self.qp_iterations: list[int] = []
+
+    def __getattr__(self, name: str):
+        return getattr(self._lib, name)
+
+    def hvac_solve(self, op, phase: int, qp_iter):
+        t0 = time.thread_time()
+        status = self._lib.hvac_solve(op, phase, qp_iter)
+        self.cpu_s[phase].append(time.thread_time() - t0)
+        if phase == 2:
+            self.qp_iterations.append(qp_iter._obj.value)
+        return status
+
+    def summary(self, steps: int) -> dict[str, Any]:
+        """Medians and p99 (ms) of each phase, preparations per step, feedback CPU time per HPIPM iteration."""
+        prep, qp = np.array(self.cpu_s[1]) * 1e3, np.array(self.cpu_s[2]) * 1e3
+        it = np.array(self.qp_iterations)
+        per_it = qp[it > 0] / it[it > 0]
+        return {"clock": "time.thread_time", "preparations": len(prep), "feedbacks": len(qp), "steps": steps,
+                "preparation_median_ms": float(np.median(prep)), "feedback_median_ms": float(np.median(qp)),
+                "feedback_p99_ms": float(np.percentile(qp, 99)), "qp_iterations_median": float(np.median(it)),
+                "feedback_per_iteration_median_us": float(np.median(per_it) * 1e3)}
+
+
+def phases_line(ph: dict[str, Any]) -> str:
+    return (f"rti-acados phases (thread CPU time over {ph['steps']} steps): {ph['preparations']} preparations, "
+            f"median {ph['preparation_median_ms']:.3f} ms; {ph['feedbacks']} feedback QPs, median "
+            f"{ph['feedback_median_ms']:.3f} ms, p99 {ph['feedback_p99_ms']:.3f} ms, "
+            f"{ph['qp_iterations_median']:.0f} HPIPM iterations median, "
+            f"{ph['feedback_per_iteration_median_us']:.0f} us per iteration (median)")
+
+
+def _acados_contender(args: argparse.Namespace, settings: MpcSettings, model, notes: list[str],
+                      phase_timers: list | None = None):
     """The acados RTI's controller factory for ``--acados`` (the OSQP RTI's settings where they apply), or None
-    (not asked for, or acados missing: the reason goes into ``notes``)."""
+    (not asked for, or acados missing: the reason goes into ``notes``). With ``--acados-phases`` each solver's
+    C helper is timed (:class:`PhaseTimer`, appended to ``phase_timers``)."""
     if not getattr(args, "acados", False):
         return None
     from hvac_mpc.mpc.rti_acados import AcadosMissing, RtiAcadosSolver, load_acados
@@ -386,9 +448,16 @@ def _acados_contender(args: argparse.Namespace, settings: MpcSettings, model, no
     except AcadosMissing as exc:
         notes.append(f"rti-acados skipped: {exc}")
         return None
-    return lambda: MpcController(settings=settings, model=model, solver_factory=lambda pb: RtiAcadosSolver(
-        pb, lm_inputs=settings.levenberg_marquardt, cold_start_qps=settings.cold_start_qps,
-        reference_change_qps=settings.reference_change_qps))
+    timed = getattr(args, "acados_phases", False) and phase_timers is not None
+
+    def solver(pb):
+        s = RtiAcadosSolver(pb, lm_inputs=settings.levenberg_marquardt, cold_start_qps=settings.cold_start_qps,
+                            reference_change_qps=settings.reference_change_qps)
+        if timed:
+            s._step_lib = PhaseTimer(s._step_lib)
+            phase_timers.append(s._step_lib)
+        return s
+    return lambda: MpcController(settings=settings, model=model, solver_factory=solver)
 
 
 def shared_description(results: list[dict[str, Any]]) -> dict[str, Any]:

@@ -108,9 +108,6 @@ def _ensure(lib: Path, build, report: CodegenReport) -> str:
 
 def _build(fn: ca.Function, folder: Path, lib: Path) -> None:
     """Generate C for ``fn``, compile it and move the shared object into place atomically."""
-    cc = compiler()
-    if cc is None:
-        raise RuntimeError("no C compiler found (set CC or install gcc)")
     folder.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=folder) as tmp:
         cwd = os.getcwd()
@@ -119,11 +116,7 @@ def _build(fn: ca.Function, folder: Path, lib: Path) -> None:
             source = fn.generate(f"{lib.stem}.c", {"with_header": False})
         finally:
             os.chdir(cwd)
-        src = Path(tmp) / source
-        out = Path(tmp) / lib.name
-        subprocess.run([cc, *CFLAGS, str(src), "-o", str(out), "-lm"], check=True, capture_output=True,
-                       timeout=600)
-        os.replace(out, lib)  # two processes building at once both end with a whole file
+        compile_shared(Path(tmp) / source, lib, CFLAGS, ("-lm",), timeout_s=600)
 
 
 def compiled_nlpsol(name: str, plugin: str, nlp: dict, opts: dict, report: CodegenReport | None = None,
@@ -151,9 +144,6 @@ def compiled_nlpsol(name: str, plugin: str, nlp: dict, opts: dict, report: Codeg
 
 
 def _build_dependencies(solver: ca.Function, lib: Path, flags: tuple[str, ...]) -> None:
-    cc = compiler()
-    if cc is None:
-        raise RuntimeError("no C compiler found (set CC or install gcc)")
     lib.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=lib.parent) as tmp:
         cwd = os.getcwd()
@@ -162,7 +152,22 @@ def _build_dependencies(solver: ca.Function, lib: Path, flags: tuple[str, ...]) 
             source = solver.generate_dependencies(f"{lib.stem}.c")
         finally:
             os.chdir(cwd)
+        compile_shared(Path(tmp) / source, lib, flags, ("-lm",), timeout_s=1800)
+
+
+def compile_shared(src: Path, lib: Path, flags: tuple[str, ...], libs: tuple[str, ...] = (),
+                   timeout_s: float = 600.0) -> None:
+    """Compile ``src`` into the shared object ``lib``: built in a temporary folder beside ``lib`` (removed
+    whatever happens) and moved into place atomically, so two processes building at once both end with a
+    whole file. A failed compile raises with the compiler's messages."""
+    cc = compiler()
+    if cc is None:
+        raise RuntimeError("no C compiler found (set CC or install gcc)")
+    lib.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=lib.parent) as tmp:
         out = Path(tmp) / lib.name
-        subprocess.run([cc, *flags, str(Path(tmp) / source), "-o", str(out), "-lm"], check=True,
-                       capture_output=True, timeout=1800)
+        res = subprocess.run([cc, *flags, str(src), "-o", str(out), *libs], capture_output=True, text=True,
+                             timeout=timeout_s)
+        if res.returncode != 0:
+            raise RuntimeError(f"compiling {src.name} failed ({cc} exit {res.returncode}): {res.stderr[-2000:]}")
         os.replace(out, lib)

@@ -26,8 +26,9 @@ The OCP is built from the stage-wise description (:class:`~.stage_ocp.StageOcp`)
 * **parameters** per stage: the model parameters, ``dt``, the substep variant and the stage-0 floor factor.
 
 Weights, references and bounds are set at run time: nothing is rebuilt when they change. The generated
-solver is cached per structure (a hash of the functions and the grid) under the code cache; the small C
-helper ``acados_step.c`` (the same folder) moves all stages' data in one call per phase.
+solver is cached per structure (a hash of the functions, the grid and the acados install, :func:`install_id`)
+under the code cache; the small C helper ``acados_step.c`` (the same folder) moves all stages' data in one call
+per phase.
 """
 
 from __future__ import annotations
@@ -37,13 +38,17 @@ import hashlib
 import os
 import subprocess
 import sys
+import threading
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import casadi as ca
 import numpy as np
 
-from .codegen import CodegenReport, cache_dir, compiler
+from hvac_mpc.validation import finite_in, one_of
+
+from .codegen import CodegenReport, cache_dir, compile_shared
 from .ocp import TrackingProblem, shift_maps, shift_nodes
 from .rti_osqp import SolveResult
 from .stage_ocp import StageOcp
@@ -64,6 +69,15 @@ BIG = 1.0e8
 RUNTIME_OPTIONS = ("qp_solver_iter_max", "qp_tol", "qp_solver_warm_start")
 #: HPIPM's modes.
 HPIPM_MODES = ("SPEED_ABS", "SPEED", "BALANCE", "ROBUST")
+#: Allowed ranges of the solver's options (:func:`_check_options`); ``cond_n`` is checked against the horizon.
+OPTION_CHECKS = {"disturbances": one_of("state", "parameter"), "hpipm_mode": one_of(*HPIPM_MODES),
+                 "warm_start": one_of(0, 1, 2), "qp_iter_max": finite_in(1, 10000, integer=True),
+                 "qp_tol": finite_in(0.0, 1.0, lo_open=True), "lm_inputs": finite_in(0.0, 1.0e4),
+                 "cold_start_qps": finite_in(1, 100, integer=True),
+                 "reference_change_qps": finite_in(1, 100, integer=True)}  # MpcSettings' ranges
+#: Offsets of the stage parameters after the model parameters: step duration (s), substep variant, stage-0
+#: floor factor, then (disturbances as parameters) the disturbances.
+PAR_DT, PAR_VARIANT, PAR_FLOOR, PAR_DIST = 0, 1, 2, 3
 #: acados status values: success, and "maximum iterations" (an RTI step's QP at HPIPM's cap).
 ACADOS_SUCCESS, ACADOS_MAXITER = 0, 2
 
@@ -80,7 +94,13 @@ def acados_dir() -> Path:
 
 def load_acados() -> Path:
     """Make acados' Python interface importable and its libraries loaded; returns its ``install`` folder.
-    Raises :class:`AcadosMissing` naming the install command."""
+    Raises :class:`AcadosMissing` naming the install command.
+
+    Process-wide effects: the wheel's ``acados`` folder is appended to ``sys.path`` and acados' libraries
+    (BLASFEO, HPIPM, qpOASES, acados) are loaded with ``RTLD_GLOBAL``. CasADi's fatrop and hpipm plugins carry a
+    BLASFEO of their own: a process that loads both may mix the two builds, so ``solve-time --acados`` does not
+    run fatrop in the same process. acados' environment variables are set only while a solver is generated
+    (:func:`_generation_env`)."""
     root = acados_dir() / "acados"
     install = root / "install"
     if not (install / "lib" / "libacados.so").exists() or not (root / "acados_template").is_dir():
@@ -88,8 +108,6 @@ def load_acados() -> Path:
                             f"{INSTALL_COMMAND.replace('<dir>', str(acados_dir()))}")
     for name in LIBRARIES:  # found by the generated solver without LD_LIBRARY_PATH
         ctypes.CDLL(str(install / "lib" / name), mode=ctypes.RTLD_GLOBAL)
-    os.environ.setdefault("ACADOS_SOURCE_DIR", str(install))  # read by acados_template (code templates, t_renderer)
-    os.environ.setdefault("ACADOS_PYTHON_INTERFACE_PATH", str(root / "acados_template"))
     if str(root) not in sys.path:
         sys.path.append(str(root))  # the folder itself holds the wheel's CasADi: never on the path
     return install
@@ -101,6 +119,41 @@ class _Ocp(ctypes.Structure):
     _fields_ = [(n, ctypes.c_void_p) for n in ("config", "dims", "nlp_in", "nlp_out", "solver", "opts", "capsule",
                                                 "update_params")] + \
                [(n, ctypes.c_int) for n in ("N", "nx", "nu", "ny", "ny_e", "np")]
+
+
+def install_id(install: Path) -> str:
+    """Identity of an acados install: a hash of its ``libacados.so`` (a solver or helper built against one
+    install is not reused with another)."""
+    return hashlib.sha256((install / "lib" / "libacados.so").read_bytes()).hexdigest()[:16]
+
+
+#: Held while acados' code generator runs: it changes the process's working directory and environment
+#: (:func:`_generation_env`); two solvers generated at once in one process would see each other's.
+_GENERATION_LOCK = threading.Lock()
+
+
+@contextmanager
+def _generation_env(install: Path, folder: Path):
+    """acados' code generator's settings, only while it runs: ``ACADOS_SOURCE_DIR`` and
+    ``ACADOS_PYTHON_INTERFACE_PATH`` point at ``install`` (restored after), the working directory is
+    ``folder`` (acados writes relative to it). Process-wide for that time (the generation of the C, not its
+    compilation, which runs in a child process), under :data:`_GENERATION_LOCK`."""
+    values = {"ACADOS_SOURCE_DIR": str(install),
+              "ACADOS_PYTHON_INTERFACE_PATH": str(install.parent / "acados_template")}
+    with _GENERATION_LOCK:
+        saved = {k: os.environ.get(k) for k in values}
+        cwd = os.getcwd()
+        os.environ.update(values)
+        try:
+            os.chdir(folder)
+            yield
+        finally:
+            os.chdir(cwd)
+            for k, v in saved.items():
+                if v is None:
+                    os.environ.pop(k, None)
+                else:
+                    os.environ[k] = v
 
 
 def _ptr(a: np.ndarray):
@@ -131,6 +184,9 @@ class RtiAcadosSolver:
                  disturbances: str = "state"):
         self.pb = pb = problem
         self.name = "rti-acados"
+        _check_options(dict(disturbances=disturbances, hpipm_mode=hpipm_mode, warm_start=warm_start,
+                            qp_iter_max=qp_iter_max, qp_tol=qp_tol, lm_inputs=lm_inputs, cold_start_qps=cold_start_qps,
+                            reference_change_qps=reference_change_qps), cond_n, pb.N)
         self.desc = StageOcp(problem)
         self.lm = float(lm_inputs)
         self.cold_start_qps, self.reference_change_qps = int(cold_start_qps), int(reference_change_qps)
@@ -138,11 +194,10 @@ class RtiAcadosSolver:
                             qp_tol=float(qp_tol), hpipm_mode=hpipm_mode, qp_solver_warm_start=int(warm_start),
                             qp_solver_cond_N=int(cond_n) if cond_n is not None else pb.N)
         N, nx, nu, nd = pb.N, pb.nx, pb.nu, pb.nd
-        _check_options(disturbances, hpipm_mode, self.options["qp_solver_cond_N"], N, warm_start, qp_iter_max, qp_tol,
-                       self.lm)
         self.d_state = disturbances == "state"
         self.nxa, self.nua = nx + nu + (nd if self.d_state else 0), nu + 1
-        self.npar = self._p_size() + 3 + (0 if self.d_state else nd)
+        self.npar = self._p_size() + PAR_DIST + (0 if self.d_state else nd)
+        self._s_col = nu  # the slack's column of the input [u, s]
         self._rows = self.desc.stages[min(1, N - 1)].row_slices(nu)
         self.codegen = CodegenReport()
         self._i0, self._w1, self._j = shift_maps(pb.t_nodes, pb.dt_s)
@@ -161,9 +216,10 @@ class RtiAcadosSolver:
         ua = ca.MX.sym("ua", self.nua)
         par = ca.MX.sym("par", self.npar)
         x_u = xa[:d.nxa]
-        dist = xa[d.nxa:] if self.d_state else par[self._p.size + 3:]
-        u, s = ua[:pb.nu], ua[pb.nu]
-        p, dt, variant, floor_c = par[:self._p.size], par[self._p.size], par[self._p.size + 1], par[self._p.size + 2]
+        n = self._p.size
+        dist = xa[d.nxa:] if self.d_state else par[n + PAR_DIST:]
+        u, s = ua[:pb.nu], ua[self._s_col]
+        p, dt, variant, floor_c = par[:n], par[n + PAR_DT], par[n + PAR_VARIANT], par[n + PAR_FLOOR]
         return xa, ua, par, x_u, dist, u, s, p, dt, variant, floor_c
 
     def _model(self, AcadosModel, name: str):
@@ -194,9 +250,10 @@ class RtiAcadosSolver:
             m.con_h_expr_e = st_e.h(x_u, dist, p)
         return m
 
-    def _key(self) -> str:
-        """Hash of what the generated solver depends on: the description's functions, the grid, the options."""
-        desc, h = self.desc, hashlib.sha256()
+    def _key(self, install: Path) -> str:
+        """Hash of what the generated solver depends on: the description's functions, the grid, the options and
+        the acados install (:func:`install_id`)."""
+        desc, h = self.desc, hashlib.sha256(install_id(install).encode())
         for f in [*desc.dynamics.values(), desc.residual, desc.terminal_residual,
                   desc.stages[min(1, desc.N - 1)].h, desc.stages[desc.N].h]:
             h.update(f.serialize().encode())
@@ -205,10 +262,10 @@ class RtiAcadosSolver:
                        self.d_state, ca.__version__)).encode())
         return h.hexdigest()[:16]
 
-    def _ocp(self, folder: Path, name: str):
+    def _ocp(self, folder: Path, name: str, install: Path):
         from acados_template import AcadosModel, AcadosOcp  # noqa: PLC0415 - optional extra, imported lazily
         pb, desc, N = self.pb, self.desc, self.pb.N
-        ocp = AcadosOcp()
+        ocp = AcadosOcp(acados_path=str(install))
         ocp.model = self._model(AcadosModel, name)
         ocp.dims.N = N
         ny, ny_e = desc.nr + pb.nu + 1, desc.nr_e
@@ -241,21 +298,22 @@ class RtiAcadosSolver:
         return ocp
 
     def _build(self) -> None:
+        """The generated solver, loaded from the cache or generated (in this process, :func:`_generation_env`)
+        and compiled (``make`` in a child process whose working directory is the solver's folder)."""
         install = load_acados()
         from acados_template import AcadosOcpSolver  # noqa: PLC0415
-        name = f"hvac_{self._key()}"
+        name = f"hvac_{self._key(install)}"
         folder = cache_dir() / "acados_ocp" / name
+        json_file = str(folder / f"{name}.json")
         built = (folder / f"libacados_ocp_solver_{name}.so").exists()
         t0 = time.perf_counter()
-        ocp = self._ocp(folder, name)
-        cwd = os.getcwd()
         folder.mkdir(parents=True, exist_ok=True)
-        try:
-            os.chdir(folder)  # acados writes its json and build products relative to the working directory
-            self.acados = AcadosOcpSolver(ocp, json_file=str(folder / f"{name}.json"), generate=not built,
-                                          build=not built, verbose=False)
-        finally:
-            os.chdir(cwd)
+        ocp = self._ocp(folder, name, install)
+        if not built:
+            with _generation_env(install, folder):
+                AcadosOcpSolver.generate(ocp, json_file=json_file)
+            _make(folder)
+        self.acados = AcadosOcpSolver(ocp, json_file=json_file, generate=False, build=False, verbose=False)
         self.codegen.outcomes["acados_ocp"] = "cached" if built else "built"
         self._step_lib = _helper(install, self.codegen)
         self.codegen.build_time_s += 0.0 if built else time.perf_counter() - t0
@@ -302,7 +360,7 @@ class RtiAcadosSolver:
         self._U = np.zeros((N, self.nua))
         self._lbu = np.zeros((N, self.nua))
         self._ubu = np.zeros((N, self.nua))
-        self._ubu[:, pb.nu] = BIG
+        self._ubu[:, self._s_col] = BIG
         self._yref = np.zeros((N, self._ny))
         self._yref[1:, -1] = [-st.slack_l1 / (2.0 * st.slack_l2) if st.has_slack else 0.0
                               for st in desc.stages[1:N]]
@@ -337,9 +395,10 @@ class RtiAcadosSolver:
         pb = self.pb
         P = np.zeros((pb.N + 1, self.npar))
         P[:, :self._p.size] = self._p
-        P[:, self._p.size] = np.append(pb.dt, pb.dt[-1])
-        P[:, self._p.size + 1] = [self.variants.index(n) for n in pb.stage_substeps]
-        P[0, self._p.size + 2] = 1.0 if "floor" in self._rows else 0.0
+        n = self._p.size
+        P[:, n + PAR_DT] = np.append(pb.dt, pb.dt[-1])
+        P[:, n + PAR_VARIANT] = [self.variants.index(v) for v in pb.stage_substeps]
+        P[0, n + PAR_FLOOR] = 1.0 if "floor" in self._rows else 0.0
         self._P = np.ascontiguousarray(P)
         self._step_lib.hvac_set_params(self._op, _ptr(self._P))
 
@@ -355,9 +414,14 @@ class RtiAcadosSolver:
 
     # ------------------------------------------------------------------ interface
     def reset(self) -> None:
-        """Forget the trajectory (cold start at the next step) and acados' QP memory."""
+        """Forget the trajectory (cold start at the next step) and acados' iterate (states, inputs, slacks and
+        multipliers set to zero by acados' reset). acados' QP memory is kept: its reset
+        (``reset_qp_solver_mem``) ends the process with a segmentation fault in the wheel's acados (measured:
+        the next preparation crashes, before or after a first solve); HPIPM's warm start may then start from
+        the last QP's answer."""
         self.X = self.U = self.S = None
         self._prepared = None
+        self.acados.reset(reset_qp_solver_mem=0)
 
     def set_parameters(self, p: np.ndarray) -> None:
         """Model parameters (``HvacModel.p_default`` order) of the next linearisations; no rebuild."""
@@ -391,10 +455,10 @@ class RtiAcadosSolver:
         if self.d_state:
             self._X[:, nx + nu:] = d
         else:
-            self._P[:, self._p.size + 3:] = d
+            self._P[:, self._p.size + PAR_DIST:] = d
             self._step_lib.hvac_set_params(self._op, _ptr(self._P))
         self._U[:, :nu] = U
-        self._U[:, nu] = S
+        self._U[:, self._s_col] = S
         self._yref[:, :pb.ny] = ref
         self._yref[:, self.desc.nr:self.desc.nr + nu] = U
         self._yref_e[:] = ref
@@ -424,6 +488,14 @@ class RtiAcadosSolver:
         self._prepare_phase()
         return time.perf_counter() - t0
 
+    def _prepare_again(self, u_prev: np.ndarray, d: np.ndarray, ref: np.ndarray, w_y: np.ndarray) -> float:
+        """The preparation again at the iterate in place (already shifted by :meth:`prepare`), with another
+        reference or weights: load and linearise, no shift. Returns its wall time (s)."""
+        t0 = time.perf_counter()
+        self._load(self.X, self.U, self.S, d, ref, w_y, u_prev)
+        self._prepare_phase()
+        return time.perf_counter() - t0
+
     def _prepare_phase(self) -> None:
         """acados' preparation at the iterate in place, with the bounds in place (kept to compare)."""
         self._step_lib.hvac_solve(self._op, 1, ctypes.byref(self._qp_iter))
@@ -447,23 +519,25 @@ class RtiAcadosSolver:
         if self.d_state:
             self._x0[nx + nu:] = d
         self._lbu[:, :nu], self._ubu[:, :nu] = u_lo, u_hi
-        self._ubu[0, nu] = BIG if "floor" in self._rows else 0.0
+        self._ubu[0, self._s_col] = BIG if "floor" in self._rows else 0.0
         lib = self._step_lib
         # acados' preparation puts the bounds into the QP (its feedback embeds only the initial state):
         # bounds other than the prepared ones need a preparation again
         lib.hvac_set_bounds(self._op, _ptr(self._x0), _ptr(self._lbu), _ptr(self._ubu))
         bounds_moved = not (np.array_equal(self._lbu, self._bounds_prepared[0])
                             and np.array_equal(self._ubu, self._bounds_prepared[1]))
-        if self._prepared is None or changed:
+        if self._prepared is None:
             prep = self.prepare(x0, u_prev, d, ref, w_y)
+        elif changed:
+            prep = self._prepare_again(u_prev, d, ref, w_y)
         elif bounds_moved:
             self._prepare_phase()
         if self.fail_next > 0:
             self.fail_next -= 1
             return SolveResult(False, "forced failure", prep_time_s=prep,
                                feedback_time_s=time.perf_counter() - t0 - prep)
-        iterations, status = 0, ACADOS_SUCCESS
-        for it in range(qps):
+        iterations, status, solves = 0, ACADOS_SUCCESS, 0
+        for it in range(qps):  # qps >= 1 (_check_options)
             if it > 0:  # linearise again at the last answer, the inputs' damping anchored there
                 self._yref[:, self.desc.nr:self.desc.nr + nu] = self._U[:, :nu]
                 lib.hvac_set_cost(self._op, _ptr(self._yref), _ptr(self._yref_e), None, None)
@@ -471,53 +545,50 @@ class RtiAcadosSolver:
                 self._prepare_phase()
             status = lib.hvac_solve(self._op, 2, ctypes.byref(self._qp_iter))
             iterations += self._qp_iter.value
+            solves += 1
             lib.hvac_get_iterate(self._op, _ptr(self._X), _ptr(self._U))
             if status not in (ACADOS_SUCCESS, ACADOS_MAXITER):
                 break
         feedback = time.perf_counter() - t0 - prep
         if status not in (ACADOS_SUCCESS, ACADOS_MAXITER) or not np.isfinite(self._U).all():
-            return SolveResult(False, f"acados status {status}", iterations=iterations, qp_solves=it + 1,
+            return SolveResult(False, f"acados status {status}", iterations=iterations, qp_solves=solves,
                                prep_time_s=prep, feedback_time_s=feedback, extra={"cold_start": cold})
         self.X = self._X[:, :nx].copy()
         self.U = self._U[:, :nu].copy()
-        self.S = self._U[:, nu].copy()
+        self.S = self._U[:, self._s_col].copy()
         return SolveResult(True, "solved", X=self.X.copy(), U=self.U.copy(), S=self.S[1:].copy(),
-                           iterations=iterations, qp_solves=it + 1, prep_time_s=prep, feedback_time_s=feedback,
+                           iterations=iterations, qp_solves=solves, prep_time_s=prep, feedback_time_s=feedback,
                            extra={"cold_start": cold, "acados_status": status})
 
 
-def _check_options(disturbances, hpipm_mode, cond_n, N, warm_start, qp_iter_max, qp_tol, lm) -> None:
-    """A clear error naming the option and its allowed values."""
-    checks = [(disturbances in ("state", "parameter"), "disturbances", disturbances, "'state' or 'parameter'"),
-              (hpipm_mode in HPIPM_MODES, "hpipm_mode", hpipm_mode, f"one of {list(HPIPM_MODES)}"),
-              (1 <= cond_n <= N, "cond_n", cond_n, f"[1, {N}] (the horizon)"),
-              (warm_start in (0, 1, 2), "warm_start", warm_start, "0, 1 or 2"),
-              (qp_iter_max >= 1, "qp_iter_max", qp_iter_max, ">= 1"),
-              (qp_tol > 0, "qp_tol", qp_tol, "> 0"), (lm >= 0, "lm_inputs", lm, ">= 0")]
-    for ok, name, value, allowed in checks:
-        if not ok:
-            raise ValueError(f"RtiAcadosSolver: {name} = {value!r} must be {allowed}")
+def _check_options(values: dict, cond_n, N: int) -> None:
+    """A clear error naming the option and its allowed range or choices (:data:`OPTION_CHECKS`)."""
+    for name, check in OPTION_CHECKS.items():
+        check(f"RtiAcadosSolver.{name}", values[name])
+    if cond_n is not None:
+        finite_in(1, N, integer=True)("RtiAcadosSolver.cond_n", cond_n)
+
+
+def _make(folder: Path) -> None:
+    """Compile the generated solver with its Makefile, in a child process working in ``folder``; a failure
+    raises with make's output."""
+    res = subprocess.run(["make", "ocp_shared_lib"], cwd=folder, capture_output=True, text=True, timeout=1800)
+    if res.returncode != 0:
+        raise RuntimeError(f"building the acados solver in {folder} failed (make exit {res.returncode}): "
+                           f"{(res.stderr or res.stdout)[-2000:]}")
 
 
 def _helper(install: Path, report: CodegenReport) -> ctypes.CDLL:
-    """acados_step.c compiled against acados (cached by the source's hash), loaded."""
+    """acados_step.c compiled against acados (cached by the source's hash and :func:`install_id`), loaded."""
     src = Path(__file__).with_name("acados_step.c")
-    text = src.read_bytes()
-    key = hashlib.sha256(text + str(install).encode()).hexdigest()[:16]
+    key = hashlib.sha256(src.read_bytes() + install_id(install).encode()).hexdigest()[:16]
     lib = cache_dir() / f"acados_step_{key}.so"
+    report.outcomes["acados_step"] = "cached" if lib.exists() else "built"
     if not lib.exists():
-        cc = compiler()
-        if cc is None:
-            raise RuntimeError("no C compiler found (set CC or install gcc)")
-        lib.parent.mkdir(parents=True, exist_ok=True)
-        tmp = lib.with_suffix(f".{os.getpid()}.tmp")
-        subprocess.run([cc, "-O2", "-fPIC", "-shared", str(src), "-o", str(tmp), f"-L{install / 'lib'}", "-lacados",
-                        f"-Wl,-rpath,{install / 'lib'}"], check=True, capture_output=True, timeout=120)
-        os.replace(tmp, lib)
-        report.outcomes["acados_step"] = "built"
-    else:
-        report.outcomes["acados_step"] = "cached"
+        compile_shared(src, lib, ("-O2", "-fPIC", "-shared"), (f"-L{install / 'lib'}", "-lacados",
+                                                               f"-Wl,-rpath,{install / 'lib'}"), timeout_s=120)
     return ctypes.CDLL(str(lib))
 
 
-__all__ = ["ACADOS_ENV", "INSTALL_COMMAND", "AcadosMissing", "RtiAcadosSolver", "acados_dir", "load_acados"]
+__all__ = ["ACADOS_ENV", "INSTALL_COMMAND", "AcadosMissing", "RtiAcadosSolver", "acados_dir", "install_id",
+           "load_acados"]
