@@ -81,8 +81,6 @@ SAME_RESIDUAL_CORR = 0.9
 MAX_DELAY_S = 30.0
 
 
-
-
 @dataclass
 class IdentificationResult:
     log: LogData
@@ -167,8 +165,6 @@ def _screen_and_fit(fitter: Fitter, current: Fit, free: list[FreeParam], effects
     keep = [k for k, fp in enumerate(free) if flow_side or fp.name not in FLOW_PARAMS]
     return fitter.gn_step(effects, p0, [free[k] for k in keep], dy_free[:, :, keep], own, post, bias_outputs,
                           current.terms, gain_outputs=gains(post, gain_outputs)), ""
-
-
 
 
 def _score_model(fitter: Fitter, current: Fit, free: list[FreeParam], cand: Candidate) -> tuple[Fit | None, str]:
@@ -279,10 +275,6 @@ def check_timing(fitter_log: LogData, base: Parameters, base_effects, notes: lis
     return s
 
 
-
-
-
-
 def _holdout_correction(fitter: Fitter, fit: Fit, current: Fit) -> np.ndarray:
     d = (fit.y - current.y) / fitter.sigma
     return np.where(np.isfinite(d), d, 0.0)[fitter.log.holdout].ravel()
@@ -336,8 +328,6 @@ def _score_round(fitter: Fitter, current: Fit, current_free, lib, rnd: int, say,
         res.dof = {"delay": 1, "bias": 2, "gain": 1}.get(cand.kind, len(res.params) or len(cand.params))
         res.bic_change = bic_change(fitter, fit, current, res.dof, res.primary_output)
     return results
-
-
 
 
 def _score_one(fitter: Fitter, current: Fit, current_free, cand: Candidate) -> tuple[Fit | None, str]:
@@ -618,28 +608,6 @@ def _fit_term(fitter: Fitter, current: Fit, free: list[FreeParam], term, record:
     record["accepted"] = bool(gain >= FORWARD_MIN and record["bic_change"] < 0
                               and fit.cost_holdout < current.cost_holdout)
     return fit
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
 
 
 def _errors(fitter: Fitter, before: Fit, after_y: np.ndarray) -> dict:

@@ -336,8 +336,10 @@ class DisturbanceEkf:
         # set one) without the offset state, for the dead time beyond the model's
         air = y[m.outputs.index("duct_air_temp_c")] - zc[self.i_mix_offset]
         flow = y[m.outputs.index("volume_flow_m3s")]
+        # the model's mixed air and mass flow, for the anchor's move (bypass_flow_anchored only)
         self.mix_fn = ca.Function("ekf_mix", [z, u, sp, p], [y[m.outputs.index("supply_air_temp_c")],
-                                                          y[m.outputs.index("mass_flow_kgs")]])
+                                                          y[m.outputs.index("mass_flow_kgs")]]
+                                  ) if self.anchors_bypass_flow else None
         self.f_p = ca.Function("ekf_f", [z, u, sp, p], [zn, ca.jacobian(zn, z), air, flow])
         self.h_p = ca.Function("ekf_h", [z, u, sp, p, c], [meas, ca.jacobian(meas, z)])
         self.h = BufferedFunction(self.h_p, fixed={4: self.c_now})

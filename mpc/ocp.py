@@ -292,15 +292,6 @@ def trap_cap_pct(heater_temp_c: float, heater_in_c: float, heater_cmd_w: float, 
     return min(100.0, params.trap_threshold_pct - spec.trap_margin_pct + params.valve_a_shift_pct) if warm else 100.0
 
 
-def rk4_scalar(rate: Callable[[float], float], value: float, dt_s: float) -> float:
-    """One RK4 step of dv/dt = rate(v) over ``dt_s``."""
-    k1 = rate(value)
-    k2 = rate(value + 0.5 * dt_s * k1)
-    k3 = rate(value + 0.5 * dt_s * k2)
-    k4 = rate(value + dt_s * k3)
-    return value + dt_s / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
-
-
 class HeaterOffBound:
     """Upper bound of the heater body temperature from what was commanded, for the trapped-air guard.
 
@@ -334,7 +325,7 @@ class HeaterOffBound:
         if self.bound_c is None or heater_cmd_w > HEATING_CMD_W or not math.isfinite(self.bound_c):
             self.bound_c = float(heater_est_c)
         elif body_rate is not None:
-            self.bound_c = float(rk4_scalar(body_rate, self.bound_c, self.dt_s))
+            self.bound_c = float(rk4(lambda t_c, *_: body_rate(t_c), self.bound_c, None, None, None, self.dt_s, 1))
         else:
             tau = float(heater.time_constant_s(max(float(mass_flow_kgs), 1e-3), self.params))
             self.bound_c = heater_in_c + (self.bound_c - heater_in_c) * math.exp(-self.dt_s / tau)

@@ -139,6 +139,7 @@ class ReachableFlow:
         self.changes_deferred = bool(changes_deferred)
         self.background = bool(background)
         self._pending: BackgroundCall | None = None
+        self._pending_change = False  # the pending solve is of a changed reference (not a periodic look)
         self.skip_unmoved = bool(skip_unmoved)
         self.saturated_s = float(saturated_s)
         self.every_s = float(every_s)
@@ -251,7 +252,7 @@ class ReachableFlow:
             # a change answers from the last solve meanwhile: the reachable flow moves little with the
             # temperature reference (0.27 L/s per degC, MATERIAL_CHANGE); without one, the reference as it is
             self._pending = BackgroundCall(self._solve, args, thread=self.background)
-            self.undecided = not periodic
+            self._pending_change = not periodic
             return self._last if failed else self._limit(flow_ref_m3s, flow_now)
         if not self._apply(self._solve(*args)):
             return self._last
@@ -295,9 +296,13 @@ class ReachableFlow:
         stats = getattr(self.solver, "stats", None)
         return True if stats is None else bool(stats().get("success", False))
 
+    @property
+    def undecided(self) -> bool:
+        """A changed reference's solve is still pending (class docstring)."""
+        return self._pending is not None and self._pending_change
+
     def _collect(self) -> bool:
         """Apply the deferred solve of the previous check, waiting for it; True where it gave no answer."""
-        self.undecided = False
         if self._pending is None:
             return False
         pending, self._pending = self._pending, None
@@ -307,7 +312,6 @@ class ReachableFlow:
         """Wait for a running solve (the solver must not run twice at once) and forget its answer."""
         pending = getattr(self, "_pending", None)
         self._pending = None
-        self.undecided = False
         if pending is not None:
             pending.result()
 
