@@ -55,9 +55,9 @@ class _Member:
 
 
 @dataclass
-class _Structure:
+class Structure:
     """A model structure to refit: effects, parameter start, output corrections, free parameters, the outputs whose
-    offset and drift or gain are refit."""
+    offset and drift or gain are refit (the pair step's start extends it with its term)."""
 
     effects: frozenset
     p: np.ndarray
@@ -75,7 +75,7 @@ def _own(m: _Member) -> list[FreeParam]:
     return [fp for fp in m.cand.params if fp.name in m.result.params] if m.cand.kind in ("model", "parameter") else []
 
 
-def _members(current: Fit, accepted: list[CandidateResult], open_round: list[CandidateResult], lib) -> list[_Member]:
+def _members(accepted: list[CandidateResult], open_round: list[CandidateResult], lib) -> list[_Member]:
     """The effects kept and the ``JOINT_CANDIDATES`` candidates of the last round that removed the most training
     cost (a model or parameter candidate only with parameters of its own that moved)."""
     by_name = {c.name: c for c in lib}
@@ -88,7 +88,7 @@ def _members(current: Fit, accepted: list[CandidateResult], open_round: list[Can
     return kept + new[:JOINT_CANDIDATES]
 
 
-def _structure(fitter: Fitter, current: Fit, free: list[FreeParam], members: list[_Member]) -> _Structure:
+def _structure(fitter: Fitter, current: Fit, free: list[FreeParam], members: list[_Member]) -> Structure:
     """The current model without its terms and with every member in: each new member started where its screening
     step left it (its parameters, its delay); the offsets and gains refit with the rest."""
     p, post = current.p.copy(), current.post.copy()
@@ -106,10 +106,10 @@ def _structure(fitter: Fitter, current: Fit, free: list[FreeParam], members: lis
                 names.add(fp.name)
     bias = list(dict.fromkeys(list(post.bias) + [m.cand.output for m in members if m.cand.kind == "bias"]))
     gain = [m.cand.output for m in members if m.cand.kind == "gain"]
-    return _Structure(frozenset(effects), p, post, free, bias, gain)
+    return Structure(frozenset(effects), p, post, free, bias, gain)
 
 
-def _without(fitter: Fitter, s: _Structure, fit: Fit, m: _Member, base: Parameters) -> _Structure:
+def _without(fitter: Fitter, s: Structure, fit: Fit, m: _Member, base: Parameters) -> Structure:
     """``s`` at ``fit`` with member ``m`` taken out (its parameters back at the base values)."""
     p, post = fit.p.copy(), fit.post.copy()
     base_vec = np.array(base.vector())
@@ -121,17 +121,17 @@ def _without(fitter: Fitter, s: _Structure, fit: Fit, m: _Member, base: Paramete
         post.delays.pop(m.cand.output, None)
     if m.cand.kind in ("bias", "gain"):
         getattr(post, m.cand.kind).pop(m.cand.output, None)
-    return _Structure(s.effects - frozenset(m.cand.effects), p, post, [fp for fp in s.free if fp.name not in own],
+    return Structure(s.effects - frozenset(m.cand.effects), p, post, [fp for fp in s.free if fp.name not in own],
                       [o for o in s.bias if not (m.cand.kind == "bias" and o == m.cand.output)],
                       [o for o in s.gain if not (m.cand.kind == "gain" and o == m.cand.output)])
 
 
-def _at(s: _Structure, fit: Fit) -> _Structure:
+def _at(s: Structure, fit: Fit) -> Structure:
     return dataclasses.replace(s, p=fit.p.copy(), post=fit.post.copy())
 
 
-def _eliminate(fitter: Fitter, s: _Structure, fit: Fit, members: list[_Member], base: Parameters, max_effects: int,
-               say, log: list[str]) -> tuple[_Structure, Fit, list[_Member], dict]:
+def _eliminate(fitter: Fitter, s: Structure, fit: Fit, members: list[_Member], base: Parameters, max_effects: int,
+               say, log: list[str]) -> tuple[Structure, Fit, list[_Member], dict]:
     """Backward elimination: refit without each member (side by side); drop the one whose removal costs least of its
     primary output's held-out structure while that is below its share (or while more than ``max_effects`` remain);
     repeat. Returns the structure, its fit, the members left and each one's last share."""
@@ -164,7 +164,7 @@ def joint_step(fitter: Fitter, current: Fit, free: list[FreeParam], accepted: li
     if (open_round is None or "supply_temp_c" not in fitter.outputs
             or _supply_ratio(fitter, current) < STRUCTURE_MIN):
         return current, free, accepted, None, None
-    members = _members(current, accepted, open_round, lib)
+    members = _members(accepted, open_round, lib)
     kept_names = {a.name for a in accepted}
     if not [m for m in members if m.name not in kept_names]:
         return current, free, accepted, None, None
@@ -183,13 +183,23 @@ def joint_step(fitter: Fitter, current: Fit, free: list[FreeParam], accepted: li
     c2 = cpu_seconds()
     fit, discovered, _ = discover(fit, s.free, log)
     cpu = {"joint_fit": c1 - c0, "elimination": c2 - c1, "discovery": cpu_seconds() - c2}
-    gain = output_share(fitter, current, fit, "supply_temp_c")
     record = {"members": [m.name for m in members], "kept": [m.name for m in left], "shares": shares,
-              "explained_supply": gain, "cost_holdout": fit.cost_holdout, "cost_holdout_before": current.cost_holdout,
               "term": discovered["formula"] if discovered and discovered.get("accepted") else "", "notes": log,
               "cpu_s": cpu}
-    record["supply_rms_before"], record["supply_rms_after"] = _supply_rms(fitter, current), _supply_rms(fitter, fit)
-    record["accepted"] = bool(gain >= FORWARD_MIN and fit.cost_holdout < current.cost_holdout)
+    if not _decide(fitter, current, fit, record, notes):
+        return current, free, accepted, None, record
+    notes.extend(log)
+    return fit, s.free, _kept(fitter, accepted, left, fit, shares, rnd), discovered, record
+
+
+def _decide(fitter: Fitter, current: Fit, fit: Fit, record: dict, notes: list[str]) -> bool:
+    """Whether the joint model ``fit`` replaces the forward path's ``current``: it must remove ``FORWARD_MIN`` of the
+    held-out supply structure that ``current`` leaves and lower the total held-out error. Fills ``record``, notes the
+    verdict."""
+    gain = output_share(fitter, current, fit, "supply_temp_c")
+    record.update(explained_supply=gain, cost_holdout=fit.cost_holdout, cost_holdout_before=current.cost_holdout,
+                  supply_rms_before=_supply_rms(fitter, current), supply_rms_after=_supply_rms(fitter, fit),
+                  accepted=bool(gain >= FORWARD_MIN and fit.cost_holdout < current.cost_holdout))
     verdict = (f"kept: removes {100 * gain:.0f} % of the held-out structure of supply_temp_c the forward path left"
                if record["accepted"] else
                f"not kept: removes {100 * gain:.0f} % of the held-out structure of supply_temp_c the forward path left "
@@ -197,10 +207,7 @@ def joint_step(fitter: Fitter, current: Fit, free: list[FreeParam], accepted: li
     notes.append(f"joint refit of {', '.join(record['members'])} without the discovered terms, eliminated backward to "
                  f"{', '.join(record['kept']) or 'nothing'}" + (f", then {record['term']}" if record["term"] else "")
                  + f": {verdict}")
-    if not record["accepted"]:
-        return current, free, accepted, None, record
-    notes.extend(log)
-    return fit, s.free, _kept(fitter, accepted, left, fit, shares, rnd), discovered, record
+    return record["accepted"]
 
 
 def _kept(fitter: Fitter, accepted: list[CandidateResult], left: list[_Member], fit: Fit, shares: dict, rnd: int
