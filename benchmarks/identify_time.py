@@ -73,8 +73,9 @@ def log_case(name: str) -> LogCase:
                    ("water_temp_c",) if "nowater" in flags else ())
 
 
-def time_one(name: str, duration_s: float, seed: int, folder: Path, pairs: bool = True) -> dict:
-    """Generate one log (untimed) and time the identification of it (``pairs``: with the pair step)."""
+def time_one(name: str, duration_s: float, seed: int, folder: Path, pairs: bool = True, joint: bool = True) -> dict:
+    """Generate one log (untimed) and time the identification of it (``pairs``: with the pair step; ``joint``: with
+    the joint refit)."""
     path = folder / f"{name}.csv"
     case = log_case(name)
     simulate_log(path, case.variant, duration_s=duration_s, seed=seed, excitation=case.excitation,
@@ -82,7 +83,7 @@ def time_one(name: str, duration_s: float, seed: int, folder: Path, pairs: bool 
     t0, c0 = time.perf_counter(), cpu_seconds()
     log = log_data.load(path)
     load_wall, load_cpu = time.perf_counter() - t0, cpu_seconds() - c0
-    res = identify(log, base_effects=case.base_effects, pairs=pairs)
+    res = identify(log, base_effects=case.base_effects, pairs=pairs, joint=joint)
     wall, cpu = time.perf_counter() - t0, cpu_seconds() - c0
     errors = res.holdout_errors()
     e = errors["supply_temp_c"]
@@ -96,10 +97,11 @@ def time_one(name: str, duration_s: float, seed: int, folder: Path, pairs: bool 
             "timing_shift_samples": res.timing_shift_samples,
             "moved": {c["name"]: round(c["change"], 4) for c in res.parameter_confidence if c["moved"]},
             "timings_s": dict(res.timings, load_s=load_wall, load_cpu_s=load_cpu),
-            "terms_in_words": [t.description for t in res.terms], "pairs": res.pairs, "notes": list(res.notes)}
+            "terms_in_words": [t.description for t in res.terms], "pairs": res.pairs, "joint": res.joint,
+            "notes": list(res.notes)}
 
 
-PARTS = ("load", "nominal_fit", "diagnostics", "candidates", "discovery", "pairs", "final_diagnostics")
+PARTS = ("load", "nominal_fit", "diagnostics", "candidates", "discovery", "pairs", "joint", "final_diagnostics")
 
 
 def _parts(t: dict) -> str:
@@ -118,6 +120,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", type=Path, default=None, help="write the results here")
     parser.add_argument("--no-pairs", action="store_true",
                         help="identify without the pair step (effects that only help together), as before it")
+    parser.add_argument("--no-joint", action="store_true",
+                        help="identify without the joint refit (several effects refit at once, eliminated backward), "
+                             "as before it")
     args = parser.parse_args(argv)
     for name in args.variant or ():
         try:
@@ -129,7 +134,8 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.variant or DEFAULT_VARIANTS:
-            r = time_one(name, args.duration, args.seed, Path(tmp), pairs=not args.no_pairs)
+            r = time_one(name, args.duration, args.seed, Path(tmp), pairs=not args.no_pairs,
+                         joint=not args.no_joint)
             rows.append(r)
             print(f"{name:28s} wall {r['wall_s']:6.1f} s, CPU {r['cpu_s']:6.1f} s  added {r['added'] or ['nothing']}  "
                   f"supply RMS {r['supply_rms_before']:.3f} -> {r['supply_rms_after']:.3f} C, flow RMS "

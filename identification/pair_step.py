@@ -17,10 +17,10 @@ from . import discovery
 from .candidates import MIN_ABS_VALUE, Candidate
 from .diagnostics import innovations_nll
 from .fitting import FLOW_PARAMS, Fit, Fitter, FreeParam
+from .joint_step import Structure
 from .pairs import Frame, Member, Step, screen_pairs, structure_share
 from .selection import (ALPHA, BIAS_MIN, DISCOVERY_ALTERNATIONS, FORWARD_MIN, STRUCTURE_MIN, CandidateResult,
                         bic_change, gains, output_share, record_own)
-from .simulator import OutputPost
 
 if TYPE_CHECKING:
     from hvac_mpc.models.discovered import DiscoveredTerm
@@ -121,16 +121,10 @@ def _pair_sides(fitter: Fitter, current: Fit, open_round: list[CandidateResult],
 
 
 @dataclass
-class _PairModel:
+class _PairModel(Structure):
     """A pair's structure and its start for the full refit (the linearised step applied)."""
 
-    effects: frozenset
-    p: np.ndarray
-    post: OutputPost
-    free: list[FreeParam]
-    bias: list[str]
-    gain: list[str]
-    term: DiscoveredTerm | None
+    term: DiscoveredTerm | None = None
 
 
 def _pair_model(fitter: Fitter, current: Fit, free: list[FreeParam], sides: list[_Side], step: Step

@@ -25,15 +25,19 @@ Procedure (stated in the report):
    joint step with the free parameters; at most ``PAIR_REFIT`` are refit fully, best first, and the first that passes
    the forward step's gates (its parameters counted together, Bonferroni over the pairs screened) and in which each
    member removes ``FORWARD_MIN`` of the held-out structure the other leaves alone is kept; the report says that
-   its members were identified only jointly. Then a backward pass re-tests every kept effect.
-8. Whatever structure remains is located (:mod:`.localise`) instead of being named.
+   its members were identified only jointly.
+8. Joint refit (:mod:`.joint_step`): when no pair was kept and the supply temperature still carries held-out
+   structure, the kept effects and the last round's ``JOINT_CANDIDATES`` best candidates (by training cost removed)
+   are refit all at once without the discovered terms, eliminated backward (each must remove ``FORWARD_MIN`` of its
+   primary output's held-out structure with the others in, at most ``max_effects`` left), and discovery runs on what
+   is left; that model replaces the forward path's if it removes ``FORWARD_MIN`` of its held-out supply structure.
+   Then a backward pass re-tests every kept effect.
+9. Whatever structure remains is located (:mod:`.localise`) instead of being named.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import multiprocessing
-import os
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Iterable
@@ -51,10 +55,12 @@ from .discovery import CABIN_CANDIDATES
 from .diagnostics import diagnose, innovations_nll
 from .fitting import FLOW_PARAMS, IDENTIFIED_REL_SE, NOMINAL_FREE, Fit, Fitter, FreeParam, parameter_confidence
 from .log_data import LogData
+from .joint_step import joint_step
 from .pair_step import pair_step
 from .selection import (ALPHA, BIAS_MIN, DISCOVERY_ALTERNATIONS, FORWARD_MIN, STRUCTURE_MIN, CandidateResult,
                         bic_change, gains, output_share, record_own)
 from .simulator import OutputPost, Simulator, shift
+from .workers import cpu_seconds, fork_map
 
 #: The box's documented physics the identification starts from: the PTC power fall (thesis sec. 2.3)
 #: and the flow network (fan curve and closed-valve leaks, thesis sec. 3.2, tables 3-6); the
@@ -73,8 +79,6 @@ POLISH = 2
 #: Places of a discovered term refit and tested, best held-out prefix first (a place that wins on the linear score
 #: can lose after the whole-model refit; the next one is tried).
 PLACES_TRIED = 2
-#: Processes scoring candidates side by side (the benchmark's budget is two cores).
-WORKERS = 2
 #: Correlation of two candidates' held-out corrections above which they explain the same residual.
 SAME_RESIDUAL_CORR = 0.9
 #: Largest transport delay scanned, s.
@@ -105,6 +109,7 @@ class IdentificationResult:
     steps: list = field(default_factory=list)
     parameter_confidence: list = field(default_factory=list)  # fitting.parameter_confidence of the final fit
     pairs: list = field(default_factory=list)  # the pair step's refit pairs (pair_step), empty if it did not run
+    joint: dict | None = None  # the joint refit's record (joint_step), None if it did not run
 
     @property
     def sigma(self) -> dict[str, float]:
@@ -339,28 +344,6 @@ def _score_one(fitter: Fitter, current: Fit, current_free, cand: Candidate) -> t
         return None, f"fit failed ({exc})"
 
 
-_TASK: Callable[[int], object] | None = None  # the task of the forked workers (inherited, not pickled)
-
-
-def _run_task(i: int):
-    return _TASK(i)
-
-
-def _fork_map(task: Callable[[int], object], n: int) -> list:
-    """``[task(i) for i in range(n)]``, in ``WORKERS`` forked processes where the platform has fork
-    (the tasks are independent fits; the results are the same as in one process)."""
-    global _TASK
-    workers = min(WORKERS, n, os.cpu_count() or 1)
-    if workers < 2 or "fork" not in multiprocessing.get_all_start_methods():
-        return [task(i) for i in range(n)]
-    _TASK = task
-    try:
-        with multiprocessing.get_context("fork").Pool(workers) as pool:
-            return pool.map(_run_task, range(n), chunksize=1)
-    finally:
-        _TASK = None
-
-
 def _slim(fit: Fit | None) -> Fit | None:
     """A fit without what the caller does not need back from a worker (states, sensitivities)."""
     if fit is not None:
@@ -371,7 +354,7 @@ def _slim(fit: Fit | None) -> Fit | None:
 
 
 def _map_scores(fitter: Fitter, current: Fit, free, cands: list[Candidate]) -> list[tuple[Fit | None, str]]:
-    """Score the candidates side by side (:func:`_fork_map`)."""
+    """Score the candidates side by side (:func:`~.workers.fork_map`)."""
     if "dy_free" not in current.extra:
         current.extra["dy_free"] = fitter.raw_sensitivity(current.effects, current.p, free, current.terms)
         current.extra["y_raw"] = fitter.simulator(current.effects, current.terms).simulate(current.p)[0]
@@ -379,7 +362,7 @@ def _map_scores(fitter: Fitter, current: Fit, free, cands: list[Candidate]) -> l
     def task(i):
         fit, reason = _score_one(fitter, current, free, cands[i])
         return _slim(fit), reason
-    return _fork_map(task, len(cands))
+    return fork_map(task, len(cands))
 
 
 def _polish(fitter: Fitter, current: Fit, free, pairs: list, quick: bool) -> list[tuple[Fit, float]]:
@@ -393,7 +376,7 @@ def _polish(fitter: Fitter, current: Fit, free, pairs: list, quick: bool) -> lis
         if not fit.cost_train < r.fit.cost_train:
             fit = r.fit
         return _slim(fit), innovations_nll(fitter, fit)[2]
-    return _fork_map(task, len(pairs))
+    return fork_map(task, len(pairs))
 
 
 def _gate(r: CandidateResult) -> str:
@@ -590,6 +573,18 @@ def _discover(fitter: Fitter, current: Fit, free: list[FreeParam], quick: bool, 
     return current, tried[0][2], rejected
 
 
+def _joint(fitter: Fitter, current: Fit, free: list[FreeParam], accepted: list[CandidateResult], open_round, lib,
+           base: Parameters, max_effects: int, quick: bool, rnd: int, discovered: dict | None, say, notes: list[str],
+           terms: bool = True) -> tuple[Fit, list[FreeParam], list[CandidateResult], dict | None, dict | None]:
+    """Procedure step 8 (:mod:`.joint_step`), its discovery that of step 6 (none without ``terms``); the forward
+    path's term record stays unless the joint model replaces that path's model."""
+    def discover(fit, fit_free, log):
+        return _discover(fitter, fit, fit_free, quick, say, log) if terms else (fit, None, [])
+    current, free, accepted, joint_term, record = joint_step(fitter, current, free, accepted, open_round, lib, base,
+                                                             max_effects, rnd, discover, say, notes)
+    return current, free, accepted, (joint_term if record and record["accepted"] else discovered), record
+
+
 def _fit_term(fitter: Fitter, current: Fit, free: list[FreeParam], term, record: dict, quick: bool) -> Fit:
     """The whole model refit with a discovered ``term``, its coefficients alternated with the refit; ``record`` gets
     the term, its share of the held-out structure, the information criterion's change and whether it passes."""
@@ -646,17 +641,6 @@ def diagnostics_ratio(fitter: Fitter, fit: Fit) -> float:
     return float(c[j] / max(n[j], 1))
 
 
-def cpu_seconds() -> float:
-    """CPU seconds of this process and of its finished child processes (the forked scoring workers)."""
-    own = time.process_time()
-    try:
-        import resource  # POSIX only
-    except ImportError:  # pragma: no cover - without it the workers' time is not counted
-        return own
-    children = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return own + children.ru_utime + children.ru_stime
-
-
 class _Clock:
     """Wall and CPU time per part of the run (``<part>_s`` wall, ``<part>_cpu_s`` CPU, ``total_s``, ``total_cpu_s``).
 
@@ -680,9 +664,9 @@ class _Clock:
 
 def identify(log: LogData, base: Parameters | None = None, base_effects: Iterable[str] = (),
              quick: bool = False, max_effects: int = 4, progress: Callable[[str], None] | None = None,
-             discover: bool = True, pairs: bool = True) -> IdentificationResult:
+             discover: bool = True, pairs: bool = True, joint: bool = True) -> IdentificationResult:
     """Run the whole procedure of the module docstring on a prepared log (``pairs``: its step 7, the pairs of
-    effects that only help together)."""
+    effects that only help together; ``joint``: its step 8, the joint refit)."""
     say = progress or (lambda _msg: None)
     clock = _Clock()
     base = base or Parameters()
@@ -712,15 +696,22 @@ def identify(log: LogData, base: Parameters | None = None, base_effects: Iterabl
         accepted += more
         rounds += more_rounds
     clock.lap("candidates")
-    pair_records = []
+    pair_records, open_round = [], current.extra.get("open_round")
     if pairs:
-        current, current_free, joint, joint_term, pair_records = pair_step(
+        current, current_free, pair_kept, pair_term, pair_records = pair_step(
             fitter, current, current_free, lib, rejected_terms, max_effects - len(accepted), quick, len(rounds) + 1,
             say, notes)
-        accepted += joint
-        discovered = joint_term or discovered
+        accepted += pair_kept
+        discovered = pair_term or discovered
+        open_round = None if pair_kept or pair_term else open_round  # a pair kept: the joint refit is not needed
     current.extra.pop("open_round", None)  # the last round's fits: not kept alive in the final model
     clock.lap("pairs")
+    joint_record = None
+    if joint:
+        current, current_free, accepted, discovered, joint_record = _joint(
+            fitter, current, current_free, accepted, open_round, lib, base, max_effects, quick, len(rounds) + 1,
+            discovered, say, notes, discover)
+    clock.lap("joint")
     current, current_free = _backward(fitter, current, current_free, accepted, lib, base, quick, say, notes)
     _drop_removed_partners(accepted, discovered)
     clock.lap("candidates")
@@ -750,6 +741,7 @@ def identify(log: LogData, base: Parameters | None = None, base_effects: Iterabl
     res.timing_shift_samples = shift_samples
     res.parameter_confidence = confidence
     res.pairs = pair_records
+    res.joint = joint_record
     return res
 
 

@@ -208,6 +208,7 @@ def summary(res: IdentificationResult) -> dict:
         "discovered_terms": [dict(t.as_dict(), formula=t.formula()) for t in res.terms],
         "discovery": res.discovery,
         "pairs": res.pairs,
+        "joint": res.joint,
         "log_checks": {"bad_rows": log.bad_rows, "timing_shift_samples": res.timing_shift_samples,
                        "timing_shift_s": res.timing_shift_samples * log.dt_s},
         "candidates": [[r.summary() for r in rnd] for rnd in res.rounds],
@@ -337,7 +338,11 @@ def _markdown(res: IdentificationResult, data: dict, model_name: str) -> list[st
            "added; when the last round kept nothing and structure remains, pairs of its best candidates and of the "
            "discovered terms that lost their refit are screened jointly (one linearised step each) and the best "
            "refit, a pair kept on the same gates if each member also earns its share with the other in (effects "
-           "that mask each other, identified only together); then a backward pass that re-tests each kept effect "
+           "that mask each other, identified only together); when no pair was kept and the supply temperature "
+           "stays structured, the kept effects and the last round's best candidates are refit all at once without "
+           "the discovered terms, eliminated backward (each must earn its share with the others in) and discovery "
+           "runs again, that model replacing the forward path's if it lowers the held-out supply error by the same "
+           "share (several effects that mask one another); then a backward pass that re-tests each kept effect "
            "with the others in.",
            "5. Whatever structure remains is located instead of being named: the residual is regressed on each "
            "model equation's drive, on every logged signal (a missing input dependence, e.g. on a column the model "

@@ -636,6 +636,29 @@ def test_two_effects_that_mask_each_other_are_found_together(tmp_path):
 
 
 @pytest.mark.slow
+def test_three_effects_that_mask_each_other_are_found_by_the_joint_refit(tmp_path):
+    """The same box on the 2 h log of seed 17: the delay removes just under 10 % of the supply's held-out structure,
+    valve a's shift 8 %, ``bypass_flow`` (which the box does not have) is kept as a stand-in and the recirculation is
+    missing; no pair passes, and forward selection named only the outlet shifts (0.397 -> 0.312 C). The joint refit
+    of the kept effects and the last round's best candidates, eliminated backward, keeps the delay and valve a's
+    shift and drops the stand-in; discovery then finds the cabin air at the box inlet."""
+    path = tmp_path / "combo_recirc_delay_valve.csv"
+    simulate_log(path, "combo_recirc_delay_valve", duration_s=7200.0, seed=17)
+    res = identify(load(path), base_effects=DOCUMENTED_EFFECTS)
+    names = {a.name for a in res.accepted}
+    assert names == {"valve_shift:a", "valve_shift:outlets", "transport_delay:supply_temp_c"}, names
+    assert "bypass_flow" not in res.effects
+    assert res.joint["accepted"] and "bypass_flow" not in res.joint["kept"], res.joint
+    assert res.params.valve_a_shift_pct == pytest.approx(10.0, abs=2.0)
+    assert res.extras["supply_temp_c_delay_s"] == pytest.approx(3.0, abs=1.0)
+    (term,) = res.terms
+    share = dict(zip(term.features, term.coefficients))["cabin_minus_inlet"]
+    assert term.location == "box_in" and share == pytest.approx(0.15, abs=0.03)
+    e = res.holdout_errors()["supply_temp_c"]
+    assert e["rms_after"] <= 0.5 * e["rms_before"], e
+
+
+@pytest.mark.slow
 def test_an_effect_a_later_term_explains_is_dropped(tmp_path):
     """The heater body loses 0.3 W/K to the box walls (``heater_wall_loss``, outside the library; the 2 h log of
     seed 5). Before the term discovery runs, the flow-dependent bypass split (``bypass_flow``, which this box does
