@@ -3,18 +3,19 @@
 The real-time iteration (:mod:`.rti_osqp`) takes the QP's answer as the next plan whole: one
 Gauss-Newton step from the linearisation point. Where the QP's linear model is wrong about the sign of an
 input's effect along the horizon, the step overshoots, the next linearisation at its end points back, and
-the input alternates between two plans from sample to sample (docs/identification.md 'A globalised step
-in the real-time iteration'). :class:`PlanMerit` checks the step on the problem's own nonlinear cost:
+the input alternates between two plans from sample to sample
+(docs/identification.md 'A globalised step in the real-time iteration').
+:class:`PlanMerit` checks the step on the problem's own nonlinear cost:
 
 * the **merit** of a plan (scaled inputs ``U``, N x nu) is the cost of :mod:`.ocp` (its module docstring)
   along the model's rollout from the estimate ``x0`` with those inputs (single shooting: no defects), the
   soft rows' slack at what the rollout needs (the heater and PTC rows' largest excess, at least 0) and the
   hard flow floor priced like a slack (per L/s below it, :data:`FLOOR_PENALTY_PER_LS`);
 * after the QP, the merit of the QP's plan is compared with that of the linearisation point (the shifted
-  plan, the command in force first). Where the QP's plan is no worse (within :data:`MERIT_TOLERANCE`), it is
-  taken as it is (the common step: one call of a generated function with the two rollouts). Otherwise the damped steps ``z_lin +
-  fraction (z_qp - z_lin)`` for the configured fractions are rolled out too (a second call) and the plan
-  with the least merit among the QP's and the damped ones is taken.
+  plan, the command in force first). Where the QP's plan is no worse (within :data:`MERIT_TOLERANCE`), it
+  is taken as it is (the common step: one call of a generated function with the two rollouts). Otherwise
+  the damped steps ``z_lin + fraction (z_qp - z_lin)`` for the configured fractions are rolled out too (a
+  second call) and the plan with the least merit among the QP's and the damped ones is taken.
 
 The linearisation point itself is not a candidate: the step always moves towards the QP's answer, by
 the smallest fraction at least, so a plan the merit cannot rank (a flat cost) still moves.
@@ -34,11 +35,11 @@ from .ocp import STAGE_OUTPUTS, TrackingProblem
 #: L/s below the floor and s of stage: the floor is a hard row of the QP, a plan short of it is not one the
 #: QP could take, so a shortfall costs like the heater's slack (ASSUMPTION: 1 L/s weighs like 1 C of slack).
 FLOOR_PENALTY_PER_LS = 1.0
-#: The QP's plan is taken whole unless its merit exceeds the linearisation point's by more than this share of it:
-#: below that the two differ by what separates the QP from the merit without a wrong linearisation (OSQP's
-#: tolerance, the Levenberg-Marquardt term, the interpolated shift of the plan). Measured (docs/identification.md
+#: The QP's plan is taken whole unless its merit exceeds the linearisation point's by more than this share of it.
+#: ASSUMPTION: below that the two differ by what separates the QP from the merit without a wrong linearisation
+#: (OSQP's tolerance, the Levenberg-Marquardt term, the interpolated shift of the plan), not traced. Measured (docs/identification.md
 #: 'A globalised step in the real-time iteration'): up to 4 % on steps of the nominal box's chiller_hysteresis_step,
-#: 10 % to 18-fold where valve a alternates on the recirculating box.
+#: 0.6 to 18 times more on every second step where valve a alternates on the recirculating box.
 MERIT_TOLERANCE = 0.05
 
 
