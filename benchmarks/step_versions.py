@@ -1,7 +1,7 @@
 """Two versions of the code side by side on the solve-time loop: the step time of a code change.
 
     python -m hvac_mpc.benchmarks.step_versions --before REV [--after REV] [--steps 240] [--rounds 3]
-                                                [--seed 1] [--json FILE]
+                                                [--seed 1] [--json FILE] [--after-settings JSON]
 
 ``REV`` is a git revision of the repository this package is installed from (e.g. ``main``), laid
 out as installed in a temporary folder, or an import root holding a ``hvac_mpc`` package (its
@@ -15,6 +15,9 @@ processes on a shared machine falls on both alike. Step times are the CPU time o
 runs ``MpcController.step`` (``time.thread_time``), the cold first step excluded. Reported per
 round: median, 99th percentile and their ratios (after / before), the closed-loop cost of each and
 the largest difference between the two versions' commands (0 when the change keeps the arithmetic).
+``--after-settings '{"rti_step_fractions": [0.5, 0.25]}'`` runs the version after with these
+:class:`~hvac_mpc.mpc.mpc_controller.MpcSettings` fields (JSON lists become tuples): the step time of a setting,
+e.g. ``--before HEAD`` with the installed version and a setting that is off by default.
 """
 
 from __future__ import annotations
@@ -42,7 +45,9 @@ WORKER = """
 import json, sys
 from hvac_mpc.benchmarks import solve_time
 from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
-loop = solve_time.Loop(MpcController(settings=MpcSettings()), int(sys.argv[1]))
+fields = json.loads(sys.argv[2]) if len(sys.argv) > 2 else {}
+fields = {k: tuple(v) if isinstance(v, list) else v for k, v in fields.items()}
+loop = solve_time.Loop(MpcController(settings=MpcSettings(**fields)), int(sys.argv[1]))
 print("ready", flush=True)
 for line in sys.stdin:
     word, *rest = line.split()
@@ -93,11 +98,12 @@ def import_root(version: str, workdir: Path) -> Path:
 class Version:
     """One version's worker process (``root``: its import root, None for the installed version)."""
 
-    def __init__(self, root: Path | None, seed: int):
+    def __init__(self, root: Path | None, seed: int, settings: str | None = None):
         env = dict(os.environ)
         if root is not None:
             env["PYTHONPATH"] = os.pathsep.join([str(root), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
-        self.proc = subprocess.Popen([sys.executable, "-c", WORKER, str(seed)], stdin=subprocess.PIPE,
+        self.proc = subprocess.Popen([sys.executable, "-c", WORKER, str(seed), *([settings] if settings else [])],
+                                     stdin=subprocess.PIPE,
                                      stdout=subprocess.PIPE, text=True, env=env, cwd=root or None)
         if self.proc.stdout.readline().strip() != "ready":
             raise RuntimeError(f"the worker of {root or 'the installed version'} did not start")
@@ -112,9 +118,11 @@ class Version:
         self.proc.wait(timeout=30)
 
 
-def side_by_side(roots: dict[str, Path | None], steps: int, seed: int) -> dict[str, Any]:
-    """One round: both versions in lockstep; each one's summary, the ratios and the commands' difference."""
-    versions = {name: Version(root, seed) for name, root in roots.items()}
+def side_by_side(roots: dict[str, Path | None], steps: int, seed: int,
+                 after_settings: str | None = None) -> dict[str, Any]:
+    """One round: both versions in lockstep; each one's summary, the ratios and the commands' difference
+    (``after_settings``: JSON of MpcSettings fields of the version after)."""
+    versions = {name: Version(root, seed, after_settings if name == "after" else None) for name, root in roots.items()}
     times = {name: [] for name in versions}
     iterations = {name: [] for name in versions}
     commands = {name: [] for name in versions}
@@ -146,8 +154,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--before", required=True, help="git revision or import root of the version before")
     p.add_argument("--after", default=None, help="git revision or import root of the version after "
                                                  "(default: the installed one)")
+    p.add_argument("--after-settings", default=None, metavar="JSON",
+                   help="MpcSettings fields of the version after, as a JSON object (lists become tuples)")
     solve_time.side_by_side_arguments(p)
     args = p.parse_args(argv)
+    if args.after_settings is not None:
+        try:
+            if not isinstance(json.loads(args.after_settings), dict):
+                raise ValueError("not an object")
+        except ValueError as exc:
+            print(f"step_versions: --after-settings must be a JSON object of MpcSettings fields: {exc}")
+            return 2
     if solve_time.side_by_side_refused(args, "step_versions"):
         return 2
     with tempfile.TemporaryDirectory() as tmp:
@@ -157,7 +174,7 @@ def main(argv: list[str] | None = None) -> int:
         except ValueError as exc:
             print(f"step_versions: {exc}")
             return 2
-        rounds = [side_by_side(roots, args.steps, args.seed) for _ in range(args.rounds)]
+        rounds = [side_by_side(roots, args.steps, args.seed, args.after_settings) for _ in range(args.rounds)]
     for i, r in enumerate(rounds, 1):
         b, a = r["before"], r["after"]
         print(f"round {i}: median {b['thread_median_ms']:.3f} -> {a['thread_median_ms']:.3f} ms "
@@ -165,7 +182,8 @@ def main(argv: list[str] | None = None) -> int:
               f"({r['p99_ratio']:.2f}x), OSQP iterations {b['total_iterations']} -> {a['total_iterations']}, "
               f"cost {b['cost']:.2f} -> {a['cost']:.2f}, largest command difference {r['command_difference']:.3g}")
     if args.json is not None:
-        args.json.write_text(json.dumps({"versions": {"before": args.before, "after": args.after or "installed"},
+        args.json.write_text(json.dumps({"versions": {"before": args.before, "after": args.after or "installed",
+                                                      "after_settings": args.after_settings},
                                          "steps": args.steps,
                                          "seed": args.seed, "rounds": rounds}, indent=2))
     return 0

@@ -116,6 +116,10 @@ class MpcSettings:
             many QPs (Gauss-Newton SQP to ``sqp_tol``): the shifted plan was made for the old
             reference, and a single damped step from it leaves the RTI's closed loop several
             percent from the converged IPOPT controller's (measured with ``hvac-mpc solve-time``).
+        rti_step_fractions: a globalised step for ``rti``/``sqp`` (:mod:`hvac_mpc.mpc.plan_merit`): after each QP
+            the nonlinear cost of its plan (the model's rollout) is compared with the linearisation point's;
+            where it is higher, the damped steps of these fractions (each in (0, 1)) are tried and the least
+            cost taken. Empty: the QP's plan whole (the plain real-time iteration).
         ipopt_tol, ipopt_max_iter: IPOPT tolerance and iteration cap.
         deadline_s: longest feedback time (measurement to command); beyond it the solution is
             discarded and the fallback chain used.
@@ -182,6 +186,7 @@ class MpcSettings:
     cold_start_qps: int = 10
     reference_change_qps: int = 2
     sqp_tol: float = 2e-2
+    rti_step_fractions: tuple[float, ...] = ()
     ipopt_tol: float = 1e-6
     ipopt_max_iter: int = 300
     deadline_s: float = 0.5
@@ -223,6 +228,12 @@ class MpcSettings:
         check_number(f"{p}.levenberg_marquardt", self.levenberg_marquardt, 0.0, 1e4)
         check_number(f"{p}.cold_start_qps", self.cold_start_qps, 1, 100, integer=True)
         check_number(f"{p}.reference_change_qps", self.reference_change_qps, 1, 100, integer=True)
+        if not isinstance(self.rti_step_fractions, tuple) or len(self.rti_step_fractions) > 8:
+            raise InvalidSettings(f"{p}.rti_step_fractions must be a tuple of at most 8 fractions in (0, 1)")
+        for i, a in enumerate(self.rti_step_fractions):
+            check_number(f"{p}.rti_step_fractions[{i}]", a, 0.0, 1.0, lo_open=True)
+            if a >= 1.0:
+                raise InvalidSettings(f"{p}.rti_step_fractions[{i}] = {a!r} must be below 1 (range (0, 1))")
         check_number(f"{p}.ipopt_tol", self.ipopt_tol, 1e-12, 1e-2, lo_open=True)
         check_number(f"{p}.ipopt_max_iter", self.ipopt_max_iter, 1, 100000, integer=True)
         check_number(f"{p}.deadline_s", self.deadline_s, 0.0, 3600.0, lo_open=True)
@@ -386,7 +397,8 @@ class MpcController:
                              lm_inputs=s.levenberg_marquardt, cold_start_qps=s.cold_start_qps,
                              reference_change_qps=s.reference_change_qps, codegen=s.codegen,
                              scaling=s.osqp_scaling, alpha=s.osqp_alpha, check_dualgap=s.osqp_check_dualgap,
-                             first_pass_iter=s.osqp_first_pass_iter, accept_max_iter=s.osqp_accept_max_iter)
+                             first_pass_iter=s.osqp_first_pass_iter, accept_max_iter=s.osqp_accept_max_iter,
+                             step_fractions=s.rti_step_fractions)
 
     # ------------------------------------------------------------------ protocol
     def reset(self, command: Command | None = None) -> None:

@@ -586,12 +586,28 @@ class TrackingProblem:
     def _stage_function_p(self, substeps: int) -> ca.Function:
         """:meth:`_stage_function` with the model parameters ``p`` (``HvacModel.p_default`` order) as
         an input, so generated code built from it serves every parameter set of one structure."""
-        m, nx, nu = self.model, self.nx, self.nu
-        xs = ca.SX.sym("x", nx)
-        us = ca.SX.sym("u", nu)
-        d = ca.SX.sym("d", self.nd)
-        dt = ca.SX.sym("dt")
-        p = ca.SX.sym("p", len(m.p_default))
+        xs, us, d, dt, p = self._stage_symbols()
+        xn, y = self._stage_values(xs, us, d, dt, p, substeps)
+        out = ca.densify(ca.vertcat(xn, ca.vec(ca.jacobian(xn, xs)), ca.vec(ca.jacobian(xn, us)), y,
+                                    ca.vec(ca.jacobian(y, xs)), ca.vec(ca.jacobian(y, us))))
+        return ca.Function(f"stage{substeps}_p", [xs, us, d, dt, p], [out], ["x", "u", "d", "dt", "p"], ["out"])
+
+    def stage_values_function(self, substeps: int) -> ca.Function:
+        """One stage without its Jacobians: ``(x, u, d, dt, p) -> (x_next, y)`` (scaled states, the stage
+        outputs :data:`STAGE_OUTPUTS`), the values of :meth:`_stage_function_p` (for rollouts of a plan)."""
+        xs, us, d, dt, p = self._stage_symbols()
+        xn, y = self._stage_values(xs, us, d, dt, p, substeps)
+        return ca.Function(f"stage_values{substeps}", [xs, us, d, dt, p], [xn, y], ["x", "u", "d", "dt", "p"],
+                           ["x_next", "y"])
+
+    def _stage_symbols(self) -> tuple:
+        """CasADi symbols of one stage's arguments: scaled x and u, d, dt, the model parameters p."""
+        return (ca.SX.sym("x", self.nx), ca.SX.sym("u", self.nu), ca.SX.sym("d", self.nd), ca.SX.sym("dt"),
+                ca.SX.sym("p", len(self.model.p_default)))
+
+    def _stage_values(self, xs, us, d, dt, p, substeps: int) -> tuple:
+        """Scaled next state (RK4, ``substeps``) and the stage outputs of one stage, symbolically."""
+        m = self.model
         x_off, x_sc = ca.DM(self.x_off), ca.DM(self.x_sc)
         u_phys = self._command_expr(us)
         x_phys = x_off + x_sc * xs
@@ -604,9 +620,7 @@ class TrackingProblem:
         temp = ((1.0 - share) * y_all[m.outputs.index("duct_air_temp_c")]
                 + share * y_all[m.outputs.index("supply_temp_c")])
         y = ca.vertcat(temp, *[y_all[m.outputs.index(n)] for n in STAGE_OUTPUTS[1:-1]], u_phys[self.i_valve_a])
-        out = ca.densify(ca.vertcat(xn, ca.vec(ca.jacobian(xn, xs)), ca.vec(ca.jacobian(xn, us)), y,
-                                    ca.vec(ca.jacobian(y, xs)), ca.vec(ca.jacobian(y, us))))
-        return ca.Function(f"stage{substeps}_p", [xs, us, d, dt, p], [out], ["x", "u", "d", "dt", "p"], ["out"])
+        return xn, y
 
     def _command_expr(self, us):
         """Actuator commands (W, %) of scaled decisions, symbolically (valve openings -> angles)."""

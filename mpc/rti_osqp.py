@@ -35,6 +35,7 @@ from hvac_mpc.models.box import DISTURBANCES, INPUTS
 from .casadi_eval import BufferedFunction
 from .codegen import CodegenReport, compiled
 from .ocp import STAGE_OUTPUTS, TRACKED, TrackingProblem, shift_maps, shift_nodes
+from .plan_merit import PlanMerit
 
 #: Rows of the stage outputs (``STAGE_OUTPUTS``) by signal: the tracked temperature, the total
 #: flow, the outlet flows and the electric heater power (the energy residual's heater part).
@@ -137,6 +138,10 @@ class RtiOsqpSolver:
             as the QP's answer instead of a failure: an inexact QP step, as the real-time iteration
             takes an inexact NLP step; the next QP starts from it (primal shifted, dual kept).
             ``SolveResult.extra["inexact"]`` says when the step's answer is such an iterate.
+        step_fractions: a globalised step (:class:`.plan_merit.PlanMerit`): after each QP the nonlinear cost of
+            its plan is compared with the linearisation point's, and where it is higher the damped steps of
+            these fractions are tried and the least cost taken (``SolveResult.extra["step_fraction"]``).
+            Empty (the default): the QP's plan is taken whole, the plain real-time iteration.
         codegen: evaluate the QP data as generated C (:func:`.codegen.compiled`, cached on disk);
             otherwise (or without a compiler) CasADi's interpreter runs the same functions.
             ``self.codegen`` reports what happened.
@@ -146,7 +151,7 @@ class RtiOsqpSolver:
                  sqp_max_iter: int = 1, sqp_tol: float = 1e-3, check_termination: int = 5,
                  lm_inputs: np.ndarray | float = 0.0, cold_start_qps: int = 1, reference_change_qps: int = 1,
                  codegen: bool = False, scaling: int = 10, alpha: float = 1.6, check_dualgap: bool = True,
-                 first_pass_iter: int = 0, accept_max_iter: bool = False):
+                 first_pass_iter: int = 0, accept_max_iter: bool = False, step_fractions: tuple[float, ...] = ()):
         self.pb = pb = problem
         # OSQP status values taken as an answer: solved, solved inaccurate (and maximum iterations reached)
         self._accepted = (1, 2, 7) if accept_max_iter else (1, 2)
@@ -173,6 +178,7 @@ class RtiOsqpSolver:
         self._qp_gradient = BufferedFunction(wrap(self.qp_gradient),
                                              fixed={7: self._q_const, 8: self._lm_all, 9: pb.w_du})
         self._sw_key = None
+        self._merit = PlanMerit(pb, tuple(step_fractions), wrap) if step_fractions else None
         self._first_pass_iter = int(first_pass_iter)
         self.fail_next = 0  # steps to fail on purpose (tests of the fallback chain)
         self._osqp_settings = dict(eps_abs=eps, eps_rel=eps, max_iter=int(max_iter), polishing=False,
@@ -188,7 +194,8 @@ class RtiOsqpSolver:
         return {"qp_solver": "osqp", **self._osqp_settings, "first_pass_iter": self._first_pass_iter,
                 "accept_max_iter": 7 in self._accepted,
                 "sqp_max_iter": self.sqp_max_iter,
-                "reference_change_qps": self.reference_change_qps, "compiled": self.codegen.active}
+                "reference_change_qps": self.reference_change_qps, "compiled": self.codegen.active,
+                "step_fractions": list(self._merit.fractions) if self._merit else []}
 
     # ------------------------------------------------------------------ structure
     def _build_pattern(self) -> None:
@@ -610,6 +617,7 @@ class RtiOsqpSolver:
         status = "unsolved"
         z = None
         inexact = False
+        fraction = 1.0
         for it in range(max_qps):
             if it > 0:
                 prep += self._relinearise(z, x0, d, ref, w_y, u_prev)
@@ -641,6 +649,9 @@ class RtiOsqpSolver:
                 status = "non-finite solution"
                 z = None
                 break
+            if self._merit is not None:
+                z, taken = self._globalised(z, x0, d, ref, w_y, u_prev)
+                fraction = min(fraction, taken)
             if it + 1 < max_qps and float(np.abs(z - self._z_lin).max()) < self.sqp_tol:
                 break
         feedback = time.perf_counter() - t0 - prep
@@ -653,7 +664,20 @@ class RtiOsqpSolver:
         self.X, self.U, self.S = X, U, S
         return SolveResult(True, status, X=X.copy(), U=U.copy(), S=S.copy(), iterations=iterations,
                            qp_solves=solves, prep_time_s=prep, feedback_time_s=feedback,
-                           extra={"cold_start": cold, "inexact": inexact})
+                           extra={"cold_start": cold, "inexact": inexact, "step_fraction": fraction})
+
+    def _globalised(self, z, x0, d, ref, w_y, u_prev) -> tuple[np.ndarray, float]:
+        """The QP's answer ``z``, or the damped step towards it from the linearisation point that the nonlinear
+        cost prefers (:meth:`.plan_merit.PlanMerit.choose`), with the fraction taken."""
+        N, nu = self.pb.N, self.pb.nu
+        U_lin = self._z_lin[self.iu0:self.is0].reshape(N, nu)
+        U_qp = z[self.iu0:self.is0].reshape(N, nu)
+        fraction = self._merit.choose(U_lin, U_qp, x0, d, self._weights(w_y), ref, u_prev, self._p)
+        if fraction == 1.0:
+            return z, fraction
+        z = self._z_lin + fraction * (z - self._z_lin)
+        z[:self.pb.nx] = x0
+        return z, fraction
 
     def _limit_time(self, remaining_s: float, budget_s: float) -> None:
         """OSQP's time limit: what remains of the feedback budget, set again only when it has shrunk

@@ -31,3 +31,9 @@ def test_the_same_code_side_by_side_gives_the_same_commands(tmp_path):
     assert out["before"]["cost"] == out["after"]["cost"] > 0.0
     assert out["before"]["total_iterations"] == out["after"]["total_iterations"] > 0
     assert out["before"]["thread_median_ms"] > 0.0 and out["median_ratio"] > 0.0
+
+
+def test_after_settings_that_are_no_json_object_are_refused(capsys):
+    for bad in ("[0.5]", "rti_step_fractions=0.5"):
+        assert step_versions.main(["--before", "HEAD", "--after-settings", bad]) == 2
+        assert "--after-settings must be a JSON object" in capsys.readouterr().out
