@@ -27,11 +27,12 @@ from dataclasses import dataclass
 
 @dataclass
 class RestPoint:
-    """Where the flow rested: ln of the model's mass flow (ln kg/s) and the mixed-air offset (degC, averaged
-    over the rest)."""
+    """Where the flow rested: ln of the model's mass flow (ln kg/s), the mixed-air offset (degC, averaged
+    over the rest) and the other commands that move the supply air (valve a in %, the heater in W)."""
 
     log_flow: float
     offset_c: float
+    others: tuple = ()
 
 
 class SettledFlowSteps:
@@ -56,8 +57,8 @@ class SettledFlowSteps:
         self._settled: RestPoint | None = None  # the last rest that counted (updated while it lasts)
         self._stepped = False  # the current rest has been reported as a step
 
-    def observe(self, log_flow: float, offset_c: float,
-                eligible: bool = True) -> tuple[RestPoint, RestPoint] | None:
+    def observe(self, log_flow: float, offset_c: float, eligible: bool = True,
+                others: tuple = ()) -> tuple[RestPoint, RestPoint] | None:
         """One sample; ``eligible`` False keeps this sample's rest from counting (e.g. before the dead time is
         known). Returns (the rest before, the rest after) of a flow step that has just settled, else None."""
         if not (math.isfinite(log_flow) and math.isfinite(offset_c)):
@@ -71,7 +72,7 @@ class SettledFlowSteps:
         if self._rest_s < self.settle_s or not eligible:
             return None
         before = self._settled
-        self._settled = RestPoint(log_flow, self._mean)
+        self._settled = RestPoint(log_flow, self._mean, tuple(others))
         if before is None or self._stepped or abs(log_flow - before.log_flow) <= self.gate:
             return None
         self._stepped = True

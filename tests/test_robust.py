@@ -654,7 +654,8 @@ def test_flow_jump_on_a_box_whose_split_depends_on_the_flow_is_met_by_the_learne
 
 def test_the_offset_gets_variance_at_a_flow_step_and_the_motor_rise_stays_physical():
     """``q_mix_offset_per_log_flow_c``: the time update where the model's flow changed adds (c * change of ln flow)^2
-    to the mixed-air offset's variance, nothing at a steady flow; ``q_mix_offset_unseen_c``: the offset's walk before
+    to the mixed-air offset's variance (less ``q_mix_offset_flow_deadband`` of the change), nothing at a steady flow
+    nor before a response has shown the dead time; ``q_mix_offset_unseen_c``: the offset's walk before
     the dead-time estimate has seen a response; ``bound_motor_rise``: the motor rise held within
     [0, motor_gain_max_c] however hard a reading pushes it (docs/robustness.md sec. 2.8)."""
     from hvac_mpc.contract import Measurement
@@ -672,21 +673,32 @@ def test_the_offset_gets_variance_at_a_flow_step_and_the_motor_rise_stays_physic
         return ekf, p0, u2
 
     c = 0.5
-    plain, p0, _ = filter_after(EkfSettings(), 300.0)
-    stepped, q0, u2 = filter_after(EkfSettings(q_mix_offset_per_log_flow_c=c), 300.0)
-    steady, _, _ = filter_after(EkfSettings(q_mix_offset_per_log_flow_c=c), 150.0)
+    # without the dead-time handling (with it, the variance is added only once a response has been seen)
+    none = {"q_mix_offset_per_log_flow_c": 0.0, "dead_time_max_s": 0.0}
+    plain, p0, _ = filter_after(EkfSettings(**none), 300.0)
+    stepped, q0, u2 = filter_after(EkfSettings(q_mix_offset_per_log_flow_c=c, dead_time_max_s=0.0), 300.0)
+    steady, _, _ = filter_after(EkfSettings(q_mix_offset_per_log_flow_c=c, dead_time_max_s=0.0), 150.0)
+    banded, _, _ = filter_after(EkfSettings(q_mix_offset_per_log_flow_c=c, q_mix_offset_flow_deadband=0.1,
+                                            dead_time_max_s=0.0), 300.0)
+    unseen_step, _, _ = filter_after(EkfSettings(q_mix_offset_per_log_flow_c=c), 300.0)
+    plain_delay, _, _ = filter_after(EkfSettings(), 300.0)
+    assert not unseen_step.dead_time.informed and unseen_step.P[unseen_step.i_mix_offset, unseen_step.i_mix_offset] == \
+        pytest.approx(plain_delay.P[plain_delay.i_mix_offset, plain_delay.i_mix_offset], abs=1e-15)
     assert q0 == pytest.approx(p0, abs=1e-15)  # the first time update has no flow before it
     u = Command(150.0, 0.0, 50.0, 100.0, 100.0, 100.0).vector()
     flows = [float(stepped.f_p(stepped.z, v, 5.0, stepped.p)[3]) for v in (u, u2)]
     added = stepped.P[stepped.i_mix_offset, stepped.i_mix_offset] - plain.P[plain.i_mix_offset, plain.i_mix_offset]
     assert added == pytest.approx((c * np.log(flows[1] / flows[0])) ** 2, rel=0.05) and added > 1e-3
-    plain_steady, _, _ = filter_after(EkfSettings(), 150.0)
+    with_band = banded.P[banded.i_mix_offset, banded.i_mix_offset] - plain.P[plain.i_mix_offset, plain.i_mix_offset]
+    assert with_band == pytest.approx((c * (np.log(flows[1] / flows[0]) - 0.1)) ** 2, rel=0.05)
+    plain_steady, _, _ = filter_after(EkfSettings(**none), 150.0)
     assert steady.P[steady.i_mix_offset, steady.i_mix_offset] == pytest.approx(
         plain_steady.P[plain_steady.i_mix_offset, plain_steady.i_mix_offset], abs=1e-15)
     unseen, _, _ = filter_after(EkfSettings(q_mix_offset_unseen_c=0.03), 150.0)
+    plain_unseen, _, _ = filter_after(EkfSettings(), 150.0)
     assert not unseen.dead_time.informed
     assert unseen.P[unseen.i_mix_offset, unseen.i_mix_offset] == pytest.approx(
-        plain_steady.P[plain_steady.i_mix_offset, plain_steady.i_mix_offset] + 2 * (0.03 ** 2 - 0.015 ** 2), rel=1e-6)
+        plain_unseen.P[plain_unseen.i_mix_offset, plain_unseen.i_mix_offset] + 2 * (0.03 ** 2 - 0.015 ** 2), rel=1e-6)
     # a reading far below what the model explains pushes the motor rise down; bounded, it stops at 0
     for bound in (False, True):
         ekf, _, u2 = filter_after(EkfSettings(bound_motor_rise=bound), 150.0)
