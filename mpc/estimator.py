@@ -623,6 +623,22 @@ class DisturbanceEkf:
         self.z[self.i_mix_offset] += air_before - air_after
         self._set_learning(abs(log_flow - self.z[i]) > s.bypass_flow_gate)
 
+    def _rest_observation(self, before, now, u: np.ndarray, setpoint_c: float) -> tuple[float, float]:
+        """One settled flow step as an observation of the exponent (:mod:`~.flow_term`): the sensitivity ``S`` of
+        ``f(k) = mix(k, anchor before) - mix(k, anchor now)`` at the estimate in use ``k_c`` (degC per unit, a
+        central difference) and ``y = d_offset - f(k_c) + S k_c`` (degC), so that ``y ~ S k``."""
+        k_c, h = float(self.z[self.i_exponent]), 0.05
+
+        def effect(k: float) -> float:  # f(k) at the settled state
+            z = self.z.copy()
+            z[self.i_exponent] = k
+            z[self.i_anchor] = before.log_flow
+            then = float(self._mix(z, u, setpoint_c)[0][0])
+            z[self.i_anchor] = now.log_flow
+            return then - float(self._mix(z, u, setpoint_c)[0][0])
+        sensitivity = (effect(k_c + h) - effect(k_c - h)) / (2.0 * h)
+        return sensitivity, now.offset_c - before.offset_c - effect(k_c) + sensitivity * k_c
+
     def readings(self, measurement: Measurement) -> tuple[np.ndarray, np.ndarray]:
         """The measured values (order ``MEASURED``, 0 where unused) and which are used (finite and enabled)."""
         values = np.array([finite_or(getattr(measurement, n, None), np.nan) for n in MEASURED])
@@ -666,19 +682,7 @@ class DisturbanceEkf:
         if (abs(now.others[0] - before.others[0]) > s.bypass_flow_rest_valve_pct
                 or abs(now.others[1] - before.others[1]) > REST_HEATER_TOL_W):
             return  # the supply air moved with valve a or the heater too: the offset's change is not the flow's
-        k_c = float(self.z[self.i_exponent])
-        h = 0.05
-
-        def effect(k: float) -> float:  # f(k): the model's air with the anchor before the step against now
-            z = self.z.copy()
-            z[self.i_exponent] = k
-            z[self.i_anchor] = before.log_flow
-            then = float(self._mix(z, u, setpoint_c)[0][0])
-            z[self.i_anchor] = now.log_flow
-            return then - float(self._mix(z, u, setpoint_c)[0][0])
-        f_c = effect(k_c)
-        sensitivity = (effect(k_c + h) - effect(k_c - h)) / (2.0 * h)
-        self.rest_fit.add(sensitivity, now.offset_c - before.offset_c - f_c + sensitivity * k_c)
+        self.rest_fit.add(*self._rest_observation(before, now, u, setpoint_c))
         air_before = float(self._mix(self.z, u, setpoint_c)[0][0])
         self.z[self.i_exponent] = self.rest_fit.estimate()
         self.z[self.i_mix_offset] += air_before - float(self._mix(self.z, u, setpoint_c)[0][0])
