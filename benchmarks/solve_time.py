@@ -55,6 +55,7 @@ import argparse  # noqa: E402
 import json  # noqa: E402
 import platform  # noqa: E402
 import time  # noqa: E402
+from dataclasses import dataclass, field  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any, Callable  # noqa: E402
 
@@ -282,7 +283,22 @@ def run(args: argparse.Namespace) -> int:
             os.sched_setaffinity(0, saved)
 
 
-def _run(args: argparse.Namespace, steps: int, cost_seeds: int) -> int:
+@dataclass
+class Contenders:
+    """The controllers of one solve-time run, each as a factory of a fresh :class:`MpcController`,
+    and what the run keeps beside them (acados' phase timers, fatrop's recorded starts, notes)."""
+
+    make_rti: Callable[[], MpcController]
+    make_ipopt: Callable[[], MpcController]
+    make_acados: Callable[[], MpcController] | None
+    order: list[tuple[str, Callable[[], MpcController]]]
+    notes: list[str] = field(default_factory=list)
+    phase_timers: list[PhaseTimer] = field(default_factory=list)
+    fatrop_recorders: list = field(default_factory=list)
+
+
+def _contenders(args: argparse.Namespace) -> Contenders:
+    """The run's controllers from the options: the RTI first, then acados, IPOPT, fatrop, do-mpc."""
     rti_settings = MpcSettings(codegen=not getattr(args, "no_codegen", False))
     model = load_model_file(args.model) if getattr(args, "model", None) else None
     make_rti = lambda: MpcController(settings=rti_settings, model=model)  # noqa: E731
@@ -292,43 +308,39 @@ def _run(args: argparse.Namespace, steps: int, cost_seeds: int) -> int:
     make_ipopt = lambda: MpcController(  # noqa: E731
         settings=ipopt_settings, model=model, solver_factory=lambda pb: IpoptReferenceSolver(
             pb, tol=ipopt_settings.ipopt_tol, max_iter=ipopt_settings.ipopt_max_iter, jit=jit))
-    contenders: list[tuple[str, Callable[[], MpcController]]] = [("rti", make_rti)]
-    notes = []
-    phase_timers: list[PhaseTimer] = []
-    make_acados = _acados_contender(args, rti_settings, model, notes, phase_timers)
-    if make_acados is not None:
-        contenders.append(("rti-acados", make_acados))
+    c = Contenders(make_rti, make_ipopt, None, [("rti", make_rti)])
+    c.make_acados = _acados_contender(args, rti_settings, model, c.notes, c.phase_timers)
+    if c.make_acados is not None:
+        c.order.append(("rti-acados", c.make_acados))
     if not args.no_ipopt:
-        contenders.append(("ipopt", make_ipopt))
-    fatrop_recorders: list = []  # fatrop's starts and answers, for the per-step comparison with IPOPT
-    if make_acados is not None and not getattr(args, "no_fatrop", False):
-        notes.append(FATROP_WITH_ACADOS)
+        c.order.append(("ipopt", make_ipopt))
+    if c.make_acados is not None and not getattr(args, "no_fatrop", False):
+        c.notes.append(FATROP_WITH_ACADOS)
         print(FATROP_WITH_ACADOS, flush=True)
     elif not getattr(args, "no_fatrop", False):
-        from .fatrop_reference import IPOPT_TOL_FACTOR, FatropSolver, StartRecorder, agreement, agreement_line
+        from .fatrop_reference import IPOPT_TOL_FACTOR, FatropSolver, StartRecorder
 
         def make_fatrop() -> MpcController:
             ctrl = MpcController(settings=ipopt_settings, model=model, solver_factory=lambda pb: FatropSolver(
                 pb, tol=IPOPT_TOL_FACTOR * ipopt_settings.ipopt_tol, max_iter=ipopt_settings.ipopt_max_iter,
                 jit=jit))
             ctrl.solver = StartRecorder(ctrl.solver)
-            fatrop_recorders.append(ctrl.solver)
+            c.fatrop_recorders.append(ctrl.solver)
             return ctrl
-        contenders.append(("fatrop", make_fatrop))
+        c.order.append(("fatrop", make_fatrop))
     if not args.no_dompc:
         try:
             from .dompc_reference import DoMpcSolver, _import_do_mpc
             _import_do_mpc()
-            contenders.append(("do-mpc", lambda: MpcController(settings=MpcSettings(deadline_s=600.0), model=model,
-                                                               solver_factory=lambda pb: DoMpcSolver(pb))))
+            c.order.append(("do-mpc", lambda: MpcController(settings=MpcSettings(deadline_s=600.0), model=model,
+                                                            solver_factory=lambda pb: DoMpcSolver(pb))))
         except ImportError as exc:
-            notes.append(f"do-mpc skipped: {exc}")
-    results = []
-    for name, make in contenders:
-        print(f"running {name} for {steps} steps ...", flush=True)
-        results.append(closed_loop(name, make, steps, args.seed))
-        if name == "rti-acados" and phase_timers:
-            results[-1]["phases"] = phase_timers[0].summary(steps)
+            c.notes.append(f"do-mpc skipped: {exc}")
+    return c
+
+
+def _ratios(results: list[dict[str, Any]]) -> None:
+    """Each result's median and p99 against the RTI's and, with IPOPT in the run, its cost against IPOPT's."""
     rti = results[0]
     by_name = {r["controller"]: r for r in results}
     for r in results:
@@ -336,26 +348,47 @@ def _run(args: argparse.Namespace, steps: int, cost_seeds: int) -> int:
         r["p99_ratio_vs_rti"] = r["p99_ms"] / rti["p99_ms"]
         if "ipopt" in by_name:
             r["cost_vs_ipopt_pct"] = 100.0 * (r["cost"]["total"] / by_name["ipopt"]["cost"]["total"] - 1.0)
-    seeds_cost = []
-    if "ipopt" in by_name:
-        seeds_cost.append({"seed": args.seed, "rti": rti["cost"]["total"], "ipopt": by_name["ipopt"]["cost"]["total"]})
-        for seed in range(args.seed + 1, args.seed + cost_seeds):
-            print(f"cost comparison, seed {seed}: rti and ipopt for {steps} steps ...", flush=True)
-            seeds_cost.append({"seed": seed, "rti": closed_loop("rti", make_rti, steps, seed)["cost"]["total"],
-                               "ipopt": closed_loop("ipopt", make_ipopt, steps, seed)["cost"]["total"]})
-        for c in seeds_cost:
-            c["rti_vs_ipopt_pct"] = 100.0 * (c["rti"] / c["ipopt"] - 1.0)
+
+
+def _cost_by_seed(c: Contenders, by_name: dict[str, dict[str, Any]], steps: int, seed: int,
+                  cost_seeds: int) -> list[dict[str, Any]]:
+    """Closed-loop cost of the RTI and IPOPT on ``cost_seeds`` plant noise seeds from ``seed`` on
+    (the first from the run itself); empty without IPOPT in the run."""
+    if "ipopt" not in by_name:
+        return []
+    seeds_cost = [{"seed": seed, "rti": by_name["rti"]["cost"]["total"], "ipopt": by_name["ipopt"]["cost"]["total"]}]
+    for s in range(seed + 1, seed + cost_seeds):
+        print(f"cost comparison, seed {s}: rti and ipopt for {steps} steps ...", flush=True)
+        seeds_cost.append({"seed": s, "rti": closed_loop("rti", c.make_rti, steps, s)["cost"]["total"],
+                           "ipopt": closed_loop("ipopt", c.make_ipopt, steps, s)["cost"]["total"]})
+    for row in seeds_cost:
+        row["rti_vs_ipopt_pct"] = 100.0 * (row["rti"] / row["ipopt"] - 1.0)
+    return seeds_cost
+
+
+def _per_step_checks(args: argparse.Namespace, c: Contenders, by_name: dict[str, dict[str, Any]],
+                     steps: int) -> None:
+    """The RTI's (and acados') per-step suboptimality against converged IPOPT, and fatrop's agreement
+    with IPOPT from fatrop's own states, into their results."""
+    jit = bool(getattr(args, "jit", False))
     if not getattr(args, "no_suboptimality", False):
         print(f"per-step suboptimality: rti for {steps} steps, then converged IPOPT from each step's state ...",
               flush=True)
-        rti["suboptimality"] = rti_suboptimality(make_rti, steps, args.seed, jit)
-    if make_acados is not None and not getattr(args, "no_suboptimality", False):
-        print(f"per-step suboptimality: rti-acados for {steps} steps, then converged IPOPT from each step's state ...",
-              flush=True)
-        by_name["rti-acados"]["suboptimality"] = rti_suboptimality(make_acados, steps, args.seed, jit)
-    if fatrop_recorders:
+        by_name["rti"]["suboptimality"] = rti_suboptimality(c.make_rti, steps, args.seed, jit)
+        if c.make_acados is not None:
+            print(f"per-step suboptimality: rti-acados for {steps} steps, then converged IPOPT from each step's "
+                  "state ...", flush=True)
+            by_name["rti-acados"]["suboptimality"] = rti_suboptimality(c.make_acados, steps, args.seed, jit)
+    if c.fatrop_recorders:
+        from .fatrop_reference import agreement
         print(f"fatrop against IPOPT per step: IPOPT from fatrop's {steps} states and starts ...", flush=True)
-        by_name["fatrop"]["agreement"] = agreement(fatrop_recorders[-1].inner.pb, fatrop_recorders[-1].records)
+        by_name["fatrop"]["agreement"] = agreement(c.fatrop_recorders[-1].inner.pb, c.fatrop_recorders[-1].records)
+
+
+def _print_summary(results: list[dict[str, Any]], seeds_cost: list[dict[str, Any]], notes: list[str]) -> dict:
+    """The table, the headline figures (returned, without their printed lines), suboptimality,
+    per-seed costs, fatrop's agreement, acados' phases and the notes."""
+    by_name = {r["controller"]: r for r in results}
     print_table(results)
     figures = headline(results)
     for line in figures.pop("lines"):
@@ -374,14 +407,31 @@ def _run(args: argparse.Namespace, steps: int, cost_seeds: int) -> int:
               + ", ".join(f"seed {c['seed']} {c['rti_vs_ipopt_pct']:+.2f} %" for c in seeds_cost)
               + f"; median {float(np.median([c['rti_vs_ipopt_pct'] for c in seeds_cost])):+.2f} %, "
               f"largest RTI excess {max(c['rti_vs_ipopt_pct'] for c in seeds_cost):+.2f} %")
-    if fatrop_recorders:
+    if "agreement" in by_name.get("fatrop", {}):
+        from .fatrop_reference import agreement_line
         print(agreement_line(by_name["fatrop"]["agreement"]))
     if "phases" in by_name.get("rti-acados", {}):
         print(phases_line(by_name["rti-acados"]["phases"]))
     for note in notes:
         print(note)
+    return figures
+
+
+def _run(args: argparse.Namespace, steps: int, cost_seeds: int) -> int:
+    c = _contenders(args)
+    results = []
+    for name, make in c.order:
+        print(f"running {name} for {steps} steps ...", flush=True)
+        results.append(closed_loop(name, make, steps, args.seed))
+        if name == "rti-acados" and c.phase_timers:
+            results[-1]["phases"] = c.phase_timers[0].summary(steps)
+    _ratios(results)
+    by_name = {r["controller"]: r for r in results}
+    seeds_cost = _cost_by_seed(c, by_name, steps, args.seed, cost_seeds)
+    _per_step_checks(args, c, by_name, steps)
+    figures = _print_summary(results, seeds_cost, c.notes)
     out = {"steps": steps, "seed": args.seed, "threads": args.threads, "scenario_inlet_c": INLET_C,
-           "python": platform.python_version(), "machine": platform.machine(), "notes": notes, "results": results,
+           "python": platform.python_version(), "machine": platform.machine(), "notes": c.notes, "results": results,
            "cost_by_seed": seeds_cost, "figures": figures, "shared_description": shared_description(results)}
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(out, indent=2))

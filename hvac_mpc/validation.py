@@ -37,7 +37,7 @@ class Check:
             return self.adapter.validate_python(value)
         except ValidationError:
             pass
-        if _is_finite_number(value):
+        if _is_finite_number(value) and self.lo is not None:  # a number out of a finite_in range
             raise error(f"{name} = {value!r} is outside the allowed range {self.allowed}")
         raise error(f"{name}: expected {self.describe()}, got {value!r}")
 

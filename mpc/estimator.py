@@ -59,7 +59,7 @@ from hvac_mpc.contract import Measurement
 from .casadi_eval import BufferedFunction
 from .dead_time import DeadTimeEstimator
 from .flow_term import FlowStepFit, SettledFlowSteps
-from .ocp import InvalidSettings, check_number
+from .ocp import InvalidSettings, check_flag, check_number
 
 #: Process noise of the history entries (degC per sample): exact copies, a floor for the numerics.
 HIST_Q_C = 1e-4
@@ -239,8 +239,7 @@ class EkfSettings:
             value = getattr(self, f.name)
             if f.name in ("use_heater_outlet", "learn_bypass_flow", "bypass_flow_anchored", "bound_motor_rise",
                           "bypass_flow_after_response", "bypass_flow_commit_at_rest", "bypass_flow_at_rest"):
-                if not isinstance(value, bool):
-                    raise InvalidSettings(f"{prefix}.{f.name} must be True or False")
+                check_flag(f"{prefix}.{f.name}", value)
                 continue
             if f.name in ("bypass_flow_exponent_prior", "bypass_flow_exponent_min", "bypass_flow_exponent_max"):
                 check_number(f"{prefix}.{f.name}", value, *BYPASS_FLOW_EXPONENT_RANGE)

@@ -54,7 +54,7 @@ from hvac_mpc.contract import StepResult
 from .codegen import CodegenReport, compiled
 from .estimator import DisturbanceEkf, EkfSettings, finite_or
 from .priorities import ReachableFlow, flow_weight_factor
-from .ocp import HEATING_CMD_W, HeaterOffBound, InvalidSettings, OcpSpec, TrackingProblem, check_number, trap_cap_pct
+from .ocp import HEATING_CMD_W, HeaterOffBound, InvalidSettings, OcpSpec, TrackingProblem, check_flag, check_number, trap_cap_pct
 from hvac_mpc.contract import InvalidReference, Reference
 from .rti_osqp import RtiOsqpSolver, SolveResult
 from .temperature_reach import SaturatedTemperature
@@ -227,10 +227,8 @@ class MpcSettings:
         check_number(f"{p}.ipopt_max_iter", self.ipopt_max_iter, 1, 100000, integer=True)
         check_number(f"{p}.deadline_s", self.deadline_s, 0.0, 3600.0, lo_open=True)
         check_number(f"{p}.plan_fallback_s", self.plan_fallback_s, 0.0, 3600.0)
-        if not isinstance(self.jit, bool):
-            raise InvalidSettings(f"{p}.jit must be True or False")
-        if not isinstance(self.codegen, bool):
-            raise InvalidSettings(f"{p}.codegen must be True or False")
+        check_flag(f"{p}.jit", self.jit)
+        check_flag(f"{p}.codegen", self.codegen)
         if self.water_prediction not in ("hold", "setpoint"):
             raise InvalidSettings(f"{p}.water_prediction = {self.water_prediction!r} must be 'hold' or 'setpoint'")
         check_number(f"{p}.chiller_setpoint_c", self.chiller_setpoint_c, -10.0, 30.0)
@@ -246,8 +244,7 @@ class MpcSettings:
         for flag in ("priorities", "reach_skip_unmoved", "reach_deferred", "reach_background", "reach_changes_deferred",
                      "osqp_accept_max_iter",
                      "osqp_check_dualgap"):
-            if not isinstance(getattr(self, flag), bool):
-                raise InvalidSettings(f"{p}.{flag} must be True or False")
+            check_flag(f"{p}.{flag}", getattr(self, flag))
         if self.reach_background and not self.reach_deferred:
             raise InvalidSettings(f"{p}.reach_background = True needs {p}.reach_deferred = True "
                                   "(the solve's answer is used from the next step on)")

@@ -58,7 +58,7 @@ from typing import Any, Callable
 import casadi as ca
 import numpy as np
 
-from hvac_mpc.validation import Check, InvalidValue, finite_in
+from hvac_mpc.validation import Check, InvalidValue, finite_in, flag
 from hvac_mpc.models import heater, valves
 from hvac_mpc.models.box import INPUT_LOWER, INPUTS, MODEL_EFFECTS, HvacModel, input_upper, rk4
 from hvac_mpc.models.parameters import Parameters
@@ -108,6 +108,14 @@ def check_number(name: str, value: Any, lo: float, hi: float, *, integer: bool =
     if integer and isinstance(value, float) and value.is_integer():
         value = int(value)  # 100.0 iterations are 100
     _number_check(float(lo), float(hi), integer, lo_open)(name, value, InvalidSettings)
+
+
+_FLAG = flag()
+
+
+def check_flag(name: str, value: Any) -> None:
+    """Raise :class:`InvalidSettings` unless ``value`` is True or False (strict: not 0 or 1)."""
+    _FLAG(name, value, InvalidSettings)
 
 
 @dataclass(frozen=True)
@@ -264,8 +272,7 @@ class OcpSpec:
         if self.heater_min_flow_m3s is not None:
             check_number(f"{prefix}.heater_min_flow_m3s", self.heater_min_flow_m3s, 0.0, 0.05)
         check_number(f"{prefix}.heater_on_w", self.heater_on_w, 0.0, 1000.0, lo_open=True)
-        if not isinstance(self.ptc_limit, bool):
-            raise InvalidSettings(f"{prefix}.ptc_limit = {self.ptc_limit!r} must be True or False")
+        check_flag(f"{prefix}.ptc_limit", self.ptc_limit)
         unknown = sorted(set(self.model_effects) - set(MODEL_EFFECTS))
         if unknown:
             raise InvalidSettings(f"{prefix}.model_effects has unknown effect(s) {unknown}; allowed: "

@@ -308,12 +308,16 @@ def test_jit_and_virtual_machine_linearise_identically():
     (dict(ocp=OcpSpec(model_effects=("warp_drive",))), "MpcSettings.ocp.model_effects"),
     (dict(ekf=EkfSettings(r_supply_c=0.0)), "MpcSettings.ekf.r_supply_c"),
     (dict(water_prediction="guess"), "MpcSettings.water_prediction"),
+    (dict(jit=1), "MpcSettings.jit: expected True or False"),
+    (dict(reach_deferred="yes"), "MpcSettings.reach_deferred: expected True or False"),
+    (dict(ocp=OcpSpec(ptc_limit=0)), "MpcSettings.ocp.ptc_limit: expected True or False"),
+    (dict(ekf=EkfSettings(learn_bypass_flow=1)), "MpcSettings.ekf.learn_bypass_flow: expected True or False"),
 ])
 def test_settings_errors_name_the_field_and_range(kwargs, field):
     with pytest.raises(InvalidSettings, match=field) as info:
         MpcSettings(**kwargs)
     # the message names the allowed range or the allowed choices
-    assert re.search(r"[\[(][^\]]*\]|one of|allowed|'air'|'hold'", str(info.value))
+    assert re.search(r"[\[(][^\]]*\]|one of|allowed|'air'|'hold'|True or False", str(info.value))
 
 
 @pytest.mark.slow
