@@ -58,6 +58,7 @@ from hvac_mpc.contract import Measurement
 
 from .casadi_eval import BufferedFunction
 from .dead_time import DeadTimeEstimator
+from .flow_term import FlowStepFit, SettledFlowSteps
 from .ocp import InvalidSettings, check_flag, check_number
 
 #: Process noise of the history entries (degC per sample): exact copies, a floor for the numerics.
@@ -67,11 +68,17 @@ BYPASS_FLOW_EXPONENT_RANGE = (-3.0, 3.0)
 #: Ranges of settings with their own: ``bypass_flow_after_s`` (s) at most an hour, a start-up and not a run (the
 #: dead-time estimate's window has the same bound); ``motor_sd_after_response_c`` (degC) at most the largest motor
 #: rise the parameters allow (``Parameters.motor_gain_max_c`` at most 10 degC).
-OWN_RANGES = {"bypass_flow_after_s": (0.0, 3600.0), "motor_sd_after_response_c": (0.0, 10.0)}
+OWN_RANGES = {"bypass_flow_after_s": (0.0, 3600.0), "motor_sd_after_response_c": (0.0, 10.0),
+              "bypass_flow_settle_s": (1.0, 3600.0)}
 #: Settings that shape the learning of the bypass-flow exponent and do nothing without ``learn_bypass_flow``
 #: (field -> its value that leaves learning as it is).
 BYPASS_FLOW_LEARNING_GATES = {"bypass_flow_anchored": False, "bypass_flow_after_response": False,
-                              "bypass_flow_after_s": 0.0, "bypass_flow_commit_at_rest": False}
+                              "bypass_flow_after_s": 0.0, "bypass_flow_commit_at_rest": False,
+                              "bypass_flow_at_rest": False}
+#: Largest change of the heater command (W) across a flow step that still counts for the exponent fitted at rest
+#: (``EkfSettings.bypass_flow_at_rest``). ASSUMPTION: 50 W move the supply air about 1.7 degC at 90 m3/h, as much as
+#: 5-7 percentage points of valve a (about 0.25 degC per point), the valve's bound in the measured setting.
+REST_HEATER_TOL_W = 50.0
 #: Measurement names in the order of the filter's measurement vector.
 MEASURED = ("supply_temp_c", "volume_flow_m3s", "water_temp_c", "hvac_inlet_temp_c", "heater_outlet_temp_c")
 
@@ -105,6 +112,21 @@ class EkfSettings:
     on ``combo_delay_loss_cooler``: 1.95 of the baseline's IAE at 0.03, 0.92 at 0.015; docs/robustness.md
     sec. 2.3).
 
+    ``q_mix_offset_unseen_c``: the mixed-air offset's random walk (degC per sample) while the dead-time estimate
+    has seen no response (:attr:`~.dead_time.DeadTimeEstimator.informed`; with the dead-time handling on), in
+    place of ``q_mix_offset_c`` (0: no difference, the default). Where no response has shown the dead time the
+    filter cannot honour it, and the offset's walk is what turns the sensor noise into ringing
+    (docs/robustness.md sec. 2.4, 2.8).
+
+    ``q_mix_offset_per_log_flow_c``: more variance for the mixed-air offset at a change of the model's flow,
+    (this times the change of ln of the flow)^2 degC^2 in the time update where the flow changed (0: none, the
+    default): a box whose supply air depends on the flow as the model's does not (a duct loss shrinking with the
+    flow, a cooler's effectiveness) shows a step of the offset at a flow step, which a random walk of the rate
+    at rest takes tens of seconds to follow; only once the dead-time estimate has seen a response (before, the
+    raised variance took the MPC's own late answer: combo_delay_loss_cooler 1.10 -> 1.45 of the baseline's IAE
+    with the flow out of reach; docs/robustness.md sec. 2.8). ``q_mix_offset_flow_deadband``: the part
+    of that change (in ln, per sample) that adds nothing (the MPC's own small flow moves; 0: none).
+
     ``q_heater_outlet_offset_c``: random walk (degC per sample) of an offset of the heater outlet
     reading, its own integrating disturbance (0: none). Without it a persistent error of that reading
     (a cooler core whose outlet differs from the model's) biases the mixed-air offset and so the supply
@@ -119,6 +141,12 @@ class EkfSettings:
     flow out of reach. 0.1 (ASSUMPTION: the motor lag, minutes, is near rest when the controller starts) helps
     the independent box's flow-out-of-reach cells but costs the built-in plant's quick summer_cooling_steps
     (0.48 -> 0.51 of the baseline's IAE), so it is not the default (docs/robustness.md sec. 2.6).
+
+    ``bound_motor_rise``: hold the motor rise within what the motor can give, [0, ``Parameters.motor_gain_max_c``],
+    after each measurement update (:meth:`DisturbanceEkf.bound_state`). Nothing but the model tells it from the
+    mixed-air offset, and a start-up transient the model misses (a dead time not yet found) pushed it to -2.5 degC
+    (the box's +0.9) on a box with a 4 s dead time; its slow return (the motor's 268 s lag) then fed the offset a
+    ramp, a steady error after a flow change (docs/robustness.md sec. 2.8).
 
     ``bypass_flow_exponent_prior``: the exponent of the bypass split's flow dependence the filter
     and the MPC's prediction use where the model carries the ``bypass_flow`` effect (0 = the thesis
@@ -144,20 +172,36 @@ class EkfSettings:
     :meth:`~DisturbanceEkf.initialise` (the filter's own start-up; s in [0, 3600]). ``bypass_flow_commit_at_rest``:
     the parameters handed to the prediction (:meth:`~DisturbanceEkf.model_parameters`) take the learned exponent
     only while it is not being learned, so a flow change is predicted with the value from before it, never a
-    half-learned one. ``bypass_flow_anchored``, ``bypass_flow_after_response``, ``bypass_flow_after_s`` and
-    ``bypass_flow_commit_at_rest`` shape the learning: set without ``learn_bypass_flow`` they are an error
-    (:meth:`validate`). ``bypass_flow_exponent_min`` < ``bypass_flow_exponent_max``, both in [-3, 3].
-    docs/robustness.md sec. 2.7.
+    half-learned one. ``bypass_flow_anchored``, ``bypass_flow_after_response``, ``bypass_flow_after_s``,
+    ``bypass_flow_commit_at_rest`` and ``bypass_flow_at_rest`` shape the learning: set without
+    ``learn_bypass_flow`` they are an error (:meth:`validate`). ``bypass_flow_exponent_min`` <
+    ``bypass_flow_exponent_max``, both in [-3, 3]. docs/robustness.md sec. 2.7.
+
+    ``bypass_flow_at_rest`` (with ``bypass_flow_anchored``): the filter never learns the exponent itself; it is
+    fitted outside the filter from the change of the mixed-air offset across each flow step once the flow has
+    rested ``bypass_flow_settle_s`` again (s in [1, 3600]; a step: the model's mass flow more than
+    ``bypass_flow_gate`` in log from the last rest's), a least-squares fit with the prior
+    (``bypass_flow_exponent_sd``) against the offset's noise at rest ``bypass_flow_rest_noise_c`` (degC):
+    :mod:`~.flow_term`. The gates ``bypass_flow_after_response`` and ``bypass_flow_after_s`` hold back the rests
+    that count; a step across which valve a moved more than ``bypass_flow_rest_valve_pct`` (percentage points) or
+    the heater more than :data:`REST_HEATER_TOL_W` does not count (the offset's change then holds the model's valve
+    and heater errors too: on the suite's boxes the proband sequence's steps, which move the flow with the
+    temperature, taught a wrong exponent, delay_3s proband 0.77 -> 1.06 of the baseline's IAE). ASSUMPTIONS (20 s,
+    0.05 degC, 100: no valve bound). docs/robustness.md sec. 2.8.
     """
 
     q_motor_c: float = 0.01
     initial_sd_motor_c: float = 0.5
+    bound_motor_rise: bool = False
     motor_sd_after_response_c: float = 0.0
     q_water_c: float = 0.01
     q_heater_c: float = 0.1
     q_sensor_c: float = 0.02
     q_trap_c: float = 0.1
     q_mix_offset_c: float = 0.015
+    q_mix_offset_unseen_c: float = 0.0
+    q_mix_offset_per_log_flow_c: float = 0.0
+    q_mix_offset_flow_deadband: float = 0.0
     q_flow_offset_m3s: float = 3e-5
     q_inlet_c: float = 0.01
     r_supply_c: float = 0.05
@@ -185,18 +229,23 @@ class EkfSettings:
     bypass_flow_commit_at_rest: bool = False
     bypass_flow_exponent_min: float = -3.0
     bypass_flow_exponent_max: float = 3.0
+    bypass_flow_at_rest: bool = False
+    bypass_flow_settle_s: float = 20.0
+    bypass_flow_rest_noise_c: float = 0.05
+    bypass_flow_rest_valve_pct: float = 100.0
 
     def validate(self, prefix: str = "ekf") -> None:
         for f in fields(self):
             value = getattr(self, f.name)
-            if f.name in ("use_heater_outlet", "learn_bypass_flow", "bypass_flow_anchored",
-                          "bypass_flow_after_response", "bypass_flow_commit_at_rest"):
+            if f.name in ("use_heater_outlet", "learn_bypass_flow", "bypass_flow_anchored", "bound_motor_rise",
+                          "bypass_flow_after_response", "bypass_flow_commit_at_rest", "bypass_flow_at_rest"):
                 check_flag(f"{prefix}.{f.name}", value)
                 continue
             if f.name in ("bypass_flow_exponent_prior", "bypass_flow_exponent_min", "bypass_flow_exponent_max"):
                 check_number(f"{prefix}.{f.name}", value, *BYPASS_FLOW_EXPONENT_RANGE)
                 continue
-            if f.name in ("dead_time_max_s", "dead_time_min_s", "dead_time_prior_s", "q_heater_outlet_offset_c"):
+            if f.name in ("dead_time_max_s", "dead_time_min_s", "dead_time_prior_s", "q_heater_outlet_offset_c",
+                          "q_mix_offset_unseen_c", "q_mix_offset_per_log_flow_c", "q_mix_offset_flow_deadband"):
                 check_number(f"{prefix}.{f.name}", value, 0.0, 30.0)
                 continue
             if f.name in OWN_RANGES:
@@ -219,6 +268,9 @@ class EkfSettings:
             raise InvalidSettings(f"{prefix}.bypass_flow_exponent_prior must lie within [{prefix}.bypass_flow_exponent_min, "
                                   f"{prefix}.bypass_flow_exponent_max] ({self.bypass_flow_exponent_min}, "
                                   f"{self.bypass_flow_exponent_max}); got {self.bypass_flow_exponent_prior}")
+        if self.learn_bypass_flow and self.bypass_flow_at_rest and not self.bypass_flow_anchored:
+            raise InvalidSettings(f"{prefix}.bypass_flow_at_rest = True needs {prefix}.bypass_flow_anchored = True "
+                                  "(the offset takes a flow step's whole change only with the split anchored)")
         if self.learn_bypass_flow:
             return
         for name, inert in BYPASS_FLOW_LEARNING_GATES.items():
@@ -265,7 +317,9 @@ class DisturbanceEkf:
         q_state = {"motor_rise_c": s.q_motor_c, "water_temp_c": s.q_water_c, "heater_temp_c": s.q_heater_c,
                    "supply_sensor_c": s.q_sensor_c, "trap_air_temp_c": s.q_trap_c}
         q_state.update({n: s.q_sensor_c for n in model.delay_states})
-        q = [q_state[n] for n in names] + [s.q_mix_offset_c, s.q_flow_offset_m3s, s.q_inlet_c]
+        # the offset's walk: the smaller of its two rates in Q, the rest added while it applies (accept_prediction)
+        self._q_mix = (s.q_mix_offset_c, s.q_mix_offset_unseen_c or s.q_mix_offset_c)
+        q = [q_state[n] for n in names] + [min(self._q_mix), s.q_flow_offset_m3s, s.q_inlet_c]
         q += [s.q_bypass_flow_exponent] * int(self.learns_bypass_flow) + [0.0] * int(self.anchors_bypass_flow)
         q += [s.q_heater_outlet_offset_c] * int(self.has_outlet_offset) + [HIST_Q_C] * self.n_hist
         self.Q = np.diag(np.square(q))
@@ -281,6 +335,14 @@ class DisturbanceEkf:
         self.P: np.ndarray | None = None
         self._restart()
         self._mix = BufferedFunction(self.mix_fn, fixed={3: self.p}) if self.anchors_bypass_flow else None
+        # the exponent fitted outside the filter across settled flow steps (EkfSettings.bypass_flow_at_rest)
+        self.rest_steps = self.rest_fit = None
+        self.i_valve_a, self.i_heater_cmd = model.inputs.index("valve_a_pct"), model.inputs.index("heater_cmd_w")
+        if self.anchors_bypass_flow and s.bypass_flow_at_rest:
+            self.rest_steps = SettledFlowSteps(s.bypass_flow_settle_s, s.bypass_flow_gate, self.dt_s)
+            self.rest_fit = FlowStepFit(s.bypass_flow_exponent_prior, s.bypass_flow_exponent_sd,
+                                        s.bypass_flow_rest_noise_c, s.bypass_flow_exponent_min,
+                                        s.bypass_flow_exponent_max)
 
     def _d(self, z, setpoint):
         x = z[:self.nx]
@@ -292,10 +354,14 @@ class DisturbanceEkf:
         exponent's gate, start-up clock and committed value, and the motor rise's release."""
         self.dead_time.reset()
         self._log_flow_mean: float | None = None
+        self._last_log_flow: float | None = None  # the model's flow at the last time update (ln m3/s)
         self.learning = False  # the bypass-flow exponent's gate: the flow moves
         self._motor_released = False  # the motor rise's variance raised once a response was seen
         self._age_s = 0.0  # time since initialise
         self._committed = self.settings.bypass_flow_exponent_prior  # the exponent at the end of the last flow change
+        for learner in (getattr(self, "rest_steps", None), getattr(self, "rest_fit", None)):
+            if learner is not None:
+                learner.reset()
 
     def _build(self) -> None:
         m, nx, nc = self.model, self.nx, self.nc
@@ -485,10 +551,24 @@ class DisturbanceEkf:
         """Take the time update's results (as the time-update function returns them, ``P`` column-major)."""
         self.z, self.P = z_next, P_next_t.T  # buffers are column-major
         self._age_s += self.dt_s
+        q_mix = self._q_mix[0] if self.dead_time.informed or not self.n_hist else self._q_mix[1]
+        self.P[self.i_mix_offset, self.i_mix_offset] += q_mix * q_mix - min(self._q_mix) ** 2 + self._flow_step_var(
+            float(flow[0]))
         if self.n_hist:
             self.dead_time.push_air(float(air[0]))
         if self.learns_bypass_flow and not self.anchors_bypass_flow:
             self._gate(float(flow[0]))
+
+    def _flow_step_var(self, flow_m3s: float) -> float:
+        """The mixed-air offset's added variance (degC^2) for the change of the model's flow since the last time
+        update (``EkfSettings.q_mix_offset_per_log_flow_c``)."""
+        per = self.settings.q_mix_offset_per_log_flow_c
+        log_flow = math.log(max(flow_m3s, 1e-4))
+        last, self._last_log_flow = self._last_log_flow, log_flow
+        # before a response has shown the dead time, the raised variance takes the MPC's own late answer instead
+        if per <= 0.0 or last is None or not (self.dead_time.informed or not self.n_hist):
+            return 0.0
+        return (per * max(0.0, abs(log_flow - last) - self.settings.q_mix_offset_flow_deadband)) ** 2
 
     def _gate(self, flow_m3s: float) -> None:
         """Open the bypass-flow exponent's gate while the model's flow is more than ``bypass_flow_gate``
@@ -505,7 +585,8 @@ class DisturbanceEkf:
         estimate has seen a response); otherwise it is a constant to the filter, without correlations."""
         s = self.settings
         seen = self.dead_time.informed or not self.n_hist or not s.bypass_flow_after_response
-        self.learning = bool(flow_moves and seen and self._age_s >= s.bypass_flow_after_s)
+        self.learning = bool(flow_moves and seen and self._age_s >= s.bypass_flow_after_s
+                             and not s.bypass_flow_at_rest)
         if not self.learning:  # a constant to the filter: no correlation with the other states
             self._decorrelate(self.i_exponent)
             self._committed = float(self.z[self.i_exponent])
@@ -541,6 +622,22 @@ class DisturbanceEkf:
         self.z[self.i_mix_offset] += air_before - air_after
         self._set_learning(abs(log_flow - self.z[i]) > s.bypass_flow_gate)
 
+    def _rest_observation(self, before, now, u: np.ndarray, setpoint_c: float) -> tuple[float, float]:
+        """One settled flow step as an observation of the exponent (:mod:`~.flow_term`): the sensitivity ``S`` of
+        ``f(k) = mix(k, anchor before) - mix(k, anchor now)`` at the estimate in use ``k_c`` (degC per unit, a
+        central difference) and ``y = d_offset - f(k_c) + S k_c`` (degC), so that ``y ~ S k``."""
+        k_c, h = float(self.z[self.i_exponent]), 0.05
+
+        def effect(k: float) -> float:  # f(k) at the settled state
+            z = self.z.copy()
+            z[self.i_exponent] = k
+            z[self.i_anchor] = before.log_flow
+            then = float(self._mix(z, u, setpoint_c)[0][0])
+            z[self.i_anchor] = now.log_flow
+            return then - float(self._mix(z, u, setpoint_c)[0][0])
+        sensitivity = (effect(k_c + h) - effect(k_c - h)) / (2.0 * h)
+        return sensitivity, now.offset_c - before.offset_c - effect(k_c) + sensitivity * k_c
+
     def readings(self, measurement: Measurement) -> tuple[np.ndarray, np.ndarray]:
         """The measured values (order ``MEASURED``, 0 where unused) and which are used (finite and enabled)."""
         values = np.array([finite_or(getattr(measurement, n, None), np.nan) for n in MEASURED])
@@ -558,11 +655,37 @@ class DisturbanceEkf:
         zn, Pt = self._update(self.z, self.P, values, ok, u, setpoint_c, self._supply_weights(values[0], ok[0]),
                               float(self.learning))
         self.z, self.P = zn, Pt.T
+        if self.settings.bound_motor_rise:
+            self.bound_state("motor_rise_c", 0.0, float(self.model.params.motor_gain_max_c))
         if self.learns_bypass_flow:
             s = self.settings
             self.z[self.i_exponent] = np.clip(self.z[self.i_exponent], s.bypass_flow_exponent_min,
                                               s.bypass_flow_exponent_max)
+        if self.rest_steps is not None:
+            self._learn_at_rest(u, setpoint_c)
         return int(ok.sum())
+
+    def _learn_at_rest(self, u: np.ndarray, setpoint_c: float) -> None:
+        """Fit the exponent to the mixed-air offset's change across a flow step that has just settled
+        (``EkfSettings.bypass_flow_at_rest``, :mod:`~.flow_term`); the offset takes the change of the model's air
+        the new exponent brings, so the supply air the filter explains does not move."""
+        s = self.settings
+        mass_flow = float(self._mix(self.z, u, setpoint_c)[1][0])
+        seen = self.dead_time.informed or not self.n_hist or not s.bypass_flow_after_response
+        others = (float(u[self.i_valve_a]), float(u[self.i_heater_cmd]))
+        step = self.rest_steps.observe(math.log(max(mass_flow, 1e-5)), self.mix_offset_c,
+                                       seen and self._age_s >= s.bypass_flow_after_s, others)
+        if step is None:
+            return
+        before, now = step
+        if (abs(now.others[0] - before.others[0]) > s.bypass_flow_rest_valve_pct
+                or abs(now.others[1] - before.others[1]) > REST_HEATER_TOL_W):
+            return  # the supply air moved with valve a or the heater too: the offset's change is not the flow's
+        self.rest_fit.add(*self._rest_observation(before, now, u, setpoint_c))
+        air_before = float(self._mix(self.z, u, setpoint_c)[0][0])
+        self.z[self.i_exponent] = self.rest_fit.estimate()
+        self.z[self.i_mix_offset] += air_before - float(self._mix(self.z, u, setpoint_c)[0][0])
+        self._committed = float(self.z[self.i_exponent])
 
     def _supply_weights(self, supply_c: float, used: bool) -> np.ndarray:
         """Weights of the supply reading over [thermocouple state now, history 1..n]: the undelayed

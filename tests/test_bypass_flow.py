@@ -23,16 +23,17 @@ HOLD_S = 30
 
 
 def learn_on_box(exponent: float, prior: float, seed: int = 3, anchored: bool = False, after_s: float = 0.0,
-                 exponent_max: float = 3.0) -> np.ndarray:
+                 exponent_max: float = 3.0, at_rest: bool = False) -> np.ndarray:
     """The estimator fed open loop by the independent box whose split has ``exponent``; per sample the
-    learned exponent (``anchored``, ``after_s``, ``exponent_max``: the EkfSettings fields
-    bypass_flow_anchored, bypass_flow_after_s, bypass_flow_exponent_max)."""
+    learned exponent (``anchored``, ``after_s``, ``exponent_max``, ``at_rest``: the EkfSettings fields
+    bypass_flow_anchored, bypass_flow_after_s, bypass_flow_exponent_max, bypass_flow_at_rest)."""
     plant = make_plant(Variant(bypass_flow_exponent=exponent), seed=seed)
     plant.set_environment(inlet_temp_c=32.0, chiller_setpoint_c=5.0)
     commands = [Command(b, 0.0, 50.0, 100.0, 100.0, 100.0) for b in BLOWER_STEPS_W]
     plant.settle(commands[0])
     settings = EkfSettings(learn_bypass_flow=True, bypass_flow_exponent_prior=prior, bypass_flow_anchored=anchored,
-                           bypass_flow_after_s=after_s, bypass_flow_exponent_max=exponent_max)
+                           bypass_flow_after_s=after_s, bypass_flow_exponent_max=exponent_max,
+                           bypass_flow_at_rest=at_rest)
     settings.validate()  # the settings an MpcSettings would accept
     ekf = DisturbanceEkf(HvacModel(Parameters(), ("bypass_flow",)), settings)
     learned = []
@@ -62,6 +63,62 @@ def test_anchored_exponent_learns_the_box_without_overshooting_it(truth, prior):
     assert lo - 0.1 <= learned.min() and learned.max() <= hi + 0.1
     assert abs(learned[-1] - truth) < 0.1
     assert np.abs(learn_on_box(truth, prior) - truth).max() > 0.25  # the unanchored swing the anchor removes
+
+
+@pytest.mark.parametrize("truth, prior", [(0.0, 0.2), (0.4, 0.0)])
+def test_exponent_fitted_at_rest_changes_only_once_a_flow_step_has_settled(truth, prior):
+    """``bypass_flow_at_rest``: the filter keeps the exponent a constant; it changes only at the samples where a
+    flow step has rested ``bypass_flow_settle_s`` (20 s, so in the last 10 s of each 30 s hold after the first),
+    never within a transient, and the fit of the mixed-air offset's change across the steps moves it from the
+    prior most of the way to the box's value (0.01 for a box's 0 from 0.2; 0.29 for a box's 0.4 from 0)."""
+    learned = learn_on_box(truth, prior, anchored=True, at_rest=True)
+    moved = np.flatnonzero(np.diff(learned)) + 1
+    assert len(moved) >= 3 and np.all(moved % HOLD_S >= 20)  # once per settled step, at rest
+    assert np.all(learned[:HOLD_S] == prior)
+    assert abs(learned[-1] - truth) < 0.35 * abs(prior - truth)
+    lo, hi = min(truth, prior), max(truth, prior)
+    assert lo - 0.05 <= learned.min() and learned.max() <= hi + 0.05
+
+
+def test_a_flow_step_with_valve_a_moved_as_well_tells_nothing_about_the_exponent():
+    """The offset's change across a step that also moved valve a (a temperature step with the flow, as in the
+    proband sequence) holds the model's valve and cooler errors as well: with ``bypass_flow_rest_valve_pct`` 5
+    such a step is left out of the fit and the exponent stays at the prior; with the steps' valve moves allowed
+    it moves (on the box's own 0.4 split)."""
+    def learned(valve_pct: float) -> float:
+        plant = make_plant(Variant(bypass_flow_exponent=0.4), seed=3)
+        plant.set_environment(inlet_temp_c=32.0, chiller_setpoint_c=5.0)
+        commands = [Command(b, 0.0, a, 100.0, 100.0, 100.0)
+                    for b, a in zip(BLOWER_STEPS_W, (50.0, 70.0, 40.0, 60.0, 30.0, 80.0))]
+        plant.settle(commands[0])
+        ekf = DisturbanceEkf(HvacModel(Parameters(), ("bypass_flow",)), EkfSettings(
+            learn_bypass_flow=True, bypass_flow_anchored=True, bypass_flow_at_rest=True,
+            bypass_flow_rest_valve_pct=valve_pct))
+        feed_open_loop(ekf, plant, commands, HOLD_S, lambda e: None)
+        return ekf.bypass_flow_exponent
+
+    assert learned(5.0) == 0.0
+    assert learned(100.0) > 0.1
+
+
+def test_settled_flow_steps_are_reported_once_per_step_and_not_for_a_return_within_the_gate():
+    """The rest before and after a flow step, once the new flow has rested ``settle_s``; the slow end of a
+    flow's response does not break a rest, and a flow back within the gate of the last rest is no step."""
+    from hvac_mpc.mpc.flow_term import FlowStepFit, SettledFlowSteps
+    steps = SettledFlowSteps(settle_s=5.0, gate=0.05)
+    flows = [0.0] * 8 + [0.3 + 0.002 * k for k in range(8)] + [0.31] * 3 + [0.33] * 8
+    offsets = [1.0] * 8 + [2.0] * 19
+    found = [(k, r) for k, (f, o) in enumerate(zip(flows, offsets)) if (r := steps.observe(f, o)) is not None]
+    assert [k for k, _ in found] == [13]
+    before, after = found[0][1]
+    assert before.log_flow == 0.0 and before.offset_c == 1.0 and after.offset_c == pytest.approx(2.0)
+    assert steps.observe(0.33, 2.0, eligible=False) is None
+    fit = FlowStepFit(prior=0.1, prior_sd=0.1, noise_c=0.1, lo=-3.0, hi=0.9)
+    assert fit.estimate() == 0.1
+    fit.add(2.0, 2.0)  # y = S k with k = 1: the estimate between the prior and 1, weighted 1 : 4
+    assert fit.estimate() == pytest.approx((0.1 + 4.0) / 5.0)
+    fit.add(20.0, 20.0)
+    assert fit.estimate() == 0.9  # held within its range
 
 
 def test_anchored_exponent_moves_the_prediction_only_away_from_the_recent_flow():
@@ -118,6 +175,13 @@ def test_the_exponent_is_learned_only_after_the_start_up_and_within_its_range():
     ({"bypass_flow_after_response": True}, r"ekf.bypass_flow_after_response = True .*ekf.learn_bypass_flow"),
     ({"bypass_flow_after_s": 30.0}, r"ekf.bypass_flow_after_s = 30.0 .*ekf.learn_bypass_flow"),
     ({"bypass_flow_commit_at_rest": True}, r"ekf.bypass_flow_commit_at_rest = True .*ekf.learn_bypass_flow"),
+    ({"bypass_flow_at_rest": True}, r"ekf.bypass_flow_at_rest = True shapes the learning .*ekf.learn_bypass_flow"),
+    ({"learn_bypass_flow": True, "bypass_flow_at_rest": True},
+     r"ekf.bypass_flow_at_rest = True needs .*ekf.bypass_flow_anchored = True"),
+    ({"learn_bypass_flow": True, "bypass_flow_anchored": True, "bypass_flow_settle_s": 0.5},
+     r"ekf.bypass_flow_settle_s = 0.5 is outside the allowed range \[1.0, 3600.0\]"),
+    ({"q_mix_offset_unseen_c": -0.01}, r"ekf.q_mix_offset_unseen_c = -0.01 is outside"),
+    ({"bypass_flow_rest_valve_pct": 0.0}, r"ekf.bypass_flow_rest_valve_pct = 0.0 is outside"),
 ])
 def test_bad_bypass_flow_settings_are_refused_naming_the_fields(fields, message):
     """Each bound its own range (the start-up gate up to an hour, the motor deviation up to the largest motor rise),
