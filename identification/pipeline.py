@@ -29,8 +29,9 @@ Procedure (stated in the report):
 8. Joint refit (:mod:`.joint_step`): when no pair was kept and the supply temperature still carries held-out
    structure, the kept effects and the last round's ``JOINT_CANDIDATES`` best candidates (by training cost removed)
    are refit all at once without the discovered terms, eliminated backward (each must remove ``FORWARD_MIN`` of its
-   primary output's held-out structure with the others in, at most ``max_effects`` left), and discovery runs on what
-   is left; that model replaces the forward path's if it removes ``FORWARD_MIN`` of its held-out supply structure.
+   primary output's held-out structure with the others in, ``BIAS_MIN`` an offset, at most ``max_effects`` left),
+   and discovery runs on what is left; that model replaces the forward path's if it removes ``FORWARD_MIN`` of its
+   held-out supply structure and lowers the total held-out error.
    Then a backward pass re-tests every kept effect.
 9. Whatever structure remains is located (:mod:`.localise`) instead of being named.
 """
