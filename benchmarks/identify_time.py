@@ -11,7 +11,7 @@ default mode, as ``hvac-mpc identify`` does), pinned to ``--threads`` cores (Lin
 log generation is not timed. Printed per log: wall and CPU time (this process and its forked
 workers; on a shared machine the CPU time is the honest figure, the wall time grows with the other
 jobs' load, so the load average is printed too), the parts (load and checks, nominal fit,
-diagnostics, candidates, discovery, pairs, final diagnostics), what was added, held-out supply RMS before
+diagnostics, candidates, discovery, pairs, joint refit, final diagnostics), what was added, held-out supply RMS before
 and after. The budget of the issue is one minute per 2 h log on two cores.
 """
 

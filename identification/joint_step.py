@@ -22,7 +22,8 @@ from hvac_mpc.models.parameters import Parameters
 
 from .candidates import Candidate
 from .fitting import Fit, Fitter, FreeParam
-from .selection import BIAS_MIN, FORWARD_MIN, STRUCTURE_MIN, CandidateResult, gains, output_share, record_own
+from .selection import (BIAS_MIN, FIT_ERRORS, FORWARD_MIN, STRUCTURE_MIN, CandidateResult, gains, output_share,
+                        record_own, supply_ratio)
 from .simulator import OutputPost
 from .workers import cpu_seconds, fork_map
 
@@ -52,6 +53,10 @@ class _Member:
     @property
     def need(self) -> float:
         return BIAS_MIN if self.cand.kind == "bias" else FORWARD_MIN
+
+    @property
+    def primary(self) -> str:
+        return self.result.primary_output or "supply_temp_c"
 
 
 @dataclass
@@ -132,15 +137,16 @@ def _at(s: Structure, fit: Fit) -> Structure:
 
 def _eliminate(fitter: Fitter, s: Structure, fit: Fit, members: list[_Member], base: Parameters, max_effects: int,
                say, log: list[str]) -> tuple[Structure, Fit, list[_Member], dict]:
-    """Backward elimination: refit without each member (side by side); drop the one whose removal costs least of its
-    primary output's held-out structure while that is below its share (or while more than ``max_effects`` remain);
-    repeat. Returns the structure, its fit, the members left and each one's last share."""
+    """Backward elimination: refit without each member (side by side); drop the one with the smallest margin, the share
+    of its primary output's held-out structure its removal costs minus the share it needs, while that margin is
+    negative (or while more than ``max_effects`` remain); repeat. Returns the structure, its fit, the members left and
+    each one's last share."""
     shares: dict[str, float] = {}
     while members:
         outs = [_without(fitter, s, fit, m, base) for m in members]
         say(f"joint refit: re-testing {', '.join(m.name for m in members)}")
         fits = fork_map(lambda i: outs[i].fit(fitter, ELIMINATION_NFEV), len(members))
-        cost = [output_share(fitter, f, fit, m.result.primary_output or "supply_temp_c") for f, m in zip(fits, members)]
+        cost = [output_share(fitter, f, fit, m.primary) for f, m in zip(fits, members)]
         shares.update({m.name: float(c) for m, c in zip(members, cost)})
         k = int(np.argmin([c - m.need for c, m in zip(cost, members)]))
         if cost[k] >= members[k].need and len(members) <= max_effects:
@@ -148,7 +154,7 @@ def _eliminate(fitter: Fitter, s: Structure, fit: Fit, members: list[_Member], b
         why = (f"needs {100 * members[k].need:.0f} %" if cost[k] < members[k].need else
                f"the least needed of {len(members)}, at most {max_effects} effects")
         log.append(f"joint refit: {members[k].name} eliminated (taking it out costs {100 * cost[k]:.0f} % of the "
-                   f"held-out structure of {members[k].result.primary_output}; {why})")
+                   f"held-out structure of {members[k].primary}; {why})")
         s, fit = _at(outs[k], fits[k]), fits[k]
         members = members[:k] + members[k + 1:]
     return s, fit, members, shares
@@ -160,15 +166,43 @@ def joint_step(fitter: Fitter, current: Fit, free: list[FreeParam], accepted: li
                notes: list[str]) -> tuple[Fit, list[FreeParam], list[CandidateResult], dict | None, dict | None]:
     """The joint refit (module docstring). Returns the model, its free parameters, the effects kept (those of the
     forward path it keeps and the new ones as results of round ``rnd``), the discovered term's record (``None``: the
-    forward path's stands) and the step's record (``None`` if it did not run)."""
+    forward path's stands) and the step's record (``None`` if it did not run). A fit that fails (as a candidate's
+    fit that fails in forward selection) leaves the forward path's model, the record saying why (``failed``)."""
     if (open_round is None or "supply_temp_c" not in fitter.outputs
-            or _supply_ratio(fitter, current) < STRUCTURE_MIN):
+            or supply_ratio(fitter, current) < STRUCTURE_MIN):
         return current, free, accepted, None, None
     members = _members(accepted, open_round, lib)
     kept_names = {a.name for a in accepted}
     if not [m for m in members if m.name not in kept_names]:
         return current, free, accepted, None, None
     log: list[str] = []
+    try:
+        s, fit, left, shares, cpu = _refit(fitter, current, free, members, base, max_effects, say, log)
+        refit, c2 = fit, cpu_seconds()
+        fit, discovered, _ = discover(fit, s.free, log)
+    except FIT_ERRORS as exc:
+        notes.append(f"joint refit of {', '.join(m.name for m in members)}: fit failed ({exc}); the forward path's "
+                     "model stands")
+        return current, free, accepted, None, {"members": [m.name for m in members], "kept": [], "accepted": False,
+                                               "failed": str(exc), "notes": log}
+    cpu["discovery"] = cpu_seconds() - c2
+    record = {"members": [m.name for m in members], "kept": [m.name for m in left], "shares": shares,
+              "term": discovered["formula"] if discovered and discovered.get("accepted") else "", "notes": log,
+              "cpu_s": cpu}
+    verdict = _decide(fitter, current, fit, record)
+    if not record["accepted"]:
+        notes.append(verdict)
+        return current, free, accepted, None, record
+    notes.extend(log)
+    notes.append(verdict)
+    return fit, s.free, _kept(fitter, accepted, left, refit, fit, shares, rnd), discovered, record
+
+
+def _refit(fitter: Fitter, current: Fit, free: list[FreeParam], members: list[_Member], base: Parameters,
+           max_effects: int, say, log: list[str]) -> tuple[Structure, Fit, list[_Member], dict, dict]:
+    """The joint fit of all members and the backward elimination, the members left refit together as the whole set
+    was. Returns the structure, its fit, the members left, each member's last share and the CPU seconds of the two
+    parts."""
     c0 = cpu_seconds()
     s = _structure(fitter, current, free, members)
     say(f"joint refit: {', '.join(m.name for m in members)} together, without the discovered terms")
@@ -176,26 +210,17 @@ def joint_step(fitter: Fitter, current: Fit, free: list[FreeParam], accepted: li
     s = _at(s, fit)
     c1 = cpu_seconds()
     s, fit, left, shares = _eliminate(fitter, s, fit, members, base, max_effects, say, log)
-    if len(left) < len(members):  # the members left, refit together as the whole set was
+    if len(left) < len(members):
         fit = s.fit(fitter, JOINT_NFEV)
         s = _at(s, fit)
     fit.free = tuple(fp.name for fp in s.free)
-    c2 = cpu_seconds()
-    fit, discovered, _ = discover(fit, s.free, log)
-    cpu = {"joint_fit": c1 - c0, "elimination": c2 - c1, "discovery": cpu_seconds() - c2}
-    record = {"members": [m.name for m in members], "kept": [m.name for m in left], "shares": shares,
-              "term": discovered["formula"] if discovered and discovered.get("accepted") else "", "notes": log,
-              "cpu_s": cpu}
-    if not _decide(fitter, current, fit, record, notes):
-        return current, free, accepted, None, record
-    notes.extend(log)
-    return fit, s.free, _kept(fitter, accepted, left, fit, shares, rnd), discovered, record
+    return s, fit, left, shares, {"joint_fit": c1 - c0, "elimination": cpu_seconds() - c1}
 
 
-def _decide(fitter: Fitter, current: Fit, fit: Fit, record: dict, notes: list[str]) -> bool:
+def _decide(fitter: Fitter, current: Fit, fit: Fit, record: dict) -> str:
     """Whether the joint model ``fit`` replaces the forward path's ``current``: it must remove ``FORWARD_MIN`` of the
-    held-out supply structure that ``current`` leaves and lower the total held-out error. Fills ``record``, notes the
-    verdict."""
+    held-out supply structure that ``current`` leaves and lower the total held-out error. Fills ``record``
+    (``accepted`` the decision); returns the verdict in words."""
     gain = output_share(fitter, current, fit, "supply_temp_c")
     record.update(explained_supply=gain, cost_holdout=fit.cost_holdout, cost_holdout_before=current.cost_holdout,
                   supply_rms_before=_supply_rms(fitter, current), supply_rms_after=_supply_rms(fitter, fit),
@@ -204,16 +229,17 @@ def _decide(fitter: Fitter, current: Fit, fit: Fit, record: dict, notes: list[st
                if record["accepted"] else
                f"not kept: removes {100 * gain:.0f} % of the held-out structure of supply_temp_c the forward path left "
                f"(needs {100 * FORWARD_MIN:.0f} % and a lower held-out error)")
-    notes.append(f"joint refit of {', '.join(record['members'])} without the discovered terms, eliminated backward to "
-                 f"{', '.join(record['kept']) or 'nothing'}" + (f", then {record['term']}" if record["term"] else "")
-                 + f": {verdict}")
-    return record["accepted"]
+    return (f"joint refit of {', '.join(record['members'])} without the discovered terms, eliminated backward to "
+            f"{', '.join(record['kept']) or 'nothing'}" + (f", then {record['term']}" if record["term"] else "")
+            + f": {verdict}")
 
 
-def _kept(fitter: Fitter, accepted: list[CandidateResult], left: list[_Member], fit: Fit, shares: dict, rnd: int
-          ) -> list[CandidateResult]:
+def _kept(fitter: Fitter, accepted: list[CandidateResult], left: list[_Member], refit: Fit, fit: Fit, shares: dict,
+          rnd: int) -> list[CandidateResult]:
     """The effects of the joint model: those of the forward path it keeps (as they were), the forward path's others
-    marked removed, the new ones as accepted results of round ``rnd``."""
+    marked removed, the new ones as accepted results of round ``rnd``, all with the fit ``refit`` they were kept in
+    (the joint model before discovery: the report's steps give a term found then its own step) and their parameters
+    those of the joint model ``fit``."""
     names = {m.name for m in left}
     for a in accepted:
         if a.name not in names:
@@ -226,19 +252,14 @@ def _kept(fitter: Fitter, accepted: list[CandidateResult], left: list[_Member], 
         if m.name in old:
             continue
         acc = dataclasses.replace(
-            m.result, round=rnd, status="accepted", fit=fit, cost_train=fit.cost_train, cost_holdout=fit.cost_holdout,
+            m.result, round=rnd, status="accepted", fit=refit, cost_train=refit.cost_train,
+            cost_holdout=refit.cost_holdout,
             reason=(f"kept in the joint refit: with the others in, taking it out costs {100 * shares[m.name]:.0f} % of "
-                    f"the held-out structure of {m.result.primary_output}"),
+                    f"the held-out structure of {m.primary}"),
             params={fp.name: float(fit.p[fitter.names.index(fp.name)]) for fp in _own(m)})
         record_own(acc, m.cand, fit, fitter.log.dt_s)
         out.append(acc)
     return out
-
-
-def _supply_ratio(fitter: Fitter, fit: Fit) -> float:
-    c, n = fitter.output_costs(fit.y)
-    j = fitter.outputs.index("supply_temp_c")
-    return float(c[j] / max(n[j], 1))
 
 
 def _supply_rms(fitter: Fitter, fit: Fit) -> float:

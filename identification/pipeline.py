@@ -29,8 +29,9 @@ Procedure (stated in the report):
 8. Joint refit (:mod:`.joint_step`): when no pair was kept and the supply temperature still carries held-out
    structure, the kept effects and the last round's ``JOINT_CANDIDATES`` best candidates (by training cost removed)
    are refit all at once without the discovered terms, eliminated backward (each must remove ``FORWARD_MIN`` of its
-   primary output's held-out structure with the others in, at most ``max_effects`` left), and discovery runs on what
-   is left; that model replaces the forward path's if it removes ``FORWARD_MIN`` of its held-out supply structure.
+   primary output's held-out structure with the others in, ``BIAS_MIN`` an offset, at most ``max_effects`` left),
+   and discovery runs on what is left; that model replaces the forward path's if it removes ``FORWARD_MIN`` of its
+   held-out supply structure and lowers the total held-out error.
    Then a backward pass re-tests every kept effect.
 9. Whatever structure remains is located (:mod:`.localise`) instead of being named.
 """
@@ -57,8 +58,8 @@ from .fitting import FLOW_PARAMS, IDENTIFIED_REL_SE, NOMINAL_FREE, Fit, Fitter, 
 from .log_data import LogData
 from .joint_step import joint_step
 from .pair_step import pair_step
-from .selection import (ALPHA, BIAS_MIN, DISCOVERY_ALTERNATIONS, FORWARD_MIN, STRUCTURE_MIN, CandidateResult,
-                        bic_change, gains, output_share, record_own)
+from .selection import (ALPHA, BIAS_MIN, DISCOVERY_ALTERNATIONS, FIT_ERRORS, FORWARD_MIN, STRUCTURE_MIN,
+                        CandidateResult, bic_change, gains, output_share, record_own, supply_ratio)
 from .simulator import OutputPost, Simulator, shift
 from .workers import cpu_seconds, fork_map
 
@@ -340,7 +341,7 @@ def _score_one(fitter: Fitter, current: Fit, current_free, cand: Candidate) -> t
               "bias": _score_bias, "gain": _score_gain}[cand.kind]
     try:
         return scorer(fitter, current, list(current_free), cand)
-    except (RuntimeError, np.linalg.LinAlgError, ValueError) as exc:
+    except FIT_ERRORS as exc:
         return None, f"fit failed ({exc})"
 
 
@@ -623,22 +624,34 @@ def _step_errors(fitter: Fitter, nominal: Fit, accepted, discovered: dict | None
     term_added = bool(discovered and discovered.get("accepted") and not discovered.get("jointly_with"))
     names = [a.name for a in accepted]
     accepted = [a for i, a in enumerate(accepted) if a.jointly_with not in names[:i]]  # a pair's second: the first's step
-    for i, a in enumerate(accepted):
-        last = i == len(accepted) - 1 and not term_added
+    groups = _same_fit(accepted)
+    for i, group in enumerate(groups):
+        a = group[0]
+        last = i == len(groups) - 1 and not term_added
         fit = final if last or a.fit is None else a.fit
-        steps.append({"added": a.name + (f" + {a.jointly_with} (jointly)" if a.jointly_with else ""),
-                      "holdout": _errors(fitter, prev, fit.y)})
+        added = (a.name + (f" + {a.jointly_with} (jointly)" if a.jointly_with else "") if len(group) == 1 else
+                 " + ".join(g.name for g in group) + " (refit together)")
+        steps.append({"added": added, "holdout": _errors(fitter, prev, fit.y)})
         prev = fit
     if term_added:
         steps.append({"added": f"term {discovered['term']['name']}", "holdout": _errors(fitter, prev, final.y)})
     return steps
 
 
+def _same_fit(accepted: list[CandidateResult]) -> list[list[CandidateResult]]:
+    """The kept effects in order, those kept in one and the same fit (the joint refit's) in one group: one step."""
+    groups: list[list[CandidateResult]] = []
+    for a in accepted:
+        if groups and a.fit is not None and a.fit is groups[-1][0].fit:
+            groups[-1].append(a)
+        else:
+            groups.append([a])
+    return groups
+
+
 def diagnostics_ratio(fitter: Fitter, fit: Fit) -> float:
-    """Held-out scaled cost per sample of the supply temperature."""
-    c, n = fitter.output_costs(fit.y)
-    j = fitter.outputs.index("supply_temp_c")
-    return float(c[j] / max(n[j], 1))
+    """Held-out scaled cost per sample of the supply temperature (:func:`~.selection.supply_ratio`)."""
+    return supply_ratio(fitter, fit)
 
 
 class _Clock:

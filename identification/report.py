@@ -341,9 +341,9 @@ def _markdown(res: IdentificationResult, data: dict, model_name: str) -> list[st
            "that mask each other, identified only together); when no pair was kept and the supply temperature "
            "stays structured, the kept effects and the last round's best candidates are refit all at once without "
            "the discovered terms, eliminated backward (each must earn its share with the others in) and discovery "
-           "runs again, that model replacing the forward path's if it lowers the held-out supply error by the same "
-           "share (several effects that mask one another); then a backward pass that re-tests each kept effect "
-           "with the others in.",
+           "runs again, that model replacing the forward path's if it removes the same share of the held-out supply "
+           "structure the forward path left and lowers the total held-out error (several effects that mask one "
+           "another); then a backward pass that re-tests each kept effect with the others in.",
            "5. Whatever structure remains is located instead of being named: the residual is regressed on each "
            "model equation's drive, on every logged signal (a missing input dependence, e.g. on a column the model "
            "does not use) and on their products; the terms that also hold on the held-out rows name the equation "

@@ -68,6 +68,18 @@ def gains(post: OutputPost, new=()) -> list[str]:
     return list(dict.fromkeys(list(new) + list(post.gain)))
 
 
+#: The errors a fit that fails raises (a simulation that diverges, a singular step, non-finite values): the
+#: candidate or step is reported as failed and the model it would have changed stands.
+FIT_ERRORS = (RuntimeError, np.linalg.LinAlgError, ValueError)
+
+
+def supply_ratio(fitter: Fitter, fit: Fit) -> float:
+    """Held-out scaled cost per sample of the supply temperature (1: at the noise level)."""
+    c, n = fitter.output_costs(fit.y)
+    j = fitter.outputs.index("supply_temp_c")
+    return float(c[j] / max(n[j], 1))
+
+
 def output_share(fitter: Fitter, worse: Fit, better: Fit, output: str) -> float:
     """Share of ``worse``'s held-out structure on ``output`` (scaled cost beyond the noise) that
     ``better`` removes."""

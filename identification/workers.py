@@ -22,7 +22,7 @@ def fork_map(task: Callable[[int], object], n: int) -> list:
     """``[task(i) for i in range(n)]``, in ``WORKERS`` forked processes where the platform has fork
     (the tasks are independent fits; the results are the same as in one process)."""
     global _TASK
-    workers = min(WORKERS, n, os.cpu_count() or 1)
+    workers = min(WORKERS, n, _cores())
     if workers < 2 or "fork" not in multiprocessing.get_all_start_methods():
         return [task(i) for i in range(n)]
     _TASK = task
@@ -31,6 +31,14 @@ def fork_map(task: Callable[[int], object], n: int) -> list:
             return pool.map(_run_task, range(n), chunksize=1)
     finally:
         _TASK = None
+
+
+def _cores() -> int:
+    """Cores this process may run on (its affinity where the platform has one: ``identify_time --threads 1`` pins the
+    process to one core, and two workers there would only take turns)."""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
 
 
 def cpu_seconds() -> float:

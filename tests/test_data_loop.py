@@ -656,6 +656,12 @@ def test_three_effects_that_mask_each_other_are_found_by_the_joint_refit(tmp_pat
     assert term.location == "box_in" and share == pytest.approx(0.15, abs=0.03)
     e = res.holdout_errors()["supply_temp_c"]
     assert e["rms_after"] <= 0.5 * e["rms_before"], e
+    # the effects the joint refit added are one step, the term found after them its own
+    steps = {st["added"]: st["holdout"]["supply_temp_c"] for st in res.steps}
+    together = steps["transport_delay:supply_temp_c + valve_shift:a (refit together)"]
+    term_step = steps["term box_inlet_term"]
+    assert term_step["rms_before"] == pytest.approx(together["rms_after"])
+    assert term_step["rms_after"] <= 0.5 * term_step["rms_before"], steps
 
 
 @pytest.mark.slow

@@ -1,0 +1,134 @@
+"""The joint refit's bookkeeping on its edge cases (identification/joint_step.py), with a stand-in fitter whose
+held-out supply cost is known in closed form: the noise level (1 per sample) plus, for each structure entry missing
+from a fit's effects, that entry's cost. No simulation: the elimination, the decision and the failure path are what
+is tested; the whole step on a measured log is the slow test in tests/test_data_loop.py.
+"""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from hvac_mpc.identification import workers
+from hvac_mpc.identification.candidates import library
+from hvac_mpc.identification.fitting import Fit
+from hvac_mpc.identification.joint_step import joint_step
+from hvac_mpc.identification.pipeline import _same_fit
+from hvac_mpc.identification.selection import CandidateResult
+from hvac_mpc.identification.simulator import OutputPost
+from hvac_mpc.models import Parameters
+
+OUTPUTS = ("supply_temp_c",)
+#: Library candidates with effects of their own (the stand-in's cost depends on the effects in a fit).
+MEMBERS = ("motor_asymmetry", "bypass_flow", "trapped_air")
+
+
+class _StandInFitter:
+    """``fit`` returns the held-out (and training) supply cost 1 + the structure of the effects left out; an effect
+    in ``fail`` makes the fit raise, as a diverging simulation does."""
+
+    outputs = list(OUTPUTS)
+    names = Parameters.scalar_names()
+
+    def __init__(self, structure: dict[str, float], fail: tuple[str, ...] = ()):
+        self.structure, self.fail = structure, fail
+        self.log = SimpleNamespace(dt_s=1.0, holdout=np.array([True]))
+        self.y_meas = np.zeros((1, 1))
+
+    def make(self, effects, p: np.ndarray, post: OutputPost) -> Fit:
+        c = 1.0 + sum(v for k, v in self.structure.items() if k not in effects)
+        return Fit(frozenset(effects), p.copy(), post.copy(), (), np.array([[c]]), None, c, c, 1, 1)
+
+    def fit(self, effects, p, free, post, bias_outputs=(), max_nfev=0, gain_outputs=None, terms=None) -> Fit:
+        if set(effects) & set(self.fail):
+            raise np.linalg.LinAlgError("singular step")
+        return self.make(effects, p, post)
+
+    def output_costs(self, y, part="holdout"):
+        return np.array([y[0, 0]]), np.array([1.0])
+
+
+def _case(structure: dict[str, float], fail: tuple[str, ...] = (), max_effects: int = 4):
+    """The step on a forward path that kept nothing, the last round's candidates ``MEMBERS`` (each moved its
+    parameters, each removed 20 % of the training cost)."""
+    fitter = _StandInFitter(structure, fail)
+    base = Parameters()
+    p0 = np.array(base.vector(), dtype=float)
+    post = OutputPost(OUTPUTS, np.array([0.0, 1.0]))
+    lib = library(OUTPUTS)
+    current = fitter.make(frozenset(), p0, post)
+    open_round = []
+    for name in MEMBERS:
+        cand = next(c for c in lib if c.name == name)
+        p = p0.copy()
+        for fp in cand.params:
+            p[fitter.names.index(fp.name)] *= 1.5
+        open_round.append(CandidateResult(name, cand.kind, 1, "rejected", params={fp.name: 0.0 for fp in cand.params},
+                                          train_reduction=0.2, primary_output="supply_temp_c",
+                                          fit=fitter.make(frozenset(cand.effects), p, post)))
+    notes: list[str] = []
+    out = joint_step(fitter, current, [], [], open_round, lib, base, max_effects, 2,
+                     lambda fit, free, log: (fit, None, []), lambda _msg: None, notes)
+    return current, out, notes
+
+
+def test_the_joint_set_keeps_the_members_that_earn_their_share_and_eliminates_the_passenger():
+    current, (fit, free, kept, term, record), notes = _case({"motor_asymmetry": 4.0, "trapped_air": 3.0,
+                                                             "bypass_flow": 0.01})
+    assert record["accepted"] and fit is not current
+    assert [a.name for a in kept] == ["motor_asymmetry", "trapped_air"]
+    assert "bypass_flow" not in fit.effects and record["shares"]["bypass_flow"] < 0.1
+    assert record["supply_rms_after"] < record["supply_rms_before"]
+    assert notes[-1].startswith("joint refit of") and "kept" in notes[-1]  # the verdict after the elimination's notes
+    assert any("bypass_flow eliminated" in n for n in notes[:-1])
+
+
+def test_at_most_max_effects_are_kept_even_when_more_earn_their_share():
+    _, (fit, _, kept, _, record), _ = _case({"motor_asymmetry": 4.0, "trapped_air": 3.0, "bypass_flow": 2.0},
+                                            max_effects=1)
+    assert len(kept) == 1 and record["kept"] == [kept[0].name]
+    assert any("at most 1 effects" in n for n in record["notes"])
+
+
+def test_every_member_eliminated_leaves_the_forward_path_when_nothing_is_gained():
+    current, (fit, free, kept, term, record), notes = _case({"other": 5.0, "motor_asymmetry": 0.01,
+                                                             "trapped_air": 0.01, "bypass_flow": 0.01})
+    assert record["kept"] == [] and not record["accepted"]
+    assert fit is current and kept == [] and term is None
+    assert "not kept" in notes[-1]
+
+
+def test_a_fit_that_fails_leaves_the_forward_path_and_says_why():
+    current, (fit, free, kept, term, record), notes = _case({"motor_asymmetry": 4.0, "trapped_air": 3.0},
+                                                            fail=("bypass_flow",))
+    assert fit is current and kept == [] and term is None
+    assert not record["accepted"] and "singular step" in record["failed"]
+    assert "fit failed" in notes[-1]
+
+
+def test_no_candidate_of_the_last_round_means_no_step():
+    fitter = _StandInFitter({"other": 5.0})
+    base = Parameters()
+    current = fitter.make(frozenset(), np.array(base.vector(), dtype=float), OutputPost(OUTPUTS, np.array([0.0, 1.0])))
+    out = joint_step(fitter, current, [], [], [], library(OUTPUTS), base, 4, 2, lambda f, fr, log: (f, None, []),
+                     lambda _msg: None, [])
+    assert out[0] is current and out[3] is None and out[4] is None
+
+
+def test_effects_kept_in_one_fit_make_one_step():
+    a, b = object(), object()
+    res = [CandidateResult(n, "model", 1, "accepted", fit=f) for n, f in (("x", a), ("y", b), ("z", b), ("w", None))]
+    assert [[r.name for r in g] for g in _same_fit(res)] == [["x"], ["y", "z"], ["w"]]
+
+
+def _task(i: int) -> int:
+    if i == 2:
+        raise ValueError("fit of task 2 failed")
+    return i * i
+
+
+def test_forked_map_returns_in_order_and_passes_a_workers_error_on():
+    assert workers.fork_map(lambda i: i * i, 5) == [0, 1, 4, 9, 16]
+    with pytest.raises(ValueError, match="task 2"):
+        workers.fork_map(_task, 4)
+    assert workers._TASK is None  # nothing of the failed map left for the next
