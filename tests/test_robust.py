@@ -648,15 +648,8 @@ def test_flow_jump_on_a_box_whose_split_depends_on_the_flow_is_met_by_the_learne
     baseline's thermocouple IAE, against 0.953 with the defaults (seed 0)."""
     from hvac_mpc.mpc.estimator import EkfSettings
 
-    sc = S.flow_out_of_reach().quick()
     ekf = EkfSettings(learn_bypass_flow=True, bypass_flow_anchored=True, bypass_flow_after_s=30.0)
-    learned = lambda ic: MpcController(Parameters(), MpcSettings(initial_command=ic, deadline_s=3600.0,  # noqa: E731
-                                                                 ekf=ekf))
-    res, _ = bench.run_benchmark([sc], {"baseline": bench.baseline_factory(), "mpc": learned}, 0,
-                                 plant_factory=functools.partial(make_plant, Variant(bypass_flow_exponent=0.4)))
-    cell = res["scenarios"][sc.name]
-    assert cell["ratios"]["temp_iae_cs"] <= 0.6
-    assert cell["mpc"]["figures"]["fallbacks"] == 0 and cell["mpc"]["figures"]["violations_total"] == 0
+    assert_out_of_reach_cell(Variant(bypass_flow_exponent=0.4), ekf, limit=0.6)
 
 
 def test_the_offset_gets_variance_at_a_flow_step_and_the_motor_rise_stays_physical():
