@@ -551,13 +551,20 @@ class DisturbanceEkf:
         """Take the time update's results (as the time-update function returns them, ``P`` column-major)."""
         self.z, self.P = z_next, P_next_t.T  # buffers are column-major
         self._age_s += self.dt_s
-        q_mix = self._q_mix[0] if self.dead_time.informed or not self.n_hist else self._q_mix[1]
+        q_mix = self._q_mix[0] if self.response_seen else self._q_mix[1]
         self.P[self.i_mix_offset, self.i_mix_offset] += q_mix * q_mix - min(self._q_mix) ** 2 + self._flow_step_var(
             float(flow[0]))
         if self.n_hist:
             self.dead_time.push_air(float(air[0]))
         if self.learns_bypass_flow and not self.anchors_bypass_flow:
             self._gate(float(flow[0]))
+
+    @property
+    def response_seen(self) -> bool:
+        """True once the dead-time estimate has seen a response (:attr:`~.dead_time.DeadTimeEstimator.informed`),
+        and always without the dead-time handling (no history of the air): the gate of every setting that waits
+        for the timing of a response."""
+        return self.dead_time.informed or not self.n_hist
 
     def _flow_step_var(self, flow_m3s: float) -> float:
         """The mixed-air offset's added variance (degC^2) for the change of the model's flow since the last time
@@ -566,7 +573,7 @@ class DisturbanceEkf:
         log_flow = math.log(max(flow_m3s, 1e-4))
         last, self._last_log_flow = self._last_log_flow, log_flow
         # before a response has shown the dead time, the raised variance takes the MPC's own late answer instead
-        if per <= 0.0 or last is None or not (self.dead_time.informed or not self.n_hist):
+        if per <= 0.0 or last is None or not self.response_seen:
             return 0.0
         return (per * max(0.0, abs(log_flow - last) - self.settings.q_mix_offset_flow_deadband)) ** 2
 
@@ -584,7 +591,7 @@ class DisturbanceEkf:
         """Learn the exponent while the flow moves (and, with ``bypass_flow_after_response``, once the dead-time
         estimate has seen a response); otherwise it is a constant to the filter, without correlations."""
         s = self.settings
-        seen = self.dead_time.informed or not self.n_hist or not s.bypass_flow_after_response
+        seen = self.response_seen or not s.bypass_flow_after_response
         self.learning = bool(flow_moves and seen and self._age_s >= s.bypass_flow_after_s
                              and not s.bypass_flow_at_rest)
         if not self.learning:  # a constant to the filter: no correlation with the other states
@@ -596,7 +603,7 @@ class DisturbanceEkf:
         rise's standard deviation to ``motor_sd_after_response_c`` (if it is below): before, the timing of a
         response is not known and the filter would take a late one for the motor (docs/robustness.md sec. 2.7)."""
         sd = self.settings.motor_sd_after_response_c
-        if self._motor_released or sd <= 0.0 or not (self.dead_time.informed or not self.n_hist):
+        if self._motor_released or sd <= 0.0 or not self.response_seen:
             return
         i = self.model.states.index("motor_rise_c")
         self.P[i, i] = max(self.P[i, i], sd * sd)
@@ -671,7 +678,7 @@ class DisturbanceEkf:
         the new exponent brings, so the supply air the filter explains does not move."""
         s = self.settings
         mass_flow = float(self._mix(self.z, u, setpoint_c)[1][0])
-        seen = self.dead_time.informed or not self.n_hist or not s.bypass_flow_after_response
+        seen = self.response_seen or not s.bypass_flow_after_response
         others = (float(u[self.i_valve_a]), float(u[self.i_heater_cmd]))
         step = self.rest_steps.observe(math.log(max(mass_flow, 1e-5)), self.mix_offset_c,
                                        seen and self._age_s >= s.bypass_flow_after_s, others)
