@@ -45,8 +45,8 @@ import casadi as ca
 import numpy as np
 
 from hvac_mpc.mpc.codegen import CodegenReport, compiled_nlpsol
-from hvac_mpc.mpc.ipopt_reference import IpoptReferenceSolver
-from hvac_mpc.mpc.ocp import TrackingProblem, shift_maps, shift_nodes
+from hvac_mpc.mpc.ipopt_reference import IpoptReferenceSolver, shifted_start
+from hvac_mpc.mpc.ocp import TrackingProblem, shift_maps
 from hvac_mpc.mpc.rti_osqp import SolveResult
 from hvac_mpc.mpc.stage_nlp import StageNlp
 from hvac_mpc.mpc.stage_ocp import StageOcp
@@ -99,11 +99,7 @@ class FatropSolver:
         """Shift the previous solution one sample (the warm start)."""
         t0 = time.perf_counter()
         if self.w is not None:
-            tr, N = self.transcription, self.pb.N
-            X, U, S = tr.unpack(self.w)
-            Xs = shift_nodes(X, self._i0, self._w1)
-            Xs[0] = x_pred
-            self.w = tr.pack(Xs, U[self._j], S[np.minimum(self._j, N - 1)], u_prev)
+            self.w = shifted_start(self.transcription, self.w, (self._i0, self._w1, self._j), x_pred, u_prev)
         return time.perf_counter() - t0
 
     def feedback(self, x0, u_prev, d, ref, w_y, u_lo, u_hi, time_limit_s: float = 0.0) -> SolveResult:

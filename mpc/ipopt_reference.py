@@ -27,6 +27,17 @@ from .stage_nlp import StageNlp
 from .stage_ocp import StageOcp
 
 
+
+def shifted_start(transcription, w: np.ndarray, maps: tuple, x_pred: np.ndarray, u_prev: np.ndarray) -> np.ndarray:
+    """The solution ``w`` of a stage-wise transcription shifted one sample, the warm start of the next
+    solve: states by ``maps`` (:func:`~hvac_mpc.mpc.ocp.shift_maps`) with ``x_pred`` first, inputs and
+    slacks by node, ``u_prev`` the command in force."""
+    i0, w1, j = maps
+    X, U, S = transcription.unpack(w)
+    Xs = shift_nodes(X, i0, w1)
+    Xs[0] = x_pred
+    return transcription.pack(Xs, U[j], S[np.minimum(j, len(S) - 1)], u_prev)
+
 class IpoptReferenceSolver:
     """Full-NLP reference with the solver interface of :class:`RtiOsqpSolver`."""
 
@@ -80,11 +91,7 @@ class IpoptReferenceSolver:
         """Shift the previous primal solution one sample (the warm start; multipliers kept)."""
         t0 = time.perf_counter()
         if self.w is not None:
-            N = self.pb.N
-            X, U, S = self.transcription.unpack(self.w)
-            Xs = shift_nodes(X, self._i0, self._w1)
-            Xs[0] = x_pred
-            self.w = self.transcription.pack(Xs, U[self._j], S[np.minimum(self._j, N - 1)], u_prev)
+            self.w = shifted_start(self.transcription, self.w, (self._i0, self._w1, self._j), x_pred, u_prev)
         return time.perf_counter() - t0
 
     def feedback(self, x0, u_prev, d, ref, w_y, u_lo, u_hi, time_limit_s: float = 0.0) -> SolveResult:
