@@ -168,9 +168,9 @@ class Recording:
         self._current.update(q=np.array(q), l=np.array(l), u=np.array(u))
         self.core.update_vectors(q, l, u)
 
-    def warm_start(self, x) -> None:
+    def warm_start(self, x, y=None) -> None:
         self._current["warm"] = np.array(x)
-        self.core.warm_start(x)
+        self.core.warm_start(x, y)
 
     def solve(self):
         status_val, status, n_iter, x = self.core.solve()

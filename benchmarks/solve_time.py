@@ -34,7 +34,11 @@ per-step suboptimality of the RTI against the converged solution from the same s
 (:mod:`hvac_mpc.benchmarks.suboptimality`) is measured on a second, untimed run of the RTI loop.
 
 Step time is the wall time of ``MpcController.step`` (estimator, solver, Python overhead), the
-first (cold) step excluded from the statistics. Closed-loop cost is the MPC's stage cost
+first (cold) step excluded from the statistics. The reachable-flow solve that a step starts on the
+second thread (:mod:`hvac_mpc.mpc.priorities`) is collected at the start of the next step; on the box
+a sample (1 s) lies between the two, here the loop gives the thread up to :data:`IDLE_S` between the
+timed steps (``--back-to-back``: none, so the next step may wait for it). Both, and every wait of a
+step for the thread all the same, are printed and in the result's ``background``. Closed-loop cost is the MPC's stage cost
 evaluated on the plant's noise-free outputs, summed over the run. The problem is not convex
 (redundant actuators, valve curves) and one run can settle on another actuator mix than another
 after a reference change, so the cost comparison with IPOPT is repeated over ``--cost-seeds``
@@ -88,6 +92,9 @@ INLET_C = 32.0
 INITIAL = Command(150.0, 0.0, 70.0, 100.0, 100.0, 100.0)
 FULL_STEPS = 240
 QUICK_STEPS = 30
+#: Time the loop gives the second thread between two timed steps unless ``--back-to-back`` (s): the
+#: sample period of the box, of which a step takes about a millisecond.
+IDLE_S = 1.0
 #: What the RTI is held to (docs/architecture.md, 'One control step'): whole-step median and 99th
 #: percentile (ms, wall time, cold step excluded) and the per-step suboptimality of the move it
 #: applies against the converged solution from the same state (``decision``, %).
@@ -141,10 +148,19 @@ class Loop:
     """One controller on its own plant of the solve-time scenario, stepped one sample at a time: the
     plant (``seed``, ``inlet_c``, water at 5 C) settled at :data:`INITIAL` and the controller reset to
     it; :meth:`step` applies the controller's command and sums the stage cost per term (``cost``)
-    and the step's process and thread CPU times (``cpu_s``, ``thread_s``, seconds)."""
+    and the step's process and thread CPU times (``cpu_s``, ``thread_s``, seconds).
 
-    def __init__(self, ctrl: MpcController, seed: int, scenario=SCENARIO, inlet_c: float = INLET_C):
-        self.ctrl, self.scenario = ctrl, scenario
+    ``idle_s`` > 0: after each step (untimed) the loop gives the controller's reachable-flow solve on the
+    second thread up to that long to finish (:meth:`MpcController.wait_background`), as the rest of the
+    sample does on the box, instead of stepping on at once (0, back to back: the next step may then wait
+    for it). The commands are the same either way; ``idle_wait_s`` holds the time given after each step,
+    ``step_wait_s`` the time each step itself waited for the solve (``stats["reach_wait_s"]``)."""
+
+    def __init__(self, ctrl: MpcController, seed: int, scenario=SCENARIO, inlet_c: float = INLET_C,
+                 idle_s: float = 0.0):
+        if not 0.0 <= idle_s <= 3600.0:
+            raise ValueError(f"Loop: idle_s must be in [0, 3600] s, got {idle_s}")
+        self.ctrl, self.scenario, self.idle_s = ctrl, scenario, float(idle_s)
         self.plant = SimulatedPlant(seed=seed, environment=Environment(inlet_c, 5.0))
         self.plant.settle(INITIAL)
         ctrl.reset(self.plant.command)
@@ -152,6 +168,8 @@ class Loop:
         self.cost: dict[str, float] = {}
         self.cpu_s: list[float] = []
         self.thread_s: list[float] = []
+        self.idle_wait_s: list[float] = []
+        self.step_wait_s: list[float] = []
 
     def step(self, k: int):
         """Step ``k`` (sample k of the scenario); returns the controller's :class:`StepResult`."""
@@ -161,17 +179,22 @@ class Loop:
         res = self.ctrl.step(measurement, ref)
         self.thread_s.append(time.thread_time() - t0)
         self.cpu_s.append(time.process_time() - c0)
+        self.step_wait_s.append(float(res.stats.get("reach_wait_s", 0.0)))
         command = self.plant.apply(res.command)
         self.plant.advance()
         for term, value in stage_cost(self.ctrl.problem, self.plant.truth(), ref, command, self.previous).items():
             self.cost[term] = self.cost.get(term, 0.0) + value
         self.previous = command
+        wait = getattr(self.ctrl, "wait_background", None)
+        self.idle_wait_s.append(wait(self.idle_s) if self.idle_s > 0 and wait is not None else 0.0)
         return res
 
 
 def closed_loop(name: str, make: Callable[[], MpcController], steps: int, seed: int, scenario=SCENARIO,
-                inlet_c: float = INLET_C) -> dict[str, Any]:
-    """Run one controller on a fresh plant; per-step times and the closed-loop cost."""
+                inlet_c: float = INLET_C, idle_s: float = 0.0) -> dict[str, Any]:
+    """Run one controller on a fresh plant; per-step times and the closed-loop cost. ``idle_s``: the time
+    given to the second thread between steps (:class:`Loop`); ``background`` in the result says how much
+    of it was used and how long steps waited all the same."""
     t_setup = time.perf_counter()
     ctrl = make()
     setup_s = time.perf_counter() - t_setup
@@ -185,7 +208,7 @@ def closed_loop(name: str, make: Callable[[], MpcController], steps: int, seed: 
     report = getattr(ctrl, "codegen", None) or solver_report
     settings["estimator_compiled"] = bool(report is not None and any(
         k.startswith("ekf_") and not v.startswith("interpreted") for k, v in report.outcomes.items()))
-    loop = Loop(ctrl, seed, scenario, inlet_c)
+    loop = Loop(ctrl, seed, scenario, inlet_c, idle_s)
     times, iters, solves, fallbacks, statuses = [], [], [], 0, {}
     for k in range(steps):
         st = loop.step(k).stats
@@ -210,7 +233,38 @@ def closed_loop(name: str, make: Callable[[], MpcController], steps: int, seed: 
         "median_iterations": float(np.median(iters[1:])), "max_iterations": int(max(iters)),
         "max_qp_solves": int(max(solves)), "fallback_steps": int(fallbacks), "statuses": statuses,
         "cost": {**cost, "total": float(sum(cost.values()))},
+        "background": background_waits(loop, idle_s),
     }
+
+
+#: A step's wait for the second thread below this (s) is the join's own cost, not a wait.
+WAIT_FLOOR_S = 5e-5
+
+
+def background_waits(loop: Loop, idle_s: float) -> dict[str, Any]:
+    """How the second thread's reachable-flow solves met the steps (first step excluded, as in the times):
+    the idle time allowed between steps, the steps after which the loop idled for a solve and for how long
+    in all, and the steps that waited for one inside their timed step (their count, the largest wait)."""
+    idle = np.array(loop.idle_wait_s[1:]) * 1e3
+    waits = np.array(loop.step_wait_s[1:]) * 1e3
+    waited = waits[waits > WAIT_FLOOR_S * 1e3]
+    return {"idle_between_steps_s": idle_s, "idle_steps": int((idle > 0).sum()),
+            "idle_total_ms": float(idle.sum()), "idle_max_ms": float(idle.max(initial=0.0)),
+            "steps_waiting": int(waited.size), "step_wait_total_ms": float(waited.sum()),
+            "step_wait_max_ms": float(waited.max(initial=0.0))}
+
+
+def background_line(name: str, bg: dict[str, Any]) -> str:
+    """One printed line of :func:`background_waits`: what the step times include and what they do not."""
+    if bg["idle_between_steps_s"] > 0:
+        how = (f"the loop gave the second thread up to {bg['idle_between_steps_s']:g} s between steps (the rest of "
+               f"the sample on the box; untimed): used after {bg['idle_steps']} steps, {bg['idle_total_ms']:.1f} ms "
+               f"in all, at most {bg['idle_max_ms']:.2f} ms")
+    else:
+        how = "steps back to back (--back-to-back): no time between steps for the second thread"
+    return (f"{name} reachable-flow solves on the second thread: {how}; steps that waited for one inside the "
+            f"timed step: {bg['steps_waiting']}, {bg['step_wait_total_ms']:.2f} ms in all, at most "
+            f"{bg['step_wait_max_ms']:.2f} ms")
 
 
 def rti_suboptimality(make: Callable[[], MpcController], steps: int, seed: int, jit: bool) -> dict[str, Any]:
@@ -237,6 +291,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="seeds (from --seed on) of the RTI-against-IPOPT cost comparison "
                              "(default 5, 1 with --quick)")
     parser.add_argument("--threads", type=int, default=2, choices=(1, 2), help="cores to use (default 2)")
+    parser.add_argument("--back-to-back", action="store_true",
+                        help="step on at once after each step; by default the loop gives the reachable-flow solve "
+                             f"on the second thread up to {IDLE_S:g} s (one sample) between steps, untimed, as the "
+                             "box's sample does (the commands are the same either way)")
     parser.add_argument("--json", type=Path, default=Path("solve_time.json"), help="where to write the results")
     parser.add_argument("--no-ipopt", action="store_true", help="skip the IPOPT reference")
     parser.add_argument("--model", metavar="FILE", default=None,
@@ -390,6 +448,8 @@ def _print_summary(results: list[dict[str, Any]], seeds_cost: list[dict[str, Any
     per-seed costs, fatrop's agreement, acados' phases and the notes."""
     by_name = {r["controller"]: r for r in results}
     print_table(results)
+    for r in results:
+        print(background_line(r["controller"], r["background"]))
     figures = headline(results)
     for line in figures.pop("lines"):
         print(line)
@@ -422,7 +482,8 @@ def _run(args: argparse.Namespace, steps: int, cost_seeds: int) -> int:
     results = []
     for name, make in c.order:
         print(f"running {name} for {steps} steps ...", flush=True)
-        results.append(closed_loop(name, make, steps, args.seed))
+        results.append(closed_loop(name, make, steps, args.seed,
+                                   idle_s=0.0 if getattr(args, "back_to_back", False) else IDLE_S))
         if name == "rti-acados" and c.phase_timers:
             results[-1]["phases"] = c.phase_timers[0].summary(steps)
     _ratios(results)

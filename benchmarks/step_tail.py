@@ -18,7 +18,8 @@ the comparison does not move with the defaults):
 * ``changes_thread_cap60``: both (the cap of 60 is a setting, not a default).
 
 The variants run alternately, ``--rounds`` times each, on at most two cores (the solve-time
-benchmark's limit). Per step: the wall time of ``MpcController.step`` and the CPU time of the thread
+benchmark's limit); between steps the loop gives the second thread up to a sample's time, untimed, as
+``solve-time`` does (``--back-to-back``: none). Per step: the wall time of ``MpcController.step`` and the CPU time of the thread
 that runs it (``time.thread_time``; the process CPU time would count the second thread's solve too),
 the cold first step excluded; per loop the closed-loop cost (as ``solve-time`` computes it), the
 reachable-flow solves and the OSQP iterations of the slowest steps. The commands of ``reach_thread`` and
@@ -58,9 +59,10 @@ VARIANTS = {"inline": BEFORE,
 THREADED = ("reach_thread", "changes_thread_cap60")
 
 
-def run_loop(settings: MpcSettings, steps: int, seed: int) -> dict[str, Any]:
+def run_loop(settings: MpcSettings, steps: int, seed: int, idle_s: float = solve_time.IDLE_S) -> dict[str, Any]:
     """One closed loop of the solve-time scenario: per-step wall and thread CPU times (ms), commands,
-    the steps that started a reachable-flow solve, and the closed-loop cost."""
+    the steps that started a reachable-flow solve, and the closed-loop cost. ``idle_s``: the time the loop
+    gives the second thread between steps (``solve_time.Loop``; 0 back to back)."""
     ctrl = MpcController(settings=settings)
     solver, started = ctrl.reach.solver, []
     k = 0
@@ -70,7 +72,7 @@ def run_loop(settings: MpcSettings, steps: int, seed: int) -> dict[str, Any]:
         return solver(**kw)
 
     ctrl.reach.solver = counted  # the index is read when the call starts: on a thread it may be k + 1
-    loop = solve_time.Loop(ctrl, seed)
+    loop = solve_time.Loop(ctrl, seed, idle_s=idle_s)
     wall, commands, iterations = [], [], []
     for k in range(steps):
         res = loop.step(k)
@@ -80,7 +82,8 @@ def run_loop(settings: MpcSettings, steps: int, seed: int) -> dict[str, Any]:
     ctrl.reach.reset()
     cpu, cost = loop.thread_s, sum(loop.cost.values())
     return {"wall_ms": np.array(wall[1:]) * 1e3, "cpu_ms": np.array(cpu[1:]) * 1e3, "commands": np.array(commands),
-            "solves": started, "cost": cost, "iterations": np.array(iterations[1:])}
+            "solves": started, "cost": cost, "iterations": np.array(iterations[1:]),
+            "background": solve_time.background_waits(loop, idle_s)}
 
 
 def figures(times_ms: np.ndarray) -> dict[str, float]:
@@ -96,7 +99,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cost-seeds", type=int, default=1,
                         help="closed-loop cost of every variant on seeds --seed ... --seed + N - 1 (untimed beyond --seed)")
     parser.add_argument("--json", type=Path, default=Path("step_tail.json"))
+    parser.add_argument("--back-to-back", action="store_true",
+                        help="no time for the second thread between steps (as solve-time --back-to-back)")
     args = parser.parse_args(argv)
+    idle_s = 0.0 if args.back_to_back else solve_time.IDLE_S
     if args.rounds < 1 or args.steps < 3 or not 1 <= args.cost_seeds <= 20:
         parser.error("--rounds must be at least 1, --steps at least 3 and --cost-seeds in [1, 20]")
     if hasattr(os, "sched_setaffinity"):
@@ -105,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
     loops: dict[str, dict[str, Any]] = {}
     for r in range(args.rounds):
         for name, extra in VARIANTS.items():
-            loop = run_loop(MpcSettings(**extra), args.steps, args.seed)
+            loop = run_loop(MpcSettings(**extra), args.steps, args.seed, idle_s)
             loops[name] = loop
             rows[name].append({"round": r, "wall": figures(loop["wall_ms"]), "thread_cpu": figures(loop["cpu_ms"]),
                                "reach_solves": len(loop["solves"]), "cost": loop["cost"],
@@ -114,7 +120,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"round {r} {name:<18} wall median {w['median_ms']:.2f} p99 {w['p99_ms']:.2f} max {w['max_ms']:.2f} ms"
                   f" | thread CPU median {c['median_ms']:.2f} p99 {c['p99_ms']:.2f} max {c['max_ms']:.2f} ms"
                   f" | solves {len(loop['solves'])}, cost {loop['cost']:.2f}"
-                  f" | OSQP iterations, largest {rows[name][-1]['osqp_iterations_top'][:4]}", flush=True)
+                  f" | OSQP iterations, largest {rows[name][-1]['osqp_iterations_top'][:4]}"
+                  f" | steps waiting for the thread {loop['background']['steps_waiting']}", flush=True)
     same = all(np.array_equal(loops[name]["commands"], run_loop(
         MpcSettings(**{**VARIANTS[name], "reach_background": False}), args.steps, args.seed)["commands"])
         for name in THREADED)

@@ -30,7 +30,8 @@ the cooler is saturated and the reading stays away, :mod:`hvac_mpc.mpc.temperatu
 flow weights of the step: 1, less out of reach or while a large flow error is closed), ``dead_time_s``
 (the thermocouple's dead time beyond the model's that the estimator has found and honours, :mod:`hvac_mpc.mpc.estimator`),
 ``bypass_flow_exponent`` (the exponent of the bypass split's flow dependence the prediction uses: the
-estimator's estimate where it learns it, :mod:`hvac_mpc.mpc.estimator`).
+estimator's estimate where it learns it, :mod:`hvac_mpc.mpc.estimator`), ``reach_wait_s`` (wall time the
+step waited for the reachable-flow solve started on the second thread the step before, :mod:`hvac_mpc.mpc.priorities`).
 """
 
 from __future__ import annotations
@@ -554,7 +555,15 @@ class MpcController:
                             feedback=sol.feedback_time_s, iterations=sol.iterations, qp_solves=sol.qp_solves,
                             cap=cap, healthy=True)
         stats["cold_start"] = bool(sol.extra.get("cold_start", False))
+        stats["reach_wait_s"] = self.reach.last_wait_s if self.reach is not None else 0.0
         return StepResult(Command.from_vector(u_cmd), stats)
+
+    def wait_background(self, timeout_s: float) -> float:
+        """Between two steps: give the reachable-flow solve running on the second thread up to ``timeout_s``
+        (s) to finish, so that the next step need not wait for it (the rest of the sample on the box). The
+        commands do not depend on it (the answer is applied by the next step either way). Returns the wall
+        time waited (s)."""
+        return self.reach.wait_background(timeout_s) if self.reach is not None else 0.0
 
     def _tracked_reference(self, ref: Reference, d: np.ndarray, cap: float) -> np.ndarray:
         """Reference vector of the stage outputs with the priorities applied: the total flow (and the

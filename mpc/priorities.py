@@ -140,6 +140,7 @@ class ReachableFlow:
         self.background = bool(background)
         self._pending: BackgroundCall | None = None
         self._pending_change = False  # the pending solve is of a changed reference (not a periodic look)
+        self.last_wait_s = 0.0  # wall time the last check waited for a solve on the second thread (s)
         self.skip_unmoved = bool(skip_unmoved)
         self.saturated_s = float(saturated_s)
         self.every_s = float(every_s)
@@ -302,11 +303,22 @@ class ReachableFlow:
         return self._pending is not None and self._pending_change
 
     def _collect(self) -> bool:
-        """Apply the deferred solve of the previous check, waiting for it; True where it gave no answer."""
+        """Apply the deferred solve of the previous check, waiting for it (the wait in :attr:`last_wait_s`);
+        True where it gave no answer."""
+        self.last_wait_s = 0.0
         if self._pending is None:
             return False
         pending, self._pending = self._pending, None
-        return not self._apply(pending.result())
+        result = pending.result()
+        self.last_wait_s = pending.waited_s
+        return not self._apply(result)
+
+    def wait_background(self, timeout_s: float) -> float:
+        """Give a solve running on the second thread up to ``timeout_s`` (s) to finish, outside a check (the
+        idle rest of a sample); its answer is still applied by the next check, so the commands do not change.
+        Returns the wall time waited (s); 0 when no solve is running."""
+        pending = self._pending
+        return 0.0 if pending is None else pending.wait(timeout_s)
 
     def _drop_pending(self) -> None:
         """Wait for a running solve (the solver must not run twice at once) and forget its answer."""

@@ -138,6 +138,9 @@ class RtiOsqpSolver:
             as the QP's answer instead of a failure: an inexact QP step, as the real-time iteration
             takes an inexact NLP step; the next QP starts from it (primal shifted, dual kept).
             ``SolveResult.extra["inexact"]`` says when the step's answer is such an iterate.
+        restart_duals_on_change: on a step whose reference differs from the preparation's, start the first
+            QP from zero multipliers instead of the last QP's (off: measured no fewer iterations,
+            ``benchmarks/osqp_restart.py``).
         step_fractions: a globalised step (:class:`.plan_merit.PlanMerit`): after each QP the nonlinear cost of
             its plan is compared with the linearisation point's, and where it is higher the damped steps of
             these fractions are tried and the least cost taken (``SolveResult.extra["step_fraction"]``).
@@ -151,8 +154,10 @@ class RtiOsqpSolver:
                  sqp_max_iter: int = 1, sqp_tol: float = 1e-3, check_termination: int = 5,
                  lm_inputs: np.ndarray | float = 0.0, cold_start_qps: int = 1, reference_change_qps: int = 1,
                  codegen: bool = False, scaling: int = 10, alpha: float = 1.6, check_dualgap: bool = True,
-                 first_pass_iter: int = 0, accept_max_iter: bool = False, step_fractions: tuple[float, ...] = ()):
+                 first_pass_iter: int = 0, accept_max_iter: bool = False, step_fractions: tuple[float, ...] = (),
+                 restart_duals_on_change: bool = False):
         self.pb = pb = problem
+        self.restart_duals_on_change = bool(restart_duals_on_change)
         # OSQP status values taken as an answer: solved, solved inaccurate (and maximum iterations reached)
         self._accepted = (1, 2, 7) if accept_max_iter else (1, 2)
         self.name = "rti" if sqp_max_iter == 1 else "sqp"
@@ -188,10 +193,26 @@ class RtiOsqpSolver:
         self._setup_osqp()
         self.reset()
 
+    def set_osqp_options(self, **options) -> None:
+        """Further OSQP settings by OSQP's own names (e.g. ``adaptive_rho_interval``, an iteration count) for
+        the QPs that follow. OSQP's workspace is set up anew with them, so the solver answers from then on as
+        one built with them and the next step starts cold (call it before the first step); a name OSQP does
+        not know raises ValueError naming it."""
+        known = {n for n in dir(self.solver.settings) if not n.startswith("_")}
+        unknown = sorted(set(options) - known)
+        if unknown:
+            raise ValueError(f"RtiOsqpSolver.set_osqp_options: unknown OSQP setting(s) {unknown}; "
+                             f"OSQP's settings are {sorted(known)}")
+        self._osqp_settings.update(options)
+        self._setup_osqp()
+        self.X = self.U = self.S = None
+        self._prepared = None
+
     @property
     def settings(self) -> dict:
         """The QP solver's settings and whether the QP data run as generated C (benchmark reports)."""
         return {"qp_solver": "osqp", **self._osqp_settings, "first_pass_iter": self._first_pass_iter,
+                "restart_duals_on_change": self.restart_duals_on_change,
                 "accept_max_iter": 7 in self._accepted,
                 "sqp_max_iter": self.sqp_max_iter,
                 "reference_change_qps": self.reference_change_qps, "compiled": self.codegen.active,
@@ -324,6 +345,7 @@ class RtiOsqpSolver:
         self.solver.setup(self.P.matrix(Px), np.zeros(self.n), self.A.matrix(Ax), self.l.copy(), self.u.copy(),
                           **self._osqp_settings)
         self._core = _OsqpCore(self.solver, self._first_pass_iter)
+        self._zero_duals = np.zeros(self.m)
         self._workspace_used = False
         self._time_limit = None
 
@@ -600,7 +622,8 @@ class RtiOsqpSolver:
         prep = 0.0
         cold = self.X is None
         max_qps = max(self.sqp_max_iter, self.cold_start_qps) if cold else self.sqp_max_iter
-        if self._prepared is not None and not np.array_equal(self._prepared["ref"], ref):
+        changed = self._prepared is not None and not np.array_equal(self._prepared["ref"], ref)
+        if changed:
             max_qps = max(max_qps, self.reference_change_qps)
         if self._prepared is None or not np.array_equal(self._prepared["w_y"], w_y):
             prep = self.prepare(x0, u_prev, d, ref, w_y)
@@ -629,7 +652,8 @@ class RtiOsqpSolver:
             # steps, against 7585 with the multipliers shifted like the plan and 7790 with zero
             # multipliers; 6225 with the model parameters as inputs of the generated code, whose
             # round-off moves the loop from step ~124 on)
-            self._core.warm_start(self._z_lin)
+            self._core.warm_start(self._z_lin, self._zero_duals if (
+                it == 0 and changed and self.restart_duals_on_change) else None)
             if time_limit_s > 0:
                 remaining = time_limit_s - (time.perf_counter() - t0)
                 if remaining <= 0:
@@ -754,9 +778,9 @@ class _OsqpCore:
         else:
             self.core.update_data_vec(q=q, l=l, u=u)
 
-    def warm_start(self, x: np.ndarray) -> None:
-        """Primal warm start; the duals stay those of the last solve (see ``feedback``)."""
-        (self.core or self.wrapper).warm_start(x, None)
+    def warm_start(self, x: np.ndarray, y: np.ndarray | None = None) -> None:
+        """Primal warm start; the duals stay those of the last solve (see ``feedback``) unless ``y`` is given."""
+        (self.core or self.wrapper).warm_start(x, y)
 
     def _use(self, mode: str) -> None:
         """Switch OSQP's iteration settings to the first pass or the full solve (a call only on a change)."""

@@ -161,3 +161,48 @@ def test_by_default_no_reach_solve_runs_on_the_step_and_the_commands_do_not_depe
     # without deferred solves the setting has nothing to defer: a change is solved in its step
     assert not MpcController(settings=MpcSettings(codegen=False, reach_deferred=False,
                                                   reach_background=False)).reach.changes_deferred
+
+
+def test_a_wait_between_steps_takes_no_result_and_result_reports_its_own_wait():
+    release = threading.Event()
+    call = BackgroundCall(lambda: (release.wait(5.0), 7)[1], ())
+    waited = call.wait(0.02)  # the call is held: the wait runs out
+    assert not call.done and 0.015 < waited < 1.0
+    release.set()
+    call.wait(5.0)
+    assert call.done and call.wait(1.0) == 0.0
+    assert call.result() == 7 and call.waited_s == 0.0  # finished before: result() did not wait
+    slow = BackgroundCall(time.sleep, (0.05,))
+    slow.result()
+    assert slow.waited_s > 0.02
+    at_once = BackgroundCall(lambda: 1, (), thread=False)
+    assert at_once.done and at_once.wait(1.0) == 0.0 and at_once.result() == 1 and at_once.waited_s == 0.0
+    with pytest.raises(ValueError, match="timeout_s"):
+        at_once.wait(-1.0)
+
+
+def test_time_given_between_steps_keeps_the_steps_from_waiting_and_the_commands_as_they_are():
+    """The solve-time loop's idle time (benchmarks/solve_time.py ``Loop(idle_s=...)``): the reachable-flow
+    solves of HIGH_FLOW (0 s, 10 s, 12 s) finish between the steps, no step waits for one, and the commands
+    are those of the loop stepped back to back (where steps may wait)."""
+    runs = {}
+    for idle_s in (0.0, 1.0):
+        ctrl = MpcController(settings=MpcSettings(codegen=False, deadline_s=3600.0))
+        solver, on_thread = ctrl.reach.solver, []
+
+        def counted(**kw):
+            on_thread.append(threading.current_thread() is not threading.main_thread())
+            return solver(**kw)
+
+        ctrl.reach.solver = counted
+        loop = solve_time.Loop(ctrl, seed=4, scenario=HIGH_FLOW, idle_s=idle_s)
+        commands = [loop.step(k).command.vector() for k in range(14)]
+        ctrl.reach.reset()
+        runs[idle_s] = (np.array(commands), loop, on_thread)
+    assert np.array_equal(runs[0.0][0], runs[1.0][0])
+    paced = runs[1.0][1]
+    assert runs[1.0][2] == [True, True, True]  # three solves, all on the second thread
+    assert max(paced.step_wait_s) == 0.0 and solve_time.background_waits(paced, 1.0)["steps_waiting"] == 0
+    assert all(w == 0.0 for w in runs[0.0][1].idle_wait_s)
+    with pytest.raises(ValueError, match="idle_s"):
+        solve_time.Loop(ctrl, seed=4, idle_s=-1.0)

@@ -1,0 +1,19 @@
+"""benchmarks/step_parts.py: the timers time the parts of a step and leave the classes as they were."""
+
+from hvac_mpc.benchmarks import solve_time, step_parts
+from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
+
+
+def test_the_timers_time_the_parts_and_are_taken_off_after():
+    before = {(cls, name): cls.__dict__[name] for cls, name, _ in step_parts.PARTS}
+    totals: dict[str, float] = {}
+    with step_parts.timed(totals):
+        loop = solve_time.Loop(MpcController(settings=MpcSettings(codegen=False)), seed=7)
+        loop.step(0)
+        totals.clear()
+        loop.step(1)
+    assert all(cls.__dict__[name] is f for (cls, name), f in before.items())
+    whole = totals["whole step"]
+    parts = [totals[label] for _, _, label in step_parts.PARTS if not label.startswith(" ") and label != "whole step"]
+    assert whole > 0 and sum(parts) < whole  # the top-level parts are inside the step, one after the other
+    assert totals["  OSQP solve"] < totals["feedback (gradient, bounds, OSQP solve)"]
