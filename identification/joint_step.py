@@ -145,8 +145,8 @@ def _eliminate(fitter: Fitter, s: Structure, fit: Fit, members: list[_Member], b
     negative (or while more than ``max_effects`` remain); repeat. After the first round only the members whose last
     margin was below ``ELIMINATION_SLACK`` are refit again; the others keep their last share (taking out a member that
     earned too little hardly moves the share of one far above its need; the backward pass re-tests every kept effect
-    by a refit). Returns the structure, its fit, the members left and each one's last share; ``rounds`` gets the names
-    refit in each round."""
+    by a refit). Returns the structure, its fit, the members left and each one's last share; ``rounds`` gets the shares
+    of the members refit in each round."""
     shares: dict[str, float] = {}
     while members:
         todo = [i for i, m in enumerate(members) if m.name not in shares or shares[m.name] - m.need < ELIMINATION_SLACK]
@@ -155,7 +155,7 @@ def _eliminate(fitter: Fitter, s: Structure, fit: Fit, members: list[_Member], b
         fits = fork_map(lambda j: outs[j].fit(fitter, ELIMINATION_NFEV), len(todo))
         shares.update({members[i].name: float(output_share(fitter, f, fit, members[i].primary))
                        for i, f in zip(todo, fits)})
-        rounds.append({"refit": [members[i].name for i in todo]})
+        rounds.append({"refit": {members[i].name: shares[members[i].name] for i in todo}})
         k = int(np.argmin([shares[m.name] - m.need for m in members]))
         if shares[members[k].name] >= members[k].need and len(members) <= max_effects:
             break
@@ -217,7 +217,7 @@ def _refit(fitter: Fitter, current: Fit, free: list[FreeParam], members: list[_M
            max_effects: int, say, log: list[str]) -> tuple[Structure, Fit, list[_Member], dict, dict, list[dict]]:
     """The joint fit of all members and the backward elimination, the members left refit together as the whole set
     was. Returns the structure, its fit, the members left, each member's last share, the CPU seconds of the two
-    parts and the elimination's rounds (the members refit in each)."""
+    parts and the elimination's rounds (the shares of the members refit in each)."""
     c0 = cpu_seconds()
     s = _structure(fitter, current, free, members)
     say(f"joint refit: {', '.join(m.name for m in members)} together, without the discovered terms")
