@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Iterable, Sequence
+from typing import Callable, Iterable, Sequence
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -338,8 +338,7 @@ class Fitter:
         if len(theta0) == 0:
             return self.evaluate(effects, p0, post, terms=terms)
         max_nfev = max_nfev or (12 if self.quick else 40)
-        sol = least_squares(resid, theta0, jac=jac, bounds=(lo_b, hi_b), method="trf", x_scale="jac",
-                            max_nfev=max_nfev, ftol=1e-8, xtol=1e-8, gtol=1e-10)
+        sol = capped_least_squares(resid, jac, theta0, (lo_b, hi_b), max_nfev)
         p = params(sol.x)
         for k, j in enumerate(bias_idx):
             post.bias[self.outputs[j]] = (float(sol.x[n_model + 2 * k] * self.sigma[j]),
@@ -350,6 +349,31 @@ class Fitter:
         fit = self.evaluate(effects, p, post, [fp.name for fp in free], sol.nfev, sol.message, terms)
         fit.extra["theta"] = sol.x.tolist()
         return fit
+
+
+def capped_least_squares(resid: Callable[[np.ndarray], np.ndarray], jac: Callable[[np.ndarray], np.ndarray],
+                         theta0: np.ndarray, bounds: tuple, max_nfev: int):
+    """scipy's bounded trust-region least squares (``trf``, Jacobian scaling) of ``resid`` from ``theta0``, at most
+    ``max_nfev`` evaluations, without the Jacobian it would compute after its last evaluation.
+
+    ``trf`` computes the Jacobian at every accepted point, also after the evaluation that reaches ``max_nfev``, and
+    then stops without using it; here that Jacobian is the last one computed (the solution, its cost and evaluation
+    count are those of the plain call). The fits of the identification mostly stop at their evaluation cap, and a
+    Jacobian is a forward-sensitivity run of the whole log, the most expensive part of a fit."""
+    calls = {"fun": 0, "jac": None}
+
+    def counted(theta):
+        calls["fun"] += 1
+        return resid(theta)
+
+    def jac_used(theta):
+        if calls["fun"] >= max_nfev and calls["jac"] is not None:
+            return calls["jac"]  # after the last evaluation: trf stops before it uses this Jacobian
+        calls["jac"] = jac(theta)
+        return calls["jac"]
+
+    return least_squares(counted, theta0, jac=jac_used, bounds=bounds, method="trf", x_scale="jac",
+                         max_nfev=max_nfev, ftol=1e-8, xtol=1e-8, gtol=1e-10)
 
 
 #: A refit nominal parameter counts as identified when its standard error is at most this share of its value.

@@ -29,7 +29,7 @@ from .workers import cpu_seconds, fork_map
 
 #: Candidates of the last forward round joined to the effects kept (the most training cost removed by their
 #: screening step, whatever they did on the held-out rows: the pair step's rule).
-JOINT_CANDIDATES = 3
+JOINT_CANDIDATES = 4
 #: Share of the training cost a candidate's screening step must have removed to join: one that does not help the
 #: training rows even alone has nothing to give the joint set, and every member costs a refit per elimination round.
 JOINT_MIN_TRAIN = 0.05
@@ -37,6 +37,9 @@ JOINT_MIN_TRAIN = 0.05
 #: and of each refit without one member (a step from the joint fit, only to rank and test the members).
 JOINT_NFEV = 6
 ELIMINATION_NFEV = 2
+#: After the first elimination round a member is refit again only while its last margin (the share its removal cost
+#: minus the share it needs) was below this (:func:`_eliminate`).
+ELIMINATION_SLACK = 0.25
 
 
 @dataclass
@@ -136,26 +139,38 @@ def _at(s: Structure, fit: Fit) -> Structure:
 
 
 def _eliminate(fitter: Fitter, s: Structure, fit: Fit, members: list[_Member], base: Parameters, max_effects: int,
-               say, log: list[str]) -> tuple[Structure, Fit, list[_Member], dict]:
+               say, log: list[str], rounds: list[dict]) -> tuple[Structure, Fit, list[_Member], dict]:
     """Backward elimination: refit without each member (side by side); drop the one with the smallest margin, the share
     of its primary output's held-out structure its removal costs minus the share it needs, while that margin is
-    negative (or while more than ``max_effects`` remain); repeat. Returns the structure, its fit, the members left and
-    each one's last share."""
+    negative (or while more than ``max_effects`` remain); repeat. After the first round only the members whose last
+    margin was below ``ELIMINATION_SLACK`` are refit again; the others keep their last share (taking out a member that
+    earned too little hardly moves the share of one far above its need; the backward pass re-tests every kept effect
+    by a refit). Returns the structure, its fit, the members left and each one's last share; ``rounds`` gets the shares
+    of the members refit in each round."""
     shares: dict[str, float] = {}
     while members:
-        outs = [_without(fitter, s, fit, m, base) for m in members]
-        say(f"joint refit: re-testing {', '.join(m.name for m in members)}")
-        fits = fork_map(lambda i: outs[i].fit(fitter, ELIMINATION_NFEV), len(members))
-        cost = [output_share(fitter, f, fit, m.primary) for f, m in zip(fits, members)]
-        shares.update({m.name: float(c) for m, c in zip(members, cost)})
-        k = int(np.argmin([c - m.need for c, m in zip(cost, members)]))
-        if cost[k] >= members[k].need and len(members) <= max_effects:
+        todo = [i for i, m in enumerate(members) if m.name not in shares or shares[m.name] - m.need < ELIMINATION_SLACK]
+        outs = [_without(fitter, s, fit, members[i], base) for i in todo]
+        say(f"joint refit: re-testing {', '.join(members[i].name for i in todo)}")
+        fits = fork_map(lambda j: outs[j].fit(fitter, ELIMINATION_NFEV), len(todo))
+        shares.update({members[i].name: float(output_share(fitter, f, fit, members[i].primary))
+                       for i, f in zip(todo, fits)})
+        rounds.append({"refit": {members[i].name: shares[members[i].name] for i in todo}})
+        k = int(np.argmin([shares[m.name] - m.need for m in members]))
+        if shares[members[k].name] >= members[k].need and len(members) <= max_effects:
             break
-        why = (f"needs {100 * members[k].need:.0f} %" if cost[k] < members[k].need else
-               f"the least needed of {len(members)}, at most {max_effects} effects")
-        log.append(f"joint refit: {members[k].name} eliminated (taking it out costs {100 * cost[k]:.0f} % of the "
-                   f"held-out structure of {members[k].primary}; {why})")
-        s, fit = _at(outs[k], fits[k]), fits[k]
+        m = members[k]
+        why = f"needs {100 * m.need:.0f} %" if shares[m.name] < m.need else \
+            f"the least needed of {len(members)}, at most {max_effects} effects"
+        log.append(f"joint refit: {m.name} eliminated (taking it out costs {100 * shares[m.name]:.0f} % of the "
+                   f"held-out structure of {m.primary}; {why})")
+        if k in todo:
+            j = todo.index(k)
+            s, fit = _at(outs[j], fits[j]), fits[j]
+        else:  # kept on its last share and yet the least needed: refit without it now
+            out = _without(fitter, s, fit, m, base)
+            fit = out.fit(fitter, ELIMINATION_NFEV)
+            s = _at(out, fit)
         members = members[:k] + members[k + 1:]
     return s, fit, members, shares
 
@@ -177,7 +192,7 @@ def joint_step(fitter: Fitter, current: Fit, free: list[FreeParam], accepted: li
         return current, free, accepted, None, None
     log: list[str] = []
     try:
-        s, fit, left, shares, cpu = _refit(fitter, current, free, members, base, max_effects, say, log)
+        s, fit, left, shares, cpu, rounds = _refit(fitter, current, free, members, base, max_effects, say, log)
         refit, c2 = fit, cpu_seconds()
         fit, discovered, _ = discover(fit, s.free, log)
     except FIT_ERRORS as exc:
@@ -188,7 +203,7 @@ def joint_step(fitter: Fitter, current: Fit, free: list[FreeParam], accepted: li
     cpu["discovery"] = cpu_seconds() - c2
     record = {"members": [m.name for m in members], "kept": [m.name for m in left], "shares": shares,
               "term": discovered["formula"] if discovered and discovered.get("accepted") else "", "notes": log,
-              "cpu_s": cpu}
+              "cpu_s": cpu, "elimination": rounds}
     verdict = _decide(fitter, current, fit, record)
     if not record["accepted"]:
         notes.append(verdict)
@@ -199,22 +214,23 @@ def joint_step(fitter: Fitter, current: Fit, free: list[FreeParam], accepted: li
 
 
 def _refit(fitter: Fitter, current: Fit, free: list[FreeParam], members: list[_Member], base: Parameters,
-           max_effects: int, say, log: list[str]) -> tuple[Structure, Fit, list[_Member], dict, dict]:
+           max_effects: int, say, log: list[str]) -> tuple[Structure, Fit, list[_Member], dict, dict, list[dict]]:
     """The joint fit of all members and the backward elimination, the members left refit together as the whole set
-    was. Returns the structure, its fit, the members left, each member's last share and the CPU seconds of the two
-    parts."""
+    was. Returns the structure, its fit, the members left, each member's last share, the CPU seconds of the two
+    parts and the elimination's rounds (the shares of the members refit in each)."""
     c0 = cpu_seconds()
     s = _structure(fitter, current, free, members)
     say(f"joint refit: {', '.join(m.name for m in members)} together, without the discovered terms")
     fit = s.fit(fitter, JOINT_NFEV)
     s = _at(s, fit)
     c1 = cpu_seconds()
-    s, fit, left, shares = _eliminate(fitter, s, fit, members, base, max_effects, say, log)
+    rounds: list[dict] = []
+    s, fit, left, shares = _eliminate(fitter, s, fit, members, base, max_effects, say, log, rounds)
     if len(left) < len(members):
         fit = s.fit(fitter, JOINT_NFEV)
         s = _at(s, fit)
     fit.free = tuple(fp.name for fp in s.free)
-    return s, fit, left, shares, {"joint_fit": c1 - c0, "elimination": cpu_seconds() - c1}
+    return s, fit, left, shares, {"joint_fit": c1 - c0, "elimination": cpu_seconds() - c1}, rounds
 
 
 def _decide(fitter: Fitter, current: Fit, fit: Fit, record: dict) -> str:

@@ -665,6 +665,25 @@ def test_three_effects_that_mask_each_other_are_found_by_the_joint_refit(tmp_pat
 
 
 @pytest.mark.slow
+def test_the_joint_refit_takes_the_fourth_candidate_by_training_cost(tmp_path):
+    """Seed 73 of the same box: valve a's shift is the fourth candidate of the last round by the training cost its
+    screening step removed. With three in the joint set ``motor_asymmetry`` (the box has none) stayed as a stand-in
+    for it and the recirculation (0.355 -> 0.192 C); with four the stand-in is eliminated, valve a's shift kept and
+    the cabin air found at the box inlet."""
+    path = tmp_path / "combo_recirc_delay_valve.csv"
+    simulate_log(path, "combo_recirc_delay_valve", duration_s=7200.0, seed=73)
+    res = identify(load(path), base_effects=DOCUMENTED_EFFECTS)
+    assert {a.name for a in res.accepted} == {"valve_shift:a", "valve_shift:outlets",
+                                              "transport_delay:supply_temp_c"}, res.joint
+    assert res.joint["accepted"] and res.joint["members"][-1] == "valve_shift:a", res.joint
+    assert "motor_asymmetry" in res.joint["members"] and "motor_asymmetry" not in res.effects
+    assert res.params.valve_a_shift_pct == pytest.approx(10.0, abs=2.0)
+    (term,) = res.terms
+    assert term.location == "box_in"
+    e = res.holdout_errors()["supply_temp_c"]
+    assert e["rms_after"] <= 0.5 * e["rms_before"], e
+
+@pytest.mark.slow
 def test_an_effect_a_later_term_explains_is_dropped(tmp_path):
     """The heater body loses 0.3 W/K to the box walls (``heater_wall_loss``, outside the library; the 2 h log of
     seed 5). Before the term discovery runs, the flow-dependent bypass split (``bypass_flow``, which this box does

@@ -9,6 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from hvac_mpc.identification import joint_step as joint_step_module
 from hvac_mpc.identification import workers
 from hvac_mpc.identification.candidates import library
 from hvac_mpc.identification.fitting import Fit
@@ -44,12 +45,13 @@ class _StandInFitter:
             raise np.linalg.LinAlgError("singular step")
         return self.make(effects, p, post)
 
+
     def output_costs(self, y, part="holdout"):
         return np.array([y[0, 0]]), np.array([1.0])
 
 
-def _case(structure: dict[str, float], fail: tuple[str, ...] = (), max_effects: int = 4):
-    """The step on a forward path that kept nothing, the last round's candidates ``MEMBERS`` (each moved its
+def _case(structure: dict[str, float], fail: tuple[str, ...] = (), max_effects: int = 4, members=MEMBERS):
+    """The step on a forward path that kept nothing, the last round's candidates ``members`` (each moved its
     parameters, each removed 20 % of the training cost)."""
     fitter = _StandInFitter(structure, fail)
     base = Parameters()
@@ -58,7 +60,7 @@ def _case(structure: dict[str, float], fail: tuple[str, ...] = (), max_effects: 
     lib = library(OUTPUTS)
     current = fitter.make(frozenset(), p0, post)
     open_round = []
-    for name in MEMBERS:
+    for name in members:
         cand = next(c for c in lib if c.name == name)
         p = p0.copy()
         for fp in cand.params:
@@ -81,6 +83,27 @@ def test_the_joint_set_keeps_the_members_that_earn_their_share_and_eliminates_th
     assert record["supply_rms_after"] < record["supply_rms_before"]
     assert notes[-1].startswith("joint refit of") and "kept" in notes[-1]  # the verdict after the elimination's notes
     assert any("bypass_flow eliminated" in n for n in notes[:-1])
+
+
+def test_after_the_first_round_only_the_members_near_their_need_are_refit(monkeypatch):
+    # four members, one passenger: the first round refits all four, the second only the one whose margin was small
+    monkeypatch.setattr(joint_step_module, "JOINT_CANDIDATES", 4)
+    members = ("motor_asymmetry", "bypass_flow", "trapped_air", "ptc_power_fall")
+    structure = {"motor_asymmetry": 4.0, "trapped_air": 3.0, "ptc_power_fall": 0.1, "bypass_flow": 0.01, "other": 0.5}
+    _, (fit, _, kept, _, record), _ = _case(structure, members=members)
+    assert [a.name for a in kept] == ["motor_asymmetry", "trapped_air", "ptc_power_fall"]
+    assert [list(r["refit"]) for r in record["elimination"]] == [list(members), ["ptc_power_fall"]]
+    assert record["shares"]["ptc_power_fall"] == pytest.approx(0.1 / 0.61)  # its share in the second round
+
+
+def test_a_member_far_above_its_need_is_refit_again_when_too_many_are_left(monkeypatch):
+    monkeypatch.setattr(joint_step_module, "JOINT_CANDIDATES", 4)
+    members = ("motor_asymmetry", "bypass_flow", "trapped_air", "ptc_power_fall")
+    structure = {"motor_asymmetry": 4.0, "trapped_air": 3.0, "ptc_power_fall": 2.0, "bypass_flow": 1.0, "other": 0.5}
+    _, (fit, _, kept, _, record), _ = _case(structure, members=members, max_effects=2)
+    assert [a.name for a in kept] == ["motor_asymmetry", "trapped_air"]
+    assert "bypass_flow" not in fit.effects and "ptc_power_fall" not in fit.effects
+    assert [list(r["refit"]) for r in record["elimination"]] == [list(members), [], []]
 
 
 def test_at_most_max_effects_are_kept_even_when_more_earn_their_share():
