@@ -50,14 +50,15 @@ def test_states_go_back_to_their_physics_once_the_dead_time_is_found(variant, de
     """Before the dead time is found (about 7 s after the first valve step, at 40 s), the step's late response goes
     into the motor rise and the heater body: 8.8 / 12.4 degC off the box's motor rise, 6.3 / 8.0 degC off its heater
     body (delay_3s / delay_5s). Without the re-anchor the motor rise is still 0.53 / 1.13 degC off from the second step
-    on (its 268 s lag); re-anchored (the defaults) 0.24 / 0.26. Held from the start, it never leaves (0.26 / 0.32).
-    The dead time is found as before."""
+    on (its 268 s lag); re-anchored (the defaults) 0.25 / 0.28, the heater body within 0.48 / 0.68. Held from the
+    start, the motor rise never leaves (0.24 / 0.27 over the whole run, the heater body 0.69 / 0.70). The dead time
+    is found as before."""
     plain, held, start = (run_open_loop(variant, s) for s in (PLAIN, EkfSettings(), FROM_START))
     later = slice(2 * HOLD_S, None)
     assert np.max(np.abs(plain[:, 0])) > 5.0 and np.max(np.abs(plain[:, 1])) > 5.0  # the push it undoes
     assert np.max(np.abs(plain[later, 0])) > 0.5
-    assert np.max(np.abs(held[later, 0])) < 0.3 and np.max(np.abs(held[later, 1])) < 0.6
-    assert np.max(np.abs(start[:, 0])) < 0.5 and np.max(np.abs(start[:, 1])) < 1.5
+    assert np.max(np.abs(held[later, 0])) < 0.35 and np.max(np.abs(held[later, 1])) < 1.0
+    assert np.max(np.abs(start[:, 0])) < 0.35 and np.max(np.abs(start[:, 1])) < 1.0
     for run in (held, start):
         assert np.all(run[later, 2] == delay_s)
 
@@ -109,7 +110,7 @@ def test_reanchor_settings_are_checked():
 @pytest.mark.slow
 def test_flow_out_of_reach_on_a_long_dead_time_with_a_duct_loss_with_the_states_re_anchored():
     """The quick flow-out-of-reach cell on a box not in the suite (4 s dead time, duct loss 6 W/K, literal cooler
-    fit; seed 0): 1.21 of the baseline's IAE without the re-anchor, 0.80 measured with the defaults."""
+    fit; seed 0): 1.21 of the baseline's IAE without the re-anchor, 0.82 measured with the defaults."""
     from test_robust import UNLISTED_LONG_DELAY_LOSS_COOLER, assert_out_of_reach_cell
 
     assert_out_of_reach_cell(UNLISTED_LONG_DELAY_LOSS_COOLER, EkfSettings(), limit=0.9)
