@@ -148,6 +148,18 @@ class Weights:
     on winter_heating_steps over variants of the mismatch suite (3e-5 and 5e-5 about equal and best of 3e-5,
     5e-5, 1e-4, 3e-4; from 5e-5 on a step up at 40 m3/h overshoots by 0.5 C while valve a closes,
     docs/identification.md).
+
+    ``body_heat_power_w`` (W; 0: off): a value on the heat stored in the heater body. The energy term prices
+    the electric power drawn, not the heat the air takes from the body, so drawing the body down is free in the
+    cost although a later step up must buy that heat back with the heater. With this weight the heat content
+    change over the horizon, ``C_body (T_body,0 - T_body,N)`` (J, ``C_body`` the body's heat capacity), is
+    priced at the energy term's marginal price of electric energy at this power (blower plus heater):
+    ``2 energy_per_100w2 P / (100 W)^2`` per J, a linear term on the terminal body temperature
+    (:meth:`TrackingProblem.body_heat_coefficient`), while the heater is commanded in the command in force (as
+    valve a's heating weight; in cooling the body's heat is no value but a load, and the term is left out).
+    ASSUMPTION: heat in the body is worth what the heater's energy costs at that power; 240 W plus a blower's
+    100 W is the heater-limited heating where stored heat decides a step up. Off by default (measured, docs/identification.md 'A value on the heat stored in the
+    heater body').
     """
 
     supply_temp: float = 5.0
@@ -161,10 +173,12 @@ class Weights:
     slack_l1_per_c: float = 5.0
     slack_l2_per_c2: float = 1.0
     valve_a_heating_per_pct2: float = 3e-5
+    body_heat_power_w: float = 0.0
 
     def validate(self, prefix: str = "weights") -> None:
         for f in fields(self):
             check_number(f"{prefix}.{f.name}", getattr(self, f.name), 0.0, 1e6)
+        check_number(f"{prefix}.body_heat_power_w", self.body_heat_power_w, 0.0, 2000.0)
         if self.supply_temp <= 0 or self.volume_flow <= 0:
             raise InvalidSettings(f"{prefix}.supply_temp and {prefix}.volume_flow must be > 0 (range (0, 1e6])")
 
@@ -446,7 +460,33 @@ class TrackingProblem:
         self.slack_l1 = w.slack_l1_per_c
         self.slack_l2 = w.slack_l2_per_c2
         self.terminal_s = w.terminal_s
+        self.body_heat_coef = self.body_heat_coefficient()
         self._build_functions()
+
+    def body_heat_coefficient(self) -> float:
+        """Cost per unit of the scaled terminal heater-body state (:attr:`Weights.body_heat_power_w`): the
+        value of the stored heat enters the cost as ``coef * x_N[i_heater]`` (negative: a hotter body at the
+        horizon's end costs less); 0 when off. Price per J ``2 w_E P / (100 W)^2`` times ``C_body`` (J/K)
+        times the state's scale (K per scaled unit)."""
+        w = self.spec.weights
+        price_per_j = 2.0 * self.energy_weight * w.body_heat_power_w / self.energy_scale_w ** 2
+        capacity_j_per_k = self.params.heater_mass_kg * self.params.heater_c_j_per_kgk
+        return -price_per_j * capacity_j_per_k * float(self.x_sc[self.i_heater])
+
+    def body_heat_on(self, u_prev):
+        """1 where the value of the body's heat counts (the scaled command in force ``u_prev`` has the heater on,
+        :meth:`heating`), else 0; numpy or CasADi (``if_else``)."""
+        ih = self.i_heater_cmd
+        cmd_w = self.u_off[ih] + self.u_sc[ih] * u_prev[ih]
+        if isinstance(cmd_w, (ca.SX, ca.MX)):
+            return ca.if_else(cmd_w > HEATING_CMD_W, 1.0, 0.0)
+        return float(cmd_w > HEATING_CMD_W)
+
+    def body_heat_cost(self, x0, x_end, u_prev):
+        """The value of the body's heat (:attr:`Weights.body_heat_power_w`) for a plan from the scaled state
+        ``x0`` to ``x_end`` with the command in force ``u_prev`` (scaled): ``coef (x_end - x0)`` of the heater
+        body while heating, else 0."""
+        return self.body_heat_on(u_prev) * self.body_heat_coef * (x_end[self.i_heater] - x0[self.i_heater])
 
     # ------------------------------------------------------------------ scaling
     def scale_x(self, x_phys):
@@ -738,6 +778,7 @@ class TrackingProblem:
             cost += ca.dot(ca.DM(self.w_du), du * du)
             prev = U[:, k]
         cost += ca.dot(ca.DM(self.dt), self.slack_l1 * S + self.slack_l2 * S * S)
+        cost += self.body_heat_cost(X[:, 0], X[:, self.N], u_prev)
         return cost
 
     def cost_function(self) -> ca.Function:

@@ -93,6 +93,7 @@ class PlanMerit:
                     row = pb.floor_row(y[i_flow], pb.u_off[ih] + pb.u_sc[ih] * u[ih])
                     cost += FLOOR_PENALTY_PER_LS * pb.slack_l1 * pb.dt[k] * ca.fmax(0.0, -row)
                 prev, x = u, x_next
+        cost += pb.body_heat_cost(x0, x, u_prev)  # x: the last node's state
         return ca.Function("hvac_plan_merit", [x0, U, d, SW, ref, u_prev, p], [cost],
                            ["x0", "U", "d", "SW", "ref", "u_prev", "p"], ["cost"])
 

@@ -184,6 +184,9 @@ class RtiAcadosSolver:
                  disturbances: str = "state"):
         self.pb = pb = problem
         self.name = "rti-acados"
+        if pb.body_heat_coef:
+            raise ValueError("RtiAcadosSolver: weights.body_heat_power_w must be 0 (range [0, 0]); the value of the "
+                             "heater body's heat is in the OSQP and IPOPT solvers only")
         _check_options(dict(disturbances=disturbances, hpipm_mode=hpipm_mode, warm_start=warm_start,
                             qp_iter_max=qp_iter_max, qp_tol=qp_tol, lm_inputs=lm_inputs, cold_start_qps=cold_start_qps,
                             reference_change_qps=reference_change_qps), cond_n, pb.N)

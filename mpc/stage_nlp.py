@@ -112,6 +112,8 @@ class StageNlp:
             if st.has_slack:
                 i = self.i_slack[k - 1]
                 self.l1[i], self.l2[i] = st.slack_l1, st.slack_l2
+        # the value of the heat stored in the heater body over the horizon (Weights.body_heat_power_w), linear
+        cost += ocp.problem.body_heat_cost(xa[0][:ocp.nx], xa[-1][:ocp.nx], self.u_prev)
         if self.layout == "compact":  # grouped by kind, stages in order within a group
             order = [(g, item[0]) for g in ROW_GROUPS for item in groups[g]]
         self._order_rows(groups, order)
@@ -202,5 +204,7 @@ class StageNlp:
         r, W, T, g = r.ravel(), W.ravel(), T.ravel(), g.ravel()
         P = 2.0 * J.T @ (W[:, None] * J) + np.diag(2.0 * self.l2)
         q = 2.0 * J.T @ (W * (r - J @ w_lin - T)) + self.l1
+        pb = self.ocp.problem  # the value of the body's heat, linear in the terminal state, while heating
+        q[self.ix[-1][pb.i_heater]] += pb.body_heat_on(np.asarray(p, float).ravel()[pb.nx:pb.nx + pb.nu]) * pb.body_heat_coef
         shift = g - Jg @ w_lin
         return {"P": P, "q": q, "A": Jg, "lg": self.lbg - shift, "ug": self.ubg - shift}

@@ -10,7 +10,7 @@ import pytest
 
 from hvac_mpc.contract import Command, Reference
 from hvac_mpc.models import Parameters
-from hvac_mpc.mpc.ocp import OcpSpec, TrackingProblem
+from hvac_mpc.mpc.ocp import OcpSpec, TrackingProblem, Weights
 from hvac_mpc.mpc.rti_osqp import RtiOsqpSolver
 from hvac_mpc.mpc.stage_nlp import StageNlp
 from hvac_mpc.mpc.stage_ocp import StageOcp
@@ -127,6 +127,15 @@ def test_the_rti_solves_the_gauss_newton_qp_of_the_description(pb, ocp, lm, heat
     assert rti.feedback(x1, u0, d, ref1, w_y1, lo1, hi1).ok
     assert np.abs(rti._z_lin[nlp.ix[1:]] - res.X[1:]).max() > 1e-3  # not the cold start's point
     _assert_same_qp(rti, rec.qp, nlp, (x1, u0, d, ref1, w_y1, lo1, hi1), lm)
+
+
+@pytest.mark.parametrize("heater_w", [0.0, 120.0])
+def test_the_value_of_the_body_heat_is_in_both_qps(heater_w):
+    """With ``Weights.body_heat_power_w`` the RTI's QP is still the stage-wise description's Gauss-Newton QP: the
+    linear term on the terminal body state in both while the heater is on in the command in force, in neither
+    while it is off."""
+    pb = TrackingProblem(Parameters(), OcpSpec(weights=Weights(body_heat_power_w=340.0)))
+    test_the_rti_solves_the_gauss_newton_qp_of_the_description(pb, StageOcp(pb), 0.1, heater_w)
 
 
 def _assert_same_qp(rti, qp, nlp, data, lm):
