@@ -81,8 +81,7 @@ def main(argv: list[str] | None = None) -> int:
     names = [v for v in args.variants.split(",") if v]
     if not 1 <= args.seeds <= 20 or args.steps < 3 or not names or any(v not in VARIANTS for v in names):
         parser.error(f"--seeds must be in [1, 20], --steps at least 3, --variants of {', '.join(VARIANTS)}")
-    if hasattr(os, "sched_setaffinity"):
-        os.sched_setaffinity(0, sorted(os.sched_getaffinity(0))[:2])
+    solve_time.pin_cores(2)
     rows: dict[str, list[dict[str, Any]]] = {v: [] for v in names}
     for seed in range(1, args.seeds + 1):
         for v in names:

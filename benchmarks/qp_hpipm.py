@@ -303,8 +303,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.steps < 3:
         p.error("--steps must be at least 3")
-    if hasattr(os, "sched_setaffinity"):
-        os.sched_setaffinity(0, sorted(os.sched_getaffinity(0))[:2])
+    solve_time.pin_cores(2)
     qps, lay, _ = record(args.steps, args.seed)
     out = replay(qps, lay, args.mode)
     for name in ("osqp", "hpipm"):

@@ -331,14 +331,22 @@ def run(args: argparse.Namespace) -> int:
         except (ValueError, FileNotFoundError) as exc:
             print(f"--model: {exc}")
             return 2
-    saved = os.sched_getaffinity(0) if hasattr(os, "sched_setaffinity") else None
-    if saved is not None:
-        os.sched_setaffinity(0, sorted(saved)[:args.threads])
+    saved = pin_cores(args.threads)
     try:
         return _run(args, steps, cost_seeds)
     finally:
         if saved is not None:
             os.sched_setaffinity(0, saved)
+
+
+def pin_cores(n: int) -> set[int] | None:
+    """Run this process on at most ``n`` of the cores it may use now (the benchmarks' two-core budget); returns the
+    cores it could use before (to restore them), None where the platform has no affinity."""
+    if not hasattr(os, "sched_setaffinity"):
+        return None
+    saved = os.sched_getaffinity(0)
+    os.sched_setaffinity(0, sorted(saved)[:n])
+    return saved
 
 
 @dataclass

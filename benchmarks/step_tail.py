@@ -105,8 +105,7 @@ def main(argv: list[str] | None = None) -> int:
     idle_s = 0.0 if args.back_to_back else solve_time.IDLE_S
     if args.rounds < 1 or args.steps < 3 or not 1 <= args.cost_seeds <= 20:
         parser.error("--rounds must be at least 1, --steps at least 3 and --cost-seeds in [1, 20]")
-    if hasattr(os, "sched_setaffinity"):
-        os.sched_setaffinity(0, sorted(os.sched_getaffinity(0))[:2])
+    solve_time.pin_cores(2)
     rows: dict[str, list[dict[str, Any]]] = {name: [] for name in VARIANTS}
     loops: dict[str, dict[str, Any]] = {}
     for r in range(args.rounds):

@@ -725,8 +725,7 @@ class DisturbanceEkf:
         sample until ``reanchor_hold_s`` after the dead-time estimate first saw a response (the estimate may take
         that long to move to the dead time the response shows)."""
         x = self.z[:self.nx]
-        d = self.model.d_vector(self.inlet_temp_c, float(x[self.i_water]) if self.hold_water else setpoint_c,
-                                self.mix_offset_c, self.flow_offset_m3s)
+        d = np.asarray(self._d(self.z, setpoint_c), float).ravel()
         p = self.model_parameters()
         self.shadow.advance(x, u, d, p)
         honoured = weights is not self.c_now

@@ -327,8 +327,7 @@ class RtiOsqpSolver:
         self._q_const = np.zeros(n)
         self._q_const[self.is0:] = pb.slack_l1 * pb.dt
         # with the value of the heat stored in the heater body (Weights.body_heat_power_w), linear in x_N, while
-        # heating: the two constant gradients, the one in use a fixed input of the gradient function (_q)
-        self._q_plain = self._q_const.copy()
+        # heating: the constant gradient with it, in place of _q_const as the gradient function's fixed input (_q)
         self._q_heating = self._q_const.copy()
         self._q_heating[N * nx + pb.i_heater] += pb.body_heat_coef
         self._q_body_on = False
@@ -734,7 +733,7 @@ class RtiOsqpSolver:
         dd = d[D_OFFSETS] - pr["d"][D_OFFSETS]
         on = bool(self.pb.body_heat_coef) and self.pb.body_heat_on(u_prev) > 0.0
         if on != self._q_body_on:
-            self._qp_gradient.set_fixed(7, self._q_heating if on else self._q_plain)
+            self._qp_gradient.set_fixed(7, self._q_heating if on else self._q_const)
             self._q_body_on = on
         return self._qp_gradient(data["gw2"], data["c_base"], data["y"], ref, dd,
                                  self._z_lin[self.iu0:self.is0], u_prev)[0]

@@ -73,7 +73,7 @@ def test_the_merit_and_the_qp_carry_the_same_term(controllers):
     i = pb.N * pb.nx + pb.i_heater
     plain = controllers[0].solver
     assert solver._q_heating[i] - plain._q_heating[i] == pytest.approx(pb.body_heat_coef)
-    assert solver._q_plain[i] == plain._q_plain[i]  # off while the heater is off
+    assert solver._q_const[i] == plain._q_const[i]  # off while the heater is off
     slopes = [(_cost(c.problem, _bump(X, pb), U, d, ref, w_y, u_prev) - _cost(c.problem, X, U, d, ref, w_y, u_prev))
               / 1e-6 for c in controllers]
     assert slopes[1] - slopes[0] == pytest.approx(pb.body_heat_coef, rel=1e-4)
