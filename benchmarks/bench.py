@@ -270,6 +270,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="mismatch: both controllers on every variant of the independent simulator "
                              "(hvac_mpc.mismatch) on the cooling, heating and proband scenarios; a matrix of "
                              "MPC/baseline ratios")
+    parser.add_argument("--variant", action="append", metavar="NAME", default=None,
+                        help="--suite mismatch: run only this registered variant (repeatable; default: all)")
+    parser.add_argument("--box", action="append", metavar="LABEL:FIELD=VALUE,...", default=None,
+                        help="--suite mismatch: also run a box the registry does not have, the fields of "
+                             "hvac_mpc.mismatch.Variant, e.g. U1:transport_delay_s=2,duct_loss_ua_w_per_k=4,"
+                             "cooler_literal_fit=true (repeatable)")
     parser.add_argument("--model", metavar="FILE", default=None,
                         help="model file (hvac-mpc identify): also run the MPC with this refined model against the "
                              "nominal MPC on the independent box --model-plant (section in the report)")
@@ -279,6 +285,22 @@ def configure(parser: argparse.ArgumentParser) -> None:
                              "only, so its figures do not depend on the machine's load")
     parser.add_argument("--model-plant", metavar="VARIANT", default="nominal",
                         help="hvac_mpc.mismatch variant the --model comparison runs on (default: nominal)")
+
+
+def suite_plants(args: argparse.Namespace) -> tuple[list[str], dict]:
+    """The suite's rows: the registered variants ``--variant`` picks (all without it; none when only
+    ``--box`` is given) and the boxes of ``--box``. Raises ValueError naming what is allowed."""
+    allowed = mismatch_suite.variant_names()
+    picked = getattr(args, "variant", None)
+    unknown = [v for v in picked or [] if v not in allowed]
+    if unknown:
+        raise ValueError(f"--variant: unknown name(s) {unknown} in the mismatch suite; choose from {allowed}")
+    boxes = dict(mismatch_suite.parse_box(spec) for spec in getattr(args, "box", None) or [])
+    clash = [label for label in boxes if label in allowed]
+    if clash:
+        raise ValueError(f"--box: label(s) {clash} are registered variant names; pick another label")
+    variants = list(dict.fromkeys(picked)) if picked else ([] if boxes else allowed)
+    return variants, boxes
 
 
 def mpc_deadline(args: argparse.Namespace) -> float:
@@ -297,6 +319,10 @@ def run(args: argparse.Namespace) -> int:
         return 2
     if getattr(args, "suite", None) == "mismatch":
         return run_mismatch_suite(args)
+    if getattr(args, "variant", None) or getattr(args, "box", None):
+        print("hvac-mpc bench: --variant and --box choose the rows of --suite mismatch; add --suite mismatch",
+              file=sys.stderr)
+        return 2
     plant_factory = None
     try:
         if getattr(args, "plant", None):
@@ -354,16 +380,23 @@ def run_mismatch_suite(args: argparse.Namespace) -> int:
         print(f"hvac-mpc bench: {exc}", file=sys.stderr)
         return 2
     chosen = [known[n].quick() if args.quick else known[n] for n in dict.fromkeys(names)]
-    variants = mismatch_suite.variant_names()
-    t0 = time.perf_counter()
-    bar = ProgressBar(len(variants) * sum(int(round(s.duration_s / DT_S)) for s in chosen) * len(report.CONTROLLERS))
     try:
-        results, traces = mismatch_suite.run_suite(variants, chosen, factories, args.seed, run_benchmark, progress=bar)
+        variants, boxes = suite_plants(args)
+    except ValueError as exc:
+        print(f"hvac-mpc bench: {exc}", file=sys.stderr)
+        return 2
+    t0 = time.perf_counter()
+    rows = len(variants) + len(boxes)
+    bar = ProgressBar(rows * sum(int(round(s.duration_s / DT_S)) for s in chosen) * len(report.CONTROLLERS))
+    try:
+        results, traces = mismatch_suite.run_suite(variants, chosen, factories, args.seed, run_benchmark,
+                                                   progress=bar, boxes=boxes)
     finally:
         bar.close()
     results["meta"] = {"command": "hvac-mpc bench" + "".join(f" {shlex.quote(a)}" for a in _argv_from(args)),
                        "seed": args.seed, "quick": bool(args.quick), "elapsed_s": time.perf_counter() - t0,
-                       "scenarios": [s.name for s in chosen], "variants": variants}
+                       "scenarios": [s.name for s in chosen], "variants": variants,
+                       "boxes": {label: dataclasses.asdict(v) for label, v in boxes.items()}}
     out = Path(args.out if args.out != "out/bench" else "out/mismatch")
     mismatch_suite.write_outputs(results, traces, out, plots=not args.no_plots)
     print(mismatch_suite.terminal_text(results))
@@ -401,6 +434,10 @@ def _argv_from(args: argparse.Namespace) -> list[str]:
         argv += ["--mpc-params", args.mpc_params]
     if getattr(args, "suite", None):
         argv += ["--suite", args.suite]
+    for v in getattr(args, "variant", None) or []:
+        argv += ["--variant", v]
+    for b in getattr(args, "box", None) or []:
+        argv += ["--box", b]
     if getattr(args, "deadline_s", None) is not None:
         argv += ["--deadline-s", f"{args.deadline_s:g}"]
     if getattr(args, "model", None):

@@ -11,13 +11,15 @@ proband sequence, a total-flow reference out of reach). Output in ``--out`` (def
 
 from __future__ import annotations
 
+import dataclasses
 import functools
+import re
 from pathlib import Path
 from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
-from hvac_mpc.mismatch.variants import UNSHAPED_VARIANTS
+from hvac_mpc.mismatch.variants import UNSHAPED_VARIANTS, Variant
 
 from . import report, scenarios as scenario_defs
 
@@ -43,10 +45,48 @@ def variant_names() -> list[str]:
     return [v for v in VARIANTS if v not in NOT_IN_SUITE]
 
 
-def variant_factory(variant: str):
-    """Plant factory (keywords seed, dt_s) of one registered variant."""
+def variant_factory(variant):
+    """Plant factory (keywords seed, dt_s) of one registered variant (a name) or of a ``Variant``."""
     from hvac_mpc.mismatch import make_plant
     return functools.partial(make_plant, variant)
+
+
+def parse_box(spec: str):
+    """(label, Variant) of a box the registry does not have, written ``LABEL:FIELD=VALUE,FIELD=VALUE``.
+
+    FIELD is a field of :class:`hvac_mpc.mismatch.Variant` (its units in its name); a boolean field
+    takes true/false (or 1/0). Raises ValueError naming the field and what it allows; the Variant's
+    own checks give the allowed ranges."""
+    label, sep, body = spec.partition(":")
+    label = label.strip()
+    if not sep or not re.fullmatch(r"[A-Za-z0-9_.-]+", label) or not body.strip():
+        raise ValueError(f"--box {spec!r}: write LABEL:FIELD=VALUE[,FIELD=VALUE...] (LABEL of letters, digits, "
+                         "_ . -), e.g. U1:transport_delay_s=2,duct_loss_ua_w_per_k=4")
+    fields = {f.name: f for f in dataclasses.fields(Variant)}
+    values: dict = {}
+    for item in body.split(","):
+        key, eq, text = (part.strip() for part in item.partition("="))
+        if key not in fields or not eq:
+            raise ValueError(f"--box {label}: unknown field {key!r}; allowed: {', '.join(fields)}")
+        values[key] = _field_value(label, key, text, type(fields[key].default))
+    try:
+        return label, Variant(**values)
+    except ValueError as exc:
+        raise ValueError(f"--box {label}: {exc}") from None
+
+
+def _field_value(label: str, key: str, text: str, kind: type):
+    """One FIELD=VALUE of :func:`parse_box`, as the field's type (bool, int or float)."""
+    if kind is bool:
+        if text.lower() in ("true", "1", "yes", "on"):
+            return True
+        if text.lower() in ("false", "0", "no", "off"):
+            return False
+        raise ValueError(f"--box {label}: {key} takes true or false, got {text!r}")
+    try:
+        return kind(text)
+    except ValueError:
+        raise ValueError(f"--box {label}: {key} takes a number ({kind.__name__}), got {text!r}") from None
 
 
 def out_of_reach_steady(trace, scenario: scenario_defs.Scenario) -> dict:
@@ -69,16 +109,19 @@ def out_of_reach_steady(trace, scenario: scenario_defs.Scenario) -> dict:
 
 
 def run_suite(variants: Sequence[str], chosen: Sequence[scenario_defs.Scenario], factories: Mapping,
-              seed: int, run_benchmark: Callable[..., tuple[dict, dict]], progress=None) -> tuple[dict, dict]:
+              seed: int, run_benchmark: Callable[..., tuple[dict, dict]], progress=None,
+              boxes: Mapping | None = None) -> tuple[dict, dict]:
     """Every variant on every scenario with both controllers; returns (results, traces by variant).
 
     ``factories`` and ``run_benchmark`` are those of :mod:`.bench` (passed in: the benchmark command
-    calls this module, not the other way round)."""
+    calls this module, not the other way round). ``boxes`` (label -> ``Variant``, :func:`parse_box`)
+    adds boxes the registry does not have, as rows after the variants."""
     results: dict = {"variants": {}}
     traces: dict = {}
-    for v in variants:
-        res, tr = run_benchmark(chosen, factories, seed, progress=progress, plant_factory=variant_factory(v),
-                                plant_name=f"hvac_mpc.mismatch:make_plant('{v}')")
+    plants = {v: v for v in variants} | dict(boxes or {})
+    for v, variant in plants.items():
+        res, tr = run_benchmark(chosen, factories, seed, progress=progress, plant_factory=variant_factory(variant),
+                                plant_name=f"hvac_mpc.mismatch:make_plant({variant!r})")
         traces[v] = tr
         row = {}
         for name, sc in res["scenarios"].items():
@@ -175,6 +218,10 @@ def reach_table(results: Mapping) -> list[str]:
     return lines
 
 
+#: The nominal box's fields, against which a ``--box`` is described in the report.
+_NOMINAL_FIELDS = dataclasses.asdict(Variant())
+
+
 def markdown(results: Mapping, plots: Mapping[str, str]) -> str:
     meta, s = results["meta"], results["summary"]
     out = ["# Mismatch suite: MPC against the thesis baseline on the independent simulator", "",
@@ -183,6 +230,9 @@ def markdown(results: Mapping, plots: Mapping[str, str]) -> str:
            "Plants: `hvac_mpc.mismatch.make_plant(variant)` (its own equations, mismatch/README.md); controllers "
            "on the nominal `Parameters()` (the MPC on `--mpc-params` if given), neither told the variant. Cells are "
            "MPC / baseline (lower is better).", ""]
+    for label, fields in meta.get("boxes", {}).items():
+        differs = ", ".join(f"{k}={v}" for k, v in fields.items() if v != _NOMINAL_FIELDS.get(k))
+        out.append(f"- Box `{label}` (not in the registry, `--box`): {differs or 'nominal'}")
     for key, lab in MATRIX_FIGURES:
         if key in s:
             out.append(f"- {lab}: median {s[key]['median']:.2f}, worst {s[key]['worst']:.2f} ({s[key]['worst_cell']})")

@@ -308,3 +308,50 @@ def test_mpc_settles_every_temperature_step_faster_than_the_baseline(name):
     assert m["temp_time_to_band_max_s"] < b["temp_time_to_band_max_s"]
     assert m["temp_iae_cs"] < b["temp_iae_cs"]
     assert m["violations_total"] == 0
+
+
+# --- boxes the registry does not have (--box) and the suite's rows (--variant) ---------------------
+
+def test_parse_box_builds_the_variant_and_names_bad_fields():
+    from hvac_mpc.benchmarks import mismatch_suite
+    from hvac_mpc.mismatch import Variant
+    label, box = mismatch_suite.parse_box("U4:transport_delay_s=2.5,duct_loss_ua_w_per_k=5,cooler_literal_fit=1")
+    assert label == "U4"
+    assert box == Variant(transport_delay_s=2.5, duct_loss_ua_w_per_k=5.0, cooler_literal_fit=True)
+    for spec, names in (("U1", "LABEL:FIELD=VALUE"), ("U1:foo=2", "unknown field 'foo'"),
+                        ("U1:transport_delay_s=x", "transport_delay_s takes a number"),
+                        ("U1:transport_delay_s=-1", "transport_delay_s"),
+                        ("U1:cooler_literal_fit=maybe", "cooler_literal_fit takes true or false"),
+                        ("a/b:transport_delay_s=1", "LABEL")):
+        with pytest.raises(ValueError, match=names):
+            mismatch_suite.parse_box(spec)
+
+
+def test_suite_rows_from_variant_and_box_options():
+    import argparse
+    ns = lambda **kw: argparse.Namespace(**{"variant": None, "box": None, **kw})
+    everything, none = bench.suite_plants(ns())
+    assert everything == bench.mismatch_suite.variant_names() and none == {}
+    variants, boxes = bench.suite_plants(ns(variant=["delay_3s", "delay_3s"], box=["U1:transport_delay_s=2"]))
+    assert variants == ["delay_3s"] and list(boxes) == ["U1"] and boxes["U1"].transport_delay_s == 2.0
+    assert bench.suite_plants(ns(box=["U1:transport_delay_s=2"]))[0] == []
+    with pytest.raises(ValueError, match="--variant: unknown"):
+        bench.suite_plants(ns(variant=["nope"]))
+    with pytest.raises(ValueError, match="registered variant names"):
+        bench.suite_plants(ns(box=["delay_3s:transport_delay_s=2"]))
+
+
+def test_run_suite_puts_boxes_after_variants_on_their_own_plants():
+    from hvac_mpc.benchmarks import mismatch_suite
+    from hvac_mpc.mismatch import Variant
+    seen = []
+
+    def fake_benchmark(chosen, factories, seed, progress=None, plant_factory=None, plant_name=""):
+        seen.append((plant_factory.args[0], plant_name))
+        return {"scenarios": {}}, {}
+
+    box = Variant(transport_delay_s=2.0)
+    results, _ = mismatch_suite.run_suite(["delay_3s"], [], {}, 0, fake_benchmark, boxes={"U1": box})
+    assert list(results["variants"]) == ["delay_3s", "U1"]
+    assert seen[0] == ("delay_3s", "hvac_mpc.mismatch:make_plant('delay_3s')")
+    assert seen[1][0] is box and "transport_delay_s=2.0" in seen[1][1]
