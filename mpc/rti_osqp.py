@@ -32,11 +32,11 @@ import scipy.sparse as sp
 
 from hvac_mpc.models.box import DISTURBANCES, INPUTS
 
-from .casadi_eval import BufferedFunction
 from . import osqp_embedded
-from .osqp_embedded import FIRST_PASS_EPS_RATIO  # noqa: F401 - the first pass's tolerance, named here too
+from .casadi_eval import BufferedFunction
 from .codegen import CodegenReport, compiled
 from .ocp import STAGE_OUTPUTS, TRACKED, TrackingProblem, shift_maps, shift_nodes
+from .osqp_embedded import FIRST_PASS_EPS_RATIO  # noqa: F401 - the first pass's tolerance, named here too
 from .plan_merit import PlanMerit
 
 #: Rows of the stage outputs (``STAGE_OUTPUTS``) by signal: the tracked temperature, the total
