@@ -172,6 +172,9 @@ class Recording:
         self._current["warm"] = np.array(x)
         self.core.warm_start(x, y)
 
+    def __getattr__(self, name):  # the calls it does not record (the time limit) go through
+        return getattr(self.core, name)
+
     def solve(self):
         status_val, status, n_iter, x = self.core.solve()
         self.qps.append({**self._current, "status": int(status_val), "iterations": int(n_iter), "x": np.array(x)})
@@ -319,11 +322,17 @@ def replay(qps: list[dict], lay: Layout, blocks: list[int] | None) -> dict[str, 
     return result
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def replay_arguments(description: str) -> argparse.ArgumentParser:
+    """The options of a benchmark that records the loop's QPs and replays them: steps, seed, rounds."""
+    p = argparse.ArgumentParser(description=description)
     p.add_argument("--steps", type=int, default=solve_time.FULL_STEPS, help="closed-loop steps recorded")
     p.add_argument("--seed", type=int, default=1, help="plant noise seed (default 1)")
     p.add_argument("--rounds", type=int, default=2, help="replays of the recorded QPs (default 2)")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = replay_arguments(__doc__.splitlines()[0])
     p.add_argument("--blocks", default="1,1,1,2,2,3,5,10",
                    help="stages per input block of the blocked route, summing to the horizon ('' for none)")
     p.add_argument("--cost-seeds", default="",

@@ -20,7 +20,7 @@ from typing import Iterator
 
 import numpy as np
 
-from hvac_mpc.mpc import estimator, mpc_controller, ocp, priorities, rti_osqp
+from hvac_mpc.mpc import estimator, mpc_controller, ocp, osqp_embedded, priorities, rti_osqp
 from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
 
 from . import solve_time
@@ -30,11 +30,13 @@ PARTS = (
     (mpc_controller.MpcController, "step", "whole step"),
     (rti_osqp.RtiOsqpSolver, "prepare_predicted", "prediction and preparation (generated call, OSQP matrix update)"),
     (rti_osqp._OsqpCore, "update_matrices", "  OSQP matrix update (equilibration, refactorisation)"),
+    (osqp_embedded.EmbeddedOsqp, "update_matrices", "  OSQP matrix update (equilibration, refactorisation)"),
     (rti_osqp.RtiOsqpSolver, "feedback", "feedback (gradient, bounds, OSQP solve)"),
-    (rti_osqp._OsqpCore, "solve", "  OSQP solve"),
+    (osqp_embedded.TwoPassSolve, "solve", "  OSQP solve"),
     (rti_osqp.RtiOsqpSolver, "_q", "  gradient (generated call)"),
     (rti_osqp.RtiOsqpSolver, "_floor_bounds", "  flow floor bounds"),
     (rti_osqp._OsqpCore, "update_vectors", "  OSQP vectors"),
+    (osqp_embedded.EmbeddedOsqp, "update_vectors", "  OSQP vectors"),
     (estimator.DisturbanceEkf, "update", "estimator update"),
     (ocp.TrackingProblem, "input_bounds", "input bounds"),
     (ocp.TrackingProblem, "command_bounds", "command bounds"),

@@ -106,6 +106,12 @@ class MpcSettings:
             taken at the cap does not switch the heater on: a heater command below
             :data:`INEXACT_HEATER_OFF_W` from it is taken as off while the heater is off in the command
             in force.
+        osqp_codegen: solve the QPs with OSQP's generated C (:mod:`hvac_mpc.mpc.osqp_embedded`, built
+            once per structure into the code cache; the same answers as OSQP's Python interface); without
+            a compiler or with ``HVAC_MPC_CODEGEN=0`` OSQP's Python interface solves them.
+        osqp_scaling_interval: OSQP's equilibration on every this many matrix updates, the ones between
+            keeping the last equilibration (1: on every update, OSQP's own behaviour); needs the generated
+            solver (``osqp_codegen``). Measured in docs/architecture.md, "One control step".
         sqp_max_iter, sqp_tol: SQP iteration cap and step tolerance (scaled variables).
         levenberg_marquardt: weight of lm * |u_k - u_k_lin|^2 (scaled inputs, every stage) added to
             each QP: damps Gauss-Newton steps along the flat directions the redundant actuators
@@ -182,6 +188,8 @@ class MpcSettings:
     osqp_check_dualgap: bool = True
     osqp_first_pass_iter: int = 0
     osqp_accept_max_iter: bool = False
+    osqp_codegen: bool = True
+    osqp_scaling_interval: int = 1
     sqp_max_iter: int = 5
     levenberg_marquardt: float = 0.1
     cold_start_qps: int = 10
@@ -224,6 +232,7 @@ class MpcSettings:
             raise InvalidSettings(f"{p}.osqp_alpha = {alpha!r} is outside the allowed open range (0, 2) "
                                   "(OSQP's relaxation)")
         check_number(f"{p}.osqp_first_pass_iter", self.osqp_first_pass_iter, 0, 1000, integer=True)
+        check_number(f"{p}.osqp_scaling_interval", self.osqp_scaling_interval, 1, 100000, integer=True)
         check_number(f"{p}.sqp_max_iter", self.sqp_max_iter, 1, 100, integer=True)
         check_number(f"{p}.sqp_tol", self.sqp_tol, 1e-10, 1.0, lo_open=True)
         check_number(f"{p}.levenberg_marquardt", self.levenberg_marquardt, 0.0, 1e4)
@@ -254,7 +263,7 @@ class MpcSettings:
             raise InvalidSettings(f"{p}.ekf must be an EkfSettings")
         self.ekf.validate(f"{p}.ekf")
         for flag in ("priorities", "reach_skip_unmoved", "reach_deferred", "reach_background", "reach_changes_deferred",
-                     "osqp_accept_max_iter",
+                     "osqp_accept_max_iter", "osqp_codegen",
                      "osqp_check_dualgap"):
             check_flag(f"{p}.{flag}", getattr(self, flag))
         if self.reach_background and not self.reach_deferred:
@@ -399,7 +408,8 @@ class MpcController:
                              reference_change_qps=s.reference_change_qps, codegen=s.codegen,
                              scaling=s.osqp_scaling, alpha=s.osqp_alpha, check_dualgap=s.osqp_check_dualgap,
                              first_pass_iter=s.osqp_first_pass_iter, accept_max_iter=s.osqp_accept_max_iter,
-                             step_fractions=s.rti_step_fractions)
+                             step_fractions=s.rti_step_fractions, osqp_codegen=s.osqp_codegen,
+                             scaling_interval=s.osqp_scaling_interval)
 
     # ------------------------------------------------------------------ protocol
     def reset(self, command: Command | None = None) -> None:

@@ -32,9 +32,11 @@ import scipy.sparse as sp
 
 from hvac_mpc.models.box import DISTURBANCES, INPUTS
 
+from . import osqp_embedded
 from .casadi_eval import BufferedFunction
 from .codegen import CodegenReport, compiled
 from .ocp import STAGE_OUTPUTS, TRACKED, TrackingProblem, shift_maps, shift_nodes
+from .osqp_embedded import FIRST_PASS_EPS_RATIO  # noqa: F401 - the first pass's tolerance, named here too
 from .plan_merit import PlanMerit
 
 #: Rows of the stage outputs (``STAGE_OUTPUTS``) by signal: the tracked temperature, the total
@@ -148,6 +150,12 @@ class RtiOsqpSolver:
         codegen: evaluate the QP data as generated C (:func:`.codegen.compiled`, cached on disk);
             otherwise (or without a compiler) CasADi's interpreter runs the same functions.
             ``self.codegen`` reports what happened.
+        osqp_codegen: solve the QPs with OSQP's generated C (:mod:`.osqp_embedded`, built once per
+            structure and cached on disk; the same answers as OSQP's Python interface), else or
+            without a compiler with OSQP's Python interface (``self.qp_codegen.outcomes["osqp"]`` says which).
+        scaling_interval: OSQP's equilibration on every this many matrix updates, the updates between
+            keeping the last one's (1: every update, OSQP's own behaviour). Needs ``osqp_codegen``; without
+            the generated solver every update equilibrates.
     """
 
     def __init__(self, problem: TrackingProblem, *, eps: float = 1e-4, max_iter: int = 400,
@@ -155,8 +163,10 @@ class RtiOsqpSolver:
                  lm_inputs: np.ndarray | float = 0.0, cold_start_qps: int = 1, reference_change_qps: int = 1,
                  codegen: bool = False, scaling: int = 10, alpha: float = 1.6, check_dualgap: bool = True,
                  first_pass_iter: int = 0, accept_max_iter: bool = False, step_fractions: tuple[float, ...] = (),
-                 restart_duals_on_change: bool = False):
+                 restart_duals_on_change: bool = False, osqp_codegen: bool = False, scaling_interval: int = 1):
         self.pb = pb = problem
+        self._osqp_codegen = bool(osqp_codegen)
+        self.scaling_interval = int(scaling_interval)
         self.restart_duals_on_change = bool(restart_duals_on_change)
         # OSQP status values taken as an answer: solved, solved inaccurate (and maximum iterations reached)
         self._accepted = (1, 2, 7) if accept_max_iter else (1, 2)
@@ -177,6 +187,7 @@ class RtiOsqpSolver:
         self._i0, self._w1, self._j = shift_maps(pb.t_nodes, pb.dt_s)
         self._build_qp_functions()
         self.codegen = CodegenReport()
+        self.qp_codegen = CodegenReport()  # OSQP's generated solver (``outcomes["osqp"]``)
         wrap = (lambda f: compiled(f, self.codegen)) if codegen else (lambda f: f)
         # constant inputs filled once: P0, A0 and p of the QP data, q0, lm and w_du of the gradient
         self._qp_data = BufferedFunction(wrap(self.qp_data), fixed={4: self._P_const, 5: self._A_const, 6: self._p})
@@ -216,6 +227,8 @@ class RtiOsqpSolver:
                 "accept_max_iter": 7 in self._accepted,
                 "sqp_max_iter": self.sqp_max_iter,
                 "reference_change_qps": self.reference_change_qps, "compiled": self.codegen.active,
+                "osqp_generated": isinstance(self._core, osqp_embedded.EmbeddedOsqp),
+                "scaling_interval": self.scaling_interval,
                 "step_fractions": list(self._merit.fractions) if self._merit else []}
 
     # ------------------------------------------------------------------ structure
@@ -349,10 +362,21 @@ class RtiOsqpSolver:
         np.clip(self.u, -inf, inf, out=self.u)
         self.solver.setup(self.P.matrix(Px), np.zeros(self.n), self.A.matrix(Ax), self.l.copy(), self.u.copy(),
                           **self._osqp_settings)
-        self._core = _OsqpCore(self.solver, self._first_pass_iter)
+        self._core = self._make_core()
         self._zero_duals = np.zeros(self.m)
         self._workspace_used = False
         self._time_limit = None
+
+    def _make_core(self):
+        """OSQP's generated solver of this set-up (:mod:`.osqp_embedded`) with ``osqp_codegen`` where it builds or
+        loads, else OSQP's Python interface."""
+        if self._osqp_codegen:
+            core = osqp_embedded.load(self.solver, (self.P.indices, self.P.indptr, self.P.shape),
+                                      (self.A.indices, self.A.indptr, self.A.shape), self._first_pass_iter,
+                                      self.qp_codegen, self.scaling_interval)
+            if core is not None:
+                return core
+        return _OsqpCore(self.solver, self._first_pass_iter)
 
     # ------------------------------------------------------------------ numerics
     def _build_qp_functions(self) -> None:
@@ -713,7 +737,7 @@ class RtiOsqpSolver:
         by more than a tenth of the budget since it was last set (each setting is a call into OSQP;
         the controller checks the whole feedback time against its deadline anyway)."""
         if self._time_limit is None or abs(self._time_limit - remaining_s) > 0.1 * budget_s:
-            self.solver.update_settings(time_limit=remaining_s)
+            self._core.set_time_limit(remaining_s)
             self._time_limit = remaining_s
 
     def _relinearise(self, z, x0, d, ref, w_y, u_prev) -> float:
@@ -739,14 +763,7 @@ class RtiOsqpSolver:
                                  self._z_lin[self.iu0:self.is0], u_prev)[0]
 
 
-#: OSQP's tolerance in the first pass, relative to its own (:class:`_OsqpCore`): a QP ends there only
-#: when it is that much closer to converged. Measured on the full winter_heating_steps scenario (seed 0):
-#: at the tolerance itself the MPC's slowest temperature step took 168 s to the band (81 s with
-#: OSQP's settings before the first pass), at half of it 82 s.
-FIRST_PASS_EPS_RATIO = 0.5
-
-
-class _OsqpCore:
+class _OsqpCore(osqp_embedded.TwoPassSolve):
     """The calls of the RTI into OSQP, made on the compiled solver object of OSQP's Python interface
     (osqp >= 1.0, ``OSQP._solver``) when it is there: the interface's own ``update`` and ``solve``
     add per call what the RTI does not need (bounds clamped to OSQP's infinity again, a copy for
@@ -764,15 +781,7 @@ class _OsqpCore:
     def __init__(self, wrapper: osqp.OSQP, first_pass_iter: int = 0):
         self.wrapper = wrapper
         self.core = getattr(wrapper, "_solver", None)
-        self.first_pass_iter = int(first_pass_iter)
-        st = wrapper.settings
-        # the continuation's cap leaves room for the pass's iterations: ``max_iter`` bounds the whole QP
-        full_cap = max(st.max_iter - self.first_pass_iter, 1) if self.first_pass_iter > 0 else st.max_iter
-        self._full = dict(alpha=st.alpha, max_iter=full_cap, check_termination=st.check_termination,
-                          eps_abs=st.eps_abs, eps_rel=st.eps_rel)
-        self._first = dict(alpha=1.0, max_iter=self.first_pass_iter, check_termination=self.first_pass_iter,
-                           eps_abs=st.eps_abs * FIRST_PASS_EPS_RATIO, eps_rel=st.eps_rel * FIRST_PASS_EPS_RATIO)
-        self._mode = "full"
+        self._passes(wrapper.settings, first_pass_iter)
 
     def update_matrices(self, Px: np.ndarray, Ax: np.ndarray) -> None:
         if self.core is None:
@@ -791,31 +800,17 @@ class _OsqpCore:
         """Primal warm start; the duals stay those of the last solve (see ``feedback``) unless ``y`` is given."""
         (self.core or self.wrapper).warm_start(x, y)
 
-    def _use(self, mode: str) -> None:
-        """Switch OSQP's iteration settings to the first pass or the full solve (a call only on a change)."""
-        if mode == self._mode:
-            return
-        values = self._first if mode == "first" else self._full
+    def set_time_limit(self, seconds: float) -> None:
+        """OSQP's time limit of each solve from now on (s)."""
+        self.wrapper.update_settings(time_limit=seconds)
+
+    def _apply(self, values: dict) -> None:
         if self.core is None:
             self.wrapper.update_settings(**values)
         else:  # the interface's settings object, changed in place and handed over as a whole
             for name, value in values.items():
                 setattr(self.wrapper.settings, name, value)
             self.core.update_settings(self.wrapper.settings)
-        self._mode = mode
-
-    def solve(self) -> tuple[int, str, int, np.ndarray]:
-        """Solve; returns OSQP's status value and text, the iterations (both passes) and the primal solution."""
-        iterations = 0
-        if self.first_pass_iter > 0:
-            self._use("first")
-            status_val, status, n, x = self._solve_once()
-            if status_val == 1:  # solved within the pass
-                return status_val, status, n, x
-            iterations = n
-            self._use("full")
-        status_val, status, n, x = self._solve_once()
-        return status_val, status, iterations + n, x
 
     def _solve_once(self) -> tuple[int, str, int, np.ndarray]:
         if self.core is None:

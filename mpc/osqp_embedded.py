@@ -1,0 +1,477 @@
+"""The RTI's QP solved by OSQP's generated C (its embedded code generation), built once per structure.
+
+OSQP writes its workspace for one problem as C (``OSQP.codegen``, embedded mode 2: the matrices' values
+can change, their sparsity cannot) together with its own sources. :func:`load` compiles that code with a
+small C interface of its own (:data:`GLUE`) into a shared object, caches it on disk
+(:func:`.codegen.cache_dir`) named by a hash of what the workspace's behaviour depends on (the sparsity
+of P and A, the sizes, OSQP's settings and version, the compiler flags, the processor) and loads it with
+``ctypes``. :class:`EmbeddedOsqp` offers the calls the RTI makes (:class:`.rti_osqp._OsqpCore`'s), each
+one C call on numpy arrays handed over by address: no scipy matrix, no array copied, no Python object
+built per call but the solution array.
+
+The same algorithm as OSQP's Python interface (the same C source of the same version): the matrix
+update runs the equilibration and the numeric refactorisation, ``rho`` adapts every
+``adaptive_rho_interval`` iterations as set up (the interval is fixed at set-up and written into the
+workspace), the warm start and the multipliers kept in the workspace behave alike. The values the
+workspace was generated with (the set-up's placeholder linearisation) are replaced before every solve; the
+one that carries into later answers is the set-up's gradient (the first matrix update's cost scaling reads
+its norm), and :class:`.rti_osqp.RtiOsqpSolver` sets OSQP up with a zero gradient whatever the model. So
+the key holds no values, an assumption held by ``tests/test_osqp_embedded.py`` (other model parameters, the
+cached solver, the Python interface's commands exactly).
+
+One thing only the generated code can do: update the matrices without equilibrating again
+(``scaling_interval``), the new values scaled with the equilibration in force.
+
+OSQP's embedded code has no timers, so its ``time_limit`` is not available; the time limit is kept
+through OSQP's interrupt check instead (:data:`GLUE`: the check is true once the solve has run longer
+than the limit, and the status is then OSQP's "run time limit reached").
+
+Each :class:`EmbeddedOsqp` loads its own copy of the shared object (the workspace is the object's
+static data), so two solvers never share one, and a fresh copy is a freshly set-up workspace.
+"""
+
+from __future__ import annotations
+
+import _ctypes
+import ctypes
+import hashlib
+import os
+import platform
+import shutil
+import tempfile
+import weakref
+from pathlib import Path
+
+import numpy as np
+import osqp
+
+from .codegen import SWITCH_ENV, CodegenReport, _ensure, cache_dir, compile_shared
+
+#: Compiler flags of the generated solver. No fast-math and no contraction into fused multiply-adds:
+#: the arithmetic stays that of OSQP's own build, so the answers are the Python interface's.
+#: Built for this machine's processor (``-march=native``, the processor in the cache key): 3 % less time per
+#: QP than without it, measured (``benchmarks/osqp_generated.py``).
+CFLAGS = ("-O3", "-march=native", "-ffp-contract=off", "-fPIC", "-shared", "-fvisibility=hidden", "-Wl,-Bsymbolic")
+#: Prefix of the generated workspace's names.
+PREFIX = "hvac_"
+#: OSQP's status values (osqp_api_constants.h) and messages, as its Python interface reports them.
+STATUS = {1: "solved", 2: "solved inaccurate", 3: "primal infeasible", 4: "primal infeasible inaccurate",
+          5: "dual infeasible", 6: "dual infeasible inaccurate", 7: "maximum iterations reached",
+          8: "run time limit reached", 9: "problem non convex", 10: "interrupted", 11: "unsolved"}
+
+#: The C interface compiled with the generated workspace: one function per call of the RTI, and OSQP's
+#: interrupt check used as its time limit.
+GLUE = r"""
+#include <string.h>
+#include <time.h>
+#include "osqp.h"
+#include "hvac_workspace.h"
+#include "algebra_matrix.h"
+#include "auxil.h"
+
+#define API __attribute__((visibility("default")))
+#define S (&hvac_solver)
+
+static double limit_s = 0.0, deadline_s = 0.0;
+
+static double now_s(void) {
+  struct timespec t;
+  clock_gettime(CLOCK_MONOTONIC, &t);
+  return (double)t.tv_sec + 1e-9 * (double)t.tv_nsec;
+}
+
+/* OSQP's interrupt hooks, used as the time limit of a solve (0: none) */
+void osqp_start_interrupt_listener(void) { deadline_s = limit_s > 0.0 ? now_s() + limit_s : 0.0; }
+void osqp_end_interrupt_listener(void) {}
+int osqp_is_interrupted(void) { return deadline_s > 0.0 && now_s() >= deadline_s; }
+
+API int hq_n(void) { return (int)S->work->data->n; }
+API int hq_m(void) { return (int)S->work->data->m; }
+API int hq_nnz_p(void) { return (int)OSQPMatrix_get_nz(S->work->data->P); }
+API int hq_nnz_a(void) { return (int)OSQPMatrix_get_nz(S->work->data->A); }
+API int hq_update_mat(const double* Px, const double* Ax) {
+  return (int)osqp_update_data_mat(S, Px, OSQP_NULL, 0, Ax, OSQP_NULL, 0);
+}
+static void limit_inv_sqrt(OSQPFloat* v, OSQPInt n) {  /* limit_scaling_vector, ew_sqrt, ew_reciprocal */
+  OSQPInt i;
+  for (i = 0; i < n; i++) {
+    OSQPFloat x = v[i] < OSQP_MIN_SCALING ? 1.0 : v[i];
+    x = x > OSQP_MAX_SCALING ? OSQP_MAX_SCALING : x;
+    v[i] = (OSQPFloat)1.0 / c_sqrt(x);
+  }
+}
+
+/* the inf-norms of A's columns (max'ed into d, which holds P's) and rows (into e) */
+static void norms_a(const OSQPCscMatrix* A, OSQPFloat* d, OSQPFloat* da, OSQPFloat* e) {
+  OSQPInt j, k;
+  for (k = 0; k < A->m; k++) e[k] = 0.0;
+  for (j = 0; j < A->n; j++) {
+    OSQPFloat cj = 0.0;
+    for (k = A->p[j]; k < A->p[j + 1]; k++) {
+      OSQPFloat a = c_absval(A->x[k]);
+      cj = c_max(a, cj);
+      e[A->i[k]] = c_max(a, e[A->i[k]]);
+    }
+    da[j] = cj;
+    d[j] = c_max(d[j], cj);
+  }
+}
+
+/* OSQP's matrix update with its equilibration (osqp_update_data_mat: unscale_data, the new values,
+   scale_data, the refactorisation) with the passes over P and A fused: every value and vector entry
+   goes through the same operations in the same order as in OSQP's functions, so the results are the
+   same to the bit, with two sweeps over P and one over A a Ruiz pass instead of five each */
+API int hq_update_mat_fused(const double* Px, const double* Ax) {
+  OSQPWorkspace* w = S->work;
+  OSQPScaling* sc;
+  OSQPCscMatrix *P, *A;
+  OSQPInt n, m, nnzP, nnzA, i, j, k, pass;
+  OSQPFloat *q, *l, *u, *D, *E, *Dinv, *Einv, *dt, *da, *et;
+  OSQPFloat c_temp, norm_q;
+  if (!S->settings->scaling) return (int)osqp_update_data_mat(S, Px, OSQP_NULL, 0, Ax, OSQP_NULL, 0);
+  sc = w->scaling;
+  P = w->data->P->csc;
+  A = w->data->A->csc;
+  n = w->data->n; m = w->data->m; nnzP = P->p[n]; nnzA = A->p[n];
+  q = w->data->q->values; l = w->data->l->values; u = w->data->u->values;
+  D = sc->D->values; E = sc->E->values; Dinv = sc->Dinv->values; Einv = sc->Einv->values;
+  dt = w->D_temp->values; da = w->D_temp_A->values; et = w->E_temp->values;
+  for (i = 0; i < n; i++) q[i] *= sc->cinv;          /* unscale_data's vector part */
+  for (i = 0; i < n; i++) q[i] *= Dinv[i];
+  for (i = 0; i < m; i++) l[i] *= Einv[i];
+  for (i = 0; i < m; i++) u[i] *= Einv[i];
+  memcpy(P->x, Px, sizeof(OSQPFloat) * (size_t)nnzP);
+  memcpy(A->x, Ax, sizeof(OSQPFloat) * (size_t)nnzA);
+  sc->c = 1.0;
+  for (i = 0; i < n; i++) D[i] = Dinv[i] = 1.0;
+  for (i = 0; i < m; i++) E[i] = Einv[i] = 1.0;
+  for (j = 0; j < n; j++) {                           /* the first pass's norms of P's columns */
+    OSQPFloat cj = 0.0;
+    for (k = P->p[j]; k < P->p[j + 1]; k++) cj = c_max(c_absval(P->x[k]), cj);
+    dt[j] = cj;
+  }
+  for (pass = 0; pass < S->settings->scaling; pass++) {
+    norms_a(A, dt, da, et);
+    limit_inv_sqrt(dt, n);
+    limit_inv_sqrt(et, m);
+    for (j = 0; j < n; j++)                           /* A <- E A D */
+      for (k = A->p[j]; k < A->p[j + 1]; k++) { A->x[k] *= et[A->i[k]]; A->x[k] *= dt[j]; }
+    for (j = 0; j < n; j++) {                         /* P <- D P D, its columns' norms into da */
+      OSQPFloat cj = 0.0;
+      for (k = P->p[j]; k < P->p[j + 1]; k++) {
+        P->x[k] *= dt[P->i[k]];
+        P->x[k] *= dt[j];
+        cj = c_max(c_absval(P->x[k]), cj);
+      }
+      da[j] = cj;
+    }
+    for (i = 0; i < n; i++) q[i] *= dt[i];
+    for (i = 0; i < n; i++) D[i] *= dt[i];
+    for (i = 0; i < m; i++) E[i] *= et[i];
+    c_temp = 0.0;                                     /* cost normalisation */
+    for (i = 0; i < n; i++) c_temp += c_absval(da[i]);
+    c_temp = c_temp / n;
+    norm_q = 0.0;
+    for (i = 0; i < n; i++) if (c_absval(q[i]) > norm_q) norm_q = c_absval(q[i]);
+    norm_q = limit_scaling_scalar(norm_q);
+    c_temp = c_max(c_temp, norm_q);
+    c_temp = limit_scaling_scalar(c_temp);
+    c_temp = 1. / c_temp;
+    for (j = 0; j < n; j++) {                         /* P <- c P, the next pass's norms of its columns */
+      OSQPFloat cj = 0.0;
+      for (k = P->p[j]; k < P->p[j + 1]; k++) {
+        P->x[k] *= c_temp;
+        cj = c_max(c_absval(P->x[k]), cj);
+      }
+      dt[j] = cj;
+    }
+    for (i = 0; i < n; i++) q[i] *= c_temp;
+    sc->c *= c_temp;
+  }
+  sc->cinv = 1. / sc->c;
+  for (i = 0; i < n; i++) Dinv[i] = (OSQPFloat)1.0 / D[i];
+  for (i = 0; i < m; i++) Einv[i] = (OSQPFloat)1.0 / E[i];
+  for (i = 0; i < m; i++) l[i] *= E[i];
+  for (i = 0; i < m; i++) u[i] *= E[i];
+  k = w->linsys_solver->update_matrices(w->linsys_solver, w->data->P, OSQP_NULL, nnzP,
+                                        w->data->A, OSQP_NULL, nnzA);
+  reset_info(S->info);
+  return (int)k;
+}
+
+/* the new values of P and A scaled with the equilibration in force (not computed again), then the
+   numeric refactorisation: OSQP's matrix update without its Ruiz passes */
+API int hq_update_mat_kept_scaling(const double* Px, const double* Ax) {
+  OSQPWorkspace* w = S->work;
+  OSQPInt nnzP = OSQPMatrix_get_nz(w->data->P), nnzA = OSQPMatrix_get_nz(w->data->A);
+  OSQPInt flag;
+  OSQPMatrix_update_values(w->data->P, Px, OSQP_NULL, nnzP);
+  OSQPMatrix_update_values(w->data->A, Ax, OSQP_NULL, nnzA);
+  if (S->settings->scaling) {
+    OSQPMatrix_mult_scalar(w->data->P, w->scaling->c);
+    OSQPMatrix_lmult_diag(w->data->P, w->scaling->D);
+    OSQPMatrix_rmult_diag(w->data->P, w->scaling->D);
+    OSQPMatrix_lmult_diag(w->data->A, w->scaling->E);
+    OSQPMatrix_rmult_diag(w->data->A, w->scaling->D);
+  }
+  flag = w->linsys_solver->update_matrices(w->linsys_solver, w->data->P, OSQP_NULL, nnzP,
+                                           w->data->A, OSQP_NULL, nnzA);
+  reset_info(S->info);
+  return (int)flag;
+}
+API int hq_update_vec(const double* q, const double* l, const double* u) {
+  return (int)osqp_update_data_vec(S, q, l, u);
+}
+API int hq_warm_start(const double* x, const double* y) { return (int)osqp_warm_start(S, x, y); }
+API int hq_settings(double alpha, int max_iter, int check_termination, double eps_abs, double eps_rel) {
+  OSQPSettings s = *S->settings;
+  s.alpha = alpha; s.max_iter = max_iter; s.check_termination = check_termination;
+  s.eps_abs = eps_abs; s.eps_rel = eps_rel;
+  return (int)osqp_update_settings(S, &s);
+}
+API void hq_time_limit(double seconds) { limit_s = seconds; }
+API double hq_rho(void) { return (double)S->settings->rho; }
+/* solve; the primal solution into x, [status value, iterations] into info; OSQP's exit flag returned */
+API int hq_solve(double* x, long long* info) {
+  int flag = (int)osqp_solve(S);
+  if (S->info->status_val == OSQP_SIGINT) {  /* the time limit: a status, not an error */
+    flag = 0;
+    S->info->status_val = OSQP_TIME_LIMIT_REACHED;
+    strcpy(S->info->status, "run time limit reached");
+  }
+  memcpy(x, S->solution->x, sizeof(double) * (size_t)S->work->data->n);
+  info[0] = (long long)S->info->status_val;
+  info[1] = (long long)S->info->iter;
+  return flag;
+}
+"""
+
+#: OSQP's interrupt hooks as its sources declare them (the header is not among its generated sources).
+INTERRUPT_H = """#ifndef INTERRUPT_H
+#define INTERRUPT_H
+void osqp_start_interrupt_listener(void);
+void osqp_end_interrupt_listener(void);
+int osqp_is_interrupted(void);
+#endif
+"""
+
+_DOUBLE = ctypes.c_void_p
+
+
+def structure_key(wrapper: osqp.OSQP, P_pattern: tuple, A_pattern: tuple) -> str:
+    """Hash of what the generated workspace's answers depend on: the sparsity of P and A (``(indices,
+    indptr, shape)``), OSQP's settings after set-up and its version, the flags, the glue and the machine."""
+    h = hashlib.sha256()
+    for indices, indptr, shape in (P_pattern, A_pattern):
+        h.update(np.asarray(indices, np.int64).tobytes())
+        h.update(np.asarray(indptr, np.int64).tobytes())
+        h.update(repr(tuple(shape)).encode())
+    st = wrapper.settings
+    h.update(repr(sorted((k, getattr(st, k)) for k in dir(st) if not k.startswith("_")
+                         and isinstance(getattr(st, k), (int, float, bool, str)))).encode())
+    h.update(osqp.__version__.encode())
+    h.update(" ".join(CFLAGS).encode())
+    h.update(GLUE.encode())
+    h.update(platform.machine().encode())
+    h.update(_processor().encode())
+    return h.hexdigest()[:20]
+
+
+def _processor() -> str:
+    """The processor's model and instruction-set flags (``-march=native`` code runs only where they are)."""
+    try:
+        lines = Path("/proc/cpuinfo").read_text().splitlines()
+    except OSError:
+        return platform.processor()
+    return "|".join(sorted({ln.split(":", 1)[1].strip() for ln in lines if ln.startswith(("model name", "flags"))}))
+
+
+def load(wrapper: osqp.OSQP, P_pattern: tuple, A_pattern: tuple, first_pass_iter: int = 0,
+         report: CodegenReport | None = None, scaling_interval: int = 1) -> "EmbeddedOsqp | None":
+    """The generated solver of the problem ``wrapper`` is set up with (built on first use, then loaded from
+    the cache), or None when code generation is off or fails (the reason in ``report["osqp"]``); the
+    caller then keeps OSQP's Python interface. ``wrapper`` must have been set up with a zero gradient (the
+    RTI's set-up): the set-up's values are not part of the key."""
+    report = report if report is not None else CodegenReport()
+    if os.environ.get(SWITCH_ENV, "1") == "0":
+        report.outcomes["osqp"] = f"interpreted: {SWITCH_ENV}=0"
+        return None
+    try:
+        lib = cache_dir() / "osqp" / f"osqp_{structure_key(wrapper, P_pattern, A_pattern)}.so"
+        outcome = _ensure(lib, lambda: _build(wrapper, lib), report)
+        solver = EmbeddedOsqp(lib, wrapper, first_pass_iter, scaling_interval)
+        report.outcomes["osqp"] = outcome
+        return solver
+    except Exception as exc:  # noqa: BLE001 - no compiler, a codegen OSQP lacks, ...: the Python interface works
+        report.outcomes["osqp"] = f"interpreted: {type(exc).__name__}: {str(exc)[:200]}"
+        return None
+
+
+def _build(wrapper: osqp.OSQP, lib: Path) -> None:
+    """OSQP's generated workspace and sources with :data:`GLUE`, compiled into ``lib``."""
+    lib.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=lib.parent) as tmp:
+        folder = Path(tmp) / "osqp"
+        wrapper.codegen(str(folder), parameters="matrices", extension_name=None, force_rewrite=True,
+                        prefix=PREFIX, interrupt_enable=True)
+        (folder / "interrupt.h").write_text(INTERRUPT_H)
+        (folder / "hvac_glue.c").write_text(GLUE)
+        one = folder / "all.c"  # one translation unit: compile_shared takes one source
+        sources = sorted((folder / "src").glob("*.c")) + [folder / f"{PREFIX}workspace.c", folder / "hvac_glue.c"]
+        one.write_text("".join(f'#include "{s}"\n' for s in sources))
+        includes = tuple(f"-I{folder / d}" for d in ("inc/public", "inc/private", "."))
+        compile_shared(one, lib, (*CFLAGS, *includes), ("-lm",), timeout_s=600)
+
+
+#: OSQP's tolerance in the first pass, relative to its own (:class:`TwoPassSolve`): a QP ends there only
+#: when it is that much closer to converged. Measured on the full winter_heating_steps scenario (seed 0):
+#: at the tolerance itself the MPC's slowest temperature step took 168 s to the band (81 s with
+#: OSQP's settings before the first pass), at half of it 82 s.
+FIRST_PASS_EPS_RATIO = 0.5
+
+
+class TwoPassSolve:
+    """The RTI's solve in one pass or two (``first_pass_iter > 0``, :class:`.rti_osqp._OsqpCore`): OSQP's
+    settings of both passes from its set-up, switched by :meth:`_apply` (of the subclass) only on a change."""
+
+    def _passes(self, st, first_pass_iter: int) -> None:
+        self.first_pass_iter = int(first_pass_iter)
+        # the continuation's cap leaves room for the pass's iterations: ``max_iter`` bounds the whole QP
+        full_cap = max(st.max_iter - self.first_pass_iter, 1) if self.first_pass_iter > 0 else st.max_iter
+        self._full = dict(alpha=st.alpha, max_iter=full_cap, check_termination=st.check_termination,
+                          eps_abs=st.eps_abs, eps_rel=st.eps_rel)
+        self._first = dict(alpha=1.0, max_iter=self.first_pass_iter, check_termination=self.first_pass_iter,
+                           eps_abs=st.eps_abs * FIRST_PASS_EPS_RATIO, eps_rel=st.eps_rel * FIRST_PASS_EPS_RATIO)
+        self._mode = "full"
+
+    def _apply(self, values: dict) -> None:
+        raise NotImplementedError
+
+    def _solve_once(self) -> tuple[int, str, int, np.ndarray]:
+        raise NotImplementedError
+
+    def _use(self, mode: str) -> None:
+        """Switch OSQP's iteration settings to the first pass or the full solve (a call only on a change)."""
+        if mode != self._mode:
+            self._apply(self._first if mode == "first" else self._full)
+            self._mode = mode
+
+    def solve(self) -> tuple[int, str, int, np.ndarray]:
+        """Solve; returns OSQP's status value and text, the iterations (both passes) and the primal solution."""
+        iterations = 0
+        if self.first_pass_iter > 0:
+            self._use("first")
+            status_val, status, n, x = self._solve_once()
+            if status_val == 1:  # solved within the pass
+                return status_val, status, n, x
+            iterations = n
+            self._use("full")
+        status_val, status, n, x = self._solve_once()
+        return status_val, status, iterations + n, x
+
+
+class EmbeddedOsqp(TwoPassSolve):
+    """One generated OSQP workspace, called as the RTI calls OSQP (:class:`.rti_osqp._OsqpCore`'s methods).
+
+    ``first_pass_iter > 0``: each solve first runs that many iterations without over-relaxation, as
+    :class:`.rti_osqp._OsqpCore` does (the settings of both passes taken from ``wrapper``).
+    ``scaling_interval``: OSQP's equilibration on every this many matrix updates (1: on each, as OSQP
+    does); the others keep the last one's, which saves its Ruiz passes and changes the ADMM iterates."""
+
+    def __init__(self, lib: Path, wrapper: osqp.OSQP, first_pass_iter: int = 0, scaling_interval: int = 1):
+        if int(scaling_interval) < 1:
+            raise ValueError(f"EmbeddedOsqp: scaling_interval = {scaling_interval!r}, allowed: an integer >= 1")
+        self.scaling_interval = int(scaling_interval)
+        self._updates = 0
+        self._lib = _private_copy(lib)
+        weakref.finalize(self, _close, self._lib._handle)
+        f = self._lib
+        for name, args, res in (("hq_update_mat", [_DOUBLE] * 2, ctypes.c_int),
+                                ("hq_update_mat_kept_scaling", [_DOUBLE] * 2, ctypes.c_int),
+                                ("hq_update_mat_fused", [_DOUBLE] * 2, ctypes.c_int),
+                                ("hq_update_vec", [_DOUBLE] * 3, ctypes.c_int),
+                                ("hq_warm_start", [_DOUBLE] * 2, ctypes.c_int),
+                                ("hq_settings", [ctypes.c_double, ctypes.c_int, ctypes.c_int, ctypes.c_double,
+                                                 ctypes.c_double], ctypes.c_int),
+                                ("hq_time_limit", [ctypes.c_double], None), ("hq_rho", [], ctypes.c_double),
+                                ("hq_solve", [_DOUBLE, _DOUBLE], ctypes.c_int),
+                                ("hq_n", [], ctypes.c_int), ("hq_m", [], ctypes.c_int),
+                                ("hq_nnz_p", [], ctypes.c_int), ("hq_nnz_a", [], ctypes.c_int)):
+            getattr(f, name).argtypes = args
+            getattr(f, name).restype = res
+        self.n, self.m = int(f.hq_n()), int(f.hq_m())
+        self._nnz_p, self._nnz_a = int(f.hq_nnz_p()), int(f.hq_nnz_a())
+        self._info = np.zeros(2, np.int64)
+        self._info_p = self._info.ctypes.data
+        self._passes(wrapper.settings, first_pass_iter)
+
+    @staticmethod
+    def _check(flag: int, what: str) -> None:
+        if flag != 0:
+            raise RuntimeError(f"generated OSQP: {what} failed (exit flag {flag})")
+
+    @staticmethod
+    def _p(a: np.ndarray, size: int) -> int:
+        """Address of ``a``'s data; ``a`` must be a contiguous float64 array of ``size`` values (checked:
+        a wrong array would be read past its end by C)."""
+        if a.dtype != np.float64 or a.size != size or not a.flags.c_contiguous:
+            raise ValueError(f"generated OSQP: expected a contiguous float64 array of {size} values, "
+                             f"got {a.dtype} of shape {a.shape}")
+        return a.ctypes.data
+
+    def update_matrices(self, Px: np.ndarray, Ax: np.ndarray) -> None:
+        """The values of P (upper triangle) and A in OSQP's CSC order, then the numeric refactorisation.
+        OSQP's equilibration runs again on every ``scaling_interval``-th update (the first included); the
+        updates between scale the new values with the equilibration in force."""
+        Px_p, Ax_p = self._p(Px, self._nnz_p), self._p(Ax, self._nnz_a)
+        if self._updates % self.scaling_interval == 0:
+            self._check(self._lib.hq_update_mat_fused(Px_p, Ax_p), "matrix update")
+        else:
+            self._check(self._lib.hq_update_mat_kept_scaling(Px_p, Ax_p), "matrix update")
+        self._updates += 1
+
+    def update_vectors(self, q: np.ndarray, l: np.ndarray, u: np.ndarray) -> None:
+        """``l``, ``u`` already within OSQP's infinity."""
+        n, m = self.n, self.m
+        self._check(self._lib.hq_update_vec(self._p(q, n), self._p(l, m), self._p(u, m)), "vector update")
+
+    def warm_start(self, x: np.ndarray, y: np.ndarray | None = None) -> None:
+        """Primal warm start; the multipliers stay those of the last solve unless ``y`` is given."""
+        self._check(self._lib.hq_warm_start(self._p(x, self.n), None if y is None else self._p(y, self.m)),
+                    "warm start")
+
+    def set_time_limit(self, seconds: float) -> None:
+        """Time limit of each solve from now on (s; 0: none)."""
+        self._lib.hq_time_limit(float(seconds))
+
+    @property
+    def rho(self) -> float:
+        """OSQP's step size now (it adapts during solves and is kept from one QP to the next)."""
+        return float(self._lib.hq_rho())
+
+    def _apply(self, values: dict) -> None:
+        self._check(self._lib.hq_settings(values["alpha"], values["max_iter"], values["check_termination"],
+                                          values["eps_abs"], values["eps_rel"]), "settings")
+
+    def _solve_once(self) -> tuple[int, str, int, np.ndarray]:
+        x = np.empty(self.n)
+        self._check(self._lib.hq_solve(x.ctypes.data, self._info_p), "solve")
+        status_val = int(self._info[0])
+        return status_val, STATUS.get(status_val, "unknown"), int(self._info[1]), x
+
+
+def _close(handle: int) -> None:
+    """Unload a private copy (its workspace) once its solver is gone."""
+    _ctypes.dlclose(handle)
+
+
+def _private_copy(lib: Path) -> ctypes.CDLL:
+    """``lib`` loaded from a copy of its own (the workspace is the object's static data: a copy per
+    solver), the copy's file removed once loaded."""
+    fd, name = tempfile.mkstemp(suffix=".so", dir=lib.parent)
+    os.close(fd)
+    try:
+        shutil.copyfile(lib, name)
+        return ctypes.CDLL(name, mode=os.RTLD_LOCAL)
+    finally:
+        os.unlink(name)
