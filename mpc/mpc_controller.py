@@ -507,7 +507,7 @@ class MpcController:
         w_y = pb.heating_weights(pb.output_weights(ref), heating=pb.heating(self.u_prev))
         self._flow_factor = self._flow_weight_factor(y_ref, d)
         w_y[1:5] *= self._flow_factor
-        self._set_readiness(ref, d, cap)
+        self._set_readiness(ref, d, cap, measurement)
         # --- feedback
         if not self._prepared_for_next:
             self.solver.reset()
@@ -608,12 +608,14 @@ class MpcController:
         w = pb.w_y_full
         return min(factor, flow_weight_factor(error_m3s, w[1], w[0], trade_c))
 
-    def _set_readiness(self, ref: Reference, d: np.ndarray, cap: float) -> None:
+    def _set_readiness(self, ref: Reference, d: np.ndarray, cap: float, measurement: Measurement) -> None:
         """The heater readiness's floor for the QPs of this step (:mod:`.readiness`; a setting, off by default)."""
         if self.readiness is None:
             return
+        reading = finite_or(getattr(measurement, "supply_temp_c", None), float("nan"))
         floor = self.readiness.floor_c(self.ekf.x, self.u_prev, d, self._prediction_parameters(),
-                                       ref.supply_temp_c, ref.volume_flow_m3s, cap)
+                                       ref.supply_temp_c, ref.volume_flow_m3s, cap,
+                                       None if not np.isfinite(reading) else reading)
         self.solver.readiness_target = self.readiness.scaled(floor)
 
     def _use_estimated_parameters(self) -> None:

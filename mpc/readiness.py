@@ -22,7 +22,8 @@ fall): the floor never asks for a body the heater cannot hold at its rating.
 
 ASSUMPTION: while heating, the next reference change may be a step up of ``ready_step_c`` (3 K, the steps of
 the bench's winter scenario), and serving it at once is worth ``Weights.heater_ready_per_c2`` per K^2 of the
-body below the floor per second (a quadratic one-sided penalty on every predicted stage, the side chosen at
+body below the floor per second (a quadratic one-sided penalty on every predicted stage, out while the reading is more than that step below the
+reference: the present error comes first, the side chosen at
 the linearisation: :meth:`RtiOsqpSolver` adds it where the plan it linearises at has the body below the floor).
 """
 
@@ -55,12 +56,17 @@ class HeaterReadiness:
         return self.weight > 0.0
 
     def floor_c(self, x_phys: np.ndarray, u_phys: np.ndarray, d: np.ndarray, p: np.ndarray,
-                supply_ref_c: float | None, flow_ref_m3s: float | None, valve_a_cap_pct: float) -> float | None:
+                supply_ref_c: float | None, flow_ref_m3s: float | None, valve_a_cap_pct: float,
+                supply_now_c: float | None = None) -> float | None:
         """The body floor (degC) at the estimate ``x_phys`` with the command in force ``u_phys`` (valve a at its
         cap), disturbances ``d`` and model parameters ``p``, at the reference flow ``flow_ref_m3s`` (the flow the
         step is served at; the model's flow where there is none); None outside the heating duty (the reference at
-        or below the inlet air, ``d[0]``, or no temperature reference)."""
+        or below the inlet air, ``d[0]``, or no temperature reference) and while the supply reading ``supply_now_c``
+        is more than ``ready_step_c`` below the reference (a step larger than the one the floor readies for is
+        being served: the heater's heat goes to the air, not into the body)."""
         if supply_ref_c is None or not supply_ref_c > float(d[0]):
+            return None
+        if supply_now_c is not None and supply_ref_c - float(supply_now_c) > self.step_c:
             return None
         u = np.array(u_phys, float)
         u[self.i_valve_a] = valve_a_cap_pct

@@ -2,11 +2,10 @@
 of the cost outside the heating duty, the QP carries it only where the plan is below it, and on the independent box
 with recirculation it keeps the body warm through the warm-up the refined MPC otherwise spends it in."""
 
-import dataclasses
-
 import numpy as np
 import pytest
 
+from heater_body_helpers import body_at_step_and_iae
 from hvac_mpc.models.discovered import DiscoveredTerm
 from hvac_mpc.models.model_file import RefinedModel
 from hvac_mpc.models.parameters import Parameters
@@ -44,7 +43,7 @@ def test_floor_is_the_heater_outlet_balance_solved_for_the_body(controller):
     assert 30.0 < floor < pb.params.ptc_knee_c  # well above the body a warm-up at 9 C leaves (26 C, the module)
 
 
-def test_floor_is_held_below_the_ptc_knee_and_off_outside_the_heating_duty(controller):
+def test_floor_is_held_below_the_ptc_knee_and_off_outside_the_heating_duty_and_in_a_larger_step(controller):
     pb = controller.problem
     ready = HeaterReadiness(pb)
     x = np.array([1.0, 5.0, 30.0, 9.0])
@@ -53,6 +52,9 @@ def test_floor_is_held_below_the_ptc_knee_and_off_outside_the_heating_duty(contr
     assert ready.floor_c(x, u, d, pb.model.p_default, 20.0, 40.0 / 3600.0, 90.0) == pb.params.ptc_knee_c
     assert ready.floor_c(x, u, d, pb.model.p_default, 5.0, 40.0 / 3600.0, 90.0) is None  # not above the inlet
     assert ready.floor_c(x, u, d, pb.model.p_default, None, 40.0 / 3600.0, 90.0) is None
+    # a step larger than the one readied for is being served: the reading 4 K below the reference, out; 2 K, in
+    assert ready.floor_c(x, u, d, pb.model.p_default, 12.0, 40.0 / 3600.0, 90.0, supply_now_c=8.0) is None
+    assert ready.floor_c(x, u, d, pb.model.p_default, 12.0, 40.0 / 3600.0, 90.0, supply_now_c=10.0) is not None
     assert ready.scaled(None) is None
 
 
@@ -84,33 +86,12 @@ def test_the_readiness_keeps_the_body_warm_through_the_warm_up_on_the_recirculat
     warm-up holds 9 C with the air entering at about 9.05 C, and without the readiness the MPC cools through the
     core with the heater off, the body 33.1 -> 26.3 C at the step (measured), 138.0 C s. With the readiness (0.5
     per K^2 s) the body is above 40 C at the step (measured 43.5 C) and the IAE less than half (measured 49.1)."""
-    from hvac_mpc.benchmarks import scenarios
-    from hvac_mpc.benchmarks.simulate import DETERMINISTIC_DEADLINE_S, plant_seed
-    from hvac_mpc.mismatch import make_plant
-
     term = DiscoveredTerm("recirculation", "box_in", ("inlet", "one"), (-0.15, 3.6))
     refined = RefinedModel(Parameters(), ("ptc_power_fall", "fan_curve", "valve_leakage"), (term,),
                            absent=("bypass_flow",))
-    sc = scenarios.select(["winter_heating_steps"], quick=True)[0]
 
     def run(weight):
-        settings = dataclasses.replace(_settings(weight), initial_command=sc.initial_command,
-                                       deadline_s=DETERMINISTIC_DEADLINE_S)
-        ctrl = MpcController(settings=settings, model=refined)
-        plant = make_plant("recirculation", seed=plant_seed(0, sc.seed), inlet_temp_c=sc.inlet_temp_c,
-                           chiller_setpoint_c=sc.chiller_setpoint_c, initial_command=sc.initial_command)
-        ctrl.reset(sc.initial_command)
-        iae, body_at_step = 0.0, None
-        for k in range(int(sc.duration_s)):
-            r = sc.reference_at(float(k))
-            truth = plant.truth()
-            if k == int(sc.metrics_start_s):
-                body_at_step = truth["heater_temp_c"]
-            if k >= sc.metrics_start_s:
-                iae += abs(truth["supply_temp_c"] - r.supply_temp_c)
-            plant.apply(np.asarray(ctrl.step(plant.read(), r).command.vector(), float))
-            plant.advance()
-        return body_at_step, iae
+        return body_at_step_and_iae("winter_heating_steps", "recirculation", _settings(weight), refined)
 
     body_off, iae_off = run(0.0)
     body_on, iae_on = run(0.5)
