@@ -18,12 +18,15 @@ with the core's outlet air ``T_core`` and the core's share of the flow from the 
 estimate (``HvacModel.algebraic``), the core's mass flow ``m_core`` at the reference flow (not the flow in force:
 a floor that rose with the flow would let the controller raise it by raising the flow), and the heater's ``kA`` (thesis sec. 4.3: the heater outlet
 ``(kA T_h + m c_p T_in) / (kA + m c_p)``). It is held below the PTC knee (where the heater's power starts to
-fall): the floor never asks for a body the heater cannot hold at its rating.
+fall): the floor never asks for a body the heater cannot hold at its rating. It is not held below the body from
+which the least air through the heater (valve a closed) already mixes to the reference: that cap, measured, takes
+the floor away exactly in the warm-up it is for (at 9 C with the air at 9.05 C any warm body costs the reference
+at rest; docs/identification.md 'Heater readiness').
 
 ASSUMPTION: while heating, the next reference change may be a step up of ``ready_step_c`` (3 K, the steps of
 the bench's winter scenario), and serving it at once is worth ``Weights.heater_ready_per_c2`` per K^2 of the
-body below the floor per second (a quadratic one-sided penalty on every predicted stage, out while the reading is more than that step below the
-reference: the present error comes first, the side chosen at
+body below the floor per second (a quadratic one-sided penalty on every predicted stage, out while the reading is more than 0.5 K below the
+reference: a step up being served comes first, the side chosen at
 the linearisation: :meth:`RtiOsqpSolver` adds it where the plan it linearises at has the body below the floor).
 """
 
@@ -33,6 +36,10 @@ import casadi as ca
 import numpy as np
 
 from hvac_mpc.models.box import INPUTS
+
+#: The readiness counts while the supply reading is at most this far below the reference (K): at rest on the
+#: reference (the bench's settling band, +-0.5 C), not while a step up is served.
+READY_BAND_C = 0.5
 
 
 class HeaterReadiness:
@@ -62,21 +69,25 @@ class HeaterReadiness:
         cap), disturbances ``d`` and model parameters ``p``, at the reference flow ``flow_ref_m3s`` (the flow the
         step is served at; the model's flow where there is none); None outside the heating duty (the reference at
         or below the inlet air, ``d[0]``, or no temperature reference) and while the supply reading ``supply_now_c``
-        is more than ``ready_step_c`` below the reference (a step larger than the one the floor readies for is
-        being served: the heater's heat goes to the air, not into the body)."""
+        is more than :data:`READY_BAND_C` below the reference (a step up is being served: the heater's heat goes to
+        the air, not into the body; the floor readies the box at rest for the next one)."""
         if supply_ref_c is None or not supply_ref_c > float(d[0]):
             return None
-        if supply_now_c is not None and supply_ref_c - float(supply_now_c) > self.step_c:
+        if supply_now_c is not None and supply_ref_c - float(supply_now_c) > READY_BAND_C:
             return None
         u = np.array(u_phys, float)
         u[self.i_valve_a] = valve_a_cap_pct
         t_core, core_share, density = (float(v) for v in self._core(x_phys, u, d, p))
         flow = float(self._flow(x_phys, u, d, p)) if flow_ref_m3s is None else float(flow_ref_m3s)
-        m_core = core_share * density * flow
+        floor = self._body_for_outlet(t_core, core_share * density * flow, supply_ref_c + self.step_c)
+        return float(min(floor, self.pb.params.ptc_knee_c))
+
+    def _body_for_outlet(self, air_in_c: float, mass_flow_kgs: float, outlet_c: float) -> float:
+        """The body temperature at which the heater's outlet air is ``outlet_c`` (the outlet balance of
+        :func:`hvac_mpc.models.heater.air_outlet_c` solved for the body)."""
         prm = self.pb.params
-        g = max(m_core, 1e-4) * prm.cp_air_j_per_kgk
-        floor = t_core + (supply_ref_c + self.step_c - t_core) * (prm.heater_ka_w_per_k + g) / prm.heater_ka_w_per_k
-        return float(min(floor, prm.ptc_knee_c))
+        g = max(mass_flow_kgs, 1e-4) * prm.cp_air_j_per_kgk
+        return air_in_c + (outlet_c - air_in_c) * (prm.heater_ka_w_per_k + g) / prm.heater_ka_w_per_k
 
     def scaled(self, floor_c: float | None) -> tuple[float, np.ndarray] | None:
         """The floor in the scaled heater state and the penalty's weight per stage 1..N (scaled units: weight

@@ -43,7 +43,7 @@ def test_floor_is_the_heater_outlet_balance_solved_for_the_body(controller):
     assert 30.0 < floor < pb.params.ptc_knee_c  # well above the body a warm-up at 9 C leaves (26 C, the module)
 
 
-def test_floor_is_held_below_the_ptc_knee_and_off_outside_the_heating_duty_and_in_a_larger_step(controller):
+def test_floor_is_held_below_the_ptc_knee_and_off_outside_the_heating_duty_and_in_a_step_up(controller):
     pb = controller.problem
     ready = HeaterReadiness(pb)
     x = np.array([1.0, 5.0, 30.0, 9.0])
@@ -52,9 +52,10 @@ def test_floor_is_held_below_the_ptc_knee_and_off_outside_the_heating_duty_and_i
     assert ready.floor_c(x, u, d, pb.model.p_default, 20.0, 40.0 / 3600.0, 90.0) == pb.params.ptc_knee_c
     assert ready.floor_c(x, u, d, pb.model.p_default, 5.0, 40.0 / 3600.0, 90.0) is None  # not above the inlet
     assert ready.floor_c(x, u, d, pb.model.p_default, None, 40.0 / 3600.0, 90.0) is None
-    # a step larger than the one readied for is being served: the reading 4 K below the reference, out; 2 K, in
-    assert ready.floor_c(x, u, d, pb.model.p_default, 12.0, 40.0 / 3600.0, 90.0, supply_now_c=8.0) is None
-    assert ready.floor_c(x, u, d, pb.model.p_default, 12.0, 40.0 / 3600.0, 90.0, supply_now_c=10.0) is not None
+    # a step up is being served: the reading 1 K below the reference, out; 0.3 K below or above it, in
+    assert ready.floor_c(x, u, d, pb.model.p_default, 12.0, 40.0 / 3600.0, 90.0, supply_now_c=11.0) is None
+    assert ready.floor_c(x, u, d, pb.model.p_default, 12.0, 40.0 / 3600.0, 90.0, supply_now_c=11.7) is not None
+    assert ready.floor_c(x, u, d, pb.model.p_default, 12.0, 40.0 / 3600.0, 90.0, supply_now_c=13.0) is not None
     assert ready.scaled(None) is None
 
 
@@ -84,6 +85,10 @@ def test_the_readiness_keeps_the_body_warm_through_the_warm_up_on_the_recirculat
     """The independent box drawing 15 % of cabin air behind the inlet sensor, the MPC with the ``box_in`` term
     identification finds (-0.15 T_in + 3.6 C, thesis parameters otherwise), the quick winter_heating_steps: the
     warm-up holds 9 C with the air entering at about 9.05 C, and without the readiness the MPC cools through the
+    core with the heater off, the body 33.1 -> 26.3 C at the step (measured), 143.1 C s. With the readiness (0.5
+    per K^2 s) the body is above 40 C at the step (measured 43.2 C) and the IAE a quarter (measured 34.8 C s)."""The independent box drawing 15 % of cabin air behind the inlet sensor, the MPC with the ``box_in`` term
+    identification finds (-0.15 T_in + 3.6 C, thesis parameters otherwise), the quick winter_heating_steps: the
+    warm-up holds 9 C with the air entering at about 9.05 C, and without the readiness the MPC cools through the
     core with the heater off, the body 33.1 -> 26.3 C at the step (measured), 138.0 C s. With the readiness (0.5
     per K^2 s) the body is above 40 C at the step (measured 43.5 C) and the IAE less than half (measured 49.1)."""
     term = DiscoveredTerm("recirculation", "box_in", ("inlet", "one"), (-0.15, 3.6))
@@ -97,7 +102,7 @@ def test_the_readiness_keeps_the_body_warm_through_the_warm_up_on_the_recirculat
     body_on, iae_on = run(0.5)
     assert body_off < 28.0, body_off  # the warm-up spends the body's heat
     assert body_on > 40.0, body_on
-    assert iae_on < 0.5 * iae_off, (iae_on, iae_off)
+    assert iae_on < 0.4 * iae_off, (iae_on, iae_off)
 
 
 @pytest.mark.parametrize("field, value", [("heater_ready_per_c2", -0.1), ("ready_step_c", 31.0),
