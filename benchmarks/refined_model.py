@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -62,15 +62,36 @@ def _without(settings: MpcSettings, effects: Sequence[str]) -> MpcSettings:
         ocp, model_effects=tuple(e for e in ocp.model_effects if e not in effects)))
 
 
+def with_overrides(settings: MpcSettings, overrides: Mapping[str, Any] | None = None,
+                   weights: Mapping[str, float] | None = None) -> MpcSettings:
+    """``settings`` with fields of :class:`MpcSettings` (``overrides``) and of its cost weights (``weights``,
+    :class:`~hvac_mpc.mpc.ocp.Weights`) replaced; a name that is not a field raises ValueError naming it."""
+    def _replace(obj, values, what):
+        unknown = sorted(set(values) - {f.name for f in dataclasses.fields(obj)})
+        if unknown:
+            raise ValueError(f"unknown {what} field(s) {unknown}")
+        return dataclasses.replace(obj, **values)
+    if overrides:
+        settings = _replace(settings, {k: tuple(v) if isinstance(v, list) else v for k, v in overrides.items()},
+                            "MpcSettings")
+    if weights:
+        ocp = settings.ocp
+        settings = dataclasses.replace(settings, ocp=dataclasses.replace(
+            ocp, weights=_replace(ocp.weights, weights, "Weights")))
+    return settings
+
+
 def compare(model_path: str | Path, variant: str, scenarios: Sequence[Scenario], seed: int = 0,
-            attribution: bool = False, deadline_s: float | None = None) -> dict:
+            attribution: bool = False, deadline_s: float | None = None,
+            overrides: Mapping[str, Any] | None = None, weights: Mapping[str, float] | None = None) -> dict:
     """Nominal against refined MPC per scenario: IAEs and the ratio refined / nominal (``total["run_ratio"]``: the
     same over whole runs, warm-up included, :func:`closed_loop_iae`). ``attribution`` adds
     both MPCs without the effects the file says the box lacks (``absent``, e.g. the controller's own
     ``bypass_flow``): ``nominal_as_identified`` and ``refined_as_identified``, what separates the file's content
     from the controller's own structure (docs/identification.md, "The refined model in the controller").
     ``deadline_s``: both MPCs' feedback deadline (None: :data:`DETERMINISTIC_DEADLINE_S`, so a loaded machine's
-    slow steps do not go to the fallback and the comparison depends on the models alone)."""
+    slow steps do not go to the fallback and the comparison depends on the models alone). ``overrides`` and
+    ``weights``: both MPCs' settings and cost weights changed alike (:func:`with_overrides`)."""
     refined = load_model(model_path)
     out = {"model_file": str(model_path), "plant_variant": variant, "seed": seed,
            "effects": list(refined.effects), "absent": list(refined.absent),
@@ -78,8 +99,9 @@ def compare(model_path: str | Path, variant: str, scenarios: Sequence[Scenario],
            "transport_delay_s": refined.transport_delay_s, "scenarios": {}}
     runs = ("nominal", "refined") + (("nominal_as_identified", "refined_as_identified") if attribution else ())
     for sc in scenarios:
-        settings = MpcSettings(initial_command=sc.initial_command,
-                               deadline_s=DETERMINISTIC_DEADLINE_S if deadline_s is None else float(deadline_s))
+        settings = with_overrides(MpcSettings(
+            initial_command=sc.initial_command,
+            deadline_s=DETERMINISTIC_DEADLINE_S if deadline_s is None else float(deadline_s)), overrides, weights)
         bare = _without(settings, refined.absent)
         ctrl = {"nominal": lambda: MpcController(settings=settings),
                 "refined": lambda: MpcController(settings=settings, model=refined),

@@ -57,6 +57,7 @@ from .estimator import DisturbanceEkf, EkfSettings, finite_or
 from .priorities import ReachableFlow, flow_weight_factor
 from .ocp import HEATING_CMD_W, HeaterOffBound, InvalidSettings, OcpSpec, TrackingProblem, check_flag, check_number, trap_cap_pct
 from hvac_mpc.contract import InvalidReference, Reference
+from .readiness import HeaterReadiness
 from .rti_osqp import RtiOsqpSolver, SolveResult
 from .temperature_reach import SaturatedTemperature
 
@@ -384,6 +385,7 @@ class MpcController:
                                    changes_deferred=s.reach_changes_deferred and s.reach_deferred
                                    ) if s.priorities else None
         self.heater_bound = HeaterOffBound(self.params, s.dt_s)
+        self.readiness = HeaterReadiness(pb) if pb.spec.weights.heater_ready_per_c2 > 0 else None
         self._heater_inlet = _heater_inlet_function(pb.model)
         self._heater_body_rate = _heater_body_rate_function(pb.model)
         self.temp_reach = SaturatedTemperature(pb.i_heater_cmd, pb.i_valve_a, s.dt_s)
@@ -515,6 +517,7 @@ class MpcController:
         w_y = pb.heating_weights(pb.output_weights(ref), heating=pb.heating(self.u_prev))
         self._flow_factor = self._flow_weight_factor(y_ref, d)
         w_y[1:5] *= self._flow_factor
+        self._set_readiness(ref, d, cap, measurement)
         # --- feedback
         if not self._prepared_for_next:
             self.solver.reset()
@@ -614,6 +617,16 @@ class MpcController:
                                                     pb.rate_phys * pb.dt_s)
         w = pb.w_y_full
         return min(factor, flow_weight_factor(error_m3s, w[1], w[0], trade_c))
+
+    def _set_readiness(self, ref: Reference, d: np.ndarray, cap: float, measurement: Measurement) -> None:
+        """The heater readiness's floor for the QPs of this step (:mod:`.readiness`; a setting, off by default)."""
+        if self.readiness is None:
+            return
+        reading = finite_or(getattr(measurement, "supply_temp_c", None), float("nan"))
+        floor = self.readiness.floor_c(self.ekf.x, self.u_prev, d, self._prediction_parameters(),
+                                       ref.supply_temp_c, ref.volume_flow_m3s, cap,
+                                       None if not np.isfinite(reading) else reading)
+        self.solver.readiness_target = self.readiness.scaled(floor)
 
     def _use_estimated_parameters(self) -> None:
         """The prediction (the next QPs) and the reachable-flow check use the learned bypass-flow exponent

@@ -160,6 +160,10 @@ class Weights:
     ASSUMPTION: heat in the body is worth what the heater's energy costs at that power; 240 W plus a blower's
     100 W is the heater-limited heating where stored heat decides a step up. Off by default (measured, docs/identification.md 'A value on the heat stored in the
     heater body').
+
+    ``heater_ready_per_c2`` (per K^2 per s; 0: off): the heater readiness, a one-sided penalty on the predicted
+    heater body below a floor while the reference is above the inlet air (:mod:`hvac_mpc.mpc.readiness`; the
+    floor from ``OcpSpec.ready_step_c``). Off by default (measured, docs/identification.md 'Heater readiness').
     """
 
     supply_temp: float = 5.0
@@ -174,6 +178,7 @@ class Weights:
     slack_l2_per_c2: float = 1.0
     valve_a_heating_per_pct2: float = 3e-5
     body_heat_power_w: float = 0.0
+    heater_ready_per_c2: float = 0.0
 
     def validate(self, prefix: str = "weights") -> None:
         for f in fields(self):
@@ -231,6 +236,9 @@ class OcpSpec:
             enough: the first stage's flow, which the command applied sets, is what the box sees.
         heater_on_w: heater command (W) from which the floor holds in full; below it the floor is
             ``heater_min_flow_m3s * command / heater_on_w``.
+        ready_step_c: the step up of the supply temperature (K) the heater body is kept ready to serve at once
+            while the reference asks for heat (:mod:`hvac_mpc.mpc.readiness`; only with
+            ``Weights.heater_ready_per_c2`` above 0). ASSUMPTION: 3 K, the steps of the winter scenario.
     """
 
     stage_durations_s: tuple[float, ...] = DEFAULT_STAGES_S
@@ -248,6 +256,7 @@ class OcpSpec:
     ptc_limit: bool = True
     heater_min_flow_m3s: float | None = 0.005
     heater_on_w: float = 10.0
+    ready_step_c: float = 3.0
 
     @property
     def temperature_sensor_share(self) -> float:
@@ -286,6 +295,7 @@ class OcpSpec:
         if self.heater_min_flow_m3s is not None:
             check_number(f"{prefix}.heater_min_flow_m3s", self.heater_min_flow_m3s, 0.0, 0.05)
         check_number(f"{prefix}.heater_on_w", self.heater_on_w, 0.0, 1000.0, lo_open=True)
+        check_number(f"{prefix}.ready_step_c", self.ready_step_c, 0.0, 30.0)
         check_flag(f"{prefix}.ptc_limit", self.ptc_limit)
         unknown = sorted(set(self.model_effects) - set(MODEL_EFFECTS))
         if unknown:

@@ -263,6 +263,12 @@ class RtiOsqpSolver:
         P.finalise()
         self.P = P
         self._P_const = P.assemble(self._P_const_ids, self._P_const_vals)
+        # the heater body's diagonal entries of stages 1..N (the heater readiness, mpc/readiness.py)
+        j_body = int(np.flatnonzero((iu[0] == pb.i_heater) & (iu[1] == pb.i_heater))[0])
+        self._P_body_slots = P.slot[self._P_var[1:, j_body]]
+        self._i_body = (np.arange(1, N + 1) * nx + pb.i_heater)
+        self.readiness_target = None  # (scaled floor, weights of stages 1..N) while the readiness counts
+        self._ready_q = None
 
         # constraints
         rows = 0
@@ -603,11 +609,29 @@ class RtiOsqpSolver:
         """Put a linearisation's values into OSQP and keep what the feedback needs (stage 0's flow-floor
         row coefficients among them)."""
         self._floor_a0 = Ax[self._A_floor_slots[:self.nz_stage]]
+        Px = self._with_readiness(X, Px)
         self._core.update_matrices(Px, Ax)
         self._workspace_used = True
         self.l[self._r_dyn_rows] = self.u[self._r_dyn_rows] = data["e_dyn"]
         self._prepared = dict(data=data, d=d.copy(), w_y=w_y.copy(), ref=np.array(ref, float))
         self._z_lin = np.concatenate([X.ravel(), U.ravel(), S])
+
+    def _with_readiness(self, X, Px):
+        """``Px`` with the heater readiness (:mod:`.readiness`) on the stages where the plan ``X`` linearised at
+        has the body below the floor: ``w (x - x_f)^2`` there (Hessian ``2 w``, gradient ``-2 w x_f``, kept for
+        :meth:`_q`); ``Px`` itself when off."""
+        self._ready_q = None
+        target = self.readiness_target
+        if target is None:
+            return Px
+        x_f, w = target
+        active = np.where(X[1:, self.pb.i_heater] < x_f, w, 0.0)
+        if not active.any():
+            return Px
+        Px = np.array(Px, float)
+        Px[self._P_body_slots] += 2.0 * active
+        self._ready_q = -2.0 * active * x_f
+        return Px
 
     def _floor_bounds(self, d: np.ndarray, x0: np.ndarray, u_lo: np.ndarray, u_hi: np.ndarray) -> None:
         """Lower bounds of the floor rows with the flow offset's change since the linearisation. Stage 0's
@@ -759,8 +783,12 @@ class RtiOsqpSolver:
         if on != self._q_body_on:
             self._qp_gradient.set_fixed(7, self._q_heating if on else self._q_const)
             self._q_body_on = on
-        return self._qp_gradient(data["gw2"], data["c_base"], data["y"], ref, dd,
-                                 self._z_lin[self.iu0:self.is0], u_prev)[0]
+        q = self._qp_gradient(data["gw2"], data["c_base"], data["y"], ref, dd,
+                              self._z_lin[self.iu0:self.is0], u_prev)[0]
+        if self._ready_q is not None:
+            q = np.array(q, float)
+            q[self._i_body] += self._ready_q
+        return q
 
 
 class _OsqpCore(osqp_embedded.TwoPassSolve):

@@ -5,6 +5,7 @@ in the exact cost, the globalised step's merit and the QP."""
 import numpy as np
 import pytest
 
+from heater_body_helpers import body_at_step_and_iae
 from hvac_mpc.contract import Reference
 from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
 from hvac_mpc.mpc.ocp import InvalidSettings, OcpSpec, Weights
@@ -102,31 +103,9 @@ def test_with_the_value_the_mpc_holds_the_body_warmer_for_a_step_up():
     holding 9 C with the heater on, the MPC with the value runs more heater and less air through it, so the body
     is warmer when the reference steps up at 30 s (measured: 48.2 against 46.8 C) and the thermocouple follows the
     step sooner (31.4 against 34.2 C s over the scored part)."""
-    from hvac_mpc.benchmarks import scenarios
-    from hvac_mpc.benchmarks.simulate import DETERMINISTIC_DEADLINE_S, plant_seed
-    from hvac_mpc.mismatch import make_plant
-
-    sc = scenarios.select(["cabin_warmup_winter"], quick=True)[0]
-    step_s = int(sc.metrics_start_s)
-
     def run(power_w):
-        settings = MpcSettings(initial_command=sc.initial_command, deadline_s=DETERMINISTIC_DEADLINE_S,
-                               ocp=OcpSpec(weights=Weights(body_heat_power_w=power_w)))
-        ctrl = MpcController(settings=settings)
-        plant = make_plant("nominal", seed=plant_seed(0, sc.seed), inlet_temp_c=sc.inlet_temp_c,
-                           chiller_setpoint_c=sc.chiller_setpoint_c, initial_command=sc.initial_command)
-        ctrl.reset(sc.initial_command)
-        iae, body_at_step = 0.0, None
-        for k in range(int(sc.duration_s)):
-            r = sc.reference_at(float(k))
-            m, truth = plant.read(), plant.truth()
-            if k == step_s:
-                body_at_step = truth["heater_temp_c"]
-            if k >= step_s:
-                iae += abs(truth["supply_temp_c"] - r.supply_temp_c)
-            plant.apply(np.asarray(ctrl.step(m, r).command.vector(), float))
-            plant.advance()
-        return body_at_step, iae
+        return body_at_step_and_iae("cabin_warmup_winter", "nominal",
+                                    MpcSettings(ocp=OcpSpec(weights=Weights(body_heat_power_w=power_w))))
 
     body_plain, iae_plain = run(0.0)
     body_priced, iae_priced = run(POWER_W)
