@@ -6,11 +6,14 @@ Budget: about 15 s on a loaded two-core machine (one build of the generated solv
 closed loops with CasADi's interpreter).
 """
 
+import dataclasses
+
 import numpy as np
 import osqp
 import pytest
 
 from hvac_mpc.benchmarks import qp_dense, solve_time
+from hvac_mpc.benchmarks.simulate import DETERMINISTIC_DEADLINE_S
 from hvac_mpc.models import Parameters
 from hvac_mpc.mpc import codegen, osqp_embedded
 from hvac_mpc.mpc.mpc_controller import InvalidSettings, MpcController, MpcSettings
@@ -38,7 +41,8 @@ def recorded(cache):
 
 
 def _loop(settings: MpcSettings, params: Parameters | None = None, steps: int = STEPS):
-    ctrl = MpcController(params, settings)
+    # the deadline lifted: on a loaded machine a missed wall-clock deadline is the load's, not the solver's
+    ctrl = MpcController(params, dataclasses.replace(settings, deadline_s=DETERMINISTIC_DEADLINE_S))
     loop = solve_time.Loop(ctrl, seed=1)
     rows = [loop.step(k) for k in range(steps)]
     assert all(r.stats["fallback"] is None for r in rows)
