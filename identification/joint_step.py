@@ -22,8 +22,8 @@ from hvac_mpc.models.parameters import Parameters
 
 from .candidates import Candidate
 from .fitting import Fit, Fitter, FreeParam
-from .selection import (BIAS_MIN, FIT_ERRORS, FORWARD_MIN, STRUCTURE_MIN, CandidateResult, gains, output_share,
-                        record_own, supply_ratio)
+from .selection import (BIAS_MIN, FIT_ERRORS, FORWARD_MIN, SAME_RESIDUAL_CORR, STRUCTURE_MIN, CandidateResult,
+                        correction_correlation, gains, output_share, record_own, supply_ratio)
 from .simulator import OutputPost
 from .workers import cpu_seconds, fork_map
 
@@ -210,7 +210,27 @@ def joint_step(fitter: Fitter, current: Fit, free: list[FreeParam], accepted: li
         return current, free, accepted, None, record
     notes.extend(log)
     notes.append(verdict)
+    notes.extend(_replaced_terms(fitter, current, refit, fit, record))
     return fit, s.free, _kept(fitter, accepted, left, refit, fit, shares, rnd), discovered, record
+
+
+def _replaced_terms(fitter: Fitter, current: Fit, refit: Fit, fit: Fit, record: dict) -> list[str]:
+    """The forward path's discovered terms the joint model replaces (a term the pair step kept with its partner, chosen
+    on the residual of a model without that partner), in words: whether they and the joint model's term explain the
+    same residual (their models' held-out corrections against the joint fit without a term, ``refit``, correlate at
+    ``SAME_RESIDUAL_CORR`` or more). ``record`` gets ``replaced_terms``."""
+    if not current.terms:
+        return []
+    corr = correction_correlation(fitter, current, fit, refit)
+    record["replaced_terms"] = [{"name": t.name, "formula": t.formula(), "location": t.location,
+                                 "correlation": corr} for t in current.terms]
+    new = record["term"] or "no term"
+    same = (f"explain the same residual ({new} and it, correlation {corr:.2f} of their models' held-out corrections "
+            f"against the effects refit together without a term); this log cannot tell them apart, and the joint "
+            f"model fits the held-out rows better" if corr >= SAME_RESIDUAL_CORR else
+            f"do not explain the same residual (correlation {corr:.2f}); the joint model fits the held-out rows better")
+    return [f"joint refit: replaces term {t.formula()} (found on the residual of a model without the effects kept "
+            f"now): the two {same}" for t in current.terms]
 
 
 def _refit(fitter: Fitter, current: Fit, free: list[FreeParam], members: list[_Member], base: Parameters,
@@ -263,6 +283,11 @@ def _kept(fitter: Fitter, accepted: list[CandidateResult], left: list[_Member], 
             a.reason = (f"eliminated in the joint refit: with the others in, taking it out costs "
                         f"{100 * shares.get(a.name, float('nan')):.0f} % of the held-out structure of {a.primary_output}")
     out = [a for a in accepted if a.name in names]
+    for a in out:  # a term it was kept with is not in the joint model
+        if a.jointly_with.startswith("term "):  # its step: the joint fit without the term, the new term its own
+            a.reason += (f"; kept in the joint refit without the term: taking it out costs "
+                         f"{100 * shares[a.name]:.0f} % of the held-out structure of {a.primary_output or 'supply_temp_c'}")
+            a.jointly_with, a.fit = "", refit
     old = {a.name for a in out}
     for m in left:
         if m.name in old:

@@ -26,13 +26,15 @@ Procedure (stated in the report):
    the forward step's gates (its parameters counted together, Bonferroni over the pairs screened) and in which each
    member removes ``FORWARD_MIN`` of the held-out structure the other leaves alone is kept; the report says that
    its members were identified only jointly.
-8. Joint refit (:mod:`.joint_step`): when no pair was kept and the supply temperature still carries held-out
-   structure, the kept effects and the last round's ``JOINT_CANDIDATES`` best candidates (by training cost removed)
+8. Joint refit (:mod:`.joint_step`): when no pair was kept, or the pair kept a discovered term (chosen on the residual
+   of a model without its partner), and the supply temperature still carries held-out structure, the kept effects and the last round's ``JOINT_CANDIDATES`` best candidates (by training cost removed)
    are refit all at once without the discovered terms, eliminated backward (each must remove ``FORWARD_MIN`` of its
    primary output's held-out structure with the others in, ``BIAS_MIN`` an offset, at most ``max_effects`` left),
    and discovery runs on what is left; that model replaces the forward path's if it removes ``FORWARD_MIN`` of its
    held-out supply structure and lowers the total held-out error.
-   Then a backward pass re-tests every kept effect.
+   Then a backward pass re-tests every kept effect: dropped if taking it out costs less than ``FORWARD_MIN`` of its
+   primary output's held-out structure, or if its own change of the held-out readings (the other parameters fixed)
+   is below ``CONTRIBUTION_MIN`` of the noise variance (a magnitude the procedure cannot tell from zero).
 9. Whatever structure remains is located (:mod:`.localise`) instead of being named.
 """
 
@@ -58,8 +60,9 @@ from .fitting import FLOW_PARAMS, IDENTIFIED_REL_SE, NOMINAL_FREE, Fit, Fitter, 
 from .log_data import LogData
 from .joint_step import joint_step
 from .pair_step import pair_step
-from .selection import (ALPHA, BIAS_MIN, DISCOVERY_ALTERNATIONS, FIT_ERRORS, FORWARD_MIN, STRUCTURE_MIN,
-                        CandidateResult, bic_change, gains, output_share, record_own, supply_ratio)
+from .selection import (ALPHA, BIAS_MIN, CONTRIBUTION_MIN, DISCOVERY_ALTERNATIONS, FIT_ERRORS, FORWARD_MIN,
+                        SAME_RESIDUAL_CORR, STRUCTURE_MIN, CandidateResult, bic_change, contribution,
+                        correction_correlation, gains, output_share, record_own, supply_ratio)
 from .simulator import OutputPost, Simulator, shift
 from .workers import cpu_seconds, fork_map
 
@@ -80,8 +83,6 @@ POLISH = 2
 #: Places of a discovered term refit and tested, best held-out prefix first (a place that wins on the linear score
 #: can lose after the whole-model refit; the next one is tried).
 PLACES_TRIED = 2
-#: Correlation of two candidates' held-out corrections above which they explain the same residual.
-SAME_RESIDUAL_CORR = 0.9
 #: Largest transport delay scanned, s.
 MAX_DELAY_S = 30.0
 
@@ -281,11 +282,6 @@ def check_timing(fitter_log: LogData, base: Parameters, base_effects, notes: lis
     return s
 
 
-def _holdout_correction(fitter: Fitter, fit: Fit, current: Fit) -> np.ndarray:
-    d = (fit.y - current.y) / fitter.sigma
-    return np.where(np.isfinite(d), d, 0.0)[fitter.log.holdout].ravel()
-
-
 def _score_round(fitter: Fitter, current: Fit, current_free, lib, rnd: int, say, skip=()) -> list[CandidateResult]:
     """Score every applicable candidate jointly against ``current``."""
     log = fitter.log
@@ -467,12 +463,10 @@ def _forward(fitter: Fitter, nominal: Fit, free: list[FreeParam], lib, max_effec
         best.status = "accepted"
         best.reason = (f"removes {100 * best.explained_holdout:.0f} % of the held-out structure, information "
                        f"criterion {best.bic_change:+.1f}, p = {best.p_value:.2g}")
-        d_best = _holdout_correction(fitter, best.fit, current)
         for r in eligible:
             if r is best or r.reason:
                 continue
-            d = _holdout_correction(fitter, r.fit, current)
-            corr = float(np.dot(d, d_best) / max(np.linalg.norm(d) * np.linalg.norm(d_best), 1e-300))
+            corr = correction_correlation(fitter, r.fit, best.fit, current)
             r.same_as = best.name if corr >= SAME_RESIDUAL_CORR else ""
             if r.same_as:
                 r.reason = (f"explains the same residual as {best.name} (correlation of their held-out corrections "
@@ -495,7 +489,10 @@ def _forward(fitter: Fitter, nominal: Fit, free: list[FreeParam], lib, max_effec
 def _backward(fitter: Fitter, current: Fit, free: list[FreeParam], accepted: list[CandidateResult], lib,
               base: Parameters, quick: bool, say, notes: list[str]) -> tuple[Fit, list[FreeParam]]:
     """Re-test each kept effect with the others in (the other effects and the discovered terms): refit
-    without it; drop it if the held-out error rises by less than FORWARD_MIN of the structure it leaves.
+    without it; drop it if the held-out error rises by less than FORWARD_MIN of the structure it leaves, or if its
+    own change of the held-out readings, the other parameters fixed (:func:`~.selection.contribution`), is below
+    ``CONTRIBUTION_MIN``: a fitted magnitude the procedure cannot tell from zero (an exponent of -0.006 that the
+    held-out share, measured on a residual at the noise level, kept).
     A lone effect is re-tested too when a term came in after it: the term may explain what it stood in for."""
     if len(accepted) + len(current.terms) < 2:
         return current, free
@@ -506,18 +503,25 @@ def _backward(fitter: Fitter, current: Fit, free: list[FreeParam], accepted: lis
         fit_wo = fitter.fit(effects, p, free_wo, post, max_nfev=SCREEN_NFEV, terms=current.terms)
         share = output_share(fitter, fit_wo, current, acc.primary_output or "supply_temp_c")
         acc.backward_share = float(share)
-        if share < FORWARD_MIN:
+        # the refit's start: the same parameters without the effect (a run the simulator keeps)
+        acc.contribution = contribution(fitter, current, fitter.evaluate(effects, p, post, terms=current.terms))
+        if share < FORWARD_MIN or acc.contribution < CONTRIBUTION_MIN:
             acc.status = "removed"
             acc.reason = (f"removed in the backward pass: with the other effects in, taking it out raises the "
                           f"held-out error of {acc.primary_output} by {100 * share:.0f} % of its structure "
-                          f"(needs {100 * FORWARD_MIN:.0f} %)")
-            notes.append(f"backward pass: {acc.name} removed ({100 * share:.0f} % once the others are in)")
+                          f"(needs {100 * FORWARD_MIN:.0f} %)" if share < FORWARD_MIN else
+                          f"removed in the backward pass: its own change of the held-out readings, the other "
+                          f"parameters fixed, is {acc.contribution:.3f} times the noise variance (mean square, on the "
+                          f"output it moves most), below the {CONTRIBUTION_MIN:.1f} the procedure can tell from zero")
+            notes.append(f"backward pass: {acc.name} removed ({100 * share:.0f} % once the others are in; its own "
+                         f"change of the held-out readings {acc.contribution:.3f} times the noise variance)")
             accepted.remove(acc)
             current, free = fit_wo, free_wo
             current.free = tuple(fp.name for fp in free)
         else:
             notes.append(f"backward pass: {acc.name} kept (taking it out costs {100 * share:.0f} % of the held-out "
-                         "structure)")
+                         f"structure; its own change of the held-out readings {acc.contribution:.2f} times the noise "
+                         "variance)")
     return current, free
 
 
@@ -716,7 +720,7 @@ def identify(log: LogData, base: Parameters | None = None, base_effects: Iterabl
             say, notes)
         accepted += pair_kept
         discovered = pair_term or discovered
-        open_round = None if pair_kept or pair_term else open_round  # a pair kept: the joint refit is not needed
+        open_round = joint_after_pairs(open_round, pair_kept, pair_term)
     current.extra.pop("open_round", None)  # the last round's fits: not kept alive in the final model
     clock.lap("pairs")
     joint_record = None
@@ -729,6 +733,8 @@ def identify(log: LogData, base: Parameters | None = None, base_effects: Iterabl
     _drop_removed_partners(accepted, discovered)
     clock.lap("candidates")
     final = current
+    for a in accepted:  # the final model's values (later steps refit them with the others)
+        a.params = {k: float(final.p[fitter.names.index(k)]) for k in a.params}
     diag_after = diag_before if final is nominal else diagnose(fitter, final)
     localisation = []
     after_struct = diag_after["structure_holdout"]
@@ -756,6 +762,15 @@ def identify(log: LogData, base: Parameters | None = None, base_effects: Iterabl
     res.pairs = pair_records
     res.joint = joint_record
     return res
+
+
+def joint_after_pairs(open_round, pair_kept: list, pair_term: dict | None):
+    """The last round's results the joint refit (procedure step 8) starts from after the pair step: none when the pair
+    step kept two library effects (the joint refit is not needed); the round when it kept nothing, or an effect with a
+    discovered term: that term was chosen on the residual of a model without its partner (it lost its refit there),
+    so it may stand in for what the library explains once the partner is in, and the joint refit re-tests the effects
+    without it and runs discovery on their residual."""
+    return None if pair_kept and not pair_term else open_round
 
 
 def _keep_unidentified(params: Parameters, base: Parameters, confidence: list[dict], notes: list[str]) -> Parameters:

@@ -20,6 +20,7 @@ from .diagnostics import regressors
 from .fitting import IDENTIFIED_REL_SE
 from .model_file import write_model_file
 from .pipeline import ALPHA, FORWARD_MIN, POLISH, SAME_RESIDUAL_CORR, STRUCTURE_MIN, IdentificationResult
+from .selection import CONTRIBUTION_MIN
 
 UNITS = {"supply_temp_c": "C", "volume_flow_m3s": "m3/s", "heater_outlet_temp_c": "C", "heater_power_w": "W"}
 PLOT_EXTRA = "pip install 'hvac-mpc[plot]'"
@@ -338,12 +339,15 @@ def _markdown(res: IdentificationResult, data: dict, model_name: str) -> list[st
            "added; when the last round kept nothing and structure remains, pairs of its best candidates and of the "
            "discovered terms that lost their refit are screened jointly (one linearised step each) and the best "
            "refit, a pair kept on the same gates if each member also earns its share with the other in (effects "
-           "that mask each other, identified only together); when no pair was kept and the supply temperature "
+           "that mask each other, identified only together); when no pair was kept, or the pair kept a discovered "
+           "term (chosen on the residual of a model without its partner), and the supply temperature "
            "stays structured, the kept effects and the last round's best candidates are refit all at once without "
            "the discovered terms, eliminated backward (each must earn its share with the others in) and discovery "
            "runs again, that model replacing the forward path's if it removes the same share of the held-out supply "
            "structure the forward path left and lowers the total held-out error (several effects that mask one "
-           "another); then a backward pass that re-tests each kept effect with the others in.",
+           "another); then a backward pass that re-tests each kept effect with the others in (dropped if taking it out "
+           "costs less than the same share, or if its own change of the held-out readings, the other parameters "
+           f"fixed, is below {CONTRIBUTION_MIN:.1f} of the noise variance: below what the procedure calls structure).",
            "5. Whatever structure remains is located instead of being named: the residual is regressed on each "
            "model equation's drive, on every logged signal (a missing input dependence, e.g. on a column the model "
            "does not use) and on their products; the terms that also hold on the held-out rows name the equation "

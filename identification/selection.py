@@ -21,6 +21,14 @@ STRUCTURE_MIN = 1.1
 DISCOVERY_ALTERNATIONS = 2
 #: Share of the held-out structure a forward step must remove (each kept effect, in the backward pass too).
 FORWARD_MIN = 0.1
+#: Correlation of two corrections on the held-out rows above which they explain the same residual.
+SAME_RESIDUAL_CORR = 0.9
+#: Smallest contribution of a kept effect (its own change of the held-out readings, every other parameter fixed, as a
+#: mean square over the noise variance, on the output it moves most) that the procedure can tell from zero: an output
+#: whose held-out error is below ``STRUCTURE_MIN`` times its noise variance carries no structure, so an effect whose
+#: whole contribution would not lift any output to that level, were it the only error, is below the procedure's own
+#: resolution (:func:`contribution`; the backward pass drops it).
+CONTRIBUTION_MIN = STRUCTURE_MIN - 1.0
 #: The same for an output offset with drift (a generic two-parameter correction must earn more).
 BIAS_MIN = 0.3
 
@@ -54,6 +62,7 @@ class CandidateResult:
     bic_change: float = float("nan")      # information criterion with it minus without (training rows)
     same_as: str = ""                     # candidate that explains the same residual
     backward_share: float = float("nan")  # held-out structure its removal costs with the others in
+    contribution: float = float("nan")    # its own change of the held-out readings in the backward pass (contribution)
     jointly_with: str = ""                # accepted only together with this candidate or term (the pair step)
     fit: Fit | None = None
 
@@ -88,6 +97,31 @@ def output_share(fitter: Fitter, worse: Fit, better: Fit, output: str) -> float:
     c_b, _ = fitter.output_costs(better.y)
     excess = c_w[j] - n[j]
     return float((c_w[j] - c_b[j]) / excess) if excess > 0.1 * n[j] else 0.0
+
+
+def holdout_correction(fitter: Fitter, fit: Fit, current: Fit) -> np.ndarray:
+    """What ``fit`` changes against ``current`` on the held-out rows, every output scaled by its noise level
+    (flattened; a missing reading counts 0)."""
+    d = (fit.y - current.y) / fitter.sigma
+    return np.where(np.isfinite(d), d, 0.0)[fitter.log.holdout].ravel()
+
+
+def correction_correlation(fitter: Fitter, a: Fit, b: Fit, current: Fit) -> float:
+    """Correlation of the held-out corrections of ``a`` and of ``b`` against ``current`` (:func:`holdout_correction`):
+    at or above ``SAME_RESIDUAL_CORR`` the two explain the same residual."""
+    da, db = holdout_correction(fitter, a, current), holdout_correction(fitter, b, current)
+    return float(np.dot(da, db) / max(np.linalg.norm(da) * np.linalg.norm(db), 1e-300))
+
+
+def contribution(fitter: Fitter, fit: Fit, without: Fit) -> float:
+    """What an effect contributes to ``fit``: the mean square of the change of the held-out readings it makes
+    (``fit`` against ``without``, the same parameters with the effect taken out), each output over its noise variance,
+    on the output it moves most (compared with ``CONTRIBUTION_MIN``)."""
+    d = (fit.y - without.y) / fitter.sigma
+    ho = d[fitter.log.holdout]
+    counts = np.sum(np.isfinite(ho), axis=0)
+    ms = np.where(counts > 0, np.nansum(ho ** 2, axis=0) / np.maximum(counts, 1), 0.0)
+    return float(np.max(ms)) if ms.size else 0.0
 
 
 def bic_change(fitter: Fitter, new: Fit, current: Fit, q: int, output: str = "supply_temp_c") -> float:

@@ -606,6 +606,13 @@ def test_mpc_with_the_identified_valve_shifts_tracks_the_shifted_box_better(tmp_
     assert split["refined"]["flow_iae_m3"] < 0.5 * split["nominal"]["flow_iae_m3"], split
 
 
+def _assert_cabin_share_at_the_box_inlet(res) -> None:
+    """The one term is the cabin air drawn in at the box inlet, with the box's share (0.15)."""
+    (term,) = res.terms
+    share = dict(zip(term.features, term.coefficients))["cabin_minus_inlet"]
+    assert term.location == "box_in" and share == pytest.approx(0.15, abs=0.03)
+
+
 @pytest.mark.slow
 def test_two_effects_that_mask_each_other_are_found_together(tmp_path):
     """The box draws 15 % cabin air behind the inlet sensor (outside the library), its valve curves act 10 % less
@@ -622,9 +629,7 @@ def test_two_effects_that_mask_each_other_are_found_together(tmp_path):
     joint = next(a for a in res.accepted if a.name == "valve_shift:a")
     assert joint.jointly_with == "term box_inlet_term" and "only jointly" in joint.reason
     assert res.params.valve_a_shift_pct == pytest.approx(10.0, abs=2.0)
-    (term,) = res.terms
-    share = dict(zip(term.features, term.coefficients))["cabin_minus_inlet"]
-    assert term.location == "box_in" and share == pytest.approx(0.15, abs=0.03)
+    _assert_cabin_share_at_the_box_inlet(res)
     e = res.holdout_errors()["supply_temp_c"]
     assert e["rms_after"] < 0.2 * e["rms_before"], e
     from hvac_mpc.identification.report import write_report
@@ -651,9 +656,7 @@ def test_three_effects_that_mask_each_other_are_found_by_the_joint_refit(tmp_pat
     assert res.joint["accepted"] and "bypass_flow" not in res.joint["kept"], res.joint
     assert res.params.valve_a_shift_pct == pytest.approx(10.0, abs=2.0)
     assert res.extras["supply_temp_c_delay_s"] == pytest.approx(3.0, abs=1.0)
-    (term,) = res.terms
-    share = dict(zip(term.features, term.coefficients))["cabin_minus_inlet"]
-    assert term.location == "box_in" and share == pytest.approx(0.15, abs=0.03)
+    _assert_cabin_share_at_the_box_inlet(res)
     e = res.holdout_errors()["supply_temp_c"]
     assert e["rms_after"] <= 0.5 * e["rms_before"], e
     # the effects the joint refit added are one step, the term found after them its own
@@ -682,6 +685,30 @@ def test_the_joint_refit_takes_the_fourth_candidate_by_training_cost(tmp_path):
     assert term.location == "box_in"
     e = res.holdout_errors()["supply_temp_c"]
     assert e["rms_after"] <= 0.5 * e["rms_before"], e
+
+@pytest.mark.slow
+def test_a_pairs_stand_in_term_is_replaced_by_the_recirculation_in_the_joint_refit(tmp_path):
+    """Seed 79 of the same box: the pair step keeps valve a's shift only jointly with a four-feature term on the mixed
+    supply air, a stand-in for the recirculation found on the residual of a model without the shift (0.420 -> 0.194 C).
+    The term was chosen with its partner missing, so the joint refit runs after the pair: the effects refit together
+    without it, discovery then finds the cabin air at the box inlet, the box's 15 %, and the report says which term it
+    replaced and that valve a's shift is no longer kept only jointly."""
+    path = tmp_path / "combo_recirc_delay_valve.csv"
+    simulate_log(path, "combo_recirc_delay_valve", duration_s=7200.0, seed=79)
+    res = identify(load(path), base_effects=DOCUMENTED_EFFECTS)
+    assert {a.name for a in res.accepted} == {"valve_shift:a", "valve_shift:outlets",
+                                              "transport_delay:supply_temp_c"}, res.notes
+    assert [p["status"] for p in res.pairs] == ["accepted"] and "term supply_residual_term" in res.pairs[0]["members"]
+    assert res.joint["accepted"], res.joint
+    (replaced,) = res.joint["replaced_terms"]
+    assert replaced["location"] == "supply_air"
+    valve_a = next(a for a in res.accepted if a.name == "valve_shift:a")
+    assert valve_a.jointly_with == "" and "kept in the joint refit without the term" in valve_a.reason
+    assert res.params.valve_a_shift_pct == pytest.approx(10.0, abs=2.0)
+    _assert_cabin_share_at_the_box_inlet(res)
+    e = res.holdout_errors()["supply_temp_c"]
+    assert e["rms_after"] <= 0.25 * e["rms_before"], e
+
 
 @pytest.mark.slow
 def test_an_effect_a_later_term_explains_is_dropped(tmp_path):

@@ -14,10 +14,11 @@ from hvac_mpc.identification import workers
 from hvac_mpc.identification.candidates import library
 from hvac_mpc.identification.fitting import Fit
 from hvac_mpc.identification.joint_step import joint_step
-from hvac_mpc.identification.pipeline import _same_fit
-from hvac_mpc.identification.selection import CandidateResult
+from hvac_mpc.identification.pipeline import _backward, _same_fit, joint_after_pairs
+from hvac_mpc.identification.selection import CONTRIBUTION_MIN, STRUCTURE_MIN, CandidateResult, contribution
 from hvac_mpc.identification.simulator import OutputPost
 from hvac_mpc.models import Parameters
+from hvac_mpc.models.discovered import DiscoveredTerm
 
 OUTPUTS = ("supply_temp_c",)
 #: Library candidates with effects of their own (the stand-in's cost depends on the effects in a fit).
@@ -45,6 +46,9 @@ class _StandInFitter:
             raise np.linalg.LinAlgError("singular step")
         return self.make(effects, p, post)
 
+
+    def evaluate(self, effects, p, post, free=(), nfev=0, message="", terms=()) -> Fit:
+        return self.make(effects, p, post)
 
     def output_costs(self, y, part="holdout"):
         return np.array([y[0, 0]]), np.array([1.0])
@@ -155,3 +159,73 @@ def test_forked_map_returns_in_order_and_passes_a_workers_error_on():
     with pytest.raises(ValueError, match="task 2"):
         workers.fork_map(_task, 4)
     assert workers._TASK is None  # nothing of the failed map left for the next
+
+
+def test_the_joint_refit_runs_after_a_pair_with_a_term_and_not_after_a_pair_of_effects():
+    round_ = [CandidateResult("bypass_flow", "model", 1, "rejected")]
+    pair = [CandidateResult("valve_shift:a", "parameter", 2, "accepted", jointly_with="term supply_residual_term")]
+    assert joint_after_pairs(round_, [], None) is round_  # no pair kept
+    assert joint_after_pairs(round_, pair, {"accepted": True, "jointly_with": "valve_shift:a"}) is round_
+    assert joint_after_pairs(round_, pair + pair, None) is None  # two library effects kept together
+
+
+def test_a_pairs_term_replaced_by_the_joint_model_is_said_and_its_partner_kept_without_it():
+    """The forward path kept ``trapped_air`` only jointly with a discovered term (the pair step); the joint refit,
+    without the term, keeps ``trapped_air`` and ``motor_asymmetry``: the partner no longer says it was kept only
+    jointly, its step is the joint fit (with the effect the joint refit added), and the replaced term is named."""
+    fitter = _StandInFitter({"motor_asymmetry": 4.0, "trapped_air": 3.0, "bypass_flow": 0.01})
+    fitter.sigma = np.array([1.0])
+    base = Parameters()
+    p0 = np.array(base.vector(), dtype=float)
+    post = OutputPost(OUTPUTS, np.array([0.0, 1.0]))
+    lib = library(OUTPUTS)
+    term = DiscoveredTerm("supply_residual_term", "supply_air", ("mix", "one"), (-0.1, 1.0))
+    with_term = fitter.make(frozenset({"trapped_air"}), p0, post)
+    current = Fit(with_term.effects, p0, post, (), np.array([[4.5]]), None, 4.5, 4.5, 1, 1, terms=(term,))
+    partner = CandidateResult("trapped_air", "model", 2, "accepted", params={"trap_air_mass_kg": 0.0},
+                              primary_output="supply_temp_c", jointly_with="term supply_residual_term", fit=current,
+                              reason="accepted only jointly with term supply_residual_term")
+    open_round = [CandidateResult("motor_asymmetry", "model", 1, "rejected", train_reduction=0.2,
+                                  params={"tau_motor_heating_s": 0.0, "tau_motor_cooling_s": 0.0},
+                                  primary_output="supply_temp_c", fit=fitter.make(frozenset({"motor_asymmetry"}), p0,
+                                                                                  post))]
+    notes: list[str] = []
+    fit, _, kept, _, record = joint_step(fitter, current, [], [partner], open_round, lib, base, 4, 3,
+                                         lambda f, fr, log: (f, None, []), lambda _msg: None, notes)
+    assert record["accepted"] and [a.name for a in kept] == ["trapped_air", "motor_asymmetry"]
+    assert kept[0].jointly_with == "" and "kept in the joint refit without the term" in kept[0].reason
+    assert kept[0].fit is kept[1].fit and kept[0].fit is not current  # one step: the joint fit
+    (replaced,) = record["replaced_terms"]
+    assert replaced["name"] == "supply_residual_term" and -1.0 <= replaced["correlation"] <= 1.0
+    assert any(n.startswith("joint refit: replaces term dT_supply_air") for n in notes), notes
+
+
+def test_an_effects_contribution_is_its_mean_square_change_over_the_noise_on_the_output_it_moves_most():
+    fitter = SimpleNamespace(sigma=np.array([0.05, 2.0]), log=SimpleNamespace(holdout=np.array([False, True, True, True])))
+    post = OutputPost(OUTPUTS, np.array([0.0, 1.0]))
+    y = np.array([[9.0, 0.0], [0.0, 0.0], [0.0, 0.0], [0.0, 0.0]])
+    moved = y + np.array([[5.0, 5.0], [0.01, 2.0], [np.nan, 2.0], [-0.01, -2.0]])  # the training row does not count
+    fits = [Fit(frozenset(), np.zeros(1), post, (), yy, None, 0.0, 0.0, 1, 1) for yy in (moved, y)]
+    # supply: (0.01 / 0.05)^2 = 0.04 on its two readings; the other output (2 / 2)^2 = 1 on three
+    assert contribution(fitter, *fits) == pytest.approx(1.0)
+    fits[0].y[:, 1] = 0.0
+    assert contribution(fitter, *fits) == pytest.approx(0.04)
+    assert CONTRIBUTION_MIN == pytest.approx(STRUCTURE_MIN - 1.0)  # derived, not a setting of its own
+
+
+def test_the_backward_pass_drops_an_effect_whose_own_contribution_is_below_the_noise_resolution():
+    """``bypass_flow`` earns 14 % of the held-out structure (above the 10 % share) but changes the readings by 0.08
+    noise SDs, a mean square of 0.0064 (below 0.1): dropped; ``motor_asymmetry`` (4 SDs) kept."""
+    fitter = _StandInFitter({"motor_asymmetry": 4.0, "bypass_flow": 0.08, "other": 0.5})
+    fitter.sigma = np.array([1.0])
+    base = Parameters()
+    post = OutputPost(OUTPUTS, np.array([0.0, 1.0]))
+    current = fitter.make(frozenset({"motor_asymmetry", "bypass_flow"}), np.array(base.vector(), dtype=float), post)
+    accepted = [CandidateResult(n, "model", 1, "accepted", primary_output="supply_temp_c")
+                for n in ("motor_asymmetry", "bypass_flow")]
+    notes: list[str] = []
+    fit, _ = _backward(fitter, current, [], accepted, library(OUTPUTS), base, False, lambda _m: None, notes)
+    assert [a.name for a in accepted] == ["motor_asymmetry"] and "bypass_flow" not in fit.effects
+    dropped = next(n for n in notes if n.startswith("backward pass: bypass_flow removed"))
+    assert "0.006 times the noise variance" in dropped
+    assert accepted[0].contribution == pytest.approx(16.0)
