@@ -218,11 +218,11 @@ class EkfSettings:
     gain sized for transients passes on to the commands: with the flow out of reach on the independent box most of
     both controllers' IAE is that noise (docs/robustness.md sec. 2.10). A larger value there gives the gains of a
     process noise (``r_supply_c`` / ``r_supply_rest_c``)^2 times smaller; off rest the filter weighs the reading as
-    the plain one does (its covariance, grown while the reading weighed less, makes the first gains of a transient
-    larger, not smaller). Rest: over the last ``rest_window_s`` (s in [1, 3600]) the model's air at the thermocouple
-    moved at most ``rest_air_band_c`` (degC, the mean of the window's last quarter against its first), ln of its
-    volume flow stayed within ``rest_log_flow_band`` and the mixed-air offset's net change was at most
-    ``rest_offset_band_c`` (degC; a model error that still drifts is not rest). Defaults 0.1 degC, 20 s, 0.2 degC,
+    the plain one does (its covariance, grown while the reading weighed less, gives the first gains of a
+    transient about the plain filter's). Rest: over the last ``rest_window_s`` (s in [1, 3600]) the model's air at
+    the thermocouple moved at most ``rest_air_band_c`` (degC, the mean of the window's last quarter against its
+    first), ln of its volume flow stayed within ``rest_log_flow_band`` and the mixed-air offset's net change was at
+    most ``rest_offset_band_c`` (degC; a model error that still drifts is not rest). Defaults 0.1 degC, 20 s, 0.2 degC,
     0.05, 0.07 degC. ASSUMPTIONS: twice the box's noise (0.05 degC); three and a half thermocouple lags; the MPC's own
     moves at rest (0.05-0.15 degC per sample of the model's air) average out within 0.2 degC while a step or the
     heater body's creep does not; the gate of the bypass-flow fit; about twice the offset's noise wander at rest.
@@ -383,10 +383,9 @@ class DisturbanceEkf:
                                            s.dead_time_excitation_c, initial_steps=s.dead_time_initial_s / self.dt_s,
                                            prior_steps=self.dead_time_prior_s / self.dt_s)
         self.R_diag = np.square([s.r_supply_c, s.r_flow_m3s, s.r_water_c, s.r_inlet_c, s.r_heater_outlet_c])
-        # the supply reading's deviation at rest (EkfSettings.r_supply_rest_c): the rest gate, and the variances in use
-        self.rest_gate = RestGate(s.rest_window_s, s.rest_air_band_c, s.rest_log_flow_band, s.rest_offset_band_c,
-                                  self.dt_s
-                             ) if s.r_supply_rest_c > 0.0 else None
+        # the supply reading's deviation at rest (EkfSettings.r_supply_rest_c): the rest gate and the variances there
+        self.rest_gate = (RestGate(s.rest_window_s, s.rest_air_band_c, s.rest_log_flow_band, s.rest_offset_band_c,
+                                   self.dt_s) if s.r_supply_rest_c > 0.0 else None)
         self._R_rest = self.R_diag.copy()
         self._R_rest[0] = s.r_supply_rest_c ** 2
         self.use = np.array([True, True, True, True, s.use_heater_outlet])
@@ -426,7 +425,7 @@ class DisturbanceEkf:
         self._pinned = False  # the shadowed states held at the shadow at the last sample
         self._relearning = False  # within reanchor_hold_s of a newly honoured dead time
         self._age_s = 0.0  # time since initialise
-        if getattr(self, "rest_gate", None) is not None:
+        if self.rest_gate is not None:
             self.rest_gate.reset()
         self._committed = self.settings.bypass_flow_exponent_prior  # the exponent at the end of the last flow change
         for learner in (getattr(self, "rest_steps", None), getattr(self, "rest_fit", None)):

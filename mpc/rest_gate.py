@@ -7,11 +7,12 @@ sample is its own noise; there the filter's gain for that reading passes the noi
 the independent box with the flow out of reach most of both controllers' IAE is that noise
 (docs/robustness.md sec. 2.10). :class:`RestGate` tells the estimator when that is so, from the model's own
 signals: over the last ``window_s`` the model's air at the thermocouple (without the offset) has moved by at most
-``air_band_c`` (the mean of the window's last quarter against that of its first), the natural log of its volume flow within ``log_flow_band``, and the mixed-air offset has moved
-by at most ``offset_band_c`` from the window's first sample to its last (a model error that still drifts, as
-after a flow change on a box whose split depends on the flow, is not at rest: the offset must follow it). The
-MPC's own small moves at rest (the noise it answers) stay within the bands; a step of the reference or of the
-flow does not. Pure numpy, no model code: the estimator feeds it.
+``air_band_c`` (the mean of the window's last quarter against that of its first), the natural log of its volume
+flow has stayed within ``log_flow_band``, and the mixed-air offset has moved by at most ``offset_band_c`` from the
+window's first sample to its last (a model error that still drifts, as after a flow change on a box whose split
+depends on the flow, is not rest: the offset must follow it). The MPC's own small moves at rest (the noise it
+answers) stay within the bands; a step of the reference or of the flow, or the heater body's creep, does not.
+Pure numpy, no model code: the estimator feeds it.
 """
 
 from __future__ import annotations
@@ -21,9 +22,10 @@ from collections import deque
 
 
 class RestGate:
-    """Rest of the model's air and flow over the last ``window_s`` (s; samples of ``dt_s``).
+    """Rest of the model's air and flow and of the mixed-air offset over the last ``window_s`` (s; samples of ``dt_s``).
 
-    Per sample :meth:`push` with the model's air (degC) and volume flow (m3/s) of the time update; ``at_rest``
+    Per sample :meth:`push` with the model's air (degC) and volume flow (m3/s) of the time update and the offset;
+    ``at_rest``
     is True once a whole window has been pushed since :meth:`reset` and the air's drift over it is at most
     ``air_band_c`` (degC), the range of ln of the flow at most ``log_flow_band`` and the offset's net change over
     it at most ``offset_band_c`` (degC).
