@@ -361,10 +361,14 @@ def test_mpc_with_a_heater_body_term_tracks_the_box_with_the_wall_loss_better():
     it (-0.28 W/K (T_body - T_inlet) + 0.14 W, the seed-23 2 h log, docs/identification.md; thesis parameters
     otherwise) against the nominal MPC, same noise, the quick trapped-air scenario (heating at the heater's limit,
     then a step down): measured 346.4 against 404.5 C s. The nominal MPC, believing the body keeps that heat,
-    plans on a hotter body than the box has."""
+    plans on a hotter body than the box has. Both with the filter that weighs the thermocouple alike at rest and in
+    transients (``EkfSettings.r_supply_rest_c`` 0), as measured: with the default, which weighs it less at rest
+    (docs/robustness.md sec. 2.10), the nominal MPC is at 363.6 C s and the refined one at 345.4 (0.95), the rest
+    gate taking most of the nominal's loss on this box; the check is about the term."""
     from hvac_mpc.benchmarks import scenarios
     from hvac_mpc.benchmarks.refined_model import closed_loop_iae
     from hvac_mpc.benchmarks.simulate import DETERMINISTIC_DEADLINE_S
+    from hvac_mpc.mpc.estimator import EkfSettings
     from hvac_mpc.mpc.mpc_controller import MpcSettings
 
     term = DiscoveredTerm("heater_body_term", "heater_body", ("body_minus_inlet", "one"), (-0.2817, 0.1384),
@@ -372,7 +376,8 @@ def test_mpc_with_a_heater_body_term_tracks_the_box_with_the_wall_loss_better():
     refined = RefinedModel(Parameters(), ("ptc_power_fall", "fan_curve", "valve_leakage"), (term,),
                            absent=("bypass_flow",))
     sc = scenarios.select(["trapped_air_release"], quick=True)[0]
-    settings = MpcSettings(initial_command=sc.initial_command, deadline_s=DETERMINISTIC_DEADLINE_S)
+    settings = MpcSettings(initial_command=sc.initial_command, deadline_s=DETERMINISTIC_DEADLINE_S,
+                           ekf=EkfSettings(r_supply_rest_c=0.0))
     nominal = closed_loop_iae(sc, MpcController(settings=settings), "heater_wall_loss", seed=0)
     better = closed_loop_iae(sc, MpcController(settings=settings, model=refined), "heater_wall_loss", seed=0)
     assert better["temp_iae_cs"] < 0.9 * nominal["temp_iae_cs"], (better, nominal)
