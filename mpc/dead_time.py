@@ -13,8 +13,10 @@ response does. docs/robustness.md sec. 2.1.
 The estimate moves only when the window holds a response (the root mean square of the candidates'
 changes over the window above ``min_excitation_c`` per sample) and another candidate explains the
 reading clearly better than the current one (residual below ``switch_ratio`` times the current
-one's); while nothing moves it stays where it is. Of candidates that explain the reading about
-equally (within ``TIE_RATIO``) the shortest is taken. A starting value (``initial_steps``, or
+one's), or one that stays ahead of it (below ``LEAD_RATIO`` times its residual) for ``LEAD_SAMPLES``
+samples in a row; while nothing moves it stays where it is. Of separate minima that explain the reading
+about equally (within ``TIE_RATIO``) the shortest is taken, of one minimum its bottom
+(:func:`shortest_tied_minimum`; docs/robustness.md sec. 2.11). A starting value (``initial_steps``, or
 ``prior_steps`` where none is given) gives way only to a clearly better candidate, not to a tie.
 Pure numpy, no model code: the estimator feeds it.
 """
@@ -25,9 +27,29 @@ import math
 
 import numpy as np
 
+#: A candidate that stays ahead of the estimate (residual below LEAD_RATIO times its) for LEAD_SAMPLES
+#: samples in a row takes over, however flat the ranking: a response the model's air explains poorly
+#: (a gain or shape error) never makes the true dead time "clearly" better, only persistently so.
+#: ASSUMPTION: 0.9 and 20 samples (a third of the window), not tuned.
+LEAD_RATIO = 0.9
+LEAD_SAMPLES = 20
 #: Candidates whose residual is within this factor of the least count as explaining the reading
 #: equally; the shortest of them is taken.
 TIE_RATIO = 1.1
+
+
+def shortest_tied_minimum(res: np.ndarray) -> int:
+    """Index of the shortest local minimum of the residuals within TIE_RATIO of the least one.
+
+    A loop that rang on a wrong dead time leaves data that longer candidates, a period later, explain
+    about as well: separate minima, of which the shortest is taken. Within one minimum its bottom is
+    taken, not its shorter flank: a response the model's air explains poorly (a gain or shape error)
+    flattens the residuals around the true dead time, and the flank's shorter delays are the ones
+    that make the loop ring."""
+    lower_left = np.r_[True, res[1:] <= res[:-1]]
+    lower_right = np.r_[res[:-1] <= res[1:], True]
+    tied = lower_left & lower_right & (res <= TIE_RATIO * res.min())
+    return int(np.flatnonzero(tied)[0])
 
 
 class DeadTimeEstimator:
@@ -78,6 +100,8 @@ class DeadTimeEstimator:
         self._ssy = np.zeros(n)
         self.residuals = np.full(n, np.nan)
         self.informed = False  # the window has held a response (the candidates ranked at least once)
+        self._lead = None  # a candidate ahead of the estimate by LEAD_RATIO ...
+        self._lead_samples = 0  # ... for this many samples in a row
 
     @property
     def steps(self) -> float:
@@ -123,13 +147,16 @@ class DeadTimeEstimator:
         # least-squares gain per candidate; a response of the wrong sign explains nothing
         res = np.where(ssy > 0.0, self._syy - ssy ** 2 / sss, self._syy)
         self.residuals = res / w
-        # the shortest candidate within TIE_RATIO of the best: a loop that rang on a wrong dead time
-        # leaves data that longer candidates explain about as well
-        best = int(np.flatnonzero(res <= TIE_RATIO * res.min())[0])
+        best = shortest_tied_minimum(res)
         cur = self._best
         # a starting value (initial_steps) gives way only to a clearly better candidate, not to a tie
         tie_moves = best < cur and res[best] <= res[cur] and not self._at_start
-        if res[best] < self.switch_ratio * res[cur] or tie_moves:
+        lead = best if best != cur and res[best] < LEAD_RATIO * res[cur] else None
+        self._lead_samples = self._lead_samples + 1 if lead is not None and lead == self._lead else 0
+        self._lead = lead
+        held = self._lead_samples >= LEAD_SAMPLES and not self._at_start  # a starting value: only clearly
+        if res[best] < self.switch_ratio * res[cur] or tie_moves or held:
             self._at_start = self._at_start and best == cur
             self._best = best
+            self._lead, self._lead_samples = None, 0
         return self.steps

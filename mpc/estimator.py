@@ -151,7 +151,10 @@ class EkfSettings:
     after each measurement update (:meth:`DisturbanceEkf.bound_state`). Nothing but the model tells it from the
     mixed-air offset, and a start-up transient the model misses (a dead time not yet found) pushed it to -2.5 degC
     (the box's +0.9) on a box with a 4 s dead time; its slow return (the motor's 268 s lag) then fed the offset a
-    ramp, a steady error after a flow change (docs/robustness.md sec. 2.8).
+    ramp, a steady error after a flow change (docs/robustness.md sec. 2.8). On by default (sec. 2.11): on boxes
+    outside the suite's registry (a 4.5 s dead time with the literal cooler fit, a weak blower behind 3.5 s) the
+    unbounded filter ran the rise to -28 degC against a +22 degC offset while the dead time was not yet found, and
+    the MPC rang between the valve's ends (up to 23 times the baseline's IAE).
 
     ``bypass_flow_exponent_prior``: the exponent of the bypass split's flow dependence the filter
     and the MPC's prediction use where the model carries the ``bypass_flow`` effect (0 = the thesis
@@ -232,7 +235,7 @@ class EkfSettings:
 
     q_motor_c: float = 0.01
     initial_sd_motor_c: float = 0.5
-    bound_motor_rise: bool = False
+    bound_motor_rise: bool = True
     motor_sd_after_response_c: float = 0.0
     q_water_c: float = 0.01
     q_heater_c: float = 0.1
