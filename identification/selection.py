@@ -62,9 +62,9 @@ class CandidateResult:
     bic_change: float = float("nan")      # information criterion with it minus without (training rows)
     same_as: str = ""                     # candidate that explains the same residual
     backward_share: float = float("nan")  # held-out structure its removal costs with the others in
-    contribution: float = float("nan")    # its own change of the held-out readings in the backward pass (contribution)
     jointly_with: str = ""                # accepted only together with this candidate or term (the pair step)
     fit: Fit | None = None
+    contribution: float = float("nan")    # its own change of the held-out readings in the backward pass (contribution)
 
     def summary(self) -> dict:
         return {k: v for k, v in self.__dict__.items() if k != "fit"}

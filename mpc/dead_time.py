@@ -28,7 +28,8 @@ import math
 import numpy as np
 
 #: A candidate that stays ahead of the estimate (residual below LEAD_RATIO times its) for LEAD_SAMPLES
-#: samples in a row takes over, however flat the ranking: a response the model's air explains poorly
+#: samples in a row after the first takes over (samples without excitation neither count nor break the row),
+#: however flat the ranking: a response the model's air explains poorly
 #: (a gain or shape error) never makes the true dead time "clearly" better, only persistently so.
 #: ASSUMPTION: 0.9 and 20 samples (a third of the window), not tuned.
 LEAD_RATIO = 0.9
@@ -46,6 +47,7 @@ def shortest_tied_minimum(res: np.ndarray) -> int:
     taken, not its shorter flank: a response the model's air explains poorly (a gain or shape error)
     flattens the residuals around the true dead time, and the flank's shorter delays are the ones
     that make the loop ring."""
+    res = np.maximum(res, 0.0)  # a least-squares residual, >= 0 but for round-off
     lower_left = np.r_[True, res[1:] <= res[:-1]]
     lower_right = np.r_[res[:-1] <= res[1:], True]
     tied = lower_left & lower_right & (res <= TIE_RATIO * res.min())

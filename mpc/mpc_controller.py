@@ -189,8 +189,6 @@ class MpcSettings:
     osqp_check_dualgap: bool = True
     osqp_first_pass_iter: int = 0
     osqp_accept_max_iter: bool = False
-    osqp_codegen: bool = True
-    osqp_scaling_interval: int = 1
     sqp_max_iter: int = 5
     levenberg_marquardt: float = 0.1
     cold_start_qps: int = 10
@@ -215,6 +213,8 @@ class MpcSettings:
     reach_changes_deferred: bool = True
     flow_trade_c: float | None = 0.05
     bound_heater_estimate: bool = False
+    osqp_codegen: bool = True
+    osqp_scaling_interval: int = 1
 
     def __post_init__(self) -> None:
         p = "MpcSettings"

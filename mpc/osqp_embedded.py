@@ -283,21 +283,27 @@ def _processor() -> str:
         lines = Path("/proc/cpuinfo").read_text().splitlines()
     except OSError:
         return platform.processor()
-    return "|".join(sorted({ln.split(":", 1)[1].strip() for ln in lines if ln.startswith(("model name", "flags"))}))
+    keys = ("model name", "flags", "Features", "CPU implementer", "CPU architecture", "CPU variant", "CPU part")
+    return "|".join(sorted({ln.split(":", 1)[1].strip() for ln in lines if ln.startswith(keys) and ":" in ln}))
 
 
 def load(wrapper: osqp.OSQP, P_pattern: tuple, A_pattern: tuple, first_pass_iter: int = 0,
-         report: CodegenReport | None = None, scaling_interval: int = 1) -> "EmbeddedOsqp | None":
+         report: CodegenReport | None = None, scaling_interval: int = 1,
+         build: bool = True) -> "EmbeddedOsqp | None":
     """The generated solver of the problem ``wrapper`` is set up with (built on first use, then loaded from
     the cache), or None when code generation is off or fails (the reason in ``report["osqp"]``); the
     caller then keeps OSQP's Python interface. ``wrapper`` must have been set up with a zero gradient (the
-    RTI's set-up): the set-up's values are not part of the key."""
+    RTI's set-up): the set-up's values are not part of the key. ``build`` False: load from the cache only,
+    never compile (a reset inside a control step)."""
     report = report if report is not None else CodegenReport()
     if os.environ.get(SWITCH_ENV, "1") == "0":
         report.outcomes["osqp"] = f"interpreted: {SWITCH_ENV}=0"
         return None
     try:
         lib = cache_dir() / "osqp" / f"osqp_{structure_key(wrapper, P_pattern, A_pattern)}.so"
+        if not build and not lib.exists():
+            report.outcomes["osqp"] = "interpreted: not in the cache (no build inside a control step)"
+            return None
         outcome = _ensure(lib, lambda: _build(wrapper, lib), report)
         solver = EmbeddedOsqp(lib, wrapper, first_pass_iter, scaling_interval)
         report.outcomes["osqp"] = outcome
@@ -384,7 +390,7 @@ class EmbeddedOsqp(TwoPassSolve):
         self.scaling_interval = int(scaling_interval)
         self._updates = 0
         self._lib = _private_copy(lib)
-        weakref.finalize(self, _close, self._lib._handle)
+        weakref.finalize(self, _close, self._lib._handle).atexit = False  # not while exit handlers may still solve
         f = self._lib
         for name, args, res in (("hq_update_mat", [_DOUBLE] * 2, ctypes.c_int),
                                 ("hq_update_mat_kept_scaling", [_DOUBLE] * 2, ctypes.c_int),
@@ -401,6 +407,7 @@ class EmbeddedOsqp(TwoPassSolve):
             getattr(f, name).restype = res
         self.n, self.m = int(f.hq_n()), int(f.hq_m())
         self._nnz_p, self._nnz_a = int(f.hq_nnz_p()), int(f.hq_nnz_a())
+        self.vector_flag = 0  # OSQP's exit flag of the last vector update
         self._info = np.zeros(2, np.int64)
         self._info_p = self._info.ctypes.data
         self._passes(wrapper.settings, first_pass_iter)
@@ -433,7 +440,9 @@ class EmbeddedOsqp(TwoPassSolve):
     def update_vectors(self, q: np.ndarray, l: np.ndarray, u: np.ndarray) -> None:
         """``l``, ``u`` already within OSQP's infinity."""
         n, m = self.n, self.m
-        self._check(self._lib.hq_update_vec(self._p(q, n), self._p(l, m), self._p(u, m)), "vector update")
+        # its exit flag (e.g. a lower bound above an upper one) is not raised, as OSQP's Python interface does not:
+        # the solve then reports the problem infeasible, which the RTI treats as a failed QP
+        self.vector_flag = int(self._lib.hq_update_vec(self._p(q, n), self._p(l, m), self._p(u, m)))
 
     def warm_start(self, x: np.ndarray, y: np.ndarray | None = None) -> None:
         """Primal warm start; the multipliers stay those of the last solve unless ``y`` is given."""

@@ -166,6 +166,8 @@ class RtiOsqpSolver:
                  restart_duals_on_change: bool = False, osqp_codegen: bool = False, scaling_interval: int = 1):
         self.pb = pb = problem
         self._osqp_codegen = bool(osqp_codegen)
+        if isinstance(scaling_interval, bool) or int(scaling_interval) != scaling_interval or scaling_interval < 1:
+            raise ValueError(f"RtiOsqpSolver: scaling_interval = {scaling_interval!r}, allowed: an integer >= 1")
         self.scaling_interval = int(scaling_interval)
         self.restart_duals_on_change = bool(restart_duals_on_change)
         # OSQP status values taken as an answer: solved, solved inaccurate (and maximum iterations reached)
@@ -351,7 +353,8 @@ class RtiOsqpSolver:
         self._q_heating[N * nx + pb.i_heater] += pb.body_heat_coef
         self._q_body_on = False
 
-    def _setup_osqp(self) -> None:
+    def _setup_osqp(self, build: bool = True) -> None:
+        """OSQP's workspace set up afresh; ``build`` False: OSQP's generated solver only from the code cache."""
         pb = self.pb
         # a plausible trajectory so that the placeholder values are representative for scaling
         x0 = pb.scale_x(pb.placeholder_state())
@@ -368,18 +371,18 @@ class RtiOsqpSolver:
         np.clip(self.u, -inf, inf, out=self.u)
         self.solver.setup(self.P.matrix(Px), np.zeros(self.n), self.A.matrix(Ax), self.l.copy(), self.u.copy(),
                           **self._osqp_settings)
-        self._core = self._make_core()
+        self._core = self._make_core(build)
         self._zero_duals = np.zeros(self.m)
         self._workspace_used = False
         self._time_limit = None
 
-    def _make_core(self):
+    def _make_core(self, build: bool = True):
         """OSQP's generated solver of this set-up (:mod:`.osqp_embedded`) with ``osqp_codegen`` where it builds or
         loads, else OSQP's Python interface."""
         if self._osqp_codegen:
             core = osqp_embedded.load(self.solver, (self.P.indices, self.P.indptr, self.P.shape),
                                       (self.A.indices, self.A.indptr, self.A.shape), self._first_pass_iter,
-                                      self.qp_codegen, self.scaling_interval)
+                                      self.qp_codegen, self.scaling_interval, build=build)
             if core is not None:
                 return core
         return _OsqpCore(self.solver, self._first_pass_iter)
@@ -574,7 +577,7 @@ class RtiOsqpSolver:
         self.X = self.U = self.S = None
         self._prepared = None
         if getattr(self, "_workspace_used", False):
-            self._setup_osqp()
+            self._setup_osqp(build=False)  # a failure path inside a control step: the cache only, no compiler
 
     def set_parameters(self, p: np.ndarray) -> None:
         """Model parameters (``HvacModel.p_default`` order) of the next linearisations, e.g. with an

@@ -15,7 +15,8 @@ from hvac_mpc.identification.candidates import library
 from hvac_mpc.identification.fitting import Fit
 from hvac_mpc.identification.joint_step import joint_step
 from hvac_mpc.identification.pipeline import _backward, _same_fit, joint_after_pairs
-from hvac_mpc.identification.selection import CONTRIBUTION_MIN, STRUCTURE_MIN, CandidateResult, contribution
+from hvac_mpc.identification.selection import (CONTRIBUTION_MIN, STRUCTURE_MIN, CandidateResult, contribution,
+                                                 correction_correlation)
 from hvac_mpc.identification.simulator import OutputPost
 from hvac_mpc.models import Parameters
 from hvac_mpc.models.discovered import DiscoveredTerm
@@ -196,8 +197,21 @@ def test_a_pairs_term_replaced_by_the_joint_model_is_said_and_its_partner_kept_w
     assert kept[0].jointly_with == "" and "kept in the joint refit without the term" in kept[0].reason
     assert kept[0].fit is kept[1].fit and kept[0].fit is not current  # one step: the joint fit
     (replaced,) = record["replaced_terms"]
-    assert replaced["name"] == "supply_residual_term" and -1.0 <= replaced["correlation"] <= 1.0
+    assert replaced["name"] == "supply_residual_term" and "correlation" in replaced  # its value: the test below
     assert any(n.startswith("joint refit: replaces term dT_supply_air") for n in notes), notes
+
+
+def test_the_correlation_of_two_corrections_is_taken_on_the_held_out_rows_over_the_noise():
+    fitter = SimpleNamespace(sigma=np.array([0.05, 2.0]), log=SimpleNamespace(holdout=np.array([False, True, True, True])))
+    post = OutputPost(OUTPUTS, np.array([0.0, 1.0]))
+    fit = lambda y: Fit(frozenset(), np.zeros(1), post, (), np.asarray(y, float), None, 0.0, 0.0, 1, 1)  # noqa: E731
+    current = fit(np.zeros((4, 2)))
+    a = fit([[9.0, 9.0], [0.05, 0.0], [0.0, 0.0], [-0.05, 0.0]])  # the training row does not count
+    same = fit([[-9.0, 0.0], [0.1, 0.0], [0.0, 0.0], [-0.1, 0.0]])  # twice a's held-out correction
+    other = fit([[0.0, 0.0], [0.0, 0.0], [0.1, 0.0], [0.0, 0.0]])  # on a row where a's is zero
+    assert correction_correlation(fitter, a, same, current) == pytest.approx(1.0)
+    assert correction_correlation(fitter, a, other, current) == pytest.approx(0.0)
+    assert correction_correlation(fitter, a, fit(-np.asarray(same.y)), current) == pytest.approx(-1.0)
 
 
 def test_an_effects_contribution_is_its_mean_square_change_over_the_noise_on_the_output_it_moves_most():

@@ -122,8 +122,9 @@ def test_without_a_compiler_the_python_interface_solves(tmp_path, monkeypatch, r
     assert report.outcomes["osqp"] == f"interpreted: {codegen.SWITCH_ENV}=0"
 
 
-def test_the_time_limit_stops_a_solve(cache, recorded):
+def test_the_time_limit_stops_a_solve(cache, recorded, tmp_path, monkeypatch):
     qps, lay = recorded
+    monkeypatch.setenv(codegen.CACHE_ENV, str(tmp_path))  # its own cache: the module's counts builds
     core = osqp_embedded.load(_setup(lay, qps[0]), lay.P_pattern, lay.A_pattern)
     qp = qps[0]
     core.update_matrices(qp["Px"], qp["Ax"])
@@ -192,3 +193,17 @@ def test_a_reset_controller_answers_as_a_new_one_with_the_generated_solver(cache
     again = np.array([loop.step(k).command.vector() for k in range(15)])
     assert ctrl.solver._core is not used and ctrl.solver.settings["osqp_generated"]
     assert np.array_equal(again, first)
+
+
+def test_a_reset_never_compiles_it_loads_from_the_cache_or_keeps_the_python_interface(recorded, tmp_path, monkeypatch):
+    """A reset runs on a failure path inside a control step: it may load the generated solver from the cache but
+    must not build it there (a build takes seconds)."""
+    qps, lay = recorded
+    monkeypatch.setenv(codegen.CACHE_ENV, str(tmp_path))
+    monkeypatch.setenv(codegen.SWITCH_ENV, "1")
+    report = codegen.CodegenReport()
+    assert osqp_embedded.load(_setup(lay, qps[0]), lay.P_pattern, lay.A_pattern, report=report, build=False) is None
+    assert "not in the cache" in report.outcomes["osqp"] and not list(tmp_path.glob("osqp/*.so"))
+    assert osqp_embedded.load(_setup(lay, qps[0]), lay.P_pattern, lay.A_pattern, report=report) is not None
+    assert osqp_embedded.load(_setup(lay, qps[0]), lay.P_pattern, lay.A_pattern, report=report, build=False) is not None
+    assert report.outcomes["osqp"] == "cached"
