@@ -2,10 +2,9 @@
 
 Truth for the closed loop is the independent box (``hvac_mpc.mismatch``): a box outside the registry (4.5 s
 dead time, the literal cooler fit, a thermocouple 30 % faster) on which the MPC rings in heating. Budget: the
-gate's own tests take milliseconds; the closed loop two quick heating runs of the MPC (about 10 s).
+gate's own tests take milliseconds; the closed loop two quick heating runs of the MPC (a few seconds).
 """
 
-import dataclasses
 import functools
 import math
 
