@@ -58,6 +58,7 @@ from .priorities import ReachableFlow, flow_weight_factor
 from .ocp import HEATING_CMD_W, HeaterOffBound, InvalidSettings, OcpSpec, TrackingProblem, check_flag, check_number, trap_cap_pct
 from hvac_mpc.contract import InvalidReference, Reference
 from .readiness import HeaterReadiness
+from .ring_gate import RingGate
 from .rti_osqp import RtiOsqpSolver, SolveResult
 from .temperature_reach import SaturatedTemperature
 
@@ -176,6 +177,13 @@ class MpcSettings:
             depends on the flow as the filter's model does not, the wandering body stood in for that
             dependence (quick flow_split_changes 0.80 -> 0.89 of the baseline's IAE with it on;
             docs/robustness.md sec. 2.6).
+        ring_detune: the ringing gate (:class:`~.ring_gate.RingGate`, docs/robustness.md sec. 2.12): while the
+            supply error (reading minus reference) swings across +-``ring_amplitude_c`` (degC) ``ring_crossings``
+            times within ``ring_window_s`` (s), each further swing multiplies a factor on valve a's and the
+            heater's rate limits for the applied command by ``ring_detune``, down to ``ring_floor``; without a
+            swing for ``ring_relax_s`` (s) the factor doubles every ``ring_relax_s`` back to 1. 1.0 (the
+            default): off. Measured with 0.5 (sec. 2.12): the ringing boxes' heating cells lower, three cells
+            of the quick suite higher; so not the default.
     """
 
     dt_s: float = 1.0
@@ -215,6 +223,12 @@ class MpcSettings:
     bound_heater_estimate: bool = False
     osqp_codegen: bool = True
     osqp_scaling_interval: int = 1
+    ring_detune: float = 1.0
+    ring_amplitude_c: float = 0.6
+    ring_window_s: float = 40.0
+    ring_crossings: int = 3
+    ring_floor: float = 0.05
+    ring_relax_s: float = 30.0
 
     def __post_init__(self) -> None:
         p = "MpcSettings"
@@ -273,6 +287,12 @@ class MpcSettings:
         check_number(f"{p}.reach_every_s", self.reach_every_s, 1.0, 3600.0)
         if self.flow_trade_c is not None:
             check_number(f"{p}.flow_trade_c", self.flow_trade_c, 0.0, 10.0, lo_open=True)
+        check_number(f"{p}.ring_detune", self.ring_detune, 0.0, 1.0, lo_open=True)
+        check_number(f"{p}.ring_amplitude_c", self.ring_amplitude_c, 0.0, 20.0, lo_open=True)
+        check_number(f"{p}.ring_window_s", self.ring_window_s, self.dt_s, 3600.0)
+        check_number(f"{p}.ring_crossings", self.ring_crossings, 1, 100, integer=True)
+        check_number(f"{p}.ring_floor", self.ring_floor, 0.0, 1.0, lo_open=True)
+        check_number(f"{p}.ring_relax_s", self.ring_relax_s, self.dt_s, 3600.0)
 
 
 def _with_model_effects(settings: MpcSettings, model: RefinedModel | None) -> MpcSettings:
@@ -389,6 +409,8 @@ class MpcController:
         self._heater_inlet = _heater_inlet_function(pb.model)
         self._heater_body_rate = _heater_body_rate_function(pb.model)
         self.temp_reach = SaturatedTemperature(pb.i_heater_cmd, pb.i_valve_a, s.dt_s)
+        self.ring = RingGate(s.ring_amplitude_c, s.ring_window_s, s.ring_crossings, s.ring_detune, s.ring_floor,
+                             s.ring_relax_s, s.dt_s) if s.ring_detune < 1.0 else None
         self.codegen = getattr(self.solver, "codegen", None) or CodegenReport()
         if s.codegen:
             self.ekf.use_functions(compiled(self.ekf.predict_fn, self.codegen),
@@ -431,6 +453,8 @@ class MpcController:
             self.reach.reset()
         self.temp_reach.reset()
         self.heater_bound.reset()
+        if self.ring is not None:
+            self.ring.reset()
 
     def force_solver_failure(self, steps: int) -> None:
         """Make the next ``steps`` solves fail (tests of the fallback chain; this instance only)."""
@@ -511,7 +535,10 @@ class MpcController:
         d = self._disturbance(setpoint)
         u_prev_s = self._scaled_prev()
         heater_c = float(self.ekf.x[pb.i_heater])
+        ring = self._ring_factor(measurement, ref)
         bounds = pb.command_bounds(self.u_prev, cap, heater_c)  # of the command, and folded into the QP's
+        if ring < 1.0:
+            bounds = self._ring_slowed(bounds, ring)
         u_lo, u_hi = pb.input_bounds(self.u_prev, cap, heater_c, command=bounds)
         y_ref = self._tracked_reference(ref, d, cap)
         w_y = pb.heating_weights(pb.output_weights(ref), heating=pb.heating(self.u_prev))
@@ -617,6 +644,24 @@ class MpcController:
                                                     pb.rate_phys * pb.dt_s)
         w = pb.w_y_full
         return min(factor, flow_weight_factor(error_m3s, w[1], w[0], trade_c))
+
+    def _ring_factor(self, measurement: Measurement, ref: Reference) -> float:
+        """Factor on valve a's and the heater's rate limits: below 1 while the supply reading rings about its
+        reference (:class:`~.ring_gate.RingGate`, ``MpcSettings.ring_*``), 1 without the gate."""
+        if self.ring is None:
+            return 1.0
+        self.ring.push(finite_or(getattr(measurement, "supply_temp_c", None), float("nan")), ref.supply_temp_c)
+        return self.ring.factor
+
+    def _ring_slowed(self, bounds: tuple[np.ndarray, np.ndarray], ring: float) -> tuple[np.ndarray, np.ndarray]:
+        """The next command's bounds with valve a's and the heater's moves limited to ``ring`` of their rate."""
+        pb = self.problem
+        lo, hi = bounds[0].copy(), bounds[1].copy()
+        for i in (pb.i_valve_a, pb.i_heater_cmd):
+            step = pb.rate_phys[i] * pb.dt_s * ring
+            lo[i] = min(max(lo[i], self.u_prev[i] - step), hi[i])
+            hi[i] = max(min(hi[i], self.u_prev[i] + step), lo[i])
+        return lo, hi
 
     def _set_readiness(self, ref: Reference, d: np.ndarray, cap: float, measurement: Measurement) -> None:
         """The heater readiness's floor for the QPs of this step (:mod:`.readiness`; a setting, off by default)."""
