@@ -654,7 +654,8 @@ class MpcController:
         return self.ring.factor
 
     def _ring_slowed(self, bounds: tuple[np.ndarray, np.ndarray], ring: float) -> tuple[np.ndarray, np.ndarray]:
-        """The next command's bounds with valve a's and the heater's moves limited to ``ring`` of their rate."""
+        """The next command's bounds with valve a's and the heater's moves limited to ``ring`` of their rate (the
+        heater's fall too; the daemon's safety layer, ``hvac_mpc.daemon.safety``, cuts it at low airflow regardless)."""
         pb = self.problem
         lo, hi = bounds[0].copy(), bounds[1].copy()
         for i in (pb.i_valve_a, pb.i_heater_cmd):
