@@ -389,8 +389,6 @@ class DisturbanceEkf:
         # the supply reading's deviation at rest (EkfSettings.r_supply_rest_c): the rest gate and the variances there
         self.rest_gate = (RestGate(s.rest_window_s, s.rest_air_band_c, s.rest_log_flow_band, s.rest_offset_band_c,
                                    self.dt_s) if s.r_supply_rest_c > 0.0 else None)
-        self._R_rest = self.R_diag.copy()
-        self._R_rest[0] = s.r_supply_rest_c ** 2
         self.use = np.array([True, True, True, True, s.use_heater_outlet])
         self._build()
         self.z: np.ndarray | None = None
@@ -599,10 +597,13 @@ class DisturbanceEkf:
     def use_functions(self, predict_fn, update_fn) -> None:
         """Evaluate the time and measurement updates with these functions (the same signatures as
         ``predict_fn`` / ``update_fn``, e.g. generated C of them, :mod:`hvac_mpc.mpc.codegen`).
-        ``p``, ``Q`` and ``R_diag`` are read here, once: call again after changing them."""
+        ``p``, ``Q`` and ``R_diag`` are read here, once: call again after changing them (the variances at rest,
+        ``R_diag`` with the supply reading's ``r_supply_rest_c``, are derived here too)."""
         self._predict_in_use = predict_fn
         self._predict = BufferedFunction(predict_fn, fixed={4: self.p, 5: self.Q})
         self._update = BufferedFunction(update_fn, fixed={7: self.p, 8: self.R_diag})
+        self._R_rest = self.R_diag.copy()
+        self._R_rest[0] = self.settings.r_supply_rest_c ** 2
 
     def prediction_function(self) -> tuple[ca.Function, dict[int, np.ndarray]]:
         """The time update in use, ``(z, P, u, setpoint, p, Q, learn) -> (z+, P+, air, flow)``, and its fixed

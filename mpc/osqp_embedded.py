@@ -407,7 +407,6 @@ class EmbeddedOsqp(TwoPassSolve):
             getattr(f, name).restype = res
         self.n, self.m = int(f.hq_n()), int(f.hq_m())
         self._nnz_p, self._nnz_a = int(f.hq_nnz_p()), int(f.hq_nnz_a())
-        self.vector_flag = 0  # OSQP's exit flag of the last vector update
         self._info = np.zeros(2, np.int64)
         self._info_p = self._info.ctypes.data
         self._passes(wrapper.settings, first_pass_iter)
@@ -442,7 +441,7 @@ class EmbeddedOsqp(TwoPassSolve):
         n, m = self.n, self.m
         # its exit flag (e.g. a lower bound above an upper one) is not raised, as OSQP's Python interface does not:
         # the solve then reports the problem infeasible, which the RTI treats as a failed QP
-        self.vector_flag = int(self._lib.hq_update_vec(self._p(q, n), self._p(l, m), self._p(u, m)))
+        self._lib.hq_update_vec(self._p(q, n), self._p(l, m), self._p(u, m))
 
     def warm_start(self, x: np.ndarray, y: np.ndarray | None = None) -> None:
         """Primal warm start; the multipliers stay those of the last solve unless ``y`` is given."""
