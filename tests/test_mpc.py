@@ -152,10 +152,13 @@ def test_heating_steps_up_and_down_at_low_flow_respect_the_ptc_line():
         temp = np.array([r["truth"]["supply_temp_c"] for r in part])
         inside = np.abs(temp - ref.supply_temp_c) <= 0.5
         settle = next((i for i in range(len(inside)) if inside[i:].all()), None)
-        # up: the heater body warms with 240 W for ~90 s; down: 99 s measured with Weights.supply_temp 5
-        # (under 70 s with 1), not analysed yet (docs/robustness.md sec. 2.2); 115 s with the thermocouple
-        # weighed less at rest (EkfSettings.r_supply_rest_c, docs/robustness.md sec. 2.10), not analysed either
-        limit = 110 if ref is ref_up else 120
+        # up: the heater body warms with 240 W (80 s measured); down: 60 s measured. Traced: from the step
+        # on the heater is off and valve a closed (both at their bounds), and the supply air falls as fast as
+        # the plant's heater body cools (69 -> 44 C in 60 s), whose heat still reaches the air through the
+        # core path valve a never closes (bypass fraction at most 0.9, thesis sec. 4.5.1); the estimator puts
+        # the body at 38 C there, the difference carried by its offset. The controller has no faster move
+        # left: the settling is the body's
+        limit = 110 if ref is ref_up else 90
         assert settle is not None and settle <= limit, f"step to {ref.supply_temp_c} C: settle {settle} s"
     # the applied heater command never asks for more than the PTC line gives at the plant's heater
     # temperature, up to the estimate's error: the line falls 2.29 W/K, and 10 W is 4.4 K of the unmeasured
