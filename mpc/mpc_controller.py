@@ -184,6 +184,11 @@ class MpcSettings:
             swing for ``ring_relax_s`` (s) the factor doubles every ``ring_relax_s`` back to 1. 1.0 (the
             default): off. Measured with 0.5 (sec. 2.12): the ringing boxes' heating cells lower, three cells
             of the quick suite higher; so not the default.
+        steady_start: the QPs of a reference change (``rti``/``sqp``) start from the plan toward the new
+            reference's steady-state target on the model with the estimator's disturbances (the inputs that hold
+            it at rest, ramped to at the rate limits; :mod:`hvac_mpc.mpc.steady_target`) instead of the plan
+            shifted from the last step, made for the old reference. Measured in docs/architecture.md, 'Slow
+            steps' ('A reference change started at the steady-state target').
     """
 
     dt_s: float = 1.0
@@ -229,6 +234,7 @@ class MpcSettings:
     ring_crossings: int = 3
     ring_floor: float = 0.05
     ring_relax_s: float = 30.0
+    steady_start: bool = False
 
     def __post_init__(self) -> None:
         p = "MpcSettings"
@@ -278,7 +284,7 @@ class MpcSettings:
             raise InvalidSettings(f"{p}.ekf must be an EkfSettings")
         self.ekf.validate(f"{p}.ekf")
         for flag in ("priorities", "reach_skip_unmoved", "reach_deferred", "reach_background", "reach_changes_deferred",
-                     "osqp_accept_max_iter", "osqp_codegen",
+                     "osqp_accept_max_iter", "osqp_codegen", "steady_start",
                      "osqp_check_dualgap"):
             check_flag(f"{p}.{flag}", getattr(self, flag))
         if self.reach_background and not self.reach_deferred:
@@ -433,7 +439,7 @@ class MpcController:
                              scaling=s.osqp_scaling, alpha=s.osqp_alpha, check_dualgap=s.osqp_check_dualgap,
                              first_pass_iter=s.osqp_first_pass_iter, accept_max_iter=s.osqp_accept_max_iter,
                              step_fractions=s.rti_step_fractions, osqp_codegen=s.osqp_codegen,
-                             scaling_interval=s.osqp_scaling_interval)
+                             scaling_interval=s.osqp_scaling_interval, steady_start=s.steady_start)
 
     # ------------------------------------------------------------------ protocol
     def reset(self, command: Command | None = None) -> None:

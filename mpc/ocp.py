@@ -682,6 +682,10 @@ class TrackingProblem:
             parts.append(value)
         return ca.vertcat(*parts)
 
+    def command_expr(self, us):
+        """Actuator commands (W, %) of scaled decisions ``us``, symbolically (valve openings -> angles)."""
+        return self._command_expr(us)
+
     def theta(self, us):
         """Valve angles m, f, w (%) of scaled decisions (CasADi)."""
         return self._command_expr(us)[list(self.VALVES)]

@@ -17,7 +17,9 @@ sparsity is fixed at construction; every step only values change:
 docs/architecture.md, 'One control step', lists what runs as generated C and what in Python.
 
 With ``sqp_max_iter > 1`` the feedback re-linearises at the new iterate and solves again until
-the step is below ``sqp_tol`` (a Gauss-Newton SQP to a tolerance).
+the step is below ``sqp_tol`` (a Gauss-Newton SQP to a tolerance). With ``steady_start`` the QPs of a
+reference change are linearised at the plan toward the new reference's steady-state target instead of
+the shifted plan (:mod:`.steady_target`).
 """
 
 from __future__ import annotations
@@ -38,6 +40,7 @@ from .codegen import CodegenReport, compiled
 from .ocp import STAGE_OUTPUTS, TRACKED, TrackingProblem, shift_maps, shift_nodes
 from .osqp_embedded import FIRST_PASS_EPS_RATIO  # noqa: F401 - the first pass's tolerance, named here too
 from .plan_merit import PlanMerit
+from .steady_target import SteadyStart
 
 #: Rows of the stage outputs (``STAGE_OUTPUTS``) by signal: the tracked temperature, the total
 #: flow, the outlet flows and the electric heater power (the energy residual's heater part).
@@ -156,6 +159,11 @@ class RtiOsqpSolver:
         scaling_interval: OSQP's equilibration on every this many matrix updates, the updates between
             keeping the last one's (1: every update, OSQP's own behaviour). Needs ``osqp_codegen``; without
             the generated solver every update equilibrates.
+        steady_start: on a step whose reference differs from the preparation's, linearise the QPs at and
+            warm-start them from the plan toward the new reference's steady-state target
+            (:class:`.steady_target.SteadyStart`: the inputs that hold it at rest on the model, ramped to at the
+            rate limits, the model's rollout) instead of the shifted plan made for the old reference
+            (``self.last_target``: the target of the last change, scaled inputs).
     """
 
     def __init__(self, problem: TrackingProblem, *, eps: float = 1e-4, max_iter: int = 400,
@@ -163,7 +171,8 @@ class RtiOsqpSolver:
                  lm_inputs: np.ndarray | float = 0.0, cold_start_qps: int = 1, reference_change_qps: int = 1,
                  codegen: bool = False, scaling: int = 10, alpha: float = 1.6, check_dualgap: bool = True,
                  first_pass_iter: int = 0, accept_max_iter: bool = False, step_fractions: tuple[float, ...] = (),
-                 restart_duals_on_change: bool = False, osqp_codegen: bool = False, scaling_interval: int = 1):
+                 restart_duals_on_change: bool = False, osqp_codegen: bool = False, scaling_interval: int = 1,
+                 steady_start: bool = False):
         self.pb = pb = problem
         self._osqp_codegen = bool(osqp_codegen)
         if isinstance(scaling_interval, bool) or int(scaling_interval) != scaling_interval or scaling_interval < 1:
@@ -197,6 +206,8 @@ class RtiOsqpSolver:
                                              fixed={7: self._q_const, 8: self._lm_all, 9: pb.w_du})
         self._sw_key = None
         self._merit = PlanMerit(pb, tuple(step_fractions), wrap) if step_fractions else None
+        self._steady = SteadyStart(pb, wrap) if steady_start else None
+        self.last_target: np.ndarray | None = None  # the steady-state target of the last change (scaled inputs)
         self._first_pass_iter = int(first_pass_iter)
         self.fail_next = 0  # steps to fail on purpose (tests of the fallback chain)
         self._osqp_settings = dict(eps_abs=eps, eps_rel=eps, max_iter=int(max_iter), polishing=False,
@@ -226,6 +237,7 @@ class RtiOsqpSolver:
         """The QP solver's settings and whether the QP data run as generated C (benchmark reports)."""
         return {"qp_solver": "osqp", **self._osqp_settings, "first_pass_iter": self._first_pass_iter,
                 "restart_duals_on_change": self.restart_duals_on_change,
+                "steady_start": self._steady is not None,
                 "accept_max_iter": 7 in self._accepted,
                 "sqp_max_iter": self.sqp_max_iter,
                 "reference_change_qps": self.reference_change_qps, "compiled": self.codegen.active,
@@ -681,8 +693,11 @@ class RtiOsqpSolver:
         changed = self._prepared is not None and not np.array_equal(self._prepared["ref"], ref)
         if changed:
             max_qps = max(max_qps, self.reference_change_qps)
-        if self._prepared is None or not np.array_equal(self._prepared["w_y"], w_y):
-            prep = self.prepare(x0, u_prev, d, ref, w_y)
+        started = False
+        if changed and self._steady is not None:
+            prep, started = self._start_steady(x0, u_prev, d, ref, w_y, u_lo, u_hi)
+        if not started and (self._prepared is None or not np.array_equal(self._prepared["w_y"], w_y)):
+            prep += self.prepare(x0, u_prev, d, ref, w_y)
         if self.fail_next > 0:
             self.fail_next -= 1
             return SolveResult(False, "forced failure", prep_time_s=prep,
@@ -745,6 +760,18 @@ class RtiOsqpSolver:
         return SolveResult(True, status, X=X.copy(), U=U.copy(), S=S.copy(), iterations=iterations,
                            qp_solves=solves, prep_time_s=prep, feedback_time_s=feedback,
                            extra={"cold_start": cold, "inexact": inexact, "step_fraction": fraction})
+
+    def _start_steady(self, x0, u_prev, d, ref, w_y, u_lo, u_hi) -> tuple[float, bool]:
+        """At a reference change: linearise at the plan toward the new reference's steady-state target
+        (:class:`.steady_target.SteadyStart`) instead of the shifted plan (the slacks at zero). Returns its wall
+        time (s) and whether it did (not where the target is not finite: the shifted plan stays)."""
+        t0 = time.perf_counter()
+        start = self._steady.start(x0, u_prev, d, self._p, ref, w_y, u_lo, u_hi)
+        self.last_target = None if start is None else start[0]
+        if start is not None:
+            _, U, X = start
+            self._load(X, U, np.zeros(self.pb.N), d, ref, w_y, u_prev)
+        return time.perf_counter() - t0, start is not None
 
     def _globalised(self, z, x0, d, ref, w_y, u_prev) -> tuple[np.ndarray, float]:
         """The QP's answer ``z``, or the damped step towards it from the linearisation point that the nonlinear
