@@ -239,6 +239,9 @@ class OcpSpec:
         ready_step_c: the step up of the supply temperature (K) the heater body is kept ready to serve at once
             while the reference asks for heat (:mod:`hvac_mpc.mpc.readiness`; only with
             ``Weights.heater_ready_per_c2`` above 0). ASSUMPTION: 3 K, the steps of the winter scenario.
+        ready_lead_c: the most the readiness floor asks above the heater body's estimate (K; None: no bound): the
+            pull of the floor on the plan is bounded, the same for a body estimated far below the floor as for one
+            estimated near it (:mod:`hvac_mpc.mpc.readiness`; measured, docs/identification.md 'Heater readiness').
     """
 
     stage_durations_s: tuple[float, ...] = DEFAULT_STAGES_S
@@ -257,6 +260,7 @@ class OcpSpec:
     heater_min_flow_m3s: float | None = 0.005
     heater_on_w: float = 10.0
     ready_step_c: float = 3.0
+    ready_lead_c: float | None = 3.0
 
     @property
     def temperature_sensor_share(self) -> float:
@@ -296,6 +300,8 @@ class OcpSpec:
             check_number(f"{prefix}.heater_min_flow_m3s", self.heater_min_flow_m3s, 0.0, 0.05)
         check_number(f"{prefix}.heater_on_w", self.heater_on_w, 0.0, 1000.0, lo_open=True)
         check_number(f"{prefix}.ready_step_c", self.ready_step_c, 0.0, 30.0)
+        if self.ready_lead_c is not None:
+            check_number(f"{prefix}.ready_lead_c", self.ready_lead_c, 0.0, 100.0, lo_open=True)
         check_flag(f"{prefix}.ptc_limit", self.ptc_limit)
         unknown = sorted(set(self.model_effects) - set(MODEL_EFFECTS))
         if unknown:

@@ -10,7 +10,9 @@ the input alternates between two plans from sample to sample
 * the **merit** of a plan (scaled inputs ``U``, N x nu) is the cost of :mod:`.ocp` (its module docstring)
   along the model's rollout from the estimate ``x0`` with those inputs (single shooting: no defects), the
   soft rows' slack at what the rollout needs (the heater and PTC rows' largest excess, at least 0) and the
-  hard flow floor priced like a slack (per L/s below it, :data:`FLOOR_PENALTY_PER_LS`);
+  hard flow floor priced like a slack (per L/s below it, :data:`FLOOR_PENALTY_PER_LS`), and the heater
+  readiness (:mod:`.readiness`, a setting) where it counts: its one-sided penalty on the rollout's body below the
+  floor, so that the QP's pull towards the floor is judged on the cost that asks for it;
 * after the QP, the merit of the QP's plan is compared with that of the linearisation point (the shifted
   plan, the command in force first). Where the QP's plan is no worse (within :data:`MERIT_TOLERANCE`), it
   is taken as it is (the common step: one call of a generated function with the two rollouts). Otherwise
@@ -41,6 +43,8 @@ FLOOR_PENALTY_PER_LS = 1.0
 #: 'A globalised step in the real-time iteration'): up to 4 % on steps of the nominal box's chiller_hysteresis_step,
 #: 0.6 to 18 times more on every second step where valve a alternates on the recirculating box.
 MERIT_TOLERANCE = 0.05
+#: The merit function's arguments, in order.
+ARGUMENTS = ("x0", "U", "d", "SW", "ref", "u_prev", "p", "ready_floor", "ready_w")
 
 
 class PlanMerit:
@@ -63,15 +67,18 @@ class PlanMerit:
         self._damped = BufferedFunction(wrap(_mapped(one, len(self.fractions), f"hvac_plan_merit{len(fractions)}d")))
 
     def cost_function(self) -> ca.Function:
-        """``(x0, U, d, SW, ref, u_prev, p) -> cost``: the merit of one plan, scaled ``x0`` (nx) and ``U``
-        (nu x N), the stage weights ``SW`` ((ny + 1) x (N + 1), :meth:`.rti_osqp.RtiOsqpSolver._stage_weights`
-        order: the outputs' weights and the energy weight per stage), the reference of the stage outputs,
-        the command in force (scaled) and the model parameters."""
+        """``(x0, U, d, SW, ref, u_prev, p, ready_floor, ready_w) -> cost``: the merit of one plan, scaled
+        ``x0`` (nx) and ``U`` (nu x N), the stage weights ``SW`` ((ny + 1) x (N + 1),
+        :meth:`.rti_osqp.RtiOsqpSolver._stage_weights` order: the outputs' weights and the energy weight per
+        stage), the reference of the stage outputs, the command in force (scaled), the model parameters, and the
+        heater readiness's scaled floor and weights of stages 1..N (:meth:`.readiness.HeaterReadiness.scaled`;
+        zero weights: out)."""
         pb = self.pb
         N, nx, nu, ny = pb.N, pb.nx, pb.nu, pb.ny
         x0, U = ca.SX.sym("x0", nx), ca.SX.sym("U", nu, N)
         d, SW, ref = ca.SX.sym("d", pb.nd), ca.SX.sym("SW", ny + 1, N + 1), ca.SX.sym("ref", ny)
         u_prev, p = ca.SX.sym("u_prev", nu), ca.SX.sym("p", len(pb.model.p_default))
+        ready_floor, ready_w = ca.SX.sym("ready_floor"), ca.SX.sym("ready_w", N)
         values = {n: pb.stage_values_function(n) for n in sorted(set(pb.stage_substeps.tolist()))}
         dt = np.append(pb.dt, pb.dt[-1])
         ib, ip = INPUTS.index("blower_power_w"), STAGE_OUTPUTS.index("heater_power_w")
@@ -85,6 +92,8 @@ class PlanMerit:
             cost += ca.dot(SW[:, k], r * r)
             if k >= 1:
                 cost += self._slack_cost(k, x, u)
+                short = ca.fmax(ready_floor - x[pb.i_heater], 0.0)
+                cost += ready_w[k - 1] * short * short
             if k < N:
                 du = u - prev
                 cost += ca.dot(ca.DM(pb.w_du), du * du)
@@ -94,8 +103,8 @@ class PlanMerit:
                     cost += FLOOR_PENALTY_PER_LS * pb.slack_l1 * pb.dt[k] * ca.fmax(0.0, -row)
                 prev, x = u, x_next
         cost += pb.body_heat_cost(x0, x, u_prev)  # x: the last node's state
-        return ca.Function("hvac_plan_merit", [x0, U, d, SW, ref, u_prev, p], [cost],
-                           ["x0", "U", "d", "SW", "ref", "u_prev", "p"], ["cost"])
+        return ca.Function("hvac_plan_merit", [x0, U, d, SW, ref, u_prev, p, ready_floor, ready_w], [cost],
+                           list(ARGUMENTS), ["cost"])
 
     def _slack_cost(self, k: int, x, u):
         """The soft rows' price at stage k (1..N): the least slack that holds the heater row (and the PTC
@@ -108,17 +117,19 @@ class PlanMerit:
         return pb.dt[k - 1] * (pb.slack_l1 * s + pb.slack_l2 * s * s)
 
     def choose(self, U_lin: np.ndarray, U_qp: np.ndarray, x0: np.ndarray, d: np.ndarray, sw: np.ndarray,
-               ref: np.ndarray, u_prev: np.ndarray, p: np.ndarray) -> float:
+               ref: np.ndarray, u_prev: np.ndarray, p: np.ndarray,
+               ready: tuple[float, np.ndarray] | None = None) -> float:
         """The fraction of the step from the linearisation point's inputs ``U_lin`` to the QP's ``U_qp`` (both
         N x nu, scaled) to take: 1 where the QP's plan has no more merit than the linearisation point (within
         :data:`MERIT_TOLERANCE`), else the one of least merit among 1 and :attr:`fractions` (ties to the longer
-        step)."""
-        costs = self._pair(x0, np.concatenate([U_lin, U_qp]), d, sw, ref, u_prev, p)[0].ravel()
+        step). ``ready``: the heater readiness's scaled floor and stage weights, None while it is out."""
+        r_floor, r_w = (0.0, np.zeros(self.pb.N)) if ready is None else ready
+        costs = self._pair(x0, np.concatenate([U_lin, U_qp]), d, sw, ref, u_prev, p, r_floor, r_w)[0].ravel()
         fraction = 1.0
         if costs[1] > costs[0] * (1.0 + MERIT_TOLERANCE):
             step = U_qp - U_lin
             damped = np.concatenate([U_lin + a * step for a in self.fractions])
-            c = self._damped(x0, damped, d, sw, ref, u_prev, p)[0].ravel()
+            c = self._damped(x0, damped, d, sw, ref, u_prev, p, r_floor, r_w)[0].ravel()
             best = int(np.argmin(c))
             if c[best] < costs[1]:
                 fraction = self.fractions[best]
@@ -134,5 +145,4 @@ def _mapped(fn: ca.Function, n: int, name: str) -> ca.Function:
     Us = ca.SX.sym("Us", nu, N * n)
     costs = [fn(x0, Us[:, i * N:(i + 1) * N], *rest) for i in range(n)]
     # common subexpressions computed once (the plans share the start and the parameters' terms)
-    return ca.Function(name, [x0, Us, *rest], [ca.cse(ca.horzcat(*costs))], ["x0", "U", "d", "SW", "ref", "u_prev", "p"],
-                       ["cost"])
+    return ca.Function(name, [x0, Us, *rest], [ca.cse(ca.horzcat(*costs))], list(ARGUMENTS), ["cost"])

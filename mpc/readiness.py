@@ -23,11 +23,22 @@ which the least air through the heater (valve a closed) already mixes to the ref
 the floor away exactly in the warm-up it is for (at 9 C with the air at 9.05 C any warm body costs the reference
 at rest; docs/identification.md 'Heater readiness').
 
+The floor asks at most ``OcpSpec.ready_lead_c`` (3 K) above the body's estimate: ``min(T_floor, T_body,est +
+lead)``. Once the heater runs at its limit (the hold after a heater-limited step up, the floor at the PTC knee,
+10 K above the body), the floor can be approached only by sending less air through the heater, which costs the
+supply temperature now; unbounded, the pull grows with the distance, so a controller whose estimate of the body
+is right (and lower) pulls harder than one whose model overrates the body, until the reading leaves the band
+below and the term drops out, valve a back open: a cycle of a few seconds (measured on the box with the heater's
+wall loss, docs/identification.md 'Heater readiness'). Bounded, the pull is at most ``w lead^2`` per second
+whatever the estimate, and the floor still rises with the body.
+
 ASSUMPTION: while heating, the next reference change may be a step up of ``ready_step_c`` (3 K, the steps of
 the bench's winter scenario), and serving it at once is worth ``Weights.heater_ready_per_c2`` per K^2 of the
 body below the floor per second (a quadratic one-sided penalty on every predicted stage, out while the reading is more than 0.5 K below the
 reference: a step up being served comes first, the side chosen at
 the linearisation: :meth:`RtiOsqpSolver` adds it where the plan it linearises at has the body below the floor).
+The globalised step's merit (:mod:`.plan_merit`) carries the same penalty, one-sided on its rollout; the exact
+cost and the IPOPT problem leave it out.
 """
 
 from __future__ import annotations
@@ -49,6 +60,8 @@ class HeaterReadiness:
         self.pb = problem
         self.weight = float(problem.spec.weights.heater_ready_per_c2)
         self.step_c = float(problem.spec.ready_step_c)
+        lead = problem.spec.ready_lead_c
+        self.lead_c = None if lead is None else float(lead)
         self.i_valve_a = INPUTS.index("valve_a_pct")
         m = problem.model
         x, u = ca.SX.sym("x", len(m.states)), ca.SX.sym("u", len(m.inputs))
@@ -67,10 +80,11 @@ class HeaterReadiness:
                 supply_now_c: float | None = None) -> float | None:
         """The body floor (degC) at the estimate ``x_phys`` with the command in force ``u_phys`` (valve a at its
         cap), disturbances ``d`` and model parameters ``p``, at the reference flow ``flow_ref_m3s`` (the flow the
-        step is served at; the model's flow where there is none); None outside the heating duty (the reference at
-        or below the inlet air, ``d[0]``, or no temperature reference) and while the supply reading ``supply_now_c``
-        is more than :data:`READY_BAND_C` below the reference (a step up is being served: the heater's heat goes to
-        the air, not into the body; the floor readies the box at rest for the next one)."""
+        step is served at; the model's flow where there is none), at most ``ready_lead_c`` above the body's
+        estimate; None outside the heating duty (the reference at or below the inlet air, ``d[0]``, or no
+        temperature reference) and while the supply reading ``supply_now_c`` is more than :data:`READY_BAND_C`
+        below the reference (a step up is being served: the heater's heat goes to the air, not into the body; the
+        floor readies the box at rest for the next one)."""
         if supply_ref_c is None or not supply_ref_c > float(d[0]):
             return None
         if supply_now_c is not None and supply_ref_c - float(supply_now_c) > READY_BAND_C:
@@ -79,8 +93,11 @@ class HeaterReadiness:
         u[self.i_valve_a] = valve_a_cap_pct
         t_core, core_share, density = (float(v) for v in self._core(x_phys, u, d, p))
         flow = float(self._flow(x_phys, u, d, p)) if flow_ref_m3s is None else float(flow_ref_m3s)
-        floor = self._body_for_outlet(t_core, core_share * density * flow, supply_ref_c + self.step_c)
-        return float(min(floor, self.pb.params.ptc_knee_c))
+        floor = min(self._body_for_outlet(t_core, core_share * density * flow, supply_ref_c + self.step_c),
+                    self.pb.params.ptc_knee_c)
+        if self.lead_c is not None:
+            floor = min(floor, float(x_phys[self.pb.i_heater]) + self.lead_c)
+        return float(floor)
 
     def _body_for_outlet(self, air_in_c: float, mass_flow_kgs: float, outlet_c: float) -> float:
         """The body temperature at which the heater's outlet air is ``outlet_c`` (the outlet balance of

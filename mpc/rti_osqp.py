@@ -779,7 +779,8 @@ class RtiOsqpSolver:
         N, nu = self.pb.N, self.pb.nu
         U_lin = self._z_lin[self.iu0:self.is0].reshape(N, nu)
         U_qp = z[self.iu0:self.is0].reshape(N, nu)
-        fraction = self._merit.choose(U_lin, U_qp, x0, d, self._weights(w_y), ref, u_prev, self._p)
+        fraction = self._merit.choose(U_lin, U_qp, x0, d, self._weights(w_y), ref, u_prev, self._p,
+                                      self.readiness_target)
         if fraction == 1.0:
             return z, fraction
         z = self._z_lin + fraction * (z - self._z_lin)

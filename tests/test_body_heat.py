@@ -69,7 +69,7 @@ def test_the_merit_and_the_qp_carry_the_same_term(controllers):
     w_y, u_prev = pb.w_y_full.copy(), _heating(pb)
     exact = float(pb.cost_function()(X.T, U.T, np.zeros(pb.N), d, ref, w_y, u_prev))
     merit = solver._merit.cost_function()(X[0], U.T, d, solver._stage_weights(w_y).T, ref, u_prev,
-                                          pb.model.p_default)
+                                          pb.model.p_default, 0.0, np.zeros(pb.N))
     assert float(merit) == pytest.approx(exact, rel=1e-9)
     i = pb.N * pb.nx + pb.i_heater
     plain = controllers[0].solver

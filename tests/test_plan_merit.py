@@ -40,8 +40,34 @@ def test_merit_is_the_problems_cost_along_the_rollout(controller):
         X[k + 1] = np.asarray(pb.F(X[k], U[k], d, k)).ravel()
     assert pb.unscale_x(X)[:, pb.i_heater].max() < 60.0  # below the PTC knee and the soft limit: no slack
     exact = float(pb.cost_function()(X.T, U.T, np.zeros(pb.N), d, ref, w_y, u_prev))
-    merit = solver._merit.cost_function()(x0, U.T, d, solver._stage_weights(w_y).T, ref, u_prev, pb.model.p_default)
+    merit = solver._merit.cost_function()(x0, U.T, d, solver._stage_weights(w_y).T, ref, u_prev, pb.model.p_default,
+                                          0.0, np.zeros(pb.N))
     assert float(merit) == pytest.approx(exact, rel=1e-9)
+
+
+def test_merit_carries_the_readiness_as_the_one_sided_penalty_on_the_rollout(controller):
+    """With the heater readiness's floor and stage weights given (mpc/readiness.py), the merit grows by
+    sum_k w_k max(x_f - x_k, 0)^2 over the rollout's scaled body at stages 1..N, and by nothing where the body is
+    above the floor: the step is judged on the cost whose pull the QP carries."""
+    pb, solver = controller.problem, controller.solver
+    merit = solver._merit.cost_function()
+    x0 = pb.scale_x(pb.placeholder_state())
+    d = np.array([5.0, 5.0, 0.0, 0.0])
+    ref, w_y = pb.reference_vector(_reference()), pb.heating_weights(pb.w_y_full.copy(), heating=True)
+    sw, p, u_prev = solver._stage_weights(w_y).T, pb.model.p_default, pb.scale_u(np.array([150, 150, 30, 50, 50, 50.0]))
+    U = _plan(pb, 150.0, 30.0)
+    X = [x0]
+    for k in range(pb.N):
+        X.append(np.asarray(pb.F(X[k], U[k], d, k)).ravel())
+    body = np.array(X)[1:, pb.i_heater]
+    w = np.linspace(0.5, 2.0, pb.N)
+    base = float(merit(x0, U.T, d, sw, ref, u_prev, p, 0.0, np.zeros(pb.N)))
+    x_f = float(np.median(body))  # some stages below the floor, some above
+    with_floor = float(merit(x0, U.T, d, sw, ref, u_prev, p, x_f, w))
+    short = np.maximum(x_f - body, 0.0)
+    assert 0 < np.count_nonzero(short) < pb.N
+    assert with_floor - base == pytest.approx(float(np.sum(w * short ** 2)), rel=1e-9)
+    assert float(merit(x0, U.T, d, sw, ref, u_prev, p, body.min() - 1.0, w)) == pytest.approx(base, rel=1e-12)
 
 
 def _reference():
@@ -62,14 +88,14 @@ def test_the_step_is_damped_only_where_the_qp_plan_costs_more(controller):
     sw, p = solver._stage_weights(w_y), pb.model.p_default
     u_prev = pb.scale_u(np.array([150.0, 150.0, 30.0, 50.0, 50.0, 50.0]))
     good, bad = _plan(pb, 150.0, 30.0), _plan(pb, 0.0, 90.0)  # heating towards 30 C against the heater off
-    cost = merit.cost_function()
-    c_good = float(cost(x0, good.T, d, sw.T, ref, u_prev, p))
-    c_bad = float(cost(x0, bad.T, d, sw.T, ref, u_prev, p))
+    cost, off = merit.cost_function(), (0.0, np.zeros(pb.N))  # the readiness out
+    c_good = float(cost(x0, good.T, d, sw.T, ref, u_prev, p, *off))
+    c_bad = float(cost(x0, bad.T, d, sw.T, ref, u_prev, p, *off))
     assert c_bad > c_good
     assert merit.choose(bad, good, x0, d, sw, ref, u_prev, p) == 1.0
     fraction = merit.choose(good, bad, x0, d, sw, ref, u_prev, p)
     assert fraction in merit.fractions
-    damped = {a: float(cost(x0, (good + a * (bad - good)).T, d, sw.T, ref, u_prev, p)) for a in merit.fractions}
+    damped = {a: float(cost(x0, (good + a * (bad - good)).T, d, sw.T, ref, u_prev, p, *off)) for a in merit.fractions}
     assert damped[fraction] == min(damped.values()) < c_bad
 
 

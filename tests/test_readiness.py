@@ -14,13 +14,14 @@ from hvac_mpc.mpc.ocp import InvalidSettings, OcpSpec, Weights
 from hvac_mpc.mpc.readiness import HeaterReadiness
 
 
-def _settings(weight: float, **kwargs) -> MpcSettings:
-    return MpcSettings(ocp=OcpSpec(weights=Weights(heater_ready_per_c2=weight)), **kwargs)
+def _settings(weight: float, lead_c: float | None = 3.0, **kwargs) -> MpcSettings:
+    return MpcSettings(ocp=OcpSpec(weights=Weights(heater_ready_per_c2=weight), ready_lead_c=lead_c), **kwargs)
 
 
 @pytest.fixture(scope="module")
 def controller():
-    return MpcController(settings=_settings(0.5))
+    """Without the bound on the floor above the body's estimate (the floor's own formula)."""
+    return MpcController(settings=_settings(0.5, lead_c=None))
 
 
 def test_floor_is_the_heater_outlet_balance_solved_for_the_body(controller):
@@ -59,6 +60,21 @@ def test_floor_is_held_below_the_ptc_knee_and_off_outside_the_heating_duty_and_i
     assert ready.scaled(None) is None
 
 
+def test_floor_asks_at_most_the_lead_above_the_body_estimate():
+    """ready_lead_c 3 K: a body estimated at 30 C gets the floor 33 C instead of the outlet balance's 44 C (9 C at
+    40 m3/h); a body estimated at 50 C, above the balance's floor, the balance's floor."""
+    pb = MpcController(settings=_settings(0.5)).problem
+    bounded, free = HeaterReadiness(pb), HeaterReadiness(MpcController(settings=_settings(0.5, lead_c=None)).problem)
+    u = np.array([60.0, 0.0, 0.0, 100.0, 100.0, 100.0])
+    d = np.array([5.0, 5.0, 0.0, 0.0])
+    args = (u, d, pb.model.p_default, 9.0, 40.0 / 3600.0, 90.0)
+    cold, warm = np.array([1.0, 5.0, 30.0, 9.0]), np.array([1.0, 5.0, 50.0, 9.0])
+    assert free.floor_c(cold, *args) > 40.0
+    assert bounded.floor_c(cold, *args) == pytest.approx(33.0)
+    assert bounded.floor_c(warm, *args) == pytest.approx(free.floor_c(warm, *args))
+    assert free.floor_c(warm, *args) < 50.0
+
+
 def test_the_qp_carries_the_penalty_only_where_the_plan_is_below_the_floor(controller):
     """_with_readiness: Hessian 2 w and gradient -2 w x_f on the body of the stages whose linearised body is below
     the floor, nothing elsewhere; the target off leaves P as it was."""
@@ -85,8 +101,9 @@ def test_the_readiness_keeps_the_body_warm_through_the_warm_up_on_the_recirculat
     """The independent box drawing 15 % of cabin air behind the inlet sensor, the MPC with the ``box_in`` term
     identification finds (-0.15 T_in + 3.6 C, thesis parameters otherwise), the quick winter_heating_steps: the
     warm-up holds 9 C with the air entering at about 9.05 C, and without the readiness the MPC cools through the
-    core with the heater off, the body 33.1 -> 26.3 C at the step (measured), 143.1 C s. With the readiness (0.5
-    per K^2 s) the body is above 40 C at the step (measured 43.2 C) and the IAE a quarter (measured 34.8 C s)."""
+    core with the heater off, the body 33.1 -> 26.3 C at the step (measured), 146.5 C s. With the readiness (0.5
+    per K^2 s) the body is above 40 C at the step (measured 43.2 C) and the IAE a quarter (measured 37.3 C s with
+    the floor at most 3 K above the body's estimate, 34.8 C s without that bound)."""
     term = DiscoveredTerm("recirculation", "box_in", ("inlet", "one"), (-0.15, 3.6))
     refined = RefinedModel(Parameters(), ("ptc_power_fall", "fan_curve", "valve_leakage"), (term,),
                            absent=("bypass_flow",))
@@ -101,12 +118,33 @@ def test_the_readiness_keeps_the_body_warm_through_the_warm_up_on_the_recirculat
     assert iae_on < 0.4 * iae_off, (iae_on, iae_off)
 
 
+def test_the_bounded_floor_tracks_the_wall_loss_box_better_than_the_unbounded_one():
+    """The independent box whose heater body loses heat to the box walls (hvac_mpc.mismatch ``heater_wall_loss``,
+    0.3 W/K), the MPC with the ``heater_body`` term identification finds (-0.28 W/K (T_body - T_in), the thesis
+    parameters otherwise), the quick cabin warm-up: after the step up the heater runs at its limit and the
+    unbounded floor is the PTC knee, 10 K above the body the MPC estimates right; it pulls valve a towards less air
+    through the heater, the reading leaves the band and the term drops out, from second to second (measured 47.5
+    C s, the readiness off 50.2 C s). Bounded at 3 K above the estimate the pull is the same whatever the distance
+    (measured 38.3 C s; the MPC with the nominal model 40.4 unbounded, 37.3 bounded)."""
+    term = DiscoveredTerm("heater_body_term", "heater_body", ("body_minus_inlet", "one"), (-0.28, 0.0))
+    refined = RefinedModel(Parameters(), ("ptc_power_fall", "fan_curve", "valve_leakage"), (term,),
+                           absent=("bypass_flow",))
+
+    def iae(lead_c):
+        return body_at_step_and_iae("cabin_warmup_winter", "heater_wall_loss", _settings(0.5, lead_c=lead_c),
+                                    refined)[1]
+
+    bounded, unbounded = iae(3.0), iae(None)
+    assert bounded < 0.9 * unbounded, (bounded, unbounded)
+
+
 @pytest.mark.parametrize("field, value", [("heater_ready_per_c2", -0.1), ("ready_step_c", 31.0),
-                                          ("ready_step_c", float("nan"))])
+                                          ("ready_step_c", float("nan")), ("ready_lead_c", 0.0),
+                                          ("ready_lead_c", float("inf"))])
 def test_readiness_settings_out_of_range_name_the_field(field, value):
     with pytest.raises(InvalidSettings, match=field):
-        if field == "ready_step_c":
-            MpcSettings(ocp=OcpSpec(ready_step_c=value))
+        if field.startswith("ready_"):
+            MpcSettings(ocp=OcpSpec(**{field: value}))
         else:
             MpcSettings(ocp=OcpSpec(weights=Weights(heater_ready_per_c2=value)))
 
