@@ -676,8 +676,8 @@ class MpcController:
 
     def _use_estimated_parameters(self) -> None:
         """The prediction (the next QPs) and the reachable-flow check use the learned bypass-flow exponent
-        (docs/robustness.md sec. 1). Unlearned, the exponent is the prior the problem was built with, and
-        nothing needs copying."""
+        (docs/robustness.md sec. 1) and the estimated offsets of the core path's air (sec. 2.13). Unlearned, the
+        exponent is the prior the problem was built with, and nothing needs copying."""
         if not self.ekf.adapts_parameters:
             return
         p = self._prediction_parameters()
@@ -687,8 +687,8 @@ class MpcController:
 
     def _prediction_parameters(self) -> np.ndarray:
         """The model parameters (``HvacModel.p_default`` order) the prediction uses now: the filter's
-        (:meth:`~.estimator.DisturbanceEkf.model_parameters`) where it learns the bypass-flow exponent, else
-        those the problem was built with."""
+        (:meth:`~.estimator.DisturbanceEkf.model_parameters`) where it learns the bypass-flow exponent or estimates
+        an offset of the core path's air, else those the problem was built with."""
         if self.ekf.adapts_parameters:
             return self.ekf.model_parameters()
         return self.problem.model.p_default
