@@ -185,7 +185,10 @@ class HvacModel:
         p_el = heater.electric_power_w(su["heater_cmd_w"], sx["heater_temp_c"], prm, ptc="ptc_power_fall" in e)
         core_flow = (1.0 - b) * mass_flow
         t_heater_out = heater.air_outlet_c(sx["heater_temp_c"], t_cooler, core_flow, prm)
-        t_mix = bypass.mix_c(b, t_blower, t_heater_out)
+        # the air leaving the heater as it mixes and is read: with an offset the heater body does not see (0 in the
+        # thesis model; the estimator's own, docs/robustness.md sec. 2.13)
+        t_heater_air = t_heater_out + prm.heater_air_offset_c
+        t_mix = bypass.mix_c(b, t_blower, t_heater_air)
         if "trapped_air" in e:
             t_mix = t_mix + bypass.trap_release_c(sx[TRAP_STATE], t_mix, a, mass_flow, prm)
         t_supply = t_mix + sd["mix_offset_c"]
@@ -197,7 +200,7 @@ class HvacModel:
         outlet = valves.split_flows(flow, g)
         return dict(prm=prm, sx=sx, su=su, sd=sd, flow=flow, mass_flow=mass_flow, bypass=b,
                     t_blower=t_blower, t_cooler=t_cooler, p_el=p_el, t_heater_out=t_heater_out,
-                    t_mix=t_mix, t_supply=t_supply, t_duct=t_duct, outlet=outlet)
+                    t_heater_air=t_heater_air, t_mix=t_mix, t_supply=t_supply, t_duct=t_duct, outlet=outlet)
 
     def _equations(self, x, u, d, p):
         e = self.effects
@@ -222,12 +225,12 @@ class HvacModel:
                 rates[name] = sensors.lag_rate(sx[name], upstream, tau)
                 upstream = sx[name]
         if "trapped_air" in e:
-            t_mix_no_trap = bypass.mix_c(q["bypass"], q["t_blower"], q["t_heater_out"])
+            t_mix_no_trap = bypass.mix_c(q["bypass"], q["t_blower"], q["t_heater_air"])
             rates[TRAP_STATE] = bypass.trap_rate_c_per_s(sx[TRAP_STATE], sx["heater_temp_c"], t_mix_no_trap,
                                                          su["valve_a_pct"], prm)
         xdot = ca.vertcat(*[rates[n] for n in self.states.names])
         y = ca.vertcat(sx["supply_sensor_c"], q["flow"], *q["outlet"], sx["heater_temp_c"], q["t_supply"],
-                       q["t_heater_out"], q["p_el"], sx["water_temp_c"], q["mass_flow"], q["t_duct"])
+                       q["t_heater_air"], q["p_el"], sx["water_temp_c"], q["mass_flow"], q["t_duct"])
         return xdot, y
 
     # ------------------------------------------------------------------ discretisation

@@ -38,9 +38,11 @@ def cooler_outlet_c(air_in_c, water_c, p):
     The thesis fit T_a = 0.7564 T_w + 6.312 was measured at one inlet temperature; it equals the
     effectiveness form T_in + eps (T_w - T_in) with eps = 0.7564 at
     T_in = 6.312 / (1 - 0.7564) = 25.9 C (docs/model.md, 'traps'). The effectiveness form is used so
-    that the cooler responds to the inlet temperature.
+    that the cooler responds to the inlet temperature. ``p.cooler_outlet_offset_c`` (0 in the thesis model) is
+    added: the estimator's estimate of the core outlet's error, where a box's core does not follow the
+    effectiveness form (docs/robustness.md sec. 2.13).
     """
-    return air_in_c + p.cooler_slope * (water_c - air_in_c)
+    return air_in_c + p.cooler_slope * (water_c - air_in_c) + p.cooler_outlet_offset_c
 
 
 def cooler_fit_inlet_c(p) -> float:

@@ -121,6 +121,12 @@ class Parameters:
     noise_supply_temp_c: float = _p(0.05, "ASSUMPTION thermocouple noise (1 sigma)", 0, 5)
     noise_flow_m3s: float = _p(4e-4, "ASSUMPTION volume-flow sensor noise (1 sigma)", 0, 0.05)
     noise_inlet_temp_c: float = _p(0.05, "ASSUMPTION inlet temperature noise (1 sigma)", 0, 5)
+    cooler_outlet_offset_c: float = _p(
+        0.0, "ASSUMPTION none: an offset of the air leaving the cooler core, the estimator's own (docs/robustness.md "
+        "sec. 2.13)", -30, 30)
+    heater_air_offset_c: float = _p(
+        0.0, "ASSUMPTION none: an offset of the air leaving the heater as it mixes and is read (not as the heater body "
+        "sees it), the estimator's own (docs/robustness.md sec. 2.13)", -30, 30)
 
     # --- measured tables (thesis tables 3-5): angle %, resistance kg/m^7 -------------
     valve_m_table: tuple = field(default=(

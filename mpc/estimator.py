@@ -40,6 +40,11 @@ estimate it): before each measurement update it moves towards the model's mass f
 offset takes the model's change at the command in force, so the exponent acts only on a flow away from the
 recent one, never on the level (docs/robustness.md sec. 2.7).
 
+Core path (``EkfSettings.q_cooler_offset_c``, ``q_heater_air_offset_c``): offsets of the air leaving the cooler core
+or the heater, states of the filter in place of the model's parameters ``cooler_outlet_offset_c`` and
+``heater_air_offset_c``, so the model's own mixing gives them the effect on the supply air that valve a's position
+makes of it; the prediction uses the estimates (docs/robustness.md sec. 2.13).
+
 Chiller water (``water_prediction``): ``"hold"`` treats the water temperature as a random walk
 (the chiller's two-point switching is unknown to the model, thesis sec. 2.2); ``"setpoint"``
 lets it ramp towards the chiller set point as in the model (thesis sec. 4.2).
@@ -84,6 +89,11 @@ BYPASS_FLOW_LEARNING_GATES = {"bypass_flow_anchored": False, "bypass_flow_after_
 #: (``EkfSettings.bypass_flow_at_rest``). ASSUMPTION: 50 W move the supply air about 1.7 degC at 90 m3/h, as much as
 #: 5-7 percentage points of valve a (about 0.25 degC per point), the valve's bound in the measured setting.
 REST_HEATER_TOL_W = 50.0
+#: Offsets of the model's air the filter may estimate in place of its parameters: setting (the random walk, 0: not
+#: estimated) -> parameter (docs/robustness.md sec. 2.13).
+OWN_OFFSETS = (("q_cooler_offset_c", "cooler_outlet_offset_c"), ("q_heater_air_offset_c", "heater_air_offset_c"))
+#: Standard deviation (degC) of those offsets at the start. ASSUMPTION: as the heater outlet reading's offset's.
+OWN_OFFSET_SD0_C = 1.0
 #: Measurement names in the order of the filter's measurement vector.
 MEASURED = ("supply_temp_c", "volume_flow_m3s", "water_temp_c", "hvac_inlet_temp_c", "heater_outlet_temp_c")
 
@@ -137,6 +147,27 @@ class EkfSettings:
     (a cooler core whose outlet differs from the model's) biases the mixed-air offset and so the supply
     temperature at rest (0.03 degC on the independent box's ``cooler_literal`` with the flow out of
     reach); with it every measured output has its integrator and the filter stays offset-free.
+
+    ``q_cooler_offset_c``: random walk (degC per sample) of an offset of the air leaving the cooler core, the
+    filter's own value of ``Parameters.cooler_outlet_offset_c`` (0: none, the model's parameter as it is). It
+    passes through the heater branch and the bypass with the model's own mixing, so its effect on the supply air
+    depends on valve a, which an offset added to the mixed air cannot carry: a box whose core leaves the air warmer
+    than the model's whatever the inlet (the thesis cooler fit taken literally, about 10 degC in winter) has a
+    valve a gain several times the model's in heating, and the mixed-air offset swung 0 -> 4.5 degC with each
+    stroke of a ringing loop. The prediction takes the estimate (:meth:`DisturbanceEkf.model_parameters`).
+    Observability (ASSUMPTION): the heater outlet reading tells it directly (with ``q_heater_outlet_offset_c`` 0
+    that reading has no offset of its own); without that reading only valve a's moves tell it from the mixed-air
+    offset, and at rest it keeps its value. Off by default: it costs the built-in plant's quick warm-up, cool-down
+    and proband (0.423 -> 0.638, 0.701 -> 0.728, 0.520 -> 0.532 of the baseline's IAE). docs/robustness.md sec. 2.13.
+
+    ``q_heater_air_offset_c``: the same for an offset of the air leaving the heater as it mixes and is read (the
+    heater body sees the model's air), the filter's own value of ``Parameters.heater_air_offset_c`` (0: none). The
+    heater outlet reading sees exactly this air, so it tells the offset at any valve position, whether the error is
+    the core's or the heater's; with ``q_heater_outlet_offset_c`` 0 (the reading without an offset of its own)
+    valve a's gain in the prediction is the box's at the operating point. Off by default: it costs the built-in
+    plant's warm-up (quick ``cabin_warmup_winter`` 0.42 -> 0.64 of the baseline's IAE), where the error at the heater
+    outlet is the heater's transfer coefficient, which an offset carries at one core flow only
+    (docs/robustness.md sec. 2.13).
 
     ``initial_sd_motor_c``: standard deviation (degC) of the motor rise at the start, where the filter puts it
     at the rest state of the command in force. Nothing but the model tells it from the mixed-air offset (both
@@ -260,6 +291,8 @@ class EkfSettings:
     dead_time_initial_s: float = 0.0
     dead_time_prior_s: float = 0.0
     q_heater_outlet_offset_c: float = 0.01
+    q_cooler_offset_c: float = 0.0
+    q_heater_air_offset_c: float = 0.0
     learn_bypass_flow: bool = False
     bypass_flow_exponent_prior: float = 0.0
     bypass_flow_exponent_sd: float = 0.1
@@ -302,7 +335,7 @@ class EkfSettings:
                 continue
             if f.name in ("dead_time_max_s", "dead_time_min_s", "dead_time_prior_s", "q_heater_outlet_offset_c",
                           "q_mix_offset_unseen_c", "q_mix_offset_per_log_flow_c", "q_mix_offset_flow_deadband",
-                          "reanchor_hold_q_mix_c"):
+                          "reanchor_hold_q_mix_c", "q_cooler_offset_c", "q_heater_air_offset_c"):
                 check_number(f"{prefix}.{f.name}", value, 0.0, 30.0)
                 continue
             if f.name in OWN_RANGES:
@@ -359,13 +392,19 @@ class DisturbanceEkf:
         # model states, disturbance states and, when learned, the bypass-flow exponent
         # ... and the heater outlet reading's own offset (an integrating disturbance per measured output)
         self.has_outlet_offset = bool(s.use_heater_outlet and s.q_heater_outlet_offset_c > 0.0)
-        self.nc = self.nx + 3 + int(self.learns_bypass_flow) + int(self.anchors_bypass_flow) + int(self.has_outlet_offset)
+        # ... and the offsets of the air leaving the cooler core or the heater, parameters of the model (OWN_OFFSETS)
+        own = [(param, getattr(s, q)) for q, param in OWN_OFFSETS if getattr(s, q) > 0.0]
+        self.own_offsets = tuple(param for param, _ in own)
+        self.i_own_p = [model.param_names.index(param) for param in self.own_offsets]
+        self.nc = (self.nx + 3 + int(self.learns_bypass_flow) + int(self.anchors_bypass_flow)
+                   + int(self.has_outlet_offset) + len(own))
         # the disturbance states follow the model states (module docstring)
         self.i_mix_offset, self.i_flow_offset, self.i_inlet = self.nx, self.nx + 1, self.nx + 2
         self.i_exponent = self.i_inlet + 1 if self.learns_bypass_flow else None
         # ln of the reference mass flow (kg/s), next to the exponent
         self.i_anchor = self.i_exponent + 1 if self.anchors_bypass_flow else None
-        self.i_outlet_offset = self.nc - 1 if self.has_outlet_offset else None
+        self.i_own = list(range(self.nc - len(own), self.nc))
+        self.i_outlet_offset = self.nc - 1 - len(own) if self.has_outlet_offset else None
         self.n_hist = int(round(s.dead_time_max_s / self.dt_s))
         self.nz = self.nc + self.n_hist  # ... and the history of the undelayed thermocouple state
         names = model.states.names
@@ -378,7 +417,8 @@ class DisturbanceEkf:
         self._q_mix = (s.q_mix_offset_c, s.q_mix_offset_unseen_c or s.q_mix_offset_c)
         q = [q_state[n] for n in names] + [min(self._q_mix), s.q_flow_offset_m3s, s.q_inlet_c]
         q += [s.q_bypass_flow_exponent] * int(self.learns_bypass_flow) + [0.0] * int(self.anchors_bypass_flow)
-        q += [s.q_heater_outlet_offset_c] * int(self.has_outlet_offset) + [HIST_Q_C] * self.n_hist
+        q += [s.q_heater_outlet_offset_c] * int(self.has_outlet_offset)
+        q += [q_own for _, q_own in own] + [HIST_Q_C] * self.n_hist
         self.Q = np.diag(np.square(q))
         # the prior stands for a dead time the parameters do not name: none where they name one
         self.dead_time_prior_s = s.dead_time_prior_s if model.params.transport_delay_s <= 0.0 else 0.0
@@ -452,10 +492,14 @@ class DisturbanceEkf:
         d = self._d(zc, sp)
         x = zc[:nx]
         pm = p
-        if self.learns_bypass_flow:  # the estimated exponent (and anchor) in place of the parameters
-            own = {self.i_exponent_p: zc[self.i_exponent]}
+        own = {}  # the filter's own states in place of parameters
+        if self.learns_bypass_flow:  # the estimated exponent (and anchor)
+            own[self.i_exponent_p] = zc[self.i_exponent]
             if self.anchors_bypass_flow:
                 own[self.i_ref_p] = ca.exp(zc[self.i_anchor])
+        for i_p, i_z in zip(self.i_own_p, self.i_own):  # the estimated offsets of the core's or heater's air
+            own[i_p] = zc[i_z]
+        if own:
             pm = ca.vertcat(*[own.get(i, p[i]) for i in range(p.shape[0])])
         xk = rk4(m.ode, x, u, d, pm, self.dt_s, 2)
         # shift register: the newest history entry is the thermocouple state now, the others move on
@@ -583,11 +627,13 @@ class DisturbanceEkf:
         mass_flow = y["mass_flow_kgs"] * flow / max(y["volume_flow_m3s"], 1e-6)  # the measured flow's
         anchor = [math.log(max(mass_flow, 1e-5))] * int(self.anchors_bypass_flow)
         outlet = [0.0] * int(self.has_outlet_offset)
-        self.z = np.concatenate([self.z[:self.i_inlet + 1], exponent, anchor, outlet, self.z[self.i_inlet + 1:]])
+        cooler = [float(self.p[i]) for i in self.i_own_p]  # the parameters' values to start
+        self.z = np.concatenate([self.z[:self.i_inlet + 1], exponent, anchor, outlet, cooler,
+                                 self.z[self.i_inlet + 1:]])
         sd = [p0[n] for n in m.states.names] + [0.5, 2e-3, 0.1]
         sd += [s.bypass_flow_exponent_sd] * len(exponent)
         sd += [0.0] * len(anchor)
-        sd += [1.0] * len(outlet) + [0.1] * self.n_hist
+        sd += [1.0] * len(outlet) + [OWN_OFFSET_SD0_C] * len(cooler) + [0.1] * self.n_hist
         self.P = np.diag(np.square(sd))
         self._restart()
         if self.shadow is not None:
@@ -873,7 +919,31 @@ class DisturbanceEkf:
             p[self.i_exponent_p] = self.bypass_flow_exponent if exponent is None else exponent
         if self.anchors_bypass_flow and self.z is not None:
             p[self.i_ref_p] = math.exp(float(self.z[self.i_anchor]))
+        if self.z is not None:
+            p[self.i_own_p] = self.z[self.i_own]
         return p
+
+    @property
+    def adapts_parameters(self) -> bool:
+        """True where the prediction's parameters follow the filter (:meth:`model_parameters`): the bypass-flow
+        exponent learned, or the cooler core's outlet offset estimated."""
+        return self.learns_bypass_flow or bool(self.own_offsets)
+
+    @property
+    def has_cooler_offset(self) -> bool:
+        return "cooler_outlet_offset_c" in self.own_offsets
+
+    def own_offset_c(self, param: str) -> float:
+        """The estimate of model parameter ``param`` (one of :data:`OWN_OFFSETS`; degC), the parameter's own value
+        where the filter does not estimate it."""
+        if param in self.own_offsets and self.z is not None:
+            return float(self.z[self.i_own[self.own_offsets.index(param)]])
+        return float(self.p[self.model.param_names.index(param)])
+
+    @property
+    def cooler_offset_c(self) -> float:
+        """The offset of the air leaving the cooler core the filter uses (degC)."""
+        return self.own_offset_c("cooler_outlet_offset_c")
 
     def healthy(self) -> bool:
         return self.z is not None and bool(np.isfinite(self.z).all() and np.isfinite(self.P).all())

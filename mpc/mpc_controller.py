@@ -682,9 +682,9 @@ class MpcController:
 
     def _use_estimated_parameters(self) -> None:
         """The prediction (the next QPs) and the reachable-flow check use the learned bypass-flow exponent
-        (docs/robustness.md sec. 1). Unlearned, the exponent is the prior the problem was built with, and
-        nothing needs copying."""
-        if not self.ekf.learns_bypass_flow:
+        (docs/robustness.md sec. 1) and the estimated offsets of the core path's air (sec. 2.13). Unlearned, the
+        exponent is the prior the problem was built with, and nothing needs copying."""
+        if not self.ekf.adapts_parameters:
             return
         p = self._prediction_parameters()
         self.solver.set_parameters(p)
@@ -693,9 +693,9 @@ class MpcController:
 
     def _prediction_parameters(self) -> np.ndarray:
         """The model parameters (``HvacModel.p_default`` order) the prediction uses now: the filter's
-        (:meth:`~.estimator.DisturbanceEkf.model_parameters`) where it learns the bypass-flow exponent, else
-        those the problem was built with."""
-        if self.ekf.learns_bypass_flow:
+        (:meth:`~.estimator.DisturbanceEkf.model_parameters`) where it learns the bypass-flow exponent or estimates
+        an offset of the core path's air, else those the problem was built with."""
+        if self.ekf.adapts_parameters:
             return self.ekf.model_parameters()
         return self.problem.model.p_default
 
@@ -714,6 +714,8 @@ class MpcController:
         if self._heater_inlet is None:
             t_blower = e.inlet_temp_c + x[m.states.index("motor_rise_c")]
             heater_in = float(chiller.cooler_outlet_c(t_blower, x[e.i_water], self.params))
+            if e.has_cooler_offset:  # the filter's estimate of the core outlet's offset in place of the parameter's
+                heater_in += e.cooler_offset_c - self.params.cooler_outlet_offset_c
         else:
             # the chiller set point and the mixed-air offset do not reach the heater inlet: the water state stands in
             heater_in = float(self._heater_inlet(x, self.u_prev, self._disturbance(float(x[e.i_water]))))
