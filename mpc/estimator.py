@@ -627,13 +627,13 @@ class DisturbanceEkf:
         mass_flow = y["mass_flow_kgs"] * flow / max(y["volume_flow_m3s"], 1e-6)  # the measured flow's
         anchor = [math.log(max(mass_flow, 1e-5))] * int(self.anchors_bypass_flow)
         outlet = [0.0] * int(self.has_outlet_offset)
-        cooler = [float(self.p[i]) for i in self.i_own_p]  # the parameters' values to start
-        self.z = np.concatenate([self.z[:self.i_inlet + 1], exponent, anchor, outlet, cooler,
+        own = [float(self.p[i]) for i in self.i_own_p]  # the offsets of OWN_OFFSETS start at the parameters' values
+        self.z = np.concatenate([self.z[:self.i_inlet + 1], exponent, anchor, outlet, own,
                                  self.z[self.i_inlet + 1:]])
         sd = [p0[n] for n in m.states.names] + [0.5, 2e-3, 0.1]
         sd += [s.bypass_flow_exponent_sd] * len(exponent)
         sd += [0.0] * len(anchor)
-        sd += [1.0] * len(outlet) + [OWN_OFFSET_SD0_C] * len(cooler) + [0.1] * self.n_hist
+        sd += [1.0] * len(outlet) + [OWN_OFFSET_SD0_C] * len(own) + [0.1] * self.n_hist
         self.P = np.diag(np.square(sd))
         self._restart()
         if self.shadow is not None:
@@ -926,11 +926,12 @@ class DisturbanceEkf:
     @property
     def adapts_parameters(self) -> bool:
         """True where the prediction's parameters follow the filter (:meth:`model_parameters`): the bypass-flow
-        exponent learned, or the cooler core's outlet offset estimated."""
+        exponent learned, or an offset of :data:`OWN_OFFSETS` (the cooler core's or the heater's air) estimated."""
         return self.learns_bypass_flow or bool(self.own_offsets)
 
     @property
     def has_cooler_offset(self) -> bool:
+        """True where the filter estimates the offset of the air leaving the cooler core."""
         return "cooler_outlet_offset_c" in self.own_offsets
 
     def own_offset_c(self, param: str) -> float:
