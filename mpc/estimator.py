@@ -374,10 +374,13 @@ class DisturbanceEkf:
     """EKF for the HVAC box; ``predict(u)`` after applying a command, ``update(measurement)`` on arrival."""
 
     def __init__(self, model: HvacModel, settings: EkfSettings | None = None, dt_s: float = 1.0,
-                 water_prediction: str = "hold", learn_bypass_flow: bool = True):
+                 water_prediction: str = "hold", learn_bypass_flow: bool = True, name: str = "ekf"):
         """``learn_bypass_flow``: False keeps the model's bypass-flow exponent fixed whatever the
-        settings say (for a prediction that cannot take a changed parameter)."""
+        settings say (for a prediction that cannot take a changed parameter). ``name``: the prefix of the time and
+        measurement updates' function names (``NAME_predict``, ``NAME_update``; generated code is cached by them),
+        for two filters of one controller."""
         self.model = model
+        self.name = str(name)
         self.settings = s = settings or EkfSettings()
         self.dt_s = float(dt_s)
         self.hold_water = water_prediction == "hold"
@@ -430,6 +433,9 @@ class DisturbanceEkf:
         self.rest_gate = (RestGate(s.rest_window_s, s.rest_air_band_c, s.rest_log_flow_band, s.rest_offset_band_c,
                                    self.dt_s) if s.r_supply_rest_c > 0.0 else None)
         self.use = np.array([True, True, True, True, s.use_heater_outlet])
+        # the filter states the supply reading is compared with: the thermocouple state now and its history
+        self._supply_idx = np.array([self.i_sensor] + list(range(self.nc, self.nz)))
+        self.supply_innovation_c = self.supply_nis = math.nan  # at the last measurement update
         self._build()
         self.z: np.ndarray | None = None
         self.P: np.ndarray | None = None
@@ -540,7 +546,7 @@ class DisturbanceEkf:
             unit = ca.DM.zeros(nz, nz)
             unit[self.i_exponent, self.i_exponent] = 1.0
             F = F @ ca.diag(self._exponent_mask(learn)) + (1.0 - learn) * unit
-        return ca.Function("ekf_predict", [z, P, u, sp, p, Q, learn], [zn, ca.mtimes([F, P, F.T]) + Q, air, flow],
+        return ca.Function(f"{self.name}_predict", [z, P, u, sp, p, Q, learn], [zn, ca.mtimes([F, P, F.T]) + Q, air, flow],
                            ["z", "P", "u", "setpoint", "p", "Q", "learn"], ["z_next", "P_next", "air", "flow"])
 
     def _exponent_mask(self, learn):
@@ -574,7 +580,7 @@ class DisturbanceEkf:
         K = mask @ ca.solve(S, H @ P).T
         IKH = ca.DM.eye(nz) - K @ H
         Pn = IKH @ P @ IKH.T + K @ ca.diag(ok * R) @ K.T
-        return ca.Function("ekf_update", [z, P, y, ok, u, sp, c, p, R, learn], [z + K @ innov, 0.5 * (Pn + Pn.T)],
+        return ca.Function(f"{self.name}_update", [z, P, y, ok, u, sp, c, p, R, learn], [z + K @ innov, 0.5 * (Pn + Pn.T)],
                            ["z", "P", "y", "ok", "u", "setpoint", "c", "p", "R", "learn"], ["z_next", "P_next"])
 
     # ------------------------------------------------------------------ interface
@@ -789,8 +795,11 @@ class DisturbanceEkf:
         weights = self._supply_weights(values[0], ok[0])
         if self.shadow is not None:
             self._follow_shadow(u, setpoint_c, weights)
+        r_diag = self.R_diag
         if self.rest_gate is not None:  # the supply reading's variance at rest or in a transient (EkfSettings)
-            self._update.set_fixed(8, self._R_rest if self.rest_gate.at_rest else self.R_diag)
+            r_diag = self._R_rest if self.rest_gate.at_rest else self.R_diag
+            self._update.set_fixed(8, r_diag)
+        self._note_supply_innovation(values[0], ok[0], weights, float(r_diag[0]))
         zn, Pt = self._update(self.z, self.P, values, ok, u, setpoint_c, weights, float(self.learning))
         self.z, self.P = zn, Pt.T
         if self.settings.bound_motor_rise:
@@ -802,6 +811,20 @@ class DisturbanceEkf:
         if self.rest_steps is not None:
             self._learn_at_rest(u, setpoint_c)
         return int(ok.sum())
+
+    def _note_supply_innovation(self, supply_c: float, used: bool, weights: np.ndarray, r_c2: float) -> None:
+        """Keep the supply reading's innovation (degC) against the filter's prediction at the dead time honoured and
+        its normalised square (innovation^2 over its variance, the reading's ``r_c2`` degC^2 included;
+        :attr:`supply_nis`, nan where the reading is not used): what a choice between filters compares
+        (:mod:`~.placement`)."""
+        if not used:
+            self.supply_innovation_c = self.supply_nis = math.nan
+            return
+        idx = self._supply_idx
+        innovation = supply_c - float(weights @ self.z[idx])
+        variance = float(weights @ self.P[np.ix_(idx, idx)] @ weights) + r_c2
+        self.supply_innovation_c = innovation
+        self.supply_nis = innovation * innovation / variance
 
     def _follow_shadow(self, u: np.ndarray, setpoint_c: float, weights: np.ndarray) -> None:
         """Advance the open-loop shadow over the sample with ``u`` in force and re-anchor the shadowed states to it

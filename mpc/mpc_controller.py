@@ -57,6 +57,7 @@ from .estimator import DisturbanceEkf, EkfSettings, finite_or
 from .priorities import ReachableFlow, flow_weight_factor
 from .ocp import HEATING_CMD_W, HeaterOffBound, InvalidSettings, OcpSpec, TrackingProblem, check_flag, check_number, trap_cap_pct
 from hvac_mpc.contract import InvalidReference, Reference
+from .placement import PLACEMENTS, PlacementChoice
 from .readiness import HeaterReadiness
 from .ring_gate import RingGate
 from .rti_osqp import RtiOsqpSolver, SolveResult
@@ -189,6 +190,18 @@ class MpcSettings:
             it at rest, ramped to at the rate limits; :mod:`hvac_mpc.mpc.steady_target`) instead of the plan
             shifted from the last step, made for the old reference. Measured in docs/architecture.md, 'Slow
             steps' ('A reference change started at the steady-state target').
+        choose_offset_placement: where the heater outlet reading's error goes, chosen online
+            (:mod:`~.placement`, docs/robustness.md sec. 2.14): beside the filter of ``ekf`` (the reading's own
+            offset) a second one with an offset of the air leaving the heater (``EkfSettings.q_heater_air_offset_c``
+            ``placement_q_heater_air_c``, the reading's own offset off) runs on the same readings and commands; the
+            prediction uses the one whose supply innovations are the smaller (:class:`~.placement.PlacementChoice`:
+            normalised squares, each capped at ``placement_cap``, summed with a forgetting time
+            ``placement_window_s`` (s); a switch where the other's sum is below ``placement_ratio`` times the sum of
+            the one in use and that is above ``placement_evidence`` times a consistent filter's). The filter not in
+            use is brought up to date at the start of the next step, or between steps by :meth:`wait_background`.
+            Where ``ekf`` places the error itself (an offset of the core path's air, no heater outlet reading or no
+            offset of its own) there is nothing to choose and one filter runs. A switch costs one step the
+            preparation of the QP (a cold start, as after a reset).
     """
 
     dt_s: float = 1.0
@@ -235,6 +248,12 @@ class MpcSettings:
     ring_floor: float = 0.05
     ring_relax_s: float = 30.0
     steady_start: bool = False
+    choose_offset_placement: bool = True
+    placement_q_heater_air_c: float = 0.01
+    placement_window_s: float = 60.0
+    placement_ratio: float = 0.6
+    placement_evidence: float = 1.5
+    placement_cap: float = 50.0
 
     def __post_init__(self) -> None:
         p = "MpcSettings"
@@ -299,6 +318,12 @@ class MpcSettings:
         check_number(f"{p}.ring_crossings", self.ring_crossings, 1, 100, integer=True)
         check_number(f"{p}.ring_floor", self.ring_floor, 0.0, 1.0, lo_open=True)
         check_number(f"{p}.ring_relax_s", self.ring_relax_s, self.dt_s, 3600.0)
+        check_flag(f"{p}.choose_offset_placement", self.choose_offset_placement)
+        check_number(f"{p}.placement_q_heater_air_c", self.placement_q_heater_air_c, 0.0, 1.0, lo_open=True)
+        check_number(f"{p}.placement_window_s", self.placement_window_s, self.dt_s, 3600.0)
+        check_number(f"{p}.placement_ratio", self.placement_ratio, 0.0, 1.0, lo_open=True)
+        check_number(f"{p}.placement_evidence", self.placement_evidence, 0.0, 100.0)
+        check_number(f"{p}.placement_cap", self.placement_cap, 0.0, 1e9, lo_open=True)
 
 
 def _with_model_effects(settings: MpcSettings, model: RefinedModel | None) -> MpcSettings:
@@ -316,6 +341,14 @@ def _with_model_effects(settings: MpcSettings, model: RefinedModel | None) -> Mp
         settings = dataclasses.replace(settings, ekf=dataclasses.replace(
             settings.ekf, bypass_flow_exponent_prior=float(model.parameters.bypass_flow_exponent)))
     return settings
+
+
+def _chooses_placement(ekf: EkfSettings) -> bool:
+    """True where the filter's settings leave the heater outlet reading's error to its own offset (the default),
+    the placement ``MpcSettings.choose_offset_placement`` may move to the heater air (:mod:`~.placement`); settings
+    that place it themselves (an offset of the core path's air, no reading or no offset of its own) are kept."""
+    return (ekf.use_heater_outlet and ekf.q_heater_outlet_offset_c > 0.0 and ekf.q_heater_air_offset_c == 0.0
+            and ekf.q_cooler_offset_c == 0.0)
 
 
 def _delay_to_estimator(settings: MpcSettings, params: Parameters) -> tuple[MpcSettings, Parameters]:
@@ -404,6 +437,16 @@ class MpcController:
         # parameter (the RTI/SQP solver; the reference solvers predict with the parameters as given)
         self.ekf = DisturbanceEkf(ekf_model, s.ekf, s.dt_s, s.water_prediction,
                                   learn_bypass_flow=hasattr(self.solver, "set_parameters"))
+        self._filters = [self.ekf]  # with choose_offset_placement, the heater air's filter too (mpc/placement.py)
+        self.placement = None
+        if s.choose_offset_placement and _chooses_placement(s.ekf) and hasattr(self.solver, "set_parameters"):
+            air_settings = dataclasses.replace(s.ekf, q_heater_air_offset_c=s.placement_q_heater_air_c,
+                                               q_heater_outlet_offset_c=0.0)
+            self._filters.append(DisturbanceEkf(ekf_model, air_settings, s.dt_s, s.water_prediction,
+                                                learn_bypass_flow=True, name="ekf_heater_air"))
+            self.placement = PlacementChoice(s.placement_window_s, s.placement_ratio, s.placement_evidence, s.dt_s,
+                                             s.placement_cap)
+        self._pending = None  # the other filter's update and time update of the last step, not yet run
         pb = self.problem
         self.reach = ReachableFlow(pb.model, pb.u_lo_phys, pb.u_hi_phys, pb.heater_max_phys, self.params,
                                    every_s=s.reach_every_s, skip_unmoved=s.reach_skip_unmoved,
@@ -419,8 +462,8 @@ class MpcController:
                              s.ring_relax_s, s.dt_s) if s.ring_detune < 1.0 else None
         self.codegen = getattr(self.solver, "codegen", None) or CodegenReport()
         if s.codegen:
-            self.ekf.use_functions(compiled(self.ekf.predict_fn, self.codegen),
-                                   compiled(self.ekf.update_fn, self.codegen))
+            for f in self._filters:
+                f.use_functions(compiled(f.predict_fn, self.codegen), compiled(f.update_fn, self.codegen))
         if hasattr(self.solver, "use_prediction"):
             self.solver.use_prediction(self.ekf)  # prediction and QP data in one call
         self._baseline = None
@@ -445,7 +488,12 @@ class MpcController:
     def reset(self, command: Command | None = None) -> None:
         """Forget estimates, plans and warm starts; ``command`` is the command now in force."""
         self.u_prev = (command or self.settings.initial_command).vector().copy()
-        self.ekf.reset()
+        for f in self._filters:
+            f.reset()
+        self._pending = None
+        if self.placement is not None:
+            self.placement.reset()
+            self._use_filter(self._filters[0])
         self.solver.reset()
         self._plan: tuple[np.ndarray, float] | None = None  # (U scaled (N, nu), age s), unscaled when used
         self._reference: Reference | None = None
@@ -478,6 +526,10 @@ class MpcController:
         """After an unexpected error: fallback command, projected, and a fresh start next step."""
         self.solver.reset()
         self._prepared_for_next = False
+        self._pending = None
+        for f in self._filters[1:]:  # the other filter starts afresh with the next step
+            if f is not self.ekf:
+                f.reset()
         try:
             cmd, fallback = self._fallback_command(measurement, self._reference)
         except Exception:  # noqa: BLE001 - nothing may escape a control step
@@ -525,6 +577,8 @@ class MpcController:
                                                                         fallback="hold_last_command"))
         self._reference = ref
         setpoint = self._setpoint(measurement)
+        u_in = self.u_prev
+        self._choose_filter()
         # --- estimation
         if not self.ekf.healthy():
             self.ekf.initialise(measurement, self.u_prev, setpoint)
@@ -535,6 +589,8 @@ class MpcController:
         if not self.ekf.healthy():
             self.ekf.reset()
             raise FloatingPointError("state estimate is not finite")
+        if self.placement is not None:
+            self.placement.observe(self.placement.active, self.ekf.supply_nis)
         self._use_estimated_parameters()
         cap = self._trap_cap(measurement)  # bounds the heater estimate too: before the state is used
         x0 = pb.scale_x(self.ekf.x)
@@ -593,6 +649,8 @@ class MpcController:
             prep_time += self.solver.prepare(pb.scale_x(self.ekf.x), self._scaled_prev(), self._disturbance(setpoint),
                                              y_ref, w_y)
             self._prepared_for_next = True
+        if self.placement is not None:
+            self._pending = (measurement, u_in, setpoint, u_cmd)
         if ref_status:
             status = f"{status}; {ref_status}"
         if used == 0:
@@ -604,12 +662,59 @@ class MpcController:
         stats["reach_wait_s"] = self.reach.last_wait_s if self.reach is not None else 0.0
         return StepResult(Command.from_vector(u_cmd), stats)
 
+    def _choose_filter(self) -> None:
+        """With ``choose_offset_placement``: bring the other filter up to this sample (the last step's readings
+        and command) and let :class:`~.placement.PlacementChoice` choose the filter the prediction uses."""
+        if self.placement is None:
+            return
+        self._run_other_filter()
+        if self.placement.decide():
+            self._use_filter(self._filters[self.placement.active])
+
+    def _run_other_filter(self) -> None:
+        """The filter not in use: the measurement update with the last step's readings and the time update with
+        its command (deferred out of the step: :meth:`wait_background` runs it between steps where it is called)."""
+        if self._pending is None:
+            return
+        measurement, u_in, setpoint, u_cmd = self._pending
+        self._pending = None
+        other = self._filters[1 - self.placement.active]
+        try:
+            if not other.healthy():
+                other.initialise(measurement, u_in, setpoint)
+            else:
+                other.update(measurement, u_in, setpoint)
+                self.placement.observe(1 - self.placement.active, other.supply_nis)
+            other.predict(u_cmd, setpoint)
+        except Exception:  # noqa: BLE001 - the filter not in use must not take the step down
+            other.reset()
+        if not other.healthy():
+            other.reset()
+
+    def _use_filter(self, ekf: DisturbanceEkf) -> None:
+        """Predict with ``ekf`` from now on: its prediction fused with the QP's preparation, its parameters in the
+        prediction, and the next QP prepared afresh (the last one was made with the other filter's estimate)."""
+        if ekf is self.ekf:
+            return
+        self.ekf = ekf
+        if hasattr(self.solver, "use_prediction"):
+            self.solver.use_prediction(ekf)
+        p = ekf.model_parameters()
+        self.solver.set_parameters(p)
+        if self.reach is not None:
+            self.reach.set_parameters(p)
+        self._prepared_for_next = False
+
     def wait_background(self, timeout_s: float) -> float:
         """Between two steps: give the reachable-flow solve running on the second thread up to ``timeout_s``
         (s) to finish, so that the next step need not wait for it (the rest of the sample on the box). The
         commands do not depend on it (the answer is applied by the next step either way). Returns the wall
         time waited (s)."""
-        return self.reach.wait_background(timeout_s) if self.reach is not None else 0.0
+        t0 = time.perf_counter()
+        if self.placement is not None:
+            self._run_other_filter()
+        waited = self.reach.wait_background(max(0.0, timeout_s - (time.perf_counter() - t0))) if self.reach else 0.0
+        return waited
 
     def _tracked_reference(self, ref: Reference, d: np.ndarray, cap: float) -> np.ndarray:
         """Reference vector of the stage outputs with the priorities applied: the total flow (and the
@@ -809,7 +914,14 @@ class MpcController:
             stats["flow_offset_m3s"] = self.ekf.flow_offset_m3s
             stats["dead_time_s"] = self.ekf.dead_time_s
             stats["bypass_flow_exponent"] = self.ekf.bypass_flow_exponent
+        stats["offset_placement"] = self.offset_placement
         return stats
+
+    @property
+    def offset_placement(self) -> str:
+        """Where the filter the prediction uses puts the heater outlet reading's error (one of
+        :data:`~.placement.PLACEMENTS`): the reading's own offset, or the air leaving the heater."""
+        return PLACEMENTS[self.placement.active] if self.placement is not None else PLACEMENTS[0]
 
 
 def _try_jit(problem: TrackingProblem) -> bool:

@@ -1,0 +1,54 @@
+"""Where the heater outlet reading's error goes, chosen online: two filters compared by their innovations.
+
+The heater outlet reading differs from the model's air for two reasons the model cannot tell apart from that
+reading alone: the core leaves the air warmer or colder than the model's (the thesis cooler fit taken literally,
+docs/robustness.md sec. 2.13), which an offset of the air leaving the heater carries at every valve a position
+(``EkfSettings.q_heater_air_offset_c``), or the heater's own transfer differs (the built-in plant's perturbed kA),
+which changes with the core flow and which the reading's own offset keeps out of the prediction
+(``q_heater_outlet_offset_c``, the default). Both filters run on the same readings and commands; each keeps the
+normalised square of its supply innovation (:attr:`~.estimator.DisturbanceEkf.supply_nis`) in a sum that forgets
+with ``window_s``. The prediction uses the filter whose sum is lower than ``ratio`` times the other's while the
+filter in use is itself inconsistent (its sum above ``evidence`` times the sum a consistent filter would have,
+the window's length in samples); the same rule takes it back (hysteresis: ``ratio`` < 1 each way), multiple-model
+estimation with two models and a hard choice.
+
+ASSUMPTION: the filter whose supply readings surprise it less predicts the supply air better, valve a's gain
+included: the filters differ where the core flow moves, and only there do their innovations differ (at rest each
+has taken its error into its offsets). The numbers (``window_s``, ``ratio``, ``evidence``) are chosen on the
+boxes of docs/robustness.md sec. 2.14, not tuned over many.
+"""
+
+from __future__ import annotations
+
+import math
+
+#: The filters, in the order of :attr:`PlacementChoice.active`: the reading's own offset, the heater air's.
+PLACEMENTS = ("heater_outlet", "heater_air")
+
+
+class PlacementChoice:
+    """The choice between two filters from their supply innovations (module docstring)."""
+
+    def __init__(self, window_s: float, ratio: float, evidence: float, dt_s: float, cap: float = math.inf):
+        self.forget = math.exp(-dt_s / window_s)
+        self.cap = float(cap)  # the most one sample adds
+        self.ratio = float(ratio)
+        self.floor = float(evidence) * window_s / dt_s  # a consistent filter's sum, times evidence
+        self.reset()
+
+    def reset(self) -> None:
+        self.sums = [0.0, 0.0]
+        self.active = 0
+
+    def observe(self, index: int, nis: float) -> None:
+        """The normalised square innovation of filter ``index`` at one sample (nan: no reading, nothing added)."""
+        if math.isfinite(nis):
+            self.sums[index] = self.forget * self.sums[index] + min(nis, self.cap)
+
+    def decide(self) -> bool:
+        """Switch to the other filter where the rule says so; True where it switched."""
+        mine, other = self.sums[self.active], self.sums[1 - self.active]
+        if mine > self.floor and other < self.ratio * mine:
+            self.active = 1 - self.active
+            return True
+        return False
