@@ -43,7 +43,9 @@ recent one, never on the level (docs/robustness.md sec. 2.7).
 Core path (``EkfSettings.q_cooler_offset_c``, ``q_heater_air_offset_c``): offsets of the air leaving the cooler core
 or the heater, states of the filter in place of the model's parameters ``cooler_outlet_offset_c`` and
 ``heater_air_offset_c``, so the model's own mixing gives them the effect on the supply air that valve a's position
-makes of it; the prediction uses the estimates (docs/robustness.md sec. 2.13).
+makes of it; the prediction uses the estimates (docs/robustness.md sec. 2.13). Which of the heater outlet reading's
+own offset and the heater air's the prediction uses is chosen online by the controller, a filter of each compared by
+their supply innovations (:attr:`DisturbanceEkf.supply_nis`, :mod:`~.placement`, sec. 2.14).
 
 Chiller water (``water_prediction``): ``"hold"`` treats the water temperature as a random walk
 (the chiller's two-point switching is unknown to the model, thesis sec. 2.2); ``"setpoint"``
@@ -167,7 +169,8 @@ class EkfSettings:
     valve a's gain in the prediction is the box's at the operating point. Off by default: it costs the built-in
     plant's warm-up (quick ``cabin_warmup_winter`` 0.42 -> 0.64 of the baseline's IAE), where the error at the heater
     outlet is the heater's transfer coefficient, which an offset carries at one core flow only
-    (docs/robustness.md sec. 2.13).
+    (docs/robustness.md sec. 2.13). ``MpcSettings.choose_offset_placement`` (on) runs a second filter with it beside
+    this one and chooses between them online (sec. 2.14).
 
     ``initial_sd_motor_c``: standard deviation (degC) of the motor rise at the start, where the filter puts it
     at the rest state of the command in force. Nothing but the model tells it from the mixed-air offset (both
