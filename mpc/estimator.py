@@ -442,6 +442,7 @@ class DisturbanceEkf:
         self._build()
         self.z: np.ndarray | None = None
         self.P: np.ndarray | None = None
+        self.time_updates = 0  # time updates taken since the filter was built (a count, never reset)
         self._restart()
         self._mix = BufferedFunction(self.mix_fn, fixed={3: self.p}) if self.anchors_bypass_flow else None
         # the exponent fitted outside the filter across settled flow steps (EkfSettings.bypass_flow_at_rest)
@@ -683,6 +684,7 @@ class DisturbanceEkf:
         """Take the time update's results (as the time-update function returns them, ``P`` column-major)."""
         self.z, self.P = z_next, P_next_t.T  # buffers are column-major
         self._age_s += self.dt_s
+        self.time_updates += 1
         q_mix = self._q_mix[0] if self.response_seen else self._q_mix[1]
         if self._relearning and self.settings.reanchor_hold_q_mix_c > 0.0:
             q_mix = self.settings.reanchor_hold_q_mix_c

@@ -517,6 +517,7 @@ class MpcController:
     def step(self, measurement: Measurement, reference: Reference | Mapping[str, Any]) -> StepResult:
         """One control step; never raises. See the module docstring for the fallback chain."""
         t0 = time.perf_counter()
+        self._updates_at_start = self.ekf.time_updates
         try:
             return self._step(measurement, reference, t0)
         except Exception as exc:  # noqa: BLE001 - a control step must always return a command
@@ -538,8 +539,8 @@ class MpcController:
             cmd, fallback = self.u_prev.copy(), "hold_last_command"
         cmd = np.clip(cmd, *self.problem.command_bounds(self.u_prev))
         self.u_prev = cmd
-        try:
-            if self.ekf.healthy():
+        try:  # the time update once per step: not again where the step failed after taking it
+            if self.ekf.healthy() and self.ekf.time_updates == self._updates_at_start:
                 self.ekf.predict(cmd, self._setpoint(measurement))
         except Exception:  # noqa: BLE001
             self.ekf.reset()

@@ -210,6 +210,25 @@ def test_without_baseline_the_last_command_is_held(monkeypatch):
     assert np.array_equal(rows[0]["cmd"], rows[1]["cmd"])
 
 
+def test_a_preparation_failure_takes_the_estimators_time_update_once(monkeypatch):
+    """A step that fails after the estimator's time update (in the preparation of the next step) answers
+    with a fallback and does not predict the estimate a second time."""
+    plant = SimulatedPlant(PARAMS, seed=6)
+    plant.settle(START)
+    ctrl = MpcController(PARAMS, MpcSettings(initial_command=START))
+    closed_loop(ctrl, plant, [REF_WARM] * 5)
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("preparation broke")
+
+    monkeypatch.setattr(ctrl.solver, "_write", broken)  # the fused path: after the time update
+    monkeypatch.setattr(ctrl.solver, "prepare", broken)  # the other path: after ekf.predict
+    before = ctrl.ekf.time_updates
+    rows = closed_loop(ctrl, plant, [REF_WARM])
+    assert rows[0]["stats"]["status"].startswith("error") and "preparation broke" in rows[0]["stats"]["status"]
+    assert ctrl.ekf.time_updates == before + 1
+
+
 def test_missed_deadline_falls_back_and_never_raises():
     plant = SimulatedPlant(PARAMS, seed=7)
     plant.settle(START)
