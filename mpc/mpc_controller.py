@@ -698,6 +698,7 @@ class MpcController:
         if ekf is self.ekf:
             return
         self.ekf = ekf
+        self._updates_at_start = ekf.time_updates  # the recovery's count (step) follows the filter in use
         if hasattr(self.solver, "use_prediction"):
             self.solver.use_prediction(ekf)
         p = ekf.model_parameters()

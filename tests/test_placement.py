@@ -180,3 +180,27 @@ def test_on_the_built_in_plant_the_reading_keeps_its_own_offset_and_the_commands
     _, chosen, placements = closed_loop(True, None, sc, plant_params=plant_params)
     assert set(placements) == {PLACEMENTS[0]}
     np.testing.assert_array_equal(chosen, plain)
+
+
+def test_a_switch_followed_by_a_failed_preparation_takes_the_new_filters_time_update_once(monkeypatch):
+    """A step that switches filters and then fails after the time update (in the preparation of the next step)
+    answers with a fallback and predicts the filter now in use once (the recovery's check follows the switch)."""
+    from test_mpc import PARAMS, REF_WARM, START
+    from test_mpc import closed_loop as run
+
+    plant = SimulatedPlant(PARAMS, seed=6)
+    plant.settle(START)
+    ctrl = MpcController(PARAMS, MpcSettings(initial_command=START))
+    run(ctrl, plant, [REF_WARM] * 5)
+    ctrl.placement.sums[:] = [1e6, 0.0]  # the rule switches at the next step
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("preparation broke")
+
+    monkeypatch.setattr(ctrl.solver, "_write", broken)
+    monkeypatch.setattr(ctrl.solver, "prepare", broken)
+    air = ctrl._filters[1]
+    before = air.time_updates  # one more comes from bringing it up to this sample, before the switch
+    rows = run(ctrl, plant, [REF_WARM])
+    assert "preparation broke" in rows[0]["stats"]["status"] and ctrl.ekf is air
+    assert air.time_updates == before + 2
