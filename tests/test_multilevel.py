@@ -108,3 +108,17 @@ def test_a_reset_linearises_in_full():
     ctrl.solver.reset()
     assert ctrl.solver._ml.due()
     assert ctrl.solver.levels["full"] == full
+
+
+def test_the_benchmark_runs_both_variants_in_lockstep():
+    from hvac_mpc.benchmarks import multilevel as bench
+    settings = bench.variants(every=3, move=10.0)
+    assert settings["full"].rti_relinearise_every == 1 and settings["multilevel"].rti_relinearise_every == 3
+    r = bench.run_seed(3, 8, settings)
+    assert r["full"]["levels"] == {} and r["multilevel"]["levels"]["vector"] >= 4
+    assert np.isfinite(r["full"]["cost"]) and np.isfinite(r["multilevel"]["cost"])
+    assert 0.0 < r["command_difference"] < 50.0  # the same loop, other QP matrices on the vector steps
+    ratio = r["multilevel"]["cpu_median_ms"] / r["full"]["cpu_median_ms"]
+    assert f"({ratio:.2f}x)" in bench.line(3, r)
+    with pytest.raises(InvalidSettings, match="rti_relinearise_every"):
+        bench.variants(every=0, move=0.3)
