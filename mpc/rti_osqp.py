@@ -181,7 +181,7 @@ class RtiOsqpSolver:
                  codegen: bool = False, scaling: int = 10, alpha: float = 1.6, check_dualgap: bool = True,
                  first_pass_iter: int = 0, accept_max_iter: bool = False, step_fractions: tuple[float, ...] = (),
                  restart_duals_on_change: bool = False, osqp_codegen: bool = False, scaling_interval: int = 1,
-                 steady_start: bool = False, relinearise_every: int = 1, relinearise_move: float = 0.05):
+                 steady_start: bool = False, relinearise_every: int = 1, relinearise_move: float = 0.3):
         self.pb = pb = problem
         self._ml = MultiLevel(relinearise_every, relinearise_move) if relinearise_every != 1 else None
         self._vector_prepared = False  # the QP in OSQP is a vector step's (the matrices of an earlier point)
