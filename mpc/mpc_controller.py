@@ -202,6 +202,17 @@ class MpcSettings:
             Where ``ekf`` places the error itself (an offset of the core path's air, no heater outlet reading or no
             offset of its own) there is nothing to choose and one filter runs. A switch costs one step the
             preparation of the QP (a cold start, as after a reset).
+        rti_relinearise_every: multi-level steps (``rti``, :mod:`hvac_mpc.mpc.multilevel`): a full linearisation
+            of the QP (new Jacobians and Hessian, OSQP's equilibration and refactorisation) at least on every this
+            many preparations; the ones between keep the QP's matrices of the last full one and renew only its
+            vectors (the dynamics defects, the residuals, the flow floor's bounds at the shifted plan) while that
+            plan is within ``rti_relinearise_move`` (scaled states and inputs) of the point of the full one. A
+            reference change, a change of the weights, a reset or fallback, new model parameters and a change
+            of the heater readiness's stages linearise in full. 1 (the default): every preparation is a full
+            one. Measured in docs/architecture.md, 'Multi-level steps'.
+        rti_relinearise_move: the largest move (scaled units) of any stage's state or input since the last full
+            linearisation for a step that keeps the matrices (0.3: the bound that kept the per-step suboptimality
+            within its target in the measurements).
     """
 
     dt_s: float = 1.0
@@ -254,6 +265,8 @@ class MpcSettings:
     placement_ratio: float = 0.6
     placement_evidence: float = 1.5
     placement_cap: float = 50.0
+    rti_relinearise_every: int = 1
+    rti_relinearise_move: float = 0.3
 
     def __post_init__(self) -> None:
         p = "MpcSettings"
@@ -274,6 +287,8 @@ class MpcSettings:
         check_number(f"{p}.osqp_first_pass_iter", self.osqp_first_pass_iter, 0, 1000, integer=True)
         check_number(f"{p}.osqp_scaling_interval", self.osqp_scaling_interval, 1, 100000, integer=True)
         check_number(f"{p}.sqp_max_iter", self.sqp_max_iter, 1, 100, integer=True)
+        check_number(f"{p}.rti_relinearise_every", self.rti_relinearise_every, 1, 1000, integer=True)
+        check_number(f"{p}.rti_relinearise_move", self.rti_relinearise_move, 0.0, 10.0, lo_open=True)
         check_number(f"{p}.sqp_tol", self.sqp_tol, 1e-10, 1.0, lo_open=True)
         check_number(f"{p}.levenberg_marquardt", self.levenberg_marquardt, 0.0, 1e4)
         check_number(f"{p}.cold_start_qps", self.cold_start_qps, 1, 100, integer=True)
@@ -482,7 +497,8 @@ class MpcController:
                              scaling=s.osqp_scaling, alpha=s.osqp_alpha, check_dualgap=s.osqp_check_dualgap,
                              first_pass_iter=s.osqp_first_pass_iter, accept_max_iter=s.osqp_accept_max_iter,
                              step_fractions=s.rti_step_fractions, osqp_codegen=s.osqp_codegen,
-                             scaling_interval=s.osqp_scaling_interval, steady_start=s.steady_start)
+                             scaling_interval=s.osqp_scaling_interval, steady_start=s.steady_start,
+                             relinearise_every=s.rti_relinearise_every, relinearise_move=s.rti_relinearise_move)
 
     # ------------------------------------------------------------------ protocol
     def reset(self, command: Command | None = None) -> None:

@@ -19,7 +19,8 @@ docs/architecture.md, 'One control step', lists what runs as generated C and wha
 With ``sqp_max_iter > 1`` the feedback re-linearises at the new iterate and solves again until
 the step is below ``sqp_tol`` (a Gauss-Newton SQP to a tolerance). With ``steady_start`` the QPs of a
 reference change are linearised at the plan toward the new reference's steady-state target instead of
-the shifted plan (:mod:`.steady_target`).
+the shifted plan (:mod:`.steady_target`). With ``relinearise_every`` > 1 most preparations keep OSQP's matrices
+and renew only the vectors at the shifted plan (:mod:`.multilevel`, multi-level steps).
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ from hvac_mpc.models.box import DISTURBANCES, INPUTS
 from . import osqp_embedded
 from .casadi_eval import BufferedFunction
 from .codegen import CodegenReport, compiled
+from .multilevel import MultiLevel, vector_function
 from .ocp import STAGE_OUTPUTS, TRACKED, TrackingProblem, shift_maps, shift_nodes
 from .osqp_embedded import FIRST_PASS_EPS_RATIO  # noqa: F401 - the first pass's tolerance, named here too
 from .plan_merit import PlanMerit
@@ -164,6 +166,13 @@ class RtiOsqpSolver:
             (:class:`.steady_target.SteadyStart`: the inputs that hold it at rest on the model, ramped to at the
             rate limits, the model's rollout) instead of the shifted plan made for the old reference
             (``self.last_target``: the target of the last change, scaled inputs).
+        relinearise_every: multi-level steps (:mod:`.multilevel`): a full linearisation (new matrices, OSQP's
+            equilibration and refactorisation) at least on every this many preparations, the ones between vector
+            steps that keep the matrices of the last full one and renew the QP's vectors only, where the point has
+            moved by at most ``relinearise_move`` (scaled states and inputs) since (1: every preparation is a
+            full one, the plain real-time iteration). ``self.levels`` counts the full and the vector steps.
+        relinearise_move: the largest move of a scaled state or input of any stage since the last full
+            linearisation for a vector step.
     """
 
     def __init__(self, problem: TrackingProblem, *, eps: float = 1e-4, max_iter: int = 400,
@@ -172,8 +181,10 @@ class RtiOsqpSolver:
                  codegen: bool = False, scaling: int = 10, alpha: float = 1.6, check_dualgap: bool = True,
                  first_pass_iter: int = 0, accept_max_iter: bool = False, step_fractions: tuple[float, ...] = (),
                  restart_duals_on_change: bool = False, osqp_codegen: bool = False, scaling_interval: int = 1,
-                 steady_start: bool = False):
+                 steady_start: bool = False, relinearise_every: int = 1, relinearise_move: float = 0.3):
         self.pb = pb = problem
+        self._ml = MultiLevel(relinearise_every, relinearise_move) if relinearise_every != 1 else None
+        self._vector_prepared = False  # the QP in OSQP is a vector step's (the matrices of an earlier point)
         self._osqp_codegen = bool(osqp_codegen)
         if isinstance(scaling_interval, bool) or int(scaling_interval) != scaling_interval or scaling_interval < 1:
             raise ValueError(f"RtiOsqpSolver: scaling_interval = {scaling_interval!r}, allowed: an integer >= 1")
@@ -207,6 +218,9 @@ class RtiOsqpSolver:
         self._sw_key = None
         self._merit = PlanMerit(pb, tuple(step_fractions), wrap) if step_fractions else None
         self._steady = SteadyStart(pb, wrap) if steady_start else None
+        if self._ml is not None:
+            self._qp_vectors = BufferedFunction(wrap(vector_function(pb, pb.ny + 1, Y_POWER, Y_FLOW, U_BLOWER)),
+                                                fixed={3: self._p})
         self.last_target: np.ndarray | None = None  # the steady-state target of the last change (scaled inputs)
         self._first_pass_iter = int(first_pass_iter)
         self.fail_next = 0  # steps to fail on purpose (tests of the fallback chain)
@@ -243,6 +257,8 @@ class RtiOsqpSolver:
                 "reference_change_qps": self.reference_change_qps, "compiled": self.codegen.active,
                 "osqp_generated": isinstance(self._core, osqp_embedded.EmbeddedOsqp),
                 "scaling_interval": self.scaling_interval,
+                "relinearise_every": self._ml.every if self._ml else 1,
+                "relinearise_move": self._ml.move if self._ml else None,
                 "step_fractions": list(self._merit.fractions) if self._merit else []}
 
     # ------------------------------------------------------------------ structure
@@ -450,10 +466,12 @@ class RtiOsqpSolver:
             value, slope = pb.floor_linearisation(heater_u)
             Ax += ca.mtimes(_selection(self._floor_heater_slots, self.A.nnz), -(pb.floor_scale * slope))
             floor_l = pb.floor_scale * (value - slope * heater_u - c_base[Y_FLOW, :n_f].T)
+        # with multi-level steps also the slopes a vector step keeps (:mod:`.multilevel`): -[A B] and G per stage
+        more = [ab, ca.horzcat(*[p[7] for p in parts])] if self._ml is not None else []
         self.qp_data = ca.Function("hvac_qp_data", [X, U, d, SW, P0, A0, p],
-                                   [Px, Ax, ca.vec(e_dyn), gw2, c_base, y, floor_l],
+                                   [Px, Ax, ca.vec(e_dyn), gw2, c_base, y, floor_l, *more],
                                    ["X", "U", "d", "SW", "P0", "A0", "p"],
-                                   ["Px", "Ax", "e_dyn", "Gw2", "c_base", "y", "floor_l"])
+                                   ["Px", "Ax", "e_dyn", "Gw2", "c_base", "y", "floor_l", "AB", "G"][:7 + len(more)])
         # gradient
         G2 = ca.SX.sym("Gw2", nr * nz, N + 1)
         C = ca.SX.sym("c_base", nr, N + 1)
@@ -509,6 +527,8 @@ class RtiOsqpSolver:
         H = ca.mtimes(G.T, gw2)
         htri = ca.vertcat(*[H[i, j] for i, j in zip(*self._triu)])
         outs = [xn - ca.mtimes(AB, z), ca.vec(-AB.T), htri, ca.vec(gw2), r - ca.mtimes(G, z), y, G[Y_FLOW, :].T]
+        if self._ml is not None:
+            outs.append(ca.vec(G))
         # common subexpressions computed once (the Jacobians repeat much of the model): about
         # 40 % fewer operations, the same values
         return ca.Function(f"qp_{stage.name()}", [x, u, d, dt, sw, p], ca.cse(outs))
@@ -532,8 +552,15 @@ class RtiOsqpSolver:
 
     def _matrices(self, X, U, d, w_y):
         """Linearise at (X, U) and return P and A data plus the stage data for q and l/u."""
-        Px, Ax, e_dyn, gw2, c_base, y, floor_l = self._qp_data(X, U, d, self._weights(w_y))
-        return Px, Ax, dict(e_dyn=e_dyn, gw2=gw2, c_base=c_base, y=y, floor_l=floor_l)
+        return self._unpack(*self._qp_data(X, U, d, self._weights(w_y)))
+
+    @staticmethod
+    def _unpack(Px, Ax, e_dyn, gw2, c_base, y, floor_l, *slopes):
+        """P and A data and the stage data of the QP data's outputs (with multi-level steps the slopes too)."""
+        data = dict(e_dyn=e_dyn, gw2=gw2, c_base=c_base, y=y, floor_l=floor_l)
+        if slopes:
+            data["ab"], data["g"] = slopes
+        return Px, Ax, data
 
     def use_prediction(self, ekf) -> None:
         """Fuse the estimator's time update with the QP data into one call of the preparation
@@ -562,6 +589,14 @@ class RtiOsqpSolver:
         self._i_p_qp = len(args) + 4
         self._predict_qp = BufferedFunction(fn, fixed={**fixed, self._i_p_qp: self._p})
         self._ekf = ekf
+        if self._ml is not None:  # the same with the vectors of a multi-level step in place of the QP data
+            AB, G = ca.MX.sym("AB", *self._qp_vectors.fn.size_in(4)), ca.MX.sym("G", *self._qp_vectors.fn.size_in(5))
+            uh = ca.MX.sym("uh", self.r_floor.size)
+            vec = self._qp_vectors.fn.call([X, U, d, p_qp, AB, G, uh])
+            fn = ca.Function("hvac_predict_qp_vectors", [*args, X_last, U_last, u_prev, p_qp, AB, G, uh],
+                             [zn, Pn, air, flow, X, U, d, *vec])
+            self._i_p_vec = len(args) + 3
+            self._predict_vec = BufferedFunction(fn, fixed={**fixed, self._i_p_vec: self._p})
 
     @property
     def fused_prediction(self) -> bool:
@@ -573,14 +608,37 @@ class RtiOsqpSolver:
         """The estimator's time update with the command ``u_cmd`` (physical) and :meth:`prepare` at
         its prediction, in one call (:meth:`use_prediction`). Returns the wall time (s)."""
         t0 = time.perf_counter()
+        if self._ml is not None and not self._ml.due() and self._prepared is not None \
+                and np.array_equal(self._prepared["w_y"], w_y):
+            self._prepare_vectors(u_cmd, setpoint_c, u_prev, ref, w_y)
+            return time.perf_counter() - t0
         ekf = self._ekf
-        zn, Pt, air, flow, X, U, d, Px, Ax, e_dyn, gw2, c_base, y, floor_l = self._predict_qp(
+        zn, Pt, air, flow, X, U, d, *data = self._predict_qp(
             ekf.z, ekf.P, u_cmd, setpoint_c, float(ekf.learning), self.X, self.U, u_prev, self._weights(w_y))
         ekf.accept_prediction(zn, Pt, air, flow)
         S = self.S[np.minimum(self._j, self.pb.N - 1)]
         self.X, self.U, self.S = X, U, S
-        self._write(X, U, S, d, ref, w_y, Px, Ax, dict(e_dyn=e_dyn, gw2=gw2, c_base=c_base, y=y, floor_l=floor_l))
+        self._write(X, U, S, d, ref, w_y, *self._unpack(*data))
         return time.perf_counter() - t0
+
+    def _prepare_vectors(self, u_cmd, setpoint_c, u_prev, ref, w_y) -> None:
+        """A multi-level preparation (:mod:`.multilevel`) after the estimator's time update: the QP's vectors at the
+        shifted plan with the last full linearisation's slopes where the plan is near enough to it (a vector step:
+        OSQP's matrices and factorisation kept), else a full linearisation there."""
+        ekf, ml = self._ekf, self._ml
+        zn, Pt, air, flow, X, U, d, e_dyn, c_base, y, floor_l = self._predict_vec(
+            ekf.z, ekf.P, u_cmd, setpoint_c, float(ekf.learning), self.X, self.U, u_prev, ml.full["ab"],
+            ml.full["g"], ml.full["U"][:self.r_floor.size, self.pb.i_heater_cmd])
+        ekf.accept_prediction(zn, Pt, air, flow)
+        S = self.S[np.minimum(self._j, self.pb.N - 1)]
+        self.X, self.U, self.S = X, U, S
+        if not ml.keeps(X, U, d, self._readiness_weights(X)):
+            self._load(X, U, S, d, ref, w_y, u_prev)
+            return
+        ml.vector_step()
+        gw2 = self._prepared["data"]["gw2"]  # the weights are those of the full linearisation (else it re-prepares)
+        self._write_vectors(X, U, S, d, ref, w_y, dict(e_dyn=e_dyn, gw2=gw2, c_base=c_base, y=y, floor_l=floor_l))
+        self._vector_prepared = True
 
     def reset(self) -> None:
         """Forget the trajectory and OSQP's workspace (cold start at the next step): a fresh
@@ -588,21 +646,35 @@ class RtiOsqpSolver:
         controller answers as a new one does."""
         self.X = self.U = self.S = None
         self._prepared = None
+        if self._ml is not None:
+            self._ml.forget()
         if getattr(self, "_workspace_used", False):
             self._setup_osqp(build=False)  # a failure path inside a control step: the cache only, no compiler
 
     def set_parameters(self, p: np.ndarray) -> None:
         """Model parameters (``HvacModel.p_default`` order) of the next linearisations, e.g. with an
         estimated bypass-flow exponent (:class:`~.estimator.DisturbanceEkf`); no rebuild."""
+        if self._ml is not None and not np.array_equal(self._p, p):
+            self._ml.forget()  # other parameters, other slopes: the next preparation linearises in full
         self._p[...] = p
         self._qp_data.set_fixed(6, self._p)
         if getattr(self, "_predict_qp", None) is not None:
             self._predict_qp.set_fixed(self._i_p_qp, self._p)
+        if self._ml is not None:
+            self._qp_vectors.set_fixed(3, self._p)
+            if getattr(self, "_predict_vec", None) is not None:
+                self._predict_vec.set_fixed(self._i_p_vec, self._p)
 
     @property
     def clean(self) -> bool:
         """True when OSQP's workspace has not been used since it was set up (or reset)."""
         return not self._workspace_used
+
+    @property
+    def levels(self) -> dict[str, int]:
+        """Preparations so far by kind with multi-level steps (:mod:`.multilevel`): ``full`` (new matrices, OSQP's
+        refactorisation) and ``vector`` (the matrices kept); empty without them."""
+        return dict(self._ml.counts) if self._ml is not None else {}
 
     @property
     def has_trajectory(self) -> bool:
@@ -627,6 +699,13 @@ class RtiOsqpSolver:
         Px = self._with_readiness(X, Px)
         self._core.update_matrices(Px, Ax)
         self._workspace_used = True
+        if self._ml is not None:
+            self._ml.record_full(X, U, d, data["ab"], data["g"], self._readiness_weights(X))
+        self._vector_prepared = False
+        self._write_vectors(X, U, S, d, ref, w_y, data)
+
+    def _write_vectors(self, X, U, S, d, ref, w_y, data) -> None:
+        """The dynamics rows' bounds of a linearisation, and what the feedback needs of it."""
         self.l[self._r_dyn_rows] = self.u[self._r_dyn_rows] = data["e_dyn"]
         self._prepared = dict(data=data, d=d.copy(), w_y=w_y.copy(), ref=np.array(ref, float))
         self._z_lin = np.concatenate([X.ravel(), U.ravel(), S])
@@ -636,17 +715,23 @@ class RtiOsqpSolver:
         has the body below the floor: ``w (x - x_f)^2`` there (Hessian ``2 w``, gradient ``-2 w x_f``, kept for
         :meth:`_q`); ``Px`` itself when off."""
         self._ready_q = None
-        target = self.readiness_target
-        if target is None:
-            return Px
-        x_f, w = target
-        active = np.where(X[1:, self.pb.i_heater] < x_f, w, 0.0)
-        if not active.any():
+        active = self._readiness_weights(X)
+        if active is None:
             return Px
         Px = np.array(Px, float)
         Px[self._P_body_slots] += 2.0 * active
-        self._ready_q = -2.0 * active * x_f
+        self._ready_q = -2.0 * active * self.readiness_target[0]
         return Px
+
+    def _readiness_weights(self, X) -> np.ndarray | None:
+        """The heater readiness's weights of stages 1..N at the plan ``X`` (zero where the body is above the
+        floor); None where it does not count (off, or no stage below the floor)."""
+        target = self.readiness_target
+        if target is None:
+            return None
+        x_f, w = target
+        active = np.where(X[1:, self.pb.i_heater] < x_f, w, 0.0)
+        return active if active.any() else None
 
     def _floor_bounds(self, d: np.ndarray, x0: np.ndarray, u_lo: np.ndarray, u_hi: np.ndarray) -> None:
         """Lower bounds of the floor rows with the flow offset's change since the linearisation. Stage 0's
@@ -698,6 +783,8 @@ class RtiOsqpSolver:
             prep, started = self._start_steady(x0, u_prev, d, ref, w_y, u_lo, u_hi)
         if not started and (self._prepared is None or not np.array_equal(self._prepared["w_y"], w_y)):
             prep += self.prepare(x0, u_prev, d, ref, w_y)
+        elif not started and changed and self._vector_prepared:  # a change linearises in full at the prepared point
+            prep += self._relinearise(self._z_lin, self._z_lin[:self.pb.nx], self._prepared["d"], ref, w_y, u_prev)
         if self.fail_next > 0:
             self.fail_next -= 1
             return SolveResult(False, "forced failure", prep_time_s=prep,
