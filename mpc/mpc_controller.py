@@ -60,6 +60,7 @@ from hvac_mpc.contract import InvalidReference, Reference
 from .readiness import HeaterReadiness
 from .ring_gate import RingGate
 from .rti_osqp import RtiOsqpSolver, SolveResult
+from .steady_target import check_steady_start_on
 from .temperature_reach import SaturatedTemperature
 
 SOLVERS = ("rti", "sqp", "ipopt")
@@ -189,6 +190,10 @@ class MpcSettings:
             it at rest, ramped to at the rate limits; :mod:`hvac_mpc.mpc.steady_target`) instead of the plan
             shifted from the last step, made for the old reference. Measured in docs/architecture.md, 'Slow
             steps' ('A reference change started at the steady-state target').
+        steady_start_on: with ``steady_start`` (ignored without), which reference changes start at the target:
+            "any" (every change of the tracked reference, the flow's and split's too) or "temperature" (only a
+            change of the supply-temperature reference; a flow or split change alone starts from the shifted
+            plan). :data:`hvac_mpc.mpc.steady_target.STEADY_START_ON`.
     """
 
     dt_s: float = 1.0
@@ -235,6 +240,7 @@ class MpcSettings:
     ring_floor: float = 0.05
     ring_relax_s: float = 30.0
     steady_start: bool = False
+    steady_start_on: str = "any"
 
     def __post_init__(self) -> None:
         p = "MpcSettings"
@@ -287,6 +293,7 @@ class MpcSettings:
                      "osqp_accept_max_iter", "osqp_codegen", "steady_start",
                      "osqp_check_dualgap"):
             check_flag(f"{p}.{flag}", getattr(self, flag))
+        check_steady_start_on(f"{p}.steady_start_on", self.steady_start_on, InvalidSettings)
         if self.reach_background and not self.reach_deferred:
             raise InvalidSettings(f"{p}.reach_background = True needs {p}.reach_deferred = True "
                                   "(the solve's answer is used from the next step on)")
@@ -439,7 +446,8 @@ class MpcController:
                              scaling=s.osqp_scaling, alpha=s.osqp_alpha, check_dualgap=s.osqp_check_dualgap,
                              first_pass_iter=s.osqp_first_pass_iter, accept_max_iter=s.osqp_accept_max_iter,
                              step_fractions=s.rti_step_fractions, osqp_codegen=s.osqp_codegen,
-                             scaling_interval=s.osqp_scaling_interval, steady_start=s.steady_start)
+                             scaling_interval=s.osqp_scaling_interval, steady_start=s.steady_start,
+                             steady_start_on=s.steady_start_on)
 
     # ------------------------------------------------------------------ protocol
     def reset(self, command: Command | None = None) -> None:
