@@ -152,3 +152,12 @@ def test_the_benchmark_finds_the_changes_and_counts_their_iterations():
     assert s["iterations"] == 190 and s["change_iterations"] == [80]  # the cold step 0 left out
     assert s["wake_iterations"] == 30 + 20 + 10 + 10 + 10
     assert s["change_cpu_max_ms"] == 4.0 and s["cpu_max_ms"] == 4.0 and s["largest_steps"][0] == [3, 80]
+    qps = np.array([10, 1, 1, 2, 1, 1, 1, 1, 1, 1])
+    slow = change_start.summary(iterations, cpu, [3], qps)["slowest_steps"]
+    assert slow[:2] == [[3, 4.0, 80, 2, True], [4, 2.0, 30, 1, False]]  # by CPU time, the cold step left out
+    # its variants whatever the defaults: the shifted start, every change, the temperature's only
+    starts = {v: (s.steady_start, s.steady_start_on)
+              for v, s in ((v, MpcSettings(**f)) for v, f in change_start.VARIANTS.items())}
+    assert starts["shifted"][0] is False and starts["steady"] == (True, "any")
+    assert starts["temperature"] == starts["one_qp"] == (True, "temperature")
+    assert MpcSettings(**change_start.VARIANTS["one_qp"]).reference_change_qps == 1
