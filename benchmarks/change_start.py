@@ -1,17 +1,21 @@
 """Where a reference change's QPs start: the shifted plan against the plan toward the steady-state target.
 
-    python -m hvac_mpc.benchmarks.change_start [--seeds 3] [--steps 240] [--json FILE]
+    python -m hvac_mpc.benchmarks.change_start [--seeds 3] [--steps 240] [--variant NAME ...] [--json FILE]
 
-The solve-time loop (:class:`.solve_time.Loop`, the idle time of a sample between steps) with two controllers at
-their defaults but for ``MpcSettings.steady_start``: off (a change's QPs linearised at and warm-started from the
-plan shifted from the last step, made for the old reference) and on (at the plan toward the new reference's
-steady-state target, :mod:`hvac_mpc.mpc.steady_target`). Per seed the two loops run in lockstep in one process,
-one step of each in turn (which goes first alternates), so that the load of other processes falls on both alike.
+The solve-time loop (:class:`.solve_time.Loop`, the idle time of a sample between steps) with controllers at their
+defaults but for ``MpcSettings.steady_start``, ``steady_start_on`` and ``reference_change_qps`` (:data:`VARIANTS`):
+"shifted" (a change's QPs linearised at and warm-started from the plan shifted from the last step, made for the old
+reference), "steady" (at every change from the plan toward the new reference's steady-state target,
+:mod:`hvac_mpc.mpc.steady_target`) and "temperature" (so only where the supply-temperature reference changes; in
+this loop's scenario every change does, so its figures are the "steady" ones but for the timing noise); on request
+(``--variant one_qp``) the temperature-only start with one QP at a change instead of two. Per seed the loops run in
+lockstep in one process, one step of each in turn (the order rotates from step to step), so that the load of other
+processes falls on all alike.
 
 Printed per seed and variant: the closed-loop cost (as ``solve-time`` computes it), OSQP's iterations (in all, on
 the change steps, on the five steps after each change), the change steps' iterations one by one, the CPU time
 of the thread that runs the step (``time.thread_time``: median, 99th percentile, largest; the change steps'
-median and largest) and the largest steps. The cold first step is left out.
+median and largest), the steps of most iterations and the slowest steps. The cold first step is left out.
 """
 
 from __future__ import annotations
@@ -33,8 +37,13 @@ from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings  # noqa: E402
 
 from . import solve_time  # noqa: E402
 
-#: Variant -> ``MpcSettings.steady_start``.
-VARIANTS = {"shifted": False, "steady": True}
+#: Variant -> its ``MpcSettings`` fields.
+VARIANTS = {"shifted": {"steady_start": False},
+            "steady": {"steady_start": True, "steady_start_on": "any"},
+            "temperature": {"steady_start": True, "steady_start_on": "temperature"},
+            "one_qp": {"steady_start": True, "steady_start_on": "temperature", "reference_change_qps": 1}}
+#: The variants run unless ``--variant`` names others.
+DEFAULT_VARIANTS = ("shifted", "steady", "temperature")
 #: Steps after a change counted as its wake (the single QPs that follow it).
 WAKE = 5
 #: Largest steps listed per run.
@@ -47,67 +56,82 @@ def change_steps(steps: int, scenario=solve_time.SCENARIO, dt_s: float = 1.0) ->
     return [k for k in range(1, steps) if refs[k] != refs[k - 1]]
 
 
-def summary(iterations: np.ndarray, thread_ms: np.ndarray, changes: list[int]) -> dict[str, Any]:
-    """Figures of one loop from its per-step OSQP iterations and thread CPU times (ms), the cold step 0 left out."""
+def summary(iterations: np.ndarray, thread_ms: np.ndarray, changes: list[int],
+            qp_solves: np.ndarray | None = None) -> dict[str, Any]:
+    """Figures of one loop from its per-step OSQP iterations, thread CPU times (ms) and QPs (default one a step),
+    the cold step 0 left out. ``slowest_steps``: the :data:`TOP` steps of most CPU time as [step, ms, OSQP
+    iterations, QPs, whether a change]."""
     steps = np.arange(1, iterations.size)
     it, cpu = iterations[1:], thread_ms[1:]
+    qps = np.ones_like(iterations) if qp_solves is None else qp_solves
     wake = [k for c in changes for k in range(c + 1, c + 1 + WAKE) if k < iterations.size]
     top = np.argsort(-it, kind="stable")[:TOP]
+    slow = np.argsort(-cpu, kind="stable")[:TOP] + 1
     return {"iterations": int(it.sum()), "change_iterations": [int(iterations[c]) for c in changes],
             "wake_iterations": int(iterations[wake].sum()),
             "cpu_median_ms": float(np.median(cpu)), "cpu_p99_ms": float(np.percentile(cpu, 99)),
             "cpu_max_ms": float(cpu.max()),
             "change_cpu_median_ms": float(np.median(thread_ms[changes])),
             "change_cpu_max_ms": float(thread_ms[changes].max()),
-            "largest_steps": [[int(steps[k]), int(it[k])] for k in top]}
+            "largest_steps": [[int(steps[k]), int(it[k])] for k in top],
+            "slowest_steps": [[int(k), round(float(thread_ms[k]), 3), int(iterations[k]), int(qps[k]), k in changes]
+                              for k in slow]}
 
 
-def run_seed(seed: int, steps: int) -> dict[str, dict[str, Any]]:
-    """Both variants' loops of one seed in lockstep; their figures and closed-loop costs."""
-    loops = {v: solve_time.Loop(MpcController(settings=MpcSettings(steady_start=on)), seed, idle_s=solve_time.IDLE_S)
-             for v, on in VARIANTS.items()}
-    iterations = {v: [] for v in VARIANTS}
-    names = list(VARIANTS)
+def run_seed(seed: int, steps: int, names: list[str] | None = None) -> dict[str, dict[str, Any]]:
+    """The loops of one seed (the variants ``names``, default :data:`DEFAULT_VARIANTS`) in lockstep; their figures
+    and closed-loop costs."""
+    names = list(DEFAULT_VARIANTS) if names is None else names
+    loops = {v: solve_time.Loop(MpcController(settings=MpcSettings(**VARIANTS[v])), seed, idle_s=solve_time.IDLE_S)
+             for v in names}
+    iterations = {v: [] for v in names}
+    qps = {v: [] for v in names}
     for k in range(steps):
-        for v in (names if k % 2 == 0 else names[::-1]):
-            iterations[v].append(loops[v].step(k).stats["iterations"])
+        for v in names[k % len(names):] + names[:k % len(names)]:
+            stats = loops[v].step(k).stats
+            iterations[v].append(stats["iterations"])
+            qps[v].append(stats["qp_solves"])
     changes = change_steps(steps)
     return {v: {"cost": float(sum(loop.cost.values())),
-                **summary(np.array(iterations[v]), np.array(loop.thread_s) * 1e3, changes)}
+                **summary(np.array(iterations[v]), np.array(loop.thread_s) * 1e3, changes, np.array(qps[v]))}
             for v, loop in loops.items()}
 
 
 def line(seed: int, variant: str, r: dict[str, Any]) -> str:
-    return (f"seed {seed} {variant:<8} cost {r['cost']:8.1f} | OSQP iterations {r['iterations']:5d}, changes "
+    return (f"seed {seed} {variant:<11} cost {r['cost']:8.1f} | OSQP iterations {r['iterations']:5d}, changes "
             f"{sum(r['change_iterations']):4d} {r['change_iterations']}, next {WAKE} steps {r['wake_iterations']:4d} | "
             f"thread CPU median {r['cpu_median_ms']:.3f} p99 {r['cpu_p99_ms']:.2f} max {r['cpu_max_ms']:.2f} ms, "
             f"changes median {r['change_cpu_median_ms']:.2f} max {r['change_cpu_max_ms']:.2f} ms | largest "
-            f"{r['largest_steps'][:4]}")
+            f"{r['largest_steps'][:4]} | slowest (step, ms, iterations, QPs, change) {r['slowest_steps'][:4]}")
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=3, help="plant noise seeds 1..N (default 3)")
     parser.add_argument("--steps", type=int, default=solve_time.FULL_STEPS)
+    parser.add_argument("--variant", action="append", choices=list(VARIANTS),
+                        help=f"run this variant (repeatable; default: {', '.join(DEFAULT_VARIANTS)})")
     parser.add_argument("--json", type=Path, default=Path("change_start.json"))
     args = parser.parse_args(argv)
     if not 1 <= args.seeds <= 20 or args.steps < 3:
         parser.error("--seeds must be in [1, 20], --steps at least 3")
+    names = list(dict.fromkeys(args.variant)) if args.variant else list(DEFAULT_VARIANTS)
     solve_time.pin_cores(2)
-    rows: dict[str, list[dict[str, Any]]] = {v: [] for v in VARIANTS}
+    rows: dict[str, list[dict[str, Any]]] = {v: [] for v in names}
     for seed in range(1, args.seeds + 1):
-        result = run_seed(seed, args.steps)
+        result = run_seed(seed, args.steps, names)
         for v, r in result.items():
             rows[v].append({"seed": seed, **r})
             print(line(seed, v, r), flush=True)
-    for v in VARIANTS:
+    for v in names:
         costs = [r["cost"] for r in rows[v]]
-        print(f"{v:<8} cost sum {sum(costs):.1f} ({' / '.join(f'{c:.1f}' for c in costs)}), iterations "
+        print(f"{v:<11} cost sum {sum(costs):.1f} ({' / '.join(f'{c:.1f}' for c in costs)}), iterations "
               f"{sum(r['iterations'] for r in rows[v])}, on the changes "
               f"{sum(sum(r['change_iterations']) for r in rows[v])}, largest change "
               f"{max(max(r['change_iterations']) for r in rows[v])}")
     args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps({"steps": args.steps, "variants": VARIANTS, "rows": rows}, indent=2))
+    args.json.write_text(json.dumps({"steps": args.steps, "variants": {v: VARIANTS[v] for v in names}, "rows": rows},
+                                    indent=2))
     print(f"wrote {args.json}")
     return 0
 

@@ -1,15 +1,18 @@
 """Where a median control step's time goes: wall time around each part of ``MpcController.step``.
 
-    python -m hvac_mpc.benchmarks.step_parts [--loops 3] [--seed 1] [--max-iterations 20] [--settings JSON]
+    python -m hvac_mpc.benchmarks.step_parts [--loops 3] [--seed 1] [--max-iterations 20]
+                                             [--changes] [--settings JSON] [--thread-cpu]
 
 Runs the solve-time loop (:class:`.solve_time.Loop`, default :class:`~hvac_mpc.mpc.mpc_controller.MpcSettings`,
 the idle time of a sample between steps) with a timer around each of the parts below, and prints each
 part's median over the steps with one QP of at most ``--max-iterations`` OSQP iterations (the median
-step's kind). ``--settings '{"rti_relinearise_every": 5}'``: with these
-:class:`~hvac_mpc.mpc.mpc_controller.MpcSettings` fields (JSON lists become tuples). The timers are put on the
-classes for the run and taken off after it; their own cost (a microsecond or so per call) is in the times, so
-the parts are shares, not exact times. A part nested in another (OSQP's calls in the feedback) is counted in
-both.
+step's kind); with ``--changes`` over the steps with two QPs or more instead (a reference change's), and
+``--settings`` changes :class:`~hvac_mpc.mpc.mpc_controller.MpcSettings` fields (e.g. the steady-state start).
+``--thread-cpu`` times with the CPU time of the
+thread (``time.thread_time``; every part runs on the step's thread) instead of wall time, for a loaded machine.
+Parts that take no time in the selected steps are not printed. The timers are put on the classes for the
+run and taken off after it; their own cost (a microsecond or so per call) is in the times, so the parts are
+shares, not exact times. A part nested in another (OSQP's calls in the feedback) is counted in both.
 """
 
 from __future__ import annotations
@@ -37,6 +40,9 @@ PARTS = (
     (rti_osqp.RtiOsqpSolver, "_prepare_vectors", "  of it, a multi-level preparation (vector step or full)"),
     (rti_osqp.RtiOsqpSolver, "feedback", "feedback (gradient, bounds, OSQP solve)"),
     (osqp_embedded.TwoPassSolve, "solve", "  OSQP solve"),
+    (rti_osqp.RtiOsqpSolver, "_start_steady", "  steady-state start (generated call, linearisation, matrix update)"),
+    (rti_osqp.RtiOsqpSolver, "prepare", "  preparation in the feedback (linearisation, matrix update)"),
+    (rti_osqp.RtiOsqpSolver, "_relinearise", "  relinearisation for a further QP (matrix update)"),
     (rti_osqp.RtiOsqpSolver, "_q", "  gradient (generated call)"),
     (rti_osqp.RtiOsqpSolver, "_floor_bounds", "  flow floor bounds"),
     (rti_osqp._OsqpCore, "update_vectors", "  OSQP vectors"),
@@ -52,18 +58,19 @@ PARTS = (
 
 
 @contextlib.contextmanager
-def timed(totals: dict[str, float]) -> Iterator[None]:
-    """Timers around :data:`PARTS` (wall time added to ``totals`` by label) for the ``with`` block."""
+def timed(totals: dict[str, float], clock=time.perf_counter) -> Iterator[None]:
+    """Timers around :data:`PARTS` (``clock``'s time, wall time by default, added to ``totals`` by label) for the
+    ``with`` block."""
     saved = []
     for cls, name, label in PARTS:
         original = cls.__dict__[name]
 
         def wrapper(*args, _f=original, _label=label, **kwargs):
-            t0 = time.perf_counter()
+            t0 = clock()
             try:
                 return _f(*args, **kwargs)
             finally:
-                totals[_label] = totals.get(_label, 0.0) + time.perf_counter() - t0
+                totals[_label] = totals.get(_label, 0.0) + clock() - t0
 
         saved.append((cls, name, original))
         setattr(cls, name, wrapper)
@@ -74,25 +81,33 @@ def timed(totals: dict[str, float]) -> Iterator[None]:
             setattr(cls, name, original)
 
 
-def measure(loops: int, seed: int, max_iterations: int, steps: int = solve_time.FULL_STEPS,
-            settings: dict | None = None) -> dict[str, float]:
-    """Median wall time (s) of each part over the selected steps of ``loops`` loops (``settings``: MpcSettings
-    fields)."""
+def selected(stats: dict, max_iterations: int, changes: bool) -> bool:
+    """Whether a step with these statistics is one of those measured: one QP of at most ``max_iterations``
+    OSQP iterations, or with ``changes`` two QPs or more."""
+    return stats["qp_solves"] >= 2 if changes else stats["qp_solves"] == 1 and stats["iterations"] <= max_iterations
+
+
+def measure(loops: int, seed: int, max_iterations: int, steps: int = solve_time.FULL_STEPS, changes: bool = False,
+            settings: dict | None = None, clock=time.perf_counter) -> dict[str, float]:
+    """Median time (s, ``clock``'s) of each part over the selected steps (:func:`selected`) of ``loops`` loops, and the
+    median OSQP iterations of those steps."""
     rows: dict[str, list[float]] = defaultdict(list)
-    selected = 0
+    iterations = []
     for _ in range(loops):
         totals: dict[str, float] = {}
-        with timed(totals):
-            ctrl = MpcController(settings=MpcSettings(**(settings or {})))
+        with timed(totals, clock):
+            fields = {k: tuple(v) if isinstance(v, list) else v for k, v in (settings or {}).items()}  # JSON lists
+            ctrl = MpcController(settings=MpcSettings(**fields))
             loop = solve_time.Loop(ctrl, seed, idle_s=solve_time.IDLE_S)
             for k in range(steps):
                 totals.clear()
                 st = loop.step(k).stats
-                if k > 0 and st["qp_solves"] == 1 and st["iterations"] <= max_iterations:
-                    selected += 1
+                if k > 0 and selected(st, max_iterations, changes):
+                    iterations.append(st["iterations"])
                     for _, _, label in PARTS:
                         rows[label].append(totals.get(label, 0.0))
-    return {"steps": selected, **{label: float(np.median(v)) for label, v in rows.items()}}
+    return {"steps": len(iterations), "iterations": float(np.median(iterations)) if iterations else 0.0,
+            **{label: float(np.median(v)) for label, v in rows.items()}}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -100,17 +115,22 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--loops", type=int, default=3)
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--max-iterations", type=int, default=20)
-    parser.add_argument("--settings", default=None, metavar="JSON", help="MpcSettings fields, e.g. "
-                        "'{\"rti_relinearise_every\": 5}'")
+    parser.add_argument("--changes", action="store_true", help="the steps with two QPs or more (the changes')")
+    parser.add_argument("--settings", type=json.loads, default=None,
+                        help='MpcSettings fields as a JSON object, e.g. \'{"steady_start": true}\'')
+    parser.add_argument("--thread-cpu", action="store_true", help="the thread's CPU time instead of wall time")
     args = parser.parse_args(argv)
     if args.loops < 1 or args.max_iterations < 1:
         parser.error("--loops and --max-iterations must be at least 1")
-    fields = {k: tuple(v) if isinstance(v, list) else v for k, v in json.loads(args.settings or "{}").items()}
-    out = measure(args.loops, args.seed, args.max_iterations, settings=fields)
-    print(f"median over {out.pop('steps')} steps with one QP of at most {args.max_iterations} OSQP iterations "
-          "(wall time, timers' own cost included):")
+    clock = time.thread_time if args.thread_cpu else time.perf_counter
+    out = measure(args.loops, args.seed, args.max_iterations, changes=args.changes, settings=args.settings,
+                  clock=clock)
+    kind = "two QPs or more" if args.changes else f"one QP of at most {args.max_iterations} OSQP iterations"
+    print(f"median over {out.pop('steps')} steps with {kind} (OSQP iterations {out.pop('iterations'):.0f}; "
+          f"{'thread CPU' if args.thread_cpu else 'wall'} time, timers' own cost included):")
     for label, value in out.items():
-        print(f"  {label:<66} {value * 1e3:7.3f} ms")
+        if value > 0.0:
+            print(f"  {label:<66} {value * 1e3:7.3f} ms")
     return 0
 
 

@@ -61,6 +61,7 @@ from .placement import PLACEMENTS, PlacementChoice
 from .readiness import HeaterReadiness
 from .ring_gate import RingGate
 from .rti_osqp import RtiOsqpSolver, SolveResult
+from .steady_target import check_steady_start_on
 from .temperature_reach import SaturatedTemperature
 
 SOLVERS = ("rti", "sqp", "ipopt")
@@ -213,6 +214,10 @@ class MpcSettings:
         rti_relinearise_move: the largest move (scaled units) of any stage's state or input since the last full
             linearisation for a step that keeps the matrices (0.3: the bound that kept the per-step suboptimality
             within its target in the measurements).
+        steady_start_on: with ``steady_start`` (ignored without), which reference changes start at the target:
+            "any" (every change of the tracked reference, the flow's and split's too) or "temperature" (only a
+            change of the supply-temperature reference; a flow or split change alone starts from the shifted
+            plan). :data:`hvac_mpc.mpc.steady_target.STEADY_START_ON`.
     """
 
     dt_s: float = 1.0
@@ -267,6 +272,7 @@ class MpcSettings:
     placement_cap: float = 50.0
     rti_relinearise_every: int = 1
     rti_relinearise_move: float = 0.3
+    steady_start_on: str = "any"
 
     def __post_init__(self) -> None:
         p = "MpcSettings"
@@ -321,6 +327,7 @@ class MpcSettings:
                      "osqp_accept_max_iter", "osqp_codegen", "steady_start",
                      "osqp_check_dualgap"):
             check_flag(f"{p}.{flag}", getattr(self, flag))
+        check_steady_start_on(f"{p}.steady_start_on", self.steady_start_on, InvalidSettings)
         if self.reach_background and not self.reach_deferred:
             raise InvalidSettings(f"{p}.reach_background = True needs {p}.reach_deferred = True "
                                   "(the solve's answer is used from the next step on)")
@@ -498,7 +505,8 @@ class MpcController:
                              first_pass_iter=s.osqp_first_pass_iter, accept_max_iter=s.osqp_accept_max_iter,
                              step_fractions=s.rti_step_fractions, osqp_codegen=s.osqp_codegen,
                              scaling_interval=s.osqp_scaling_interval, steady_start=s.steady_start,
-                             relinearise_every=s.rti_relinearise_every, relinearise_move=s.rti_relinearise_move)
+                             relinearise_every=s.rti_relinearise_every, relinearise_move=s.rti_relinearise_move,
+                             steady_start_on=s.steady_start_on)
 
     # ------------------------------------------------------------------ protocol
     def reset(self, command: Command | None = None) -> None:

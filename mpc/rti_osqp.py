@@ -18,8 +18,9 @@ docs/architecture.md, 'One control step', lists what runs as generated C and wha
 
 With ``sqp_max_iter > 1`` the feedback re-linearises at the new iterate and solves again until
 the step is below ``sqp_tol`` (a Gauss-Newton SQP to a tolerance). With ``steady_start`` the QPs of a
-reference change are linearised at the plan toward the new reference's steady-state target instead of
-the shifted plan (:mod:`.steady_target`). With ``relinearise_every`` > 1 most preparations keep OSQP's matrices
+reference change (every one, or with ``steady_start_on="temperature"`` those of the supply temperature's)
+are linearised at the plan toward the new reference's steady-state target instead of the shifted plan
+(:mod:`.steady_target`). With ``relinearise_every`` > 1 most preparations keep OSQP's matrices
 and renew only the vectors at the shifted plan (:mod:`.multilevel`, multi-level steps).
 """
 
@@ -42,7 +43,7 @@ from .multilevel import MultiLevel, vector_function
 from .ocp import STAGE_OUTPUTS, TRACKED, TrackingProblem, shift_maps, shift_nodes
 from .osqp_embedded import FIRST_PASS_EPS_RATIO  # noqa: F401 - the first pass's tolerance, named here too
 from .plan_merit import PlanMerit
-from .steady_target import SteadyStart
+from .steady_target import SteadyStart, check_steady_start_on, starts_at_target
 
 #: Rows of the stage outputs (``STAGE_OUTPUTS``) by signal: the tracked temperature, the total
 #: flow, the outlet flows and the electric heater power (the energy residual's heater part).
@@ -173,6 +174,9 @@ class RtiOsqpSolver:
             full one, the plain real-time iteration). ``self.levels`` counts the full and the vector steps.
         relinearise_move: the largest move of a scaled state or input of any stage since the last full
             linearisation for a vector step.
+        steady_start_on: with ``steady_start``, which changes start there (:data:`.steady_target.STEADY_START_ON`):
+            "any" change of the reference, or only those of the supply "temperature" reference (a flow or
+            split change alone then starts from the shifted plan).
     """
 
     def __init__(self, problem: TrackingProblem, *, eps: float = 1e-4, max_iter: int = 400,
@@ -181,8 +185,10 @@ class RtiOsqpSolver:
                  codegen: bool = False, scaling: int = 10, alpha: float = 1.6, check_dualgap: bool = True,
                  first_pass_iter: int = 0, accept_max_iter: bool = False, step_fractions: tuple[float, ...] = (),
                  restart_duals_on_change: bool = False, osqp_codegen: bool = False, scaling_interval: int = 1,
-                 steady_start: bool = False, relinearise_every: int = 1, relinearise_move: float = 0.3):
+                 steady_start: bool = False, steady_start_on: str = "any", relinearise_every: int = 1,
+                 relinearise_move: float = 0.3):
         self.pb = pb = problem
+        self.steady_start_on = check_steady_start_on("RtiOsqpSolver: steady_start_on", steady_start_on)
         self._ml = MultiLevel(relinearise_every, relinearise_move) if relinearise_every != 1 else None
         self._vector_prepared = False  # the QP in OSQP is a vector step's (the matrices of an earlier point)
         self._osqp_codegen = bool(osqp_codegen)
@@ -251,7 +257,7 @@ class RtiOsqpSolver:
         """The QP solver's settings and whether the QP data run as generated C (benchmark reports)."""
         return {"qp_solver": "osqp", **self._osqp_settings, "first_pass_iter": self._first_pass_iter,
                 "restart_duals_on_change": self.restart_duals_on_change,
-                "steady_start": self._steady is not None,
+                "steady_start": self._steady is not None, "steady_start_on": self.steady_start_on,
                 "accept_max_iter": 7 in self._accepted,
                 "sqp_max_iter": self.sqp_max_iter,
                 "reference_change_qps": self.reference_change_qps, "compiled": self.codegen.active,
@@ -779,7 +785,7 @@ class RtiOsqpSolver:
         if changed:
             max_qps = max(max_qps, self.reference_change_qps)
         started = False
-        if changed and self._steady is not None:
+        if changed and self._steady is not None and starts_at_target(self.steady_start_on, self._prepared["ref"], ref):
             prep, started = self._start_steady(x0, u_prev, d, ref, w_y, u_lo, u_hi)
         if not started and (self._prepared is None or not np.array_equal(self._prepared["w_y"], w_y)):
             prep += self.prepare(x0, u_prev, d, ref, w_y)

@@ -19,7 +19,9 @@ of a change another start, in one call of one CasADi function (generated C with 
    dynamics rows start without defects.
 
 The QPs of the change are then linearised at that plan and warm-started from it
-(:meth:`~.rti_osqp.RtiOsqpSolver.feedback`, ``steady_start``). ASSUMPTION: the model's rest state is
+(:meth:`~.rti_osqp.RtiOsqpSolver.feedback`, ``steady_start``), at the changes :func:`starts_at_target`
+admits (``steady_start_on``: every change of the reference, or only those of the supply temperature's).
+ASSUMPTION: the model's rest state is
 reached from the estimate by Newton's method on its equations (the states are lags toward algebraic
 targets, so their Jacobian is regular); where it is not, the target is not finite and the change starts
 from the shifted plan as without this start.
@@ -47,6 +49,25 @@ GN_MAX_MOVE = 0.4
 GN_DAMPING = 1e-3
 #: An input within this of a bound (scaled) counts as at it for the projected steps.
 BOUND_TOLERANCE = 1e-9
+#: Which reference changes start at the target (``steady_start_on``): "any" change of the stage outputs'
+#: reference, or only one of the supply "temperature" reference (a flow or split change alone keeps the
+#: shifted plan: it leaves the temperature mix where it was, docs/architecture.md 'Slow steps').
+STEADY_START_ON = ("any", "temperature")
+#: Row of the supply temperature in the stage outputs' reference.
+REF_TEMPERATURE = STAGE_OUTPUTS.index("supply_air_temp_c")
+
+
+def check_steady_start_on(name: str, value, error: type[ValueError] = ValueError) -> str:
+    """``value`` if it is one of :data:`STEADY_START_ON`, else ``error`` naming the field ``name``."""
+    if not isinstance(value, str) or value not in STEADY_START_ON:
+        raise error(f"{name} = {value!r} must be one of {list(STEADY_START_ON)}")
+    return value
+
+
+def starts_at_target(on: str, old_ref: np.ndarray, new_ref: np.ndarray) -> bool:
+    """Whether a step whose stage outputs' reference goes from ``old_ref`` to ``new_ref`` (a change: they
+    differ) starts at the steady-state target under ``steady_start_on = on`` (:data:`STEADY_START_ON`)."""
+    return on == "any" or old_ref[REF_TEMPERATURE] != new_ref[REF_TEMPERATURE]
 
 
 class SteadyStart:

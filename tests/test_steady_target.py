@@ -1,18 +1,22 @@
 """The start of a reference change (mpc/steady_target.py): the steady-state target holds the reference at rest on
 the model, the plan toward it keeps the QP's bounds and rate rows, its states are the model's rollout; in the
 controller a change's QPs start there, with fewer OSQP iterations than from the shifted plan and the same
-commands with OSQP's generated C and with its Python interface.
+commands with OSQP's generated C and with its Python interface; with ``steady_start_on="temperature"`` only a
+change of the supply-temperature reference starts there (a flow change alone as without the start).
 
-Budget: about 15 s on a loaded two-core machine (CasADi's interpreter, three short closed loops).
+Budget: about 20 s on a loaded two-core machine (CasADi's interpreter, six short closed loops).
 """
+
+import functools
 
 import numpy as np
 import pytest
 
 from hvac_mpc.benchmarks import solve_time
 from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
-from hvac_mpc.mpc.ocp import STAGE_OUTPUTS
-from hvac_mpc.mpc.steady_target import SteadyStart
+from hvac_mpc.contract import Reference
+from hvac_mpc.mpc.ocp import STAGE_OUTPUTS, InvalidSettings
+from hvac_mpc.mpc.steady_target import SteadyStart, starts_at_target
 
 #: Inlet and water (degC), mixed-air and flow offsets: the solve-time loop's conditions.
 D = np.array([32.0, 5.0, 0.0, 0.0])
@@ -70,29 +74,71 @@ def test_a_state_that_is_not_finite_gives_no_start(controller):
     assert _start(controller, solve_time.SCENARIO[1][1], x)[-1] is None
 
 
-def _change(steady: bool, osqp_codegen: bool = True):
-    """The solve-time loop's references of 60 s and 90 s, the second from step 10 on; per step OSQP iterations and
-    QPs, and the commands."""
-    scenario = ((0.0, solve_time.SCENARIO[2][1]), (10.0, solve_time.SCENARIO[3][1]))
+#: The solve-time loop's references of 60 s and 90 s (the temperature changes 20 -> 18 degC)
+TEMPERATURE_CHANGE = ((0.0, solve_time.SCENARIO[2][1]), (10.0, solve_time.SCENARIO[3][1]))
+#: The reference of 60 s, then its flow and split changed alone (20 degC both)
+FLOW_CHANGE = ((0.0, solve_time.SCENARIO[2][1]), (10.0, Reference.from_split(20.0, 0.04, (0.4, 0.35, 0.25))))
+
+
+@functools.lru_cache(maxsize=None)
+def _change(steady: bool, osqp_codegen: bool = True, on: str = "any", scenario=TEMPERATURE_CHANGE):
+    """Twelve steps of the solve-time loop through ``scenario`` (its second reference from step 10 on); per step
+    OSQP iterations and QPs, the commands, and the solver's steady-state targets after steps 9 and 10."""
     ctrl = MpcController(settings=MpcSettings(codegen=False, osqp_codegen=osqp_codegen, deadline_s=3600.0,
-                                              steady_start=steady))
+                                              steady_start=steady, steady_start_on=on))
     loop = solve_time.Loop(ctrl, seed=7, scenario=scenario)
-    rows = [loop.step(k) for k in range(12)]
+    rows, targets = [], []
+    for k in range(12):
+        rows.append(loop.step(k))
+        targets.append(ctrl.solver.last_target)
     assert all(r.stats["fallback"] is None for r in rows)
     return ([r.stats["iterations"] for r in rows], [r.stats["qp_solves"] for r in rows],
-            np.array([r.command.vector() for r in rows]), ctrl)
+            np.array([r.command.vector() for r in rows]), ctrl.solver.settings, targets[9:11])
 
 
 def test_a_change_starts_at_the_target_with_fewer_iterations_and_the_same_commands_either_osqp():
-    its, qps, commands, ctrl = _change(True)
-    assert ctrl.solver.settings["steady_start"]
-    shifted_its, shifted_qps, shifted, _ = _change(False)
+    its, qps, commands, settings, targets = _change(True)
+    assert settings["steady_start"] and settings["steady_start_on"] == "any"
+    shifted_its, shifted_qps, shifted, _, _ = _change(False)
     assert qps[10] == shifted_qps[10] == 2 and all(n == 1 for n in qps[1:10] + qps[11:])
     assert its[:10] == shifted_its[:10] and np.array_equal(commands[:10], shifted[:10])  # the same until the change
     assert its[10] <= shifted_its[10] / 2, (its[10], shifted_its[10])
-    assert ctrl.solver.last_target is not None
-    python_its, _, python, _ = _change(True, osqp_codegen=False)
+    assert targets[0] is None and targets[1] is not None  # the first target is the change's
+    python_its, _, python, _, _ = _change(True, osqp_codegen=False)
     assert python_its == its and np.array_equal(python, commands)
+
+
+def test_a_temperature_only_start_starts_a_temperature_change_alike():
+    its, _, commands, settings, targets = _change(True, on="temperature")
+    assert settings["steady_start_on"] == "temperature"
+    any_its, _, any_commands, _, any_targets = _change(True)
+    assert its == any_its and np.array_equal(commands, any_commands)
+    np.testing.assert_array_equal(targets[1], any_targets[1])
+
+
+def test_a_temperature_only_start_leaves_a_flow_change_to_the_shifted_plan():
+    its, qps, commands, _, targets = _change(True, on="temperature", scenario=FLOW_CHANGE)
+    shifted_its, shifted_qps, shifted, _, _ = _change(False, scenario=FLOW_CHANGE)
+    any_its, _, _, _, any_targets = _change(True, scenario=FLOW_CHANGE)
+    assert qps[10] == 2  # a change all the same: its two QPs
+    assert targets[1] is None and its == shifted_its and np.array_equal(commands, shifted)
+    assert any_targets[1] is not None and any_its[10] != shifted_its[10]  # where "any" starts it at the target
+
+
+def test_which_changes_start_at_the_target():
+    old = np.array([20.0, 0.025, 0.005, 0.0125, 0.0075, 0.0, 0.0])
+    flow = old.copy()
+    flow[1:5] *= 1.2
+    warmer = old.copy()
+    warmer[STAGE_OUTPUTS.index("supply_air_temp_c")] = 21.0
+    assert starts_at_target("any", old, flow) and starts_at_target("any", old, warmer)
+    assert not starts_at_target("temperature", old, flow) and starts_at_target("temperature", old, warmer)
+
+
+@pytest.mark.parametrize("value", ["flow", "", None, True])
+def test_an_unknown_choice_of_changes_is_refused_naming_the_field(value):
+    with pytest.raises(InvalidSettings, match=r"MpcSettings\.steady_start_on .*'any', 'temperature'"):
+        MpcSettings(steady_start=True, steady_start_on=value)
 
 
 def test_the_benchmark_finds_the_changes_and_counts_their_iterations():
@@ -106,3 +152,12 @@ def test_the_benchmark_finds_the_changes_and_counts_their_iterations():
     assert s["iterations"] == 190 and s["change_iterations"] == [80]  # the cold step 0 left out
     assert s["wake_iterations"] == 30 + 20 + 10 + 10 + 10
     assert s["change_cpu_max_ms"] == 4.0 and s["cpu_max_ms"] == 4.0 and s["largest_steps"][0] == [3, 80]
+    qps = np.array([10, 1, 1, 2, 1, 1, 1, 1, 1, 1])
+    slow = change_start.summary(iterations, cpu, [3], qps)["slowest_steps"]
+    assert slow[:2] == [[3, 4.0, 80, 2, True], [4, 2.0, 30, 1, False]]  # by CPU time, the cold step left out
+    # its variants whatever the defaults: the shifted start, every change, the temperature's only
+    starts = {v: (s.steady_start, s.steady_start_on)
+              for v, s in ((v, MpcSettings(**f)) for v, f in change_start.VARIANTS.items())}
+    assert starts["shifted"][0] is False and starts["steady"] == (True, "any")
+    assert starts["temperature"] == starts["one_qp"] == (True, "temperature")
+    assert MpcSettings(**change_start.VARIANTS["one_qp"]).reference_change_qps == 1

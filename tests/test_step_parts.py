@@ -17,3 +17,10 @@ def test_the_timers_time_the_parts_and_are_taken_off_after():
     parts = [totals[label] for _, _, label in step_parts.PARTS if not label.startswith(" ") and label != "whole step"]
     assert whole > 0 and sum(parts) < whole  # the top-level parts are inside the step, one after the other
     assert totals["  OSQP solve"] < totals["feedback (gradient, bounds, OSQP solve)"]
+
+
+def test_the_steps_measured_are_the_median_kind_or_the_changes():
+    one, change = {"qp_solves": 1, "iterations": 15}, {"qp_solves": 2, "iterations": 80}
+    assert step_parts.selected(one, 20, changes=False) and not step_parts.selected(change, 20, changes=False)
+    assert not step_parts.selected({"qp_solves": 1, "iterations": 21}, 20, changes=False)
+    assert step_parts.selected(change, 20, changes=True) and not step_parts.selected(one, 20, changes=True)
