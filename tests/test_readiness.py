@@ -53,10 +53,12 @@ def test_floor_is_held_below_the_ptc_knee_and_off_outside_the_heating_duty_and_i
     assert ready.floor_c(x, u, d, pb.model.p_default, 20.0, 40.0 / 3600.0, 90.0) == pb.params.ptc_knee_c
     assert ready.floor_c(x, u, d, pb.model.p_default, 5.0, 40.0 / 3600.0, 90.0) is None  # not above the inlet
     assert ready.floor_c(x, u, d, pb.model.p_default, None, 40.0 / 3600.0, 90.0) is None
-    # a step up is being served: the reading 1 K below the reference, out; 0.3 K below or above it, in
+    # a step up is being served: the reading 1 K below the reference, out; 0.3 K below or above it, in; 1 K above
+    # it (more heat than asked), out
     assert ready.floor_c(x, u, d, pb.model.p_default, 12.0, 40.0 / 3600.0, 90.0, supply_now_c=11.0) is None
     assert ready.floor_c(x, u, d, pb.model.p_default, 12.0, 40.0 / 3600.0, 90.0, supply_now_c=11.7) is not None
-    assert ready.floor_c(x, u, d, pb.model.p_default, 12.0, 40.0 / 3600.0, 90.0, supply_now_c=13.0) is not None
+    assert ready.floor_c(x, u, d, pb.model.p_default, 12.0, 40.0 / 3600.0, 90.0, supply_now_c=12.3) is not None
+    assert ready.floor_c(x, u, d, pb.model.p_default, 12.0, 40.0 / 3600.0, 90.0, supply_now_c=13.0) is None
     assert ready.scaled(None) is None
 
 
@@ -102,8 +104,10 @@ def test_the_readiness_keeps_the_body_warm_through_the_warm_up_on_the_recirculat
     identification finds (-0.15 T_in + 3.6 C, thesis parameters otherwise), the quick winter_heating_steps: the
     warm-up holds 9 C with the air entering at about 9.05 C, and without the readiness the MPC cools through the
     core with the heater off, the body 33.1 -> 26.3 C at the step (measured), 146.5 C s. With the readiness (0.5
-    per K^2 s) the body is above 40 C at the step (measured 43.2 C) and the IAE a quarter (measured 37.3 C s with
-    the floor at most 3 K above the body's estimate, 34.8 C s without that bound)."""
+    per K^2 s) the body is warmer at the step and the IAE about half (measured 30.7 C, 78.9 C s). The warm-up's
+    reading at 9 C is where the readiness pays: counted while the reading was up to any height above the
+    reference, it held the reading above the band and the body at 43.2 C (37.3 C s); within the band on both
+    sides, it may cost the warm-up's reference at most the band (docs/identification.md 'Heater readiness')."""
     term = DiscoveredTerm("recirculation", "box_in", ("inlet", "one"), (-0.15, 3.6))
     refined = RefinedModel(Parameters(), ("ptc_power_fall", "fan_curve", "valve_leakage"), (term,),
                            absent=("bypass_flow",))
@@ -114,8 +118,8 @@ def test_the_readiness_keeps_the_body_warm_through_the_warm_up_on_the_recirculat
     body_off, iae_off = run(0.0)
     body_on, iae_on = run(0.5)
     assert body_off < 28.0, body_off  # the warm-up spends the body's heat
-    assert body_on > 40.0, body_on
-    assert iae_on < 0.4 * iae_off, (iae_on, iae_off)
+    assert body_on > body_off + 3.0, (body_on, body_off)
+    assert iae_on < 0.6 * iae_off, (iae_on, iae_off)
 
 
 def test_the_bounded_floor_tracks_the_wall_loss_box_better_than_the_unbounded_one():
