@@ -6,15 +6,16 @@ docs/robustness.md sec. 2.13), which an offset of the air leaving the heater car
 (``EkfSettings.q_heater_air_offset_c``), or the heater's own transfer differs (the built-in plant's perturbed kA),
 which changes with the core flow and which the reading's own offset keeps out of the prediction
 (``q_heater_outlet_offset_c``, the default). Both filters run on the same readings and commands; each keeps the
-normalised square of its supply innovation (:attr:`~.estimator.DisturbanceEkf.supply_nis`) in a sum that forgets
-with ``window_s``. The prediction uses the filter whose sum is lower than ``ratio`` times the other's while the
+normalised square of its supply innovation (:attr:`~.estimator.DisturbanceEkf.supply_nis`), capped at ``cap`` (a
+start-up transient or a dead time not yet found surprises both alike and would decide the sums for a minute), in a
+sum that forgets with ``window_s``. The prediction uses the filter whose sum is lower than ``ratio`` times the other's while the
 filter in use is itself inconsistent (its sum above ``evidence`` times the sum a consistent filter would have,
 the window's length in samples); the same rule takes it back (hysteresis: ``ratio`` < 1 each way), multiple-model
 estimation with two models and a hard choice.
 
 ASSUMPTION: the filter whose supply readings surprise it less predicts the supply air better, valve a's gain
 included: the filters differ where the core flow moves, and only there do their innovations differ (at rest each
-has taken its error into its offsets). The numbers (``window_s``, ``ratio``, ``evidence``) are chosen on the
+has taken its error into its offsets). The numbers (``window_s``, ``ratio``, ``evidence``, ``cap``) are chosen on the
 boxes of docs/robustness.md sec. 2.14, not tuned over many.
 """
 
