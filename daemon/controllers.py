@@ -124,6 +124,18 @@ class FaultInjectingController:
     def reset(self, command: Command | None = None) -> None:
         reset_controller(self.inner, command)
 
+    def wait_background(self, timeout_s: float) -> float:
+        """The wrapped controller's work between steps (:func:`between_steps`)."""
+        return between_steps(self.inner, timeout_s)
+
+
+def between_steps(ctrl: Controller, timeout_s: float = 0.0) -> float:
+    """Work a controller defers out of its step (``wait_background``, e.g. the MPC's second filter), given up to
+    ``timeout_s`` (s) for what runs on its other threads; nothing for a controller without it. Returns the time
+    waited (s)."""
+    between = getattr(ctrl, "wait_background", None)
+    return float(between(timeout_s)) if callable(between) else 0.0
+
 
 def _finite(cmd: Any) -> bool:
     return isinstance(cmd, Command) and all(
@@ -195,6 +207,7 @@ class ControllerChain:
             except Exception as exc:  # noqa: BLE001
                 out.events.append(f"error:{type(exc).__name__}")
         out.step_time_s = time.perf_counter() - t0
+        self._between(primary, result is not None)
         if result is not None:
             if _finite(result.command):
                 out.command, out.used, out.stats = result.command, name, dict(result.stats)
@@ -217,9 +230,30 @@ class ControllerChain:
         self._last_used = None
         return out
 
+    def _between(self, primary: Controller, stepped: bool) -> None:
+        """After a step of the primary, the work it defers out of its steps (:func:`between_steps`), on the
+        primary's worker (queued before its next step, so never beside it) or, unthreaded, here; a failure
+        there is the next step's to find."""
+        if not stepped:
+            return
+        if self._executor is None:
+            try:
+                between_steps(primary)
+            except Exception:  # noqa: BLE001 - the command of this step stands
+                pass
+        else:  # not the step's future: the next step queues behind it on the one worker
+            self._executor.submit(_quiet_between, primary)
+
     def close(self) -> None:
         if self._executor is not None:
             self._executor.shutdown(wait=False, cancel_futures=True)
+
+
+def _quiet_between(ctrl: Controller) -> None:
+    try:
+        between_steps(ctrl)
+    except Exception:  # noqa: BLE001 - the command of the last step stands
+        pass
 
 
 def _run(ctrl: Controller, reset: bool, m: Measurement, ref: Reference, last: Command | None) -> StepResult:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import threading
 import time
 import urllib.error
 import urllib.request
@@ -19,7 +20,7 @@ from hvac_mpc.contract import StepResult
 from hvac_mpc.daemon.backends import BackendError
 from hvac_mpc.benchmarks.daemon_campaign import free_port
 from hvac_mpc.daemon.config import ConfigError, SafetyConfig, config_from_mapping, load_config
-from hvac_mpc.daemon.controllers import ControllerChain
+from hvac_mpc.daemon.controllers import ControllerChain, FaultInjectingController, between_steps
 from hvac_mpc.daemon.loop import Daemon, last_logged_time
 from hvac_mpc.daemon.modbus import (NO_VALUE, ModbusBackend, decode_command, decode_measurement,
                                         encode_command, encode_measurement)
@@ -229,6 +230,38 @@ def test_controller_chain_deadline_busy_error_and_return():
     out = chain.step(meas(), ref)
     assert out.command is None and out.used is None
     chain.close()
+
+
+class Deferring(Fixed):
+    """A controller with work deferred out of its steps (as the MPC's second filter): counted per thread."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.between, self.threads = 0, set()
+
+    def wait_background(self, timeout_s):
+        self.between += 1
+        self.threads.add(threading.current_thread().name)
+        return 0.0
+
+
+@pytest.mark.parametrize("threaded", [True, False])
+def test_controller_chain_runs_the_deferred_work_between_steps(threaded):
+    primary = Deferring(10.0)
+    chain = ControllerChain([("p", primary)], deadline_s=0.2, threaded=threaded)
+    ref = Reference(20.0, 0.03)
+    for _ in range(3):
+        assert chain.step(meas(), ref).used == "p"
+    primary.delay = 0.3  # a missed deadline: no deferred work after it
+    assert chain.step(meas(), ref).events == ["deadline"]
+    time.sleep(0.4)
+    chain.close()
+    assert primary.between == 3
+    assert primary.threads == ({t for t in primary.threads if t.startswith("controller")} if threaded
+                               else {threading.current_thread().name})
+    wrapped = FaultInjectingController(Deferring(10.0), [], clock=lambda: 0.0)
+    assert between_steps(wrapped, 0.0) == 0.0 and wrapped.inner.between == 1
+    assert between_steps(Fixed(10.0), 0.0) == 0.0  # a controller without deferred work
 
 
 # ------------------------------------------------------------------------------ daemon in-process
