@@ -169,6 +169,7 @@ class ControllerChain:
         self.primary_reset_after = primary_reset_after
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="controller") if threaded else None
         self._pending: Future | None = None
+        self._between_job: Future | None = None  # the primary's work between steps (_between)
         self._last_used: str | None = None
         self._primary_out = 10**9  # samples since the primary last produced the command
 
@@ -196,6 +197,8 @@ class ControllerChain:
                 result = None
         elif self._pending is not None and not self._pending.done():
             out.events.append("busy")  # a late step of the primary is still running
+        elif not self._between_done():
+            out.events.append("busy_between")  # its work between steps is still running
         else:
             self._pending = None
             fut = self._executor.submit(_run, primary, reset_primary, measurement, reference, last_command)
@@ -231,18 +234,29 @@ class ControllerChain:
         return out
 
     def _between(self, primary: Controller, stepped: bool) -> None:
-        """After a step of the primary, the work it defers out of its steps (:func:`between_steps`), on the
-        primary's worker (queued before its next step, so never beside it) or, unthreaded, here; a failure
-        there is the next step's to find."""
-        if not stepped:
+        """After a step of the primary delivered in time, the work it defers out of its steps
+        (:func:`between_steps`) on the primary's worker, never beside a step: the next step waits up to the
+        deadline for it (:meth:`_between_done`). Unthreaded, nothing: the controller does that work in its next
+        step, and the command of this one is not held back for it."""
+        if not stepped or self._executor is None:
             return
-        if self._executor is None:
-            try:
-                between_steps(primary)
-            except Exception:  # noqa: BLE001 - the command of this step stands
-                pass
-        else:  # not the step's future: the next step queues behind it on the one worker
-            self._executor.submit(_quiet_between, primary)
+        try:
+            self._between_job = self._executor.submit(_quiet_between, primary)
+        except RuntimeError:  # the chain was closed meanwhile
+            self._between_job = None
+
+    def _between_done(self) -> bool:
+        """True once the primary's work between steps is done, waited for up to the deadline (its own wait, so a
+        step is timed from its own start); False if it still runs (the sample goes down the chain)."""
+        job, self._between_job = self._between_job, None
+        if job is None:
+            return True
+        try:
+            job.result(timeout=self.deadline_s)
+        except TimeoutError:
+            self._pending = job  # still running: the primary is busy until it ends
+            return False
+        return True
 
     def close(self) -> None:
         if self._executor is not None:

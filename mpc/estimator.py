@@ -438,7 +438,6 @@ class DisturbanceEkf:
         self.use = np.array([True, True, True, True, s.use_heater_outlet])
         # the filter states the supply reading is compared with: the thermocouple state now and its history
         self._supply_idx = np.array([self.i_sensor] + list(range(self.nc, self.nz)))
-        self.supply_innovation_c = self.supply_nis = math.nan  # at the last measurement update
         self._build()
         self.z: np.ndarray | None = None
         self.P: np.ndarray | None = None
@@ -476,6 +475,7 @@ class DisturbanceEkf:
         self._pinned = False  # the shadowed states held at the shadow at the last sample
         self._relearning = False  # within reanchor_hold_s of a newly honoured dead time
         self._age_s = 0.0  # time since initialise
+        self.supply_innovation_c = self.supply_nis = math.nan  # no measurement update of this run yet
         if self.rest_gate is not None:
             self.rest_gate.reset()
         self._committed = self.settings.bypass_flow_exponent_prior  # the exponent at the end of the last flow change
@@ -791,6 +791,7 @@ class DisturbanceEkf:
 
     def update(self, measurement: Measurement, u: np.ndarray, setpoint_c: float) -> int:
         """Measurement update with the finite readings; returns how many were used."""
+        self.supply_innovation_c = self.supply_nis = math.nan  # until this update's supply reading is weighed
         values, ok = self.readings(measurement)
         if not ok.any():
             return 0

@@ -552,9 +552,11 @@ class MpcController:
         self.solver.reset()
         self._prepared_for_next = False
         self._pending = None
-        for f in self._filters[1:]:  # the other filter starts afresh with the next step
-            if f is not self.ekf:
-                f.reset()
+        if self.placement is not None:  # the filter not in use misses this sample: it starts afresh
+            for f in self._filters:
+                if f is not self.ekf:
+                    f.reset()
+            self.placement.restart()
         try:
             cmd, fallback = self._fallback_command(measurement, self._reference)
         except Exception:  # noqa: BLE001 - nothing may escape a control step
@@ -693,8 +695,14 @@ class MpcController:
         if self.placement is None:
             return
         self._run_other_filter()
+        if not self._filters[1 - self.placement.active].healthy():
+            return  # never to a filter that has not run
         if self.placement.decide():
-            self._use_filter(self._filters[self.placement.active])
+            try:
+                self._use_filter(self._filters[self.placement.active])
+            except Exception:
+                self.placement.active = 1 - self.placement.active  # the filter in use stays
+                raise
 
     def _run_other_filter(self) -> None:
         """The filter not in use: the measurement update with the last step's readings and the time update with
@@ -715,21 +723,22 @@ class MpcController:
             other.reset()
         if not other.healthy():
             other.reset()
+            self.placement.restart()
 
     def _use_filter(self, ekf: DisturbanceEkf) -> None:
         """Predict with ``ekf`` from now on: its prediction fused with the QP's preparation, its parameters in the
         prediction, and the next QP prepared afresh (the last one was made with the other filter's estimate)."""
         if ekf is self.ekf:
             return
+        self._prepared_for_next = False
+        if hasattr(self.solver, "use_prediction"):
+            self.solver.use_prediction(ekf)  # first: where it fails, the old filter stays bound and in use
         self.ekf = ekf
         self._updates_at_start = ekf.time_updates  # the recovery's count (step) follows the filter in use
-        if hasattr(self.solver, "use_prediction"):
-            self.solver.use_prediction(ekf)
         p = ekf.model_parameters()
         self.solver.set_parameters(p)
         if self.reach is not None:
             self.reach.set_parameters(p)
-        self._prepared_for_next = False
 
     def wait_background(self, timeout_s: float) -> float:
         """Between two steps: give the reachable-flow solve running on the second thread up to ``timeout_s``

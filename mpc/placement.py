@@ -41,6 +41,11 @@ class PlacementChoice:
         self.sums = [0.0, 0.0]
         self.active = 0
 
+    def restart(self) -> None:
+        """Forget both sums (a filter started afresh: its first innovations are no evidence), keeping the filter
+        in use."""
+        self.sums = [0.0, 0.0]
+
     def observe(self, index: int, nis: float) -> None:
         """The normalised square innovation of filter ``index`` at one sample (nan: no reading, nothing added)."""
         if math.isfinite(nis):

@@ -235,20 +235,20 @@ def test_controller_chain_deadline_busy_error_and_return():
 class Deferring(Fixed):
     """A controller with work deferred out of its steps (as the MPC's second filter): counted per thread."""
 
-    def __init__(self, *args, **kwargs):
+    def __init__(self, *args, between_s=0.0, **kwargs):
         super().__init__(*args, **kwargs)
-        self.between, self.threads = 0, set()
+        self.between, self.threads, self.between_s = 0, set(), between_s
 
     def wait_background(self, timeout_s):
         self.between += 1
         self.threads.add(threading.current_thread().name)
+        time.sleep(self.between_s)
         return 0.0
 
 
-@pytest.mark.parametrize("threaded", [True, False])
-def test_controller_chain_runs_the_deferred_work_between_steps(threaded):
+def test_controller_chain_runs_the_deferred_work_between_steps_on_the_worker():
     primary = Deferring(10.0)
-    chain = ControllerChain([("p", primary)], deadline_s=0.2, threaded=threaded)
+    chain = ControllerChain([("p", primary)], deadline_s=0.2)
     ref = Reference(20.0, 0.03)
     for _ in range(3):
         assert chain.step(meas(), ref).used == "p"
@@ -257,11 +257,27 @@ def test_controller_chain_runs_the_deferred_work_between_steps(threaded):
     time.sleep(0.4)
     chain.close()
     assert primary.between == 3
-    assert primary.threads == ({t for t in primary.threads if t.startswith("controller")} if threaded
-                               else {threading.current_thread().name})
+    assert len(primary.threads) == 1 and next(iter(primary.threads)).startswith("controller")
+    unthreaded = Deferring(10.0)
+    chain = ControllerChain([("p", unthreaded)], deadline_s=0.2, threaded=False)
+    assert chain.step(meas(), ref).used == "p" and unthreaded.between == 0  # left to its next step
     wrapped = FaultInjectingController(Deferring(10.0), [], clock=lambda: 0.0)
     assert between_steps(wrapped, 0.0) == 0.0 and wrapped.inner.between == 1
     assert between_steps(Fixed(10.0), 0.0) == 0.0  # a controller without deferred work
+
+
+def test_controller_chain_a_slow_between_job_is_named_and_the_fallback_answers():
+    primary, backup = Deferring(10.0, between_s=0.3), Fixed(20.0)
+    chain = ControllerChain([("p", primary), ("b", backup)], deadline_s=0.1)
+    ref = Reference(20.0, 0.03)
+    assert chain.step(meas(), ref).used == "p"
+    out = chain.step(meas(), ref)  # the work between steps still runs past the deadline
+    assert out.used == "b" and out.events == ["busy_between"] and out.command.heater_cmd_w == 20.0
+    time.sleep(0.35)
+    primary.between_s = 0.0
+    out = chain.step(meas(), ref)
+    assert out.used == "p" and out.events == []  # timed from its own start, not charged the job's time
+    chain.close()
 
 
 # ------------------------------------------------------------------------------ daemon in-process

@@ -182,9 +182,13 @@ def test_on_the_built_in_plant_the_reading_keeps_its_own_offset_and_the_commands
     np.testing.assert_array_equal(chosen, plain)
 
 
-def test_a_switch_followed_by_a_failed_preparation_takes_the_new_filters_time_update_once(monkeypatch):
-    """A step that switches filters and then fails after the time update (in the preparation of the next step)
-    answers with a fallback and predicts the filter now in use once (the recovery's check follows the switch)."""
+@pytest.mark.parametrize("where", ["before", "after"])
+def test_a_switch_followed_by_a_failure_takes_the_new_filters_time_update_once(monkeypatch, where):
+    """A step that switches filters and then fails answers with a fallback and takes the time update of the filter
+    now in use exactly once: the recovery takes it where the step failed before it ("before": in the QP's
+    preparation in the feedback, the QP prepared afresh after a switch), not again where the step failed after it
+    ("after": the fused prediction done, then a failure). The recovery's count follows the switch; the two
+    filters' counts are made to differ so that it cannot hold by coincidence."""
     from test_mpc import PARAMS, REF_WARM, START
     from test_mpc import closed_loop as run
 
@@ -197,10 +201,65 @@ def test_a_switch_followed_by_a_failed_preparation_takes_the_new_filters_time_up
     def broken(*args, **kwargs):
         raise RuntimeError("preparation broke")
 
-    monkeypatch.setattr(ctrl.solver, "_write", broken)
-    monkeypatch.setattr(ctrl.solver, "prepare", broken)
+    if where == "before":
+        monkeypatch.setattr(ctrl.solver, "prepare", broken)
+    else:
+        original = ctrl.solver.prepare_predicted
+
+        def then_broken(*args, **kwargs):
+            original(*args, **kwargs)
+            raise RuntimeError("preparation broke")
+
+        monkeypatch.setattr(ctrl.solver, "prepare_predicted", then_broken)
     air = ctrl._filters[1]
+    air.time_updates += 100  # a count of its own
     before = air.time_updates  # one more comes from bringing it up to this sample, before the switch
     rows = run(ctrl, plant, [REF_WARM])
     assert "preparation broke" in rows[0]["stats"]["status"] and ctrl.ekf is air
     assert air.time_updates == before + 2
+
+
+def test_a_recovery_restarts_the_filter_not_in_use_and_the_choice_waits_for_it(monkeypatch):
+    """After a failed step the filter not in use (which misses that sample) starts afresh and both sums are
+    forgotten, whichever filter is in use; the rule does not switch to a filter that has not run yet."""
+    from test_mpc import PARAMS, REF_WARM, START
+    from test_mpc import closed_loop as run
+
+    plant = SimulatedPlant(PARAMS, seed=6)
+    plant.settle(START)
+    ctrl = MpcController(PARAMS, MpcSettings(initial_command=START))
+    run(ctrl, plant, [REF_WARM] * 5)
+    ctrl.placement.sums[:] = [1e6, 0.0]
+    run(ctrl, plant, [REF_WARM])
+    default, air = ctrl._filters
+    assert ctrl.ekf is air and default.healthy()
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("preparation broke")
+
+    monkeypatch.setattr(ctrl.solver, "prepare_predicted", broken)
+    rows = run(ctrl, plant, [REF_WARM])
+    assert "preparation broke" in rows[0]["stats"]["status"]
+    assert not default.healthy() and ctrl.placement.sums == [0.0, 0.0]
+    monkeypatch.undo()
+    ctrl.placement.sums[:] = [0.0, 1e6]  # the rule would switch back, but the default filter has not run yet
+    rows = run(ctrl, plant, [REF_WARM])
+    assert ctrl.ekf is air and rows[0]["stats"]["fallback"] is None
+    run(ctrl, plant, [REF_WARM])
+    assert default.healthy()  # started from the readings of the sample it missed the step after
+
+
+def test_an_update_without_readings_and_a_reset_leave_no_innovation_to_count():
+    from hvac_mpc.mpc.estimator import MEASURED
+    plant = make_plant("nominal", seed=3)
+    ekf = DisturbanceEkf(HvacModel(Parameters()), EkfSettings())
+    u = Command(150.0, 0.0, 50.0, 100.0, 100.0, 100.0).vector()
+    ekf.initialise(plant.read(), u, 5.0)
+    ekf.predict(u, 5.0)
+    ekf.update(plant.read(), u, 5.0)
+    assert math.isfinite(ekf.supply_nis)
+    nothing = dataclasses.replace(plant.read(), **{n: math.nan for n in MEASURED})
+    assert ekf.update(nothing, u, 5.0) == 0 and math.isnan(ekf.supply_nis) and math.isnan(ekf.supply_innovation_c)
+    ekf.update(plant.read(), u, 5.0)
+    ekf.reset()
+    assert math.isnan(ekf.supply_nis)
