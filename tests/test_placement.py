@@ -24,7 +24,7 @@ from hvac_mpc.models.parameters import Parameters
 from hvac_mpc.models.plant import PLANT_EFFECTS, SimulatedPlant
 from hvac_mpc.contract import Command
 from hvac_mpc.models import HvacModel
-from hvac_mpc.mpc.estimator import DisturbanceEkf, EkfSettings
+from hvac_mpc.mpc.estimator import MEASURED, DisturbanceEkf, EkfSettings
 from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
 from hvac_mpc.mpc.ocp import InvalidSettings
 from hvac_mpc.mpc.placement import PLACEMENTS, PlacementChoice
@@ -120,7 +120,7 @@ def test_the_valve_steps_surprise_the_filter_whose_placement_is_wrong():
     assert built_in[0] < built_in[1] < 0.2 * literal[0]
 
 
-def test_a_dropped_supply_reading_leaves_the_innovation_undefined():
+def test_a_dropped_reading_and_a_reset_leave_the_innovation_undefined():
     plant = make_plant("nominal", seed=3)
     ekf = DisturbanceEkf(HvacModel(Parameters()), EkfSettings())
     u = Command(150.0, 0.0, 50.0, 100.0, 100.0, 100.0).vector()
@@ -130,6 +130,12 @@ def test_a_dropped_supply_reading_leaves_the_innovation_undefined():
     assert math.isnan(ekf.supply_nis) and math.isnan(ekf.supply_innovation_c)
     ekf.update(plant.read(), u, 5.0)
     assert math.isfinite(ekf.supply_nis) and ekf.supply_nis >= 0.0
+    # an update without any reading and a reset leave no innovation to count again
+    nothing = dataclasses.replace(plant.read(), **{n: math.nan for n in MEASURED})
+    assert ekf.update(nothing, u, 5.0) == 0 and math.isnan(ekf.supply_nis) and math.isnan(ekf.supply_innovation_c)
+    ekf.update(plant.read(), u, 5.0)
+    ekf.reset()
+    assert math.isnan(ekf.supply_nis)
 
 
 def closed_loop(choose: bool, plant_factory, scenario, seed: int = 0, plant_params=None, between=False):
@@ -247,19 +253,3 @@ def test_a_recovery_restarts_the_filter_not_in_use_and_the_choice_waits_for_it(m
     assert ctrl.ekf is air and rows[0]["stats"]["fallback"] is None
     run(ctrl, plant, [REF_WARM])
     assert default.healthy()  # started from the readings of the sample it missed the step after
-
-
-def test_an_update_without_readings_and_a_reset_leave_no_innovation_to_count():
-    from hvac_mpc.mpc.estimator import MEASURED
-    plant = make_plant("nominal", seed=3)
-    ekf = DisturbanceEkf(HvacModel(Parameters()), EkfSettings())
-    u = Command(150.0, 0.0, 50.0, 100.0, 100.0, 100.0).vector()
-    ekf.initialise(plant.read(), u, 5.0)
-    ekf.predict(u, 5.0)
-    ekf.update(plant.read(), u, 5.0)
-    assert math.isfinite(ekf.supply_nis)
-    nothing = dataclasses.replace(plant.read(), **{n: math.nan for n in MEASURED})
-    assert ekf.update(nothing, u, 5.0) == 0 and math.isnan(ekf.supply_nis) and math.isnan(ekf.supply_innovation_c)
-    ekf.update(plant.read(), u, 5.0)
-    ekf.reset()
-    assert math.isnan(ekf.supply_nis)
