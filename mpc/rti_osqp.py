@@ -189,6 +189,10 @@ class RtiOsqpSolver:
                  relinearise_move: float = 0.3):
         self.pb = pb = problem
         self.steady_start_on = check_steady_start_on("RtiOsqpSolver: steady_start_on", steady_start_on)
+        if isinstance(relinearise_every, bool) or int(relinearise_every) != relinearise_every or relinearise_every < 1:
+            raise ValueError(f"RtiOsqpSolver: relinearise_every = {relinearise_every!r}, allowed: an integer >= 1")
+        if not 0.0 < float(relinearise_move) <= 10.0:
+            raise ValueError(f"RtiOsqpSolver: relinearise_move = {relinearise_move!r}, allowed: (0, 10] (scaled units)")
         self._ml = MultiLevel(relinearise_every, relinearise_move) if relinearise_every != 1 else None
         self._vector_prepared = False  # the QP in OSQP is a vector step's (the matrices of an earlier point)
         self._osqp_codegen = bool(osqp_codegen)

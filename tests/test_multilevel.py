@@ -18,6 +18,7 @@ from hvac_mpc.mpc import codegen
 from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
 from hvac_mpc.mpc.multilevel import MultiLevel
 from hvac_mpc.mpc.ocp import InvalidSettings
+from hvac_mpc.mpc.rti_osqp import RtiOsqpSolver
 
 
 def _loop(settings: MpcSettings, steps: int, seed: int = 3):
@@ -54,6 +55,9 @@ def test_bad_settings_name_the_field(field, value):
         MpcSettings(**{field: value})
     with pytest.raises(ValueError, match="every|move"):
         MultiLevel(every=1 if field.endswith("every") else 2, move=value if field.endswith("move") else 0.1)
+    argument = field.removeprefix("rti_")
+    with pytest.raises(ValueError, match=f"RtiOsqpSolver: {argument}"):  # before the problem is looked at
+        RtiOsqpSolver(None, **{argument: value})
 
 
 def test_at_least_every_fifth_preparation_refactorises_and_a_reference_change_does():
@@ -103,11 +107,15 @@ def test_interpreted_vector_steps_give_the_generated_commands(tmp_path, monkeypa
 
 
 def test_a_reset_linearises_in_full():
-    _, ctrl, _, _ = _loop(MpcSettings(rti_relinearise_every=100, rti_relinearise_move=10.0), 4)
-    full = ctrl.solver.levels["full"]
-    ctrl.solver.reset()
+    _, ctrl, _, vector = _loop(MpcSettings(rti_relinearise_every=100, rti_relinearise_move=10.0), 4)
+    assert any(vector)  # vector steps before the reset
+    full, vectors = ctrl.solver.levels["full"], ctrl.solver.levels["vector"]
+    loop = solve_time.Loop(ctrl, seed=3)  # resets the controller (and its solver) to the plant's command
     assert ctrl.solver._ml.due()
-    assert ctrl.solver.levels["full"] == full
+    assert loop.step(0).stats["fallback"] is None
+    # the step after the reset solves on full linearisations (a cold start's); only its preparation of the
+    # next step may keep those matrices
+    assert ctrl.solver.levels["full"] > full and ctrl.solver.levels["vector"] <= vectors + 1
 
 
 def test_the_benchmark_runs_both_variants_in_lockstep():
