@@ -86,11 +86,9 @@ def run_seed(seed: int, steps: int, names: list[str] | None = None) -> dict[str,
              for v in names}
     iterations = {v: [] for v in names}
     qps = {v: [] for v in names}
-    for k in range(steps):
-        for v in names[k % len(names):] + names[:k % len(names)]:
-            stats = loops[v].step(k).stats
-            iterations[v].append(stats["iterations"])
-            qps[v].append(stats["qp_solves"])
+    for _, v, res in solve_time.lockstep(loops, steps):
+        iterations[v].append(res.stats["iterations"])
+        qps[v].append(res.stats["qp_solves"])
     changes = change_steps(steps)
     return {v: {"cost": float(sum(loop.cost.values())),
                 **summary(np.array(iterations[v]), np.array(loop.thread_s) * 1e3, changes, np.array(qps[v]))}

@@ -50,11 +50,9 @@ def run_seed(seed: int, steps: int, settings: dict[str, MpcSettings]) -> dict[st
     iterations = {v: 0 for v in loops}
     commands = {v: [] for v in loops}
     names = list(loops)
-    for k in range(steps):
-        for v in (names if k % 2 == 0 else names[::-1]):
-            res = loops[v].step(k)
-            iterations[v] += int(res.stats["iterations"])
-            commands[v].append(res.command.vector())
+    for _, v, res in solve_time.lockstep(loops, steps):
+        iterations[v] += int(res.stats["iterations"])
+        commands[v].append(res.command.vector())
     out: dict[str, Any] = {}
     for v, loop in loops.items():
         cpu = np.array(loop.thread_s[1:]) * 1e3

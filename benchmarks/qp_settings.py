@@ -45,10 +45,8 @@ def side_by_side(before: MpcSettings, after: MpcSettings, steps: int, seed: int)
     loops = {"before": solve_time.Loop(MpcController(settings=before), seed),
              "after": solve_time.Loop(MpcController(settings=after), seed)}
     iterations: dict[str, list[int]] = {name: [] for name in loops}
-    order = list(loops)
-    for k in range(steps):
-        for name in (order if k % 2 == 0 else order[::-1]):
-            iterations[name].append(int(loops[name].step(k).stats["iterations"]))
+    for _, name, res in solve_time.lockstep(loops, steps):
+        iterations[name].append(int(res.stats["iterations"]))
     out = {name: _summary(loop, iterations[name]) for name, loop in loops.items()}
     out["median_ratio"] = out["after"]["cpu_median_ms"] / out["before"]["cpu_median_ms"]
     out["p99_ratio"] = out["after"]["cpu_p99_ms"] / out["before"]["cpu_p99_ms"]

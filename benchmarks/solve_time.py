@@ -190,6 +190,17 @@ class Loop:
         return res
 
 
+def lockstep(loops: dict[str, Loop], steps: int):
+    """Step the ``loops`` side by side for ``steps`` samples, one step of each in turn, the order rotated from sample
+    to sample (with two loops: which goes first alternates), so that the load of other processes falls on each
+    alike; yields ``(k, name, StepResult)`` per step."""
+    names = list(loops)
+    for k in range(steps):
+        r = k % len(names)
+        for name in names[r:] + names[:r]:
+            yield k, name, loops[name].step(k)
+
+
 def closed_loop(name: str, make: Callable[[], MpcController], steps: int, seed: int, scenario=SCENARIO,
                 inlet_c: float = INLET_C, idle_s: float = 0.0) -> dict[str, Any]:
     """Run one controller on a fresh plant; per-step times and the closed-loop cost. ``idle_s``: the time

@@ -719,9 +719,10 @@ class MpcController:
                 other.update(measurement, u_in, setpoint)
                 self.placement.observe(1 - self.placement.active, other.supply_nis)
             other.predict(u_cmd, setpoint)
+            ok = other.healthy()
         except Exception:  # noqa: BLE001 - the filter not in use must not take the step down
-            other.reset()
-        if not other.healthy():
+            ok = False
+        if not ok:
             other.reset()
             self.placement.restart()
 
@@ -748,8 +749,7 @@ class MpcController:
         t0 = time.perf_counter()
         if self.placement is not None:
             self._run_other_filter()
-        waited = self.reach.wait_background(max(0.0, timeout_s - (time.perf_counter() - t0))) if self.reach else 0.0
-        return waited
+        return self.reach.wait_background(max(0.0, timeout_s - (time.perf_counter() - t0))) if self.reach else 0.0
 
     def _tracked_reference(self, ref: Reference, d: np.ndarray, cap: float) -> np.ndarray:
         """Reference vector of the stage outputs with the priorities applied: the total flow (and the

@@ -38,7 +38,8 @@ class PlacementChoice:
         self.reset()
 
     def reset(self) -> None:
-        self.sums = [0.0, 0.0]
+        """Forget both sums, back to the first filter."""
+        self.restart()
         self.active = 0
 
     def restart(self) -> None:
