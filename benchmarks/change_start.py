@@ -56,11 +56,22 @@ def change_steps(steps: int, scenario=solve_time.SCENARIO, dt_s: float = 1.0) ->
     return [k for k in range(1, steps) if refs[k] != refs[k - 1]]
 
 
+def first_change_step(scenario=solve_time.SCENARIO, dt_s: float = 1.0, horizon_steps: int = solve_time.FULL_STEPS
+                      ) -> int | None:
+    """The first step whose reference differs from the step before's within ``horizon_steps`` (None: none)."""
+    changes = change_steps(horizon_steps, scenario, dt_s)
+    return changes[0] if changes else None
+
+
 def summary(iterations: np.ndarray, thread_ms: np.ndarray, changes: list[int],
             qp_solves: np.ndarray | None = None) -> dict[str, Any]:
     """Figures of one loop from its per-step OSQP iterations, thread CPU times (ms) and QPs (default one a step),
     the cold step 0 left out. ``slowest_steps``: the :data:`TOP` steps of most CPU time as [step, ms, OSQP
-    iterations, QPs, whether a change]."""
+    iterations, QPs, whether a change]. ValueError where ``changes`` is empty (a run too short to hold a reference
+    change has no change figures)."""
+    if not changes:
+        raise ValueError(f"no reference change within the {iterations.size} steps run: the change figures need a run "
+                         "that holds one (more steps)")
     steps = np.arange(1, iterations.size)
     it, cpu = iterations[1:], thread_ms[1:]
     qps = np.ones_like(iterations) if qp_solves is None else qp_solves
@@ -113,6 +124,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if not 1 <= args.seeds <= 20 or args.steps < 3:
         parser.error("--seeds must be in [1, 20], --steps at least 3")
+    first = first_change_step()
+    if first is not None and args.steps <= first:
+        parser.error(f"--steps {args.steps} holds no reference change: the scenario's first change is at step "
+                     f"{first}, so --steps must be at least {first + 1}")
     names = list(dict.fromkeys(args.variant)) if args.variant else list(DEFAULT_VARIANTS)
     solve_time.pin_cores(2)
     rows: dict[str, list[dict[str, Any]]] = {v: [] for v in names}

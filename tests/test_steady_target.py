@@ -161,3 +161,16 @@ def test_the_benchmark_finds_the_changes_and_counts_their_iterations():
     assert starts["shifted"][0] is False and starts["steady"] == (True, "any")
     assert starts["temperature"] == starts["one_qp"] == (True, "temperature")
     assert MpcSettings(**change_start.VARIANTS["one_qp"]).reference_change_qps == 1
+
+
+def test_a_run_too_short_for_a_change_is_refused_with_a_clear_message(capsys):
+    from hvac_mpc.benchmarks import change_start
+    first = change_start.first_change_step()
+    assert first == int(solve_time.SCENARIO[1][0])  # the scenario's second reference starts the first change
+    with pytest.raises(SystemExit) as exit_:  # refused before any loop runs
+        change_start.main(["--steps", str(first), "--seeds", "1"])
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert f"--steps {first} holds no reference change" in err and f"at least {first + 1}" in err
+    with pytest.raises(ValueError, match="no reference change within the 5 steps"):
+        change_start.summary(np.full(5, 10), np.ones(5), [])
