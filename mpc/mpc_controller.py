@@ -218,6 +218,9 @@ class MpcSettings:
             "any" (every change of the tracked reference, the flow's and split's too) or "temperature" (only a
             change of the supply-temperature reference; a flow or split change alone starts from the shifted
             plan). :data:`hvac_mpc.mpc.steady_target.STEADY_START_ON`.
+        osqp_rho_reset: OSQP's step size ``rho`` set to this value at every preparation's matrix update (in its
+            refactorisation; OSQP still adapts it within each QP) instead of the value the last QP's adaptation left
+            (None: kept). Measured in docs/architecture.md, 'Slow steps' ('The step size reset at each preparation').
     """
 
     dt_s: float = 1.0
@@ -273,6 +276,7 @@ class MpcSettings:
     rti_relinearise_every: int = 1
     rti_relinearise_move: float = 0.3
     steady_start_on: str = "any"
+    osqp_rho_reset: float | None = None
 
     def __post_init__(self) -> None:
         p = "MpcSettings"
@@ -295,6 +299,8 @@ class MpcSettings:
         check_number(f"{p}.sqp_max_iter", self.sqp_max_iter, 1, 100, integer=True)
         check_number(f"{p}.rti_relinearise_every", self.rti_relinearise_every, 1, 1000, integer=True)
         check_number(f"{p}.rti_relinearise_move", self.rti_relinearise_move, 0.0, 10.0, lo_open=True)
+        if self.osqp_rho_reset is not None:
+            check_number(f"{p}.osqp_rho_reset", self.osqp_rho_reset, 1e-6, 1e6)
         check_number(f"{p}.sqp_tol", self.sqp_tol, 1e-10, 1.0, lo_open=True)
         check_number(f"{p}.levenberg_marquardt", self.levenberg_marquardt, 0.0, 1e4)
         check_number(f"{p}.cold_start_qps", self.cold_start_qps, 1, 100, integer=True)
@@ -506,7 +512,7 @@ class MpcController:
                              step_fractions=s.rti_step_fractions, osqp_codegen=s.osqp_codegen,
                              scaling_interval=s.osqp_scaling_interval, steady_start=s.steady_start,
                              relinearise_every=s.rti_relinearise_every, relinearise_move=s.rti_relinearise_move,
-                             steady_start_on=s.steady_start_on)
+                             steady_start_on=s.steady_start_on, rho_reset=s.osqp_rho_reset)
 
     # ------------------------------------------------------------------ protocol
     def reset(self, command: Command | None = None) -> None:

@@ -68,6 +68,8 @@ GLUE = r"""
 #include "hvac_workspace.h"
 #include "algebra_matrix.h"
 #include "auxil.h"
+#include "kkt.h"
+#include "qdldl_interface.h"
 
 #define API __attribute__((visibility("default")))
 #define S (&hvac_solver)
@@ -218,6 +220,28 @@ API int hq_update_mat_kept_scaling(const double* Px, const double* Ax) {
                                            w->data->A, OSQP_NULL, nnzA);
   reset_info(S->info);
   return (int)flag;
+}
+/* OSQP's step size set to rho as osqp_update_rho sets it (the settings, rho_vec and its reciprocals, the KKT
+   matrix's rho entries) without its refactorisation: the next matrix update's refactorisation takes it in, so a
+   step size reset with a matrix update costs one factorisation, as the update alone does */
+API void hq_rho_next_update(double rho) {
+  OSQPWorkspace* w = S->work;
+  qdldl_solver* s = (qdldl_solver*)w->linsys_solver;
+  OSQPInt i;
+  S->settings->rho = c_min(c_max(rho, OSQP_RHO_MIN), OSQP_RHO_MAX);
+  if (S->settings->rho_is_vec) {
+    OSQPVectorf_set_scalar_conditional(w->rho_vec, w->constr_type, OSQP_RHO_MIN, S->settings->rho,
+                                       OSQP_RHO_EQ_OVER_RHO_INEQ * S->settings->rho);
+    OSQPVectorf_ew_reciprocal(w->rho_inv_vec, w->rho_vec);
+  } else {
+    w->rho_inv = 1. / S->settings->rho;
+  }
+  if (s->rho_inv_vec) {
+    for (i = 0; i < s->m; i++) s->rho_inv_vec[i] = 1. / w->rho_vec->values[i];
+  } else {
+    s->rho_inv = 1. / S->settings->rho;
+  }
+  update_KKT_param2(s->KKT, s->rho_inv_vec, s->rho_inv, s->rhotoKKT, s->m);
 }
 API int hq_update_vec(const double* q, const double* l, const double* u) {
   return (int)osqp_update_data_vec(S, q, l, u);
@@ -400,6 +424,7 @@ class EmbeddedOsqp(TwoPassSolve):
                                 ("hq_settings", [ctypes.c_double, ctypes.c_int, ctypes.c_int, ctypes.c_double,
                                                  ctypes.c_double], ctypes.c_int),
                                 ("hq_time_limit", [ctypes.c_double], None), ("hq_rho", [], ctypes.c_double),
+                                ("hq_rho_next_update", [ctypes.c_double], None),
                                 ("hq_solve", [_DOUBLE, _DOUBLE], ctypes.c_int),
                                 ("hq_n", [], ctypes.c_int), ("hq_m", [], ctypes.c_int),
                                 ("hq_nnz_p", [], ctypes.c_int), ("hq_nnz_a", [], ctypes.c_int)):
@@ -456,6 +481,12 @@ class EmbeddedOsqp(TwoPassSolve):
     def rho(self) -> float:
         """OSQP's step size now (it adapts during solves and is kept from one QP to the next)."""
         return float(self._lib.hq_rho())
+
+    def rho_next_update(self, rho: float) -> None:
+        """OSQP's step size set to ``rho`` from the next matrix update on (:meth:`update_matrices`, whose
+        refactorisation takes it in: no factorisation of its own; OSQP's ``update_rho`` and then the update give the
+        same workspace)."""
+        self._lib.hq_rho_next_update(float(rho))
 
     def _apply(self, values: dict) -> None:
         self._check(self._lib.hq_settings(values["alpha"], values["max_iter"], values["check_termination"],

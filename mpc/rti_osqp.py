@@ -174,6 +174,10 @@ class RtiOsqpSolver:
             full one, the plain real-time iteration). ``self.levels`` counts the full and the vector steps.
         relinearise_move: the largest move of a scaled state or input of any stage since the last full
             linearisation for a vector step.
+        rho_reset: OSQP's step size ``rho`` set to this value with every matrix update (every full linearisation),
+            in the refactorisation the update makes anyway (generated solver; OSQP's Python interface factorises once
+            more), instead of the value the last QP's adaptation left (None: kept, OSQP's warm-start behaviour). OSQP
+            still adapts it within each QP.
         steady_start_on: with ``steady_start``, which changes start there (:data:`.steady_target.STEADY_START_ON`):
             "any" change of the reference, or only those of the supply "temperature" reference (a flow or
             split change alone then starts from the shifted plan).
@@ -186,8 +190,12 @@ class RtiOsqpSolver:
                  first_pass_iter: int = 0, accept_max_iter: bool = False, step_fractions: tuple[float, ...] = (),
                  restart_duals_on_change: bool = False, osqp_codegen: bool = False, scaling_interval: int = 1,
                  steady_start: bool = False, steady_start_on: str = "any", relinearise_every: int = 1,
-                 relinearise_move: float = 0.3):
+                 relinearise_move: float = 0.3, rho_reset: float | None = None):
         self.pb = pb = problem
+        if rho_reset is not None and (isinstance(rho_reset, bool) or not isinstance(rho_reset, (int, float))
+                                      or not 1e-6 <= rho_reset <= 1e6):
+            raise ValueError(f"RtiOsqpSolver: rho_reset = {rho_reset!r}, allowed: None or a number in [1e-6, 1e6]")
+        self.rho_reset = None if rho_reset is None else float(rho_reset)
         self.steady_start_on = check_steady_start_on("RtiOsqpSolver: steady_start_on", steady_start_on)
         if isinstance(relinearise_every, bool) or int(relinearise_every) != relinearise_every or relinearise_every < 1:
             raise ValueError(f"RtiOsqpSolver: relinearise_every = {relinearise_every!r}, allowed: an integer >= 1")
@@ -268,7 +276,7 @@ class RtiOsqpSolver:
                 "osqp_generated": isinstance(self._core, osqp_embedded.EmbeddedOsqp),
                 "scaling_interval": self.scaling_interval,
                 "relinearise_every": self._ml.every if self._ml else 1,
-                "relinearise_move": self._ml.move if self._ml else None,
+                "relinearise_move": self._ml.move if self._ml else None, "rho_reset": self.rho_reset,
                 "step_fractions": list(self._merit.fractions) if self._merit else []}
 
     # ------------------------------------------------------------------ structure
@@ -707,6 +715,8 @@ class RtiOsqpSolver:
         row coefficients among them)."""
         self._floor_a0 = Ax[self._A_floor_slots[:self.nz_stage]]
         Px = self._with_readiness(X, Px)
+        if self.rho_reset is not None:
+            self._core.rho_next_update(self.rho_reset)
         self._core.update_matrices(Px, Ax)
         self._workspace_used = True
         if self._ml is not None:
@@ -959,6 +969,14 @@ class _OsqpCore(osqp_embedded.TwoPassSolve):
     def set_time_limit(self, seconds: float) -> None:
         """OSQP's time limit of each solve from now on (s)."""
         self.wrapper.update_settings(time_limit=seconds)
+
+    def rho_next_update(self, rho: float) -> None:
+        """OSQP's step size set to ``rho`` (OSQP's ``update_rho``: a factorisation of its own here, where the
+        generated solver's :meth:`~.osqp_embedded.EmbeddedOsqp.rho_next_update` leaves it to the matrix update)."""
+        if self.core is None:
+            self.wrapper.update_settings(rho=rho)
+        else:
+            self.core.update_rho(rho)
 
     def _apply(self, values: dict) -> None:
         if self.core is None:

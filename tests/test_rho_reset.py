@@ -1,0 +1,69 @@
+"""OSQP's step size reset at every preparation (``MpcSettings.osqp_rho_reset``, ``RtiOsqpSolver(rho_reset=...)``):
+the value in force at the start of each QP, taken in by the matrix update's refactorisation of the generated solver
+(the same commands and iterations as OSQP's Python interface with its own ``update_rho``), fewer OSQP iterations at
+the solve-time loop's heating change, and the field checked.
+
+Budget: about 20 s on a loaded two-core machine (a build of the generated solver into this module's cache, about
+3 s, and closed loops of 35 and 62 steps)."""
+
+import numpy as np
+import pytest
+
+from hvac_mpc.benchmarks import solve_time
+from hvac_mpc.benchmarks.simulate import DETERMINISTIC_DEADLINE_S
+from hvac_mpc.mpc import codegen
+from hvac_mpc.mpc.mpc_controller import InvalidSettings, MpcController, MpcSettings
+from hvac_mpc.mpc.rti_osqp import RtiOsqpSolver
+
+RHO = 1e-3
+#: The solve-time loop's change to 20 C at 60 s (the heater comes on): the change whose QPs took the most OSQP
+#: iterations with the step size left by the QPs before (docs/architecture.md, 'Slow steps').
+HEATING_CHANGE = 60
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    """A cache folder of this module's own, the code generation switched on while its tests run."""
+    mp = pytest.MonkeyPatch()
+    mp.setenv(codegen.CACHE_ENV, str(tmp_path_factory.mktemp("cache")))
+    mp.setenv(codegen.SWITCH_ENV, "1")
+    yield
+    mp.undo()
+
+
+def _loop(steps: int, **fields):
+    # the deadline lifted: a missed wall-clock deadline on a loaded machine is the load's, not the solver's
+    ctrl = MpcController(settings=MpcSettings(deadline_s=DETERMINISTIC_DEADLINE_S, **fields))
+    loop = solve_time.Loop(ctrl, seed=1)
+    rows = [loop.step(k) for k in range(steps)]
+    assert all(r.stats["fallback"] is None for r in rows)
+    return ctrl, np.array([r.command.vector() for r in rows]), [r.stats["iterations"] for r in rows]
+
+
+def test_each_qp_starts_at_the_reset_step_size_and_both_osqp_routes_answer_alike(cache):
+    ctrl, generated, its_g = _loop(35, osqp_rho_reset=RHO)
+    assert ctrl.solver.settings["osqp_generated"] and ctrl.solver.settings["rho_reset"] == RHO
+    assert ctrl.solver._core.rho == pytest.approx(RHO)  # the preparation after the last step set it
+    kept, _, _ = _loop(35)
+    assert kept.solver._core.rho != pytest.approx(RHO, rel=0.05)  # without: the last QP's adaptation stays
+    _, interface, its_i = _loop(35, osqp_rho_reset=RHO, osqp_codegen=False)
+    np.testing.assert_array_equal(generated, interface)  # the fused reset is OSQP's update_rho, then the update
+    assert its_g == its_i
+
+
+def test_the_heating_change_takes_fewer_osqp_iterations_with_the_reset(cache):
+    _, _, reset = _loop(HEATING_CHANGE + 2, osqp_rho_reset=RHO)
+    _, _, kept = _loop(HEATING_CHANGE + 2)
+    assert reset[HEATING_CHANGE] < 0.9 * kept[HEATING_CHANGE]
+
+
+@pytest.mark.parametrize("value", [0.0, -1e-3, 1e7, float("nan"), True, "1e-3"])
+def test_a_step_size_outside_the_range_is_refused_naming_the_field(value):
+    with pytest.raises(InvalidSettings, match=r"MpcSettings\.osqp_rho_reset"):
+        MpcSettings(osqp_rho_reset=value)
+
+
+def test_the_solver_refuses_a_bad_step_size_naming_the_argument():
+    pb = MpcController(settings=MpcSettings(codegen=False, osqp_codegen=False)).problem
+    with pytest.raises(ValueError, match=r"rho_reset = 0\.0, allowed: None or a number in \[1e-6, 1e6\]"):
+        RtiOsqpSolver(pb, rho_reset=0.0)
