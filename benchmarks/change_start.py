@@ -9,8 +9,9 @@ reference), "steady" (at every change from the plan toward the new reference's s
 :mod:`hvac_mpc.mpc.steady_target`) and "temperature" (so only where the supply-temperature reference changes; in
 this loop's scenario every change does, so its figures are the "steady" ones but for the timing noise); on request
 (``--variant one_qp``) the temperature-only start with one QP at a change instead of two; "rho_reset" (the shifted
-start with OSQP's step size set to 1e-3 at every preparation, ``MpcSettings.osqp_rho_reset``) and "rho_reset_capped"
-(so, and each QP capped at 60 OSQP iterations, the iterate at the cap taken). Per seed the loops run in
+start with OSQP's step size set to 1e-3 at every preparation, ``MpcSettings.osqp_rho_reset``), "rho_reset_change" (so
+for the QPs of a change only) and "rho_reset_capped" (at every preparation, and each QP capped at 60 OSQP iterations,
+the iterate at the cap taken). Per seed the loops run in
 lockstep in one process, one step of each in turn (the order rotates from step to step), so that the load of other
 processes falls on all alike.
 
@@ -45,6 +46,7 @@ VARIANTS = {"shifted": {"steady_start": False},
             "temperature": {"steady_start": True, "steady_start_on": "temperature"},
             "one_qp": {"steady_start": True, "steady_start_on": "temperature", "reference_change_qps": 1},
             "rho_reset": {"steady_start": False, "osqp_rho_reset": 1e-3},
+            "rho_reset_change": {"steady_start": False, "osqp_rho_reset": 1e-3, "osqp_rho_reset_on": "change"},
             "rho_reset_capped": {"steady_start": False, "osqp_rho_reset": 1e-3, "osqp_max_iter": 60,
                                  "osqp_accept_max_iter": True}}
 #: The variants run unless ``--variant`` names others.

@@ -60,7 +60,7 @@ from hvac_mpc.contract import InvalidReference, Reference
 from .placement import PLACEMENTS, PlacementChoice
 from .readiness import HeaterReadiness
 from .ring_gate import RingGate
-from .rti_osqp import RtiOsqpSolver, SolveResult
+from .rti_osqp import RHO_RESET_ON, RtiOsqpSolver, SolveResult
 from .steady_target import check_steady_start_on
 from .temperature_reach import SaturatedTemperature
 
@@ -220,7 +220,9 @@ class MpcSettings:
             plan). :data:`hvac_mpc.mpc.steady_target.STEADY_START_ON`.
         osqp_rho_reset: OSQP's step size ``rho`` set to this value at every preparation's matrix update (in its
             refactorisation; OSQP still adapts it within each QP) instead of the value the last QP's adaptation left
-            (None: kept). Measured in docs/architecture.md, 'Slow steps' ('The step size reset at each preparation').
+            (None: kept). ``osqp_rho_reset_on``: "preparation" (every one) or "change" (only the QPs of a reference
+            change, their matrices written again with it: one refactorisation more in that step). Measured in
+            docs/architecture.md, 'Slow steps' ('OSQP's step size reset').
     """
 
     dt_s: float = 1.0
@@ -277,6 +279,7 @@ class MpcSettings:
     rti_relinearise_move: float = 0.3
     steady_start_on: str = "any"
     osqp_rho_reset: float | None = None
+    osqp_rho_reset_on: str = "preparation"
 
     def __post_init__(self) -> None:
         p = "MpcSettings"
@@ -301,6 +304,8 @@ class MpcSettings:
         check_number(f"{p}.rti_relinearise_move", self.rti_relinearise_move, 0.0, 10.0, lo_open=True)
         if self.osqp_rho_reset is not None:
             check_number(f"{p}.osqp_rho_reset", self.osqp_rho_reset, 1e-6, 1e6)
+        if self.osqp_rho_reset_on not in RHO_RESET_ON:
+            raise InvalidSettings(f"{p}.osqp_rho_reset_on = {self.osqp_rho_reset_on!r} must be one of {list(RHO_RESET_ON)}")
         check_number(f"{p}.sqp_tol", self.sqp_tol, 1e-10, 1.0, lo_open=True)
         check_number(f"{p}.levenberg_marquardt", self.levenberg_marquardt, 0.0, 1e4)
         check_number(f"{p}.cold_start_qps", self.cold_start_qps, 1, 100, integer=True)
@@ -512,7 +517,8 @@ class MpcController:
                              step_fractions=s.rti_step_fractions, osqp_codegen=s.osqp_codegen,
                              scaling_interval=s.osqp_scaling_interval, steady_start=s.steady_start,
                              relinearise_every=s.rti_relinearise_every, relinearise_move=s.rti_relinearise_move,
-                             steady_start_on=s.steady_start_on, rho_reset=s.osqp_rho_reset)
+                             steady_start_on=s.steady_start_on, rho_reset=s.osqp_rho_reset,
+                             rho_reset_on=s.osqp_rho_reset_on)
 
     # ------------------------------------------------------------------ protocol
     def reset(self, command: Command | None = None) -> None:

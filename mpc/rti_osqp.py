@@ -60,6 +60,9 @@ D_OFFSETS = [DISTURBANCES.index("mix_offset_c"), DISTURBANCES.index("flow_offset
 #: that is below the floor (``RtiOsqpSolver._floor_bounds``): a bound on the edge of the feasible set is
 #: left to the QP solver's tolerance otherwise.
 FLOOR_TOLERANCE_LS = 0.01
+#: When ``RtiOsqpSolver(rho_reset=...)`` sets OSQP's step size: at every preparation's matrix update, or for the QPs of a
+#: reference change only.
+RHO_RESET_ON = ("preparation", "change")
 
 
 @dataclass
@@ -174,10 +177,12 @@ class RtiOsqpSolver:
             full one, the plain real-time iteration). ``self.levels`` counts the full and the vector steps.
         relinearise_move: the largest move of a scaled state or input of any stage since the last full
             linearisation for a vector step.
-        rho_reset: OSQP's step size ``rho`` set to this value with every matrix update (every full linearisation),
-            in the refactorisation the update makes anyway (generated solver; OSQP's Python interface factorises once
-            more), instead of the value the last QP's adaptation left (None: kept, OSQP's warm-start behaviour). OSQP
-            still adapts it within each QP.
+        rho_reset: with ``rho_reset_on="preparation"``, OSQP's step size ``rho`` set to this value with every matrix
+            update (every full linearisation), in the refactorisation the update makes anyway (generated solver;
+            OSQP's Python interface factorises once more), instead of the value the last QP's adaptation left (None:
+            kept, OSQP's warm-start behaviour). OSQP still adapts it within each QP. ``rho_reset_on="change"``: only
+            for the QPs of a reference change (their matrices written again with it: one refactorisation more in that
+            step). Measured in docs/architecture.md, 'Slow steps'.
         steady_start_on: with ``steady_start``, which changes start there (:data:`.steady_target.STEADY_START_ON`):
             "any" change of the reference, or only those of the supply "temperature" reference (a flow or
             split change alone then starts from the shifted plan).
@@ -190,12 +195,15 @@ class RtiOsqpSolver:
                  first_pass_iter: int = 0, accept_max_iter: bool = False, step_fractions: tuple[float, ...] = (),
                  restart_duals_on_change: bool = False, osqp_codegen: bool = False, scaling_interval: int = 1,
                  steady_start: bool = False, steady_start_on: str = "any", relinearise_every: int = 1,
-                 relinearise_move: float = 0.3, rho_reset: float | None = None):
+                 relinearise_move: float = 0.3, rho_reset: float | None = None, rho_reset_on: str = "preparation"):
         self.pb = pb = problem
         if rho_reset is not None and (isinstance(rho_reset, bool) or not isinstance(rho_reset, (int, float))
                                       or not 1e-6 <= rho_reset <= 1e6):
             raise ValueError(f"RtiOsqpSolver: rho_reset = {rho_reset!r}, allowed: None or a number in [1e-6, 1e6]")
         self.rho_reset = None if rho_reset is None else float(rho_reset)
+        if rho_reset_on not in RHO_RESET_ON:
+            raise ValueError(f"RtiOsqpSolver: rho_reset_on = {rho_reset_on!r}, allowed: one of {list(RHO_RESET_ON)}")
+        self.rho_reset_on = rho_reset_on
         self.steady_start_on = check_steady_start_on("RtiOsqpSolver: steady_start_on", steady_start_on)
         if isinstance(relinearise_every, bool) or int(relinearise_every) != relinearise_every or relinearise_every < 1:
             raise ValueError(f"RtiOsqpSolver: relinearise_every = {relinearise_every!r}, allowed: an integer >= 1")
@@ -277,6 +285,7 @@ class RtiOsqpSolver:
                 "scaling_interval": self.scaling_interval,
                 "relinearise_every": self._ml.every if self._ml else 1,
                 "relinearise_move": self._ml.move if self._ml else None, "rho_reset": self.rho_reset,
+                "rho_reset_on": self.rho_reset_on,
                 "step_fractions": list(self._merit.fractions) if self._merit else []}
 
     # ------------------------------------------------------------------ structure
@@ -715,9 +724,10 @@ class RtiOsqpSolver:
         row coefficients among them)."""
         self._floor_a0 = Ax[self._A_floor_slots[:self.nz_stage]]
         Px = self._with_readiness(X, Px)
-        if self.rho_reset is not None:
+        if self.rho_reset is not None and self.rho_reset_on == "preparation":
             self._core.rho_next_update(self.rho_reset)
         self._core.update_matrices(Px, Ax)
+        self._written = (Px, Ax)
         self._workspace_used = True
         if self._ml is not None:
             self._ml.record_full(X, U, d, data["ab"], data["g"], self._readiness_weights(X))
@@ -810,6 +820,8 @@ class RtiOsqpSolver:
             return SolveResult(False, "forced failure", prep_time_s=prep,
                                feedback_time_s=time.perf_counter() - t0 - prep)
         N, nx, nu = self.pb.N, self.pb.nx, self.pb.nu
+        if changed and self.rho_reset is not None and self.rho_reset_on == "change":
+            prep += self._reset_rho()
         self.l[:nx] = self.u[:nx] = x0  # rows r_x0
         self.l[self._r_u_rows] = u_lo.ravel()
         self.u[self._r_u_rows] = u_hi.ravel()
@@ -867,6 +879,14 @@ class RtiOsqpSolver:
         return SolveResult(True, status, X=X.copy(), U=U.copy(), S=S.copy(), iterations=iterations,
                            qp_solves=solves, prep_time_s=prep, feedback_time_s=feedback,
                            extra={"cold_start": cold, "inexact": inexact, "step_fraction": fraction})
+
+    def _reset_rho(self) -> float:
+        """OSQP's step size set to ``rho_reset`` for the QPs of a reference change: the matrices in OSQP written again
+        (the same values, one refactorisation more). Returns its wall time (s)."""
+        t0 = time.perf_counter()
+        self._core.rho_next_update(self.rho_reset)
+        self._core.update_matrices(*self._written)
+        return time.perf_counter() - t0
 
     def _start_steady(self, x0, u_prev, d, ref, w_y, u_lo, u_hi) -> tuple[float, bool]:
         """At a reference change: linearise at the plan toward the new reference's steady-state target
