@@ -48,10 +48,13 @@ def shortest_tied_minimum(res: np.ndarray) -> int:
     flattens the residuals around the true dead time, and the flank's shorter delays are the ones
     that make the loop ring."""
     res = np.maximum(res, 0.0)  # a least-squares residual, >= 0 but for round-off
-    lower_left = np.r_[True, res[1:] <= res[:-1]]
-    lower_right = np.r_[res[:-1] <= res[1:], True]
-    tied = lower_left & lower_right & (res <= TIE_RATIO * res.min())
-    return int(np.flatnonzero(tied)[0])
+    tied = res <= TIE_RATIO * res.min()
+    tied[1:] &= res[1:] <= res[:-1]  # lower than (or as low as) the left neighbour; the first has none
+    tied[:-1] &= res[:-1] <= res[1:]  # ... and the right one; the last has none
+    first = int(tied.argmax())  # the first True: there is one (the least residual's) unless a residual is nan
+    if not tied[first]:
+        raise IndexError("shortest_tied_minimum: no minimum among non-finite residuals")
+    return first
 
 
 class DeadTimeEstimator:
@@ -142,7 +145,7 @@ class DeadTimeEstimator:
         self._sss = f * self._sss + ds * ds
         self._ssy = f * self._ssy + ds * dy
         w, sss, ssy = self._w, self._sss, self._ssy
-        if np.min(sss) / w < self.min_var:
+        if sss.min() / w < self.min_var:
             self.residuals[:] = np.nan
             return self.steps
         self.informed = True
