@@ -81,6 +81,7 @@ class DeadTimeEstimator:
         self.max_steps = int(max_steps)
         self.dt_s = float(dt_s)
         self.lag = math.exp(-self.dt_s / float(sensor_tau_s))  # exact first-order lag over one sample
+        self._lag_c = 1.0 - self.lag
         self.forget = math.exp(-self.dt_s / float(window_s))
         self.min_var = float(min_excitation_c) ** 2
         self.switch_ratio = float(switch_ratio)
@@ -91,6 +92,7 @@ class DeadTimeEstimator:
         self.candidates = np.arange(n) / self.SUBDIVISION  # samples
         self._i0 = np.floor(self.candidates).astype(int)
         self._w1 = self.candidates - self._i0
+        self._w0 = 1.0 - self._w1  # the weights of the two samples around each candidate's delay
         self._i1 = np.minimum(self._i0 + 1, self.max_steps)
         start = self.initial_steps if self.initial_steps > 0.0 else self.prior_steps
         self._best = int(np.argmin(np.abs(self.candidates - start)))
@@ -125,11 +127,11 @@ class DeadTimeEstimator:
             self._pred[:] = air_c
             self._last_pred = self._pred.copy()
         else:
-            self._last_pred = self._pred.copy()
+            self._last_pred = self._pred  # no copy: the line below makes the next prediction a new array
             self._air[1:] = self._air[:-1]  # newest first (numpy copies overlapping slices correctly)
             self._air[0] = air_c
-        delayed = (1.0 - self._w1) * self._air[self._i0] + self._w1 * self._air[self._i1]
-        self._pred = self.lag * self._pred + (1.0 - self.lag) * delayed
+        delayed = self._w0 * self._air[self._i0] + self._w1 * self._air[self._i1]
+        self._pred = self.lag * self._pred + self._lag_c * delayed
 
     def observe(self, reading_c: float) -> float:
         """Score every candidate on a thermocouple reading; returns the estimate (samples)."""
