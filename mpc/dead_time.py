@@ -48,10 +48,13 @@ def shortest_tied_minimum(res: np.ndarray) -> int:
     flattens the residuals around the true dead time, and the flank's shorter delays are the ones
     that make the loop ring."""
     res = np.maximum(res, 0.0)  # a least-squares residual, >= 0 but for round-off
-    lower_left = np.r_[True, res[1:] <= res[:-1]]
-    lower_right = np.r_[res[:-1] <= res[1:], True]
-    tied = lower_left & lower_right & (res <= TIE_RATIO * res.min())
-    return int(np.flatnonzero(tied)[0])
+    tied = res <= TIE_RATIO * res.min()
+    tied[1:] &= res[1:] <= res[:-1]  # lower than (or as low as) the left neighbour; the first has none
+    tied[:-1] &= res[:-1] <= res[1:]  # ... and the right one; the last has none
+    first = int(tied.argmax())  # the first True: there is one (the least residual's) unless a residual is nan
+    if not tied[first]:
+        raise IndexError("shortest_tied_minimum: no minimum among non-finite residuals")
+    return first
 
 
 class DeadTimeEstimator:
@@ -78,6 +81,7 @@ class DeadTimeEstimator:
         self.max_steps = int(max_steps)
         self.dt_s = float(dt_s)
         self.lag = math.exp(-self.dt_s / float(sensor_tau_s))  # exact first-order lag over one sample
+        self._lag_c = 1.0 - self.lag
         self.forget = math.exp(-self.dt_s / float(window_s))
         self.min_var = float(min_excitation_c) ** 2
         self.switch_ratio = float(switch_ratio)
@@ -88,6 +92,7 @@ class DeadTimeEstimator:
         self.candidates = np.arange(n) / self.SUBDIVISION  # samples
         self._i0 = np.floor(self.candidates).astype(int)
         self._w1 = self.candidates - self._i0
+        self._w0 = 1.0 - self._w1  # the weights of the two samples around each candidate's delay
         self._i1 = np.minimum(self._i0 + 1, self.max_steps)
         start = self.initial_steps if self.initial_steps > 0.0 else self.prior_steps
         self._best = int(np.argmin(np.abs(self.candidates - start)))
@@ -122,11 +127,11 @@ class DeadTimeEstimator:
             self._pred[:] = air_c
             self._last_pred = self._pred.copy()
         else:
-            self._last_pred = self._pred.copy()
+            self._last_pred = self._pred  # no copy: the line below makes the next prediction a new array
             self._air[1:] = self._air[:-1]  # newest first (numpy copies overlapping slices correctly)
             self._air[0] = air_c
-        delayed = (1.0 - self._w1) * self._air[self._i0] + self._w1 * self._air[self._i1]
-        self._pred = self.lag * self._pred + (1.0 - self.lag) * delayed
+        delayed = self._w0 * self._air[self._i0] + self._w1 * self._air[self._i1]
+        self._pred = self.lag * self._pred + self._lag_c * delayed
 
     def observe(self, reading_c: float) -> float:
         """Score every candidate on a thermocouple reading; returns the estimate (samples)."""
@@ -142,7 +147,7 @@ class DeadTimeEstimator:
         self._sss = f * self._sss + ds * ds
         self._ssy = f * self._ssy + ds * dy
         w, sss, ssy = self._w, self._sss, self._ssy
-        if np.min(sss) / w < self.min_var:
+        if sss.min() / w < self.min_var:
             self.residuals[:] = np.nan
             return self.steps
         self.informed = True

@@ -52,7 +52,7 @@ from hvac_mpc.models.parameters import Parameters
 from hvac_mpc.contract import Command, Measurement
 
 from hvac_mpc.contract import StepResult
-from .codegen import CodegenReport, compiled
+from .codegen import CodegenReport, compiled, structure_key
 from .estimator import DisturbanceEkf, EkfSettings, finite_or
 from .priorities import ReachableFlow, flow_weight_factor
 from .ocp import HEATING_CMD_W, HeaterOffBound, InvalidSettings, OcpSpec, TrackingProblem, check_flag, check_number, trap_cap_pct
@@ -495,12 +495,28 @@ class MpcController:
                              s.ring_relax_s, s.dt_s) if s.ring_detune < 1.0 else None
         self.codegen = getattr(self.solver, "codegen", None) or CodegenReport()
         if s.codegen:
-            for f in self._filters:
-                f.use_functions(compiled(f.predict_fn, self.codegen), compiled(f.update_fn, self.codegen))
+            self._compile_small_functions()
         if hasattr(self.solver, "use_prediction"):
             self.solver.use_prediction(self.ekf)  # prediction and QP data in one call
         self._baseline = None
         self.reset()
+
+    def _compile_small_functions(self) -> None:
+        """The estimators' time and measurement updates, their open-loop shadows and the reachable-flow check's
+        outputs as generated C (:func:`~.codegen.compiled`; each the interpreted function where it cannot be built)."""
+        done: dict[str, Any] = {}  # structure key -> the generated function: one load per structure
+
+        def once(fn):
+            key = structure_key(fn)
+            if key not in done:
+                done[key] = compiled(fn, self.codegen)
+            return done[key]
+        for f in self._filters:
+            f.use_functions(compiled(f.predict_fn, self.codegen), compiled(f.update_fn, self.codegen))
+            if f.shadow is not None:  # the filters' shadows are one function where they share the model
+                f.shadow.use_functions(once(f.shadow.step_fn), once(f.shadow.air_fn))
+        if self.reach is not None:
+            self.reach.use_out_function(once(self.reach.out_fn))
 
     def _make_solver(self):
         s, pb = self.settings, self.problem

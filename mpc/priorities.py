@@ -169,7 +169,8 @@ class ReachableFlow:
         opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.max_iter": int(max_iter), "ipopt.tol": 1e-6,
                 "ipopt.sb": "yes"}
         self.solver = ca.nlpsol("reachable_flow", "ipopt", nlp, opts)
-        self._out = BufferedFunction(ca.Function("reach_out", [x, u, d, p], [flow, temp]))  # numpy in and out
+        self.out_fn = ca.Function("reach_out", [x, u, d, p], [flow, temp])
+        self.use_out_function(self.out_fn)
         # the same outputs as a function object of its own for the solve, which may run on a second
         # thread: no memory shared with the buffered calls of the step
         self._out_fn = ca.Function("reach_solution_out", [x, u, d, p], [flow, temp])
@@ -179,6 +180,11 @@ class ReachableFlow:
         self.ubg = np.concatenate([np.zeros(nx), [heater_temp_max_c, 0.0]])
         self.nx = nx
         self.reset()
+
+    def use_out_function(self, fn) -> None:
+        """Evaluate :meth:`out` with ``fn`` (the signature of :attr:`out_fn`, e.g. generated C of it,
+        :func:`~.codegen.compiled`), numpy in and out."""
+        self._out = BufferedFunction(fn)
 
     def set_parameters(self, p: np.ndarray) -> None:
         """Model parameters (``HvacModel.p_default`` order) of the checks that follow."""

@@ -56,13 +56,18 @@ class OpenLoopShadow:
         own = ca.SX.sym("own", len(self.idx))  # the shadowed states' values, the rest of x the filter's
         xs = ca.vertcat(*[own[list(self.idx).index(i)] if i in self.idx else x[i] for i in range(x.shape[0])])
         step = rk4(model.ode, xs, u, d, p, dt_s, 2)
-        self._step = BufferedFunction(ca.Function("shadow_step", [x, own, u, d, p],
-                                                  [ca.vertcat(*[step[int(i)] for i in self.idx])]))
+        self.step_fn = ca.Function("shadow_step", [x, own, u, d, p], [ca.vertcat(*[step[int(i)] for i in self.idx])])
         y = model.output(x, u, d, p)
         air = y[model.outputs.index("supply_air_temp_c")] - d[model.disturbances.index("mix_offset_c")]
-        self._air = BufferedFunction(ca.Function("shadow_air", [x, u, d, p],
-                                                 [air, y[model.outputs.index("heater_outlet_temp_c")]]))
+        self.air_fn = ca.Function("shadow_air", [x, u, d, p], [air, y[model.outputs.index("heater_outlet_temp_c")]])
+        self.use_functions(self.step_fn, self.air_fn)
         self.values: np.ndarray | None = None
+
+    def use_functions(self, step_fn, air_fn) -> None:
+        """Evaluate the open-loop step and the airs with these functions (the signatures of :attr:`step_fn` and
+        :attr:`air_fn`, e.g. generated C of them, :func:`~.codegen.compiled`)."""
+        self._step = BufferedFunction(step_fn)
+        self._air = BufferedFunction(air_fn)
 
     def start(self, x: np.ndarray) -> None:
         """Start at the filter's state (its start, where the box is assumed near rest)."""

@@ -118,3 +118,30 @@ def test_a_change_of_structure_builds_anew_and_a_change_of_parameters_does_not(t
     assert outcome(effects=("fan_curve", "valve_leakage", "trapped_air")) == "built"  # one more state
     assert outcome(Parameters(transport_delay_s=2.0)) == "built"  # delay lags are states
     assert len(list(tmp_path.glob("ekf_update_*.so"))) == 3
+
+
+def test_the_small_functions_of_the_step_run_compiled_with_the_interpreters_values(monkeypatch):
+    """The open-loop shadow's step and airs and the reachable-flow check's outputs run as generated C with codegen on
+    (each step calls them), and give the interpreter's values to the bit on states, commands and disturbances
+    drawn over the box's range (no fast-math, no fused multiply-adds: the same operations in the same order)."""
+    from hvac_mpc.mpc.casadi_eval import BufferedFunction
+    monkeypatch.setenv(codegen.SWITCH_ENV, "1")  # the code cache of the run: the large functions are built once
+    ctrl = MpcController(settings=MpcSettings(codegen=True))
+    ekf = ctrl.ekf
+    functions = [ekf.shadow.step_fn, ekf.shadow.air_fn, ctrl.reach.out_fn]
+    for fn in functions:
+        assert ctrl.codegen.outcomes[fn.name()] in ("built", "cached")
+    assert ctrl.ekf.shadow._step.fn.is_a("External") and ctrl.reach._out.fn.is_a("External")
+    rng = np.random.default_rng(11)
+    nx, n_own = ekf.nx, len(ekf.shadow.idx)
+    pairs = [(BufferedFunction(fn), BufferedFunction(codegen.compiled(fn))) for fn in functions]
+    for _ in range(300):
+        x = rng.uniform(0.0, 45.0, nx)
+        u = rng.uniform(0.0, 1.0, 6) * np.array([300.0, 250.0, 100.0, 100.0, 100.0, 100.0])
+        d = np.array([rng.uniform(-10.0, 40.0), rng.uniform(2.0, 12.0), rng.uniform(-2.0, 2.0),
+                      rng.uniform(-0.01, 0.01)])
+        own = rng.uniform(0.0, 45.0, n_own)
+        args = [(x, own, u, d, ekf.p), (x, u, d, ekf.p), (x, u, d, ctrl.reach._p)]
+        for (vm, c), a in zip(pairs, args):
+            for r_vm, r_c in zip(vm(*a), c(*a)):
+                assert np.array_equal(r_vm, r_c)

@@ -157,6 +157,30 @@ def test_ties_within_one_minimum_take_its_bottom_and_separate_minima_the_shortes
     assert shortest_tied_minimum(np.array([3.0, 1.2, 2.0, 1.0, 2.0])) == 3
 
 
+def _tied_minimum_by_concatenation(res: np.ndarray) -> int:
+    """The ranking's first formulation (neighbour masks built by concatenation), the reference of the one in use."""
+    res = np.maximum(res, 0.0)
+    lower_left = np.r_[True, res[1:] <= res[:-1]]
+    lower_right = np.r_[res[:-1] <= res[1:], True]
+    return int(np.flatnonzero(lower_left & lower_right & (res <= 1.1 * res.min()))[0])
+
+
+def test_shortest_tied_minimum_takes_the_index_of_its_first_formulation():
+    from hvac_mpc.mpc.dead_time import shortest_tied_minimum
+    rng = np.random.default_rng(7)
+    cases = [rng.uniform(0.0, 2.0, 13) for _ in range(300)]
+    # plateaus and ties (equal neighbours), minima at either end, round-off below zero, a single candidate
+    cases += [np.round(rng.uniform(0.0, 2.0, 13), 1) for _ in range(300)]
+    cases += [np.array([1.0, 2.0, 3.0]), np.array([3.0, 2.0, 1.0]), np.array([-1e-12, 1.0, -2e-12]),
+              np.full(5, 0.7), np.array([0.4])]
+    for res in cases:
+        assert shortest_tied_minimum(res) == _tied_minimum_by_concatenation(res), res
+    with pytest.raises(IndexError):  # no minimum among nan residuals: an error, as before
+        shortest_tied_minimum(np.array([np.nan, 1.0, 2.0]))
+    with pytest.raises(IndexError):
+        _tied_minimum_by_concatenation(np.array([np.nan, 1.0, 2.0]))
+
+
 def _walk_response(est_settings, n=400, delay=4, seed=4):
     """Estimators fed the model's air (a random walk) and a reading that is that air ``delay`` samples late
     through the sensor lag plus an unmodelled random walk of its own (0.25 C per sample); their estimates."""

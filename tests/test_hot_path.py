@@ -187,3 +187,25 @@ def test_steady_steps_end_in_osqps_first_pass_and_the_settings_reach_osqp():
     _, stats_off = run(**{**fast, "osqp_first_pass_iter": 0})
     assert all(st["iterations"] >= s.osqp_check_termination for st in stats_off)
     assert sum(st["iterations"] for st in stats[12:]) < 0.6 * sum(st["iterations"] for st in stats_off[12:])
+
+
+def test_the_estimators_numpy_shortcuts_give_the_values_of_their_general_forms():
+    """The disturbances as numpy equal the CasADi expression's, and the supply reading's normalised innovation
+    against the thermocouple state now (the plain comparison) equals the weighted sums of a dead-time comparison
+    at the unit weights, to the bit."""
+    ctrl = MpcController(settings=MpcSettings(codegen=False))
+    ekf = ctrl.ekf
+    u = solve_time.INITIAL.vector()
+    ekf.initialise(Measurement(0.0, 18.0, 0.03, 26.0, water_temp_c=6.0, heater_outlet_temp_c=20.0), u, 5.0)
+    ekf.predict(u, 5.0)
+    ekf.P = ekf.P + 0.01 * np.diag(np.random.default_rng(2).uniform(size=ekf.nz))
+    for hold in (True, False):
+        ekf.hold_water = hold
+        casadi = np.asarray(ekf.disturbance(ekf.z, 4.5), float).ravel()
+        assert np.array_equal(ekf.disturbance_values(4.5), casadi)
+    unit = ekf.c_now.copy()  # the same weights, not the filter's own array: the general sums
+    ekf._note_supply_innovation(18.3, True, ekf.c_now, 0.0025)
+    fast = (ekf.supply_innovation_c, ekf.supply_nis)
+    ekf._note_supply_innovation(18.3, True, unit, 0.0025)
+    assert (ekf.supply_innovation_c, ekf.supply_nis) == fast
+    assert np.isfinite(fast[1]) and fast[1] > 0.0
