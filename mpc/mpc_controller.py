@@ -201,11 +201,8 @@ class MpcSettings:
             the one in use and that is above ``placement_evidence`` times a consistent filter's). The filter not in
             use is brought up to date at the start of the next step, or between steps by :meth:`wait_background`.
             Where ``ekf`` places the error itself (an offset of the core path's air, no heater outlet reading or no
-            offset of its own) there is nothing to choose and one filter runs; so too where a refined model's
-            discovered terms change the air the core passes on to the heater (a term at the core outlet or on the
-            air entering the box, :data:`CORE_PATH_TERM_PLACES`): the model then says what the core does, and the
-            reading's remaining error is the heater's own (docs/identification.md, "The refined model and the
-            offset placement"). A switch costs one step the preparation of the QP (a cold start, as after a reset).
+            offset of its own) there is nothing to choose and one filter runs. A switch costs one step the
+            preparation of the QP (a cold start, as after a reset).
         rti_relinearise_every: multi-level steps (``rti``, :mod:`hvac_mpc.mpc.multilevel`): a full linearisation
             of the QP (new Jacobians and Hessian, OSQP's equilibration and refactorisation) at least on every this
             many preparations; the ones between keep the QP's matrices of the last full one and renew only its
@@ -376,24 +373,6 @@ def _chooses_placement(ekf: EkfSettings) -> bool:
             and ekf.q_cooler_offset_c == 0.0)
 
 
-#: Places of a discovered term (``models.discovered.LOCATIONS``) that change the air the cooler core passes on to the
-#: heater: the core outlet itself and the air entering the box (before the core).
-CORE_PATH_TERM_PLACES = ("cooler_out", "box_in")
-
-
-def _core_path_modelled(terms) -> bool:
-    """True where a discovered term changes the air the core passes on to the heater (:data:`CORE_PATH_TERM_PLACES`).
-    The online choice of the heater outlet error's placement (:mod:`~.placement`) is for a core whose outlet the
-    model does not know (the literal cooler fit, which an offset of the heater air carries at every valve a
-    position); a model file with such a term has identified the core path from a log, and the heater outlet
-    reading's remaining error is then the heater's own transfer, which the reading's own offset keeps out of the
-    prediction (the default filter). ASSUMPTION: the identified term holds where the controller runs; the two
-    filters would otherwise put the same core error once in the term and once more in the heater air's offset
-    (cooler_literal, seed-5 file: refined / nominal 1.014 with the choice, 0.990 without it; docs/identification.md,
-    "The refined model and the offset placement")."""
-    return any(t.location in CORE_PATH_TERM_PLACES for t in terms)
-
-
 def _delay_to_estimator(settings: MpcSettings, params: Parameters) -> tuple[MpcSettings, Parameters]:
     """A model file's transport delay as the estimator's starting dead time rather than a lag chain in the
     model, where the estimator handles dead times that long (``EkfSettings.dead_time_max_s``): the delay the log
@@ -417,7 +396,7 @@ def _heater_inlet_function(model: HvacModel) -> Callable | None:
     """(x, u, d) -> air entering the heater (degC) of ``model`` where discovered terms change it (a term at the
     cooler core's outlet or on the air entering the box), else None (the cooler equation alone, as the trapped-air
     guard reads it)."""
-    if not _core_path_modelled(model.terms):
+    if not any(t.location in ("cooler_out", "box_in") for t in model.terms):
         return None
     import casadi as ca
     x, u, d = _model_symbols(model)
@@ -482,8 +461,7 @@ class MpcController:
                                   learn_bypass_flow=hasattr(self.solver, "set_parameters"))
         self._filters = [self.ekf]  # with choose_offset_placement, the heater air's filter too (mpc/placement.py)
         self.placement = None
-        if (s.choose_offset_placement and _chooses_placement(s.ekf) and not _core_path_modelled(terms)
-                and hasattr(self.solver, "set_parameters")):
+        if s.choose_offset_placement and _chooses_placement(s.ekf) and hasattr(self.solver, "set_parameters"):
             air_settings = dataclasses.replace(s.ekf, q_heater_air_offset_c=s.placement_q_heater_air_c,
                                                q_heater_outlet_offset_c=0.0)
             self._filters.append(DisturbanceEkf(ekf_model, air_settings, s.dt_s, s.water_prediction,
