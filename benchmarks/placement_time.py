@@ -11,6 +11,11 @@ steps, :meth:`~hvac_mpc.mpc.mpc_controller.MpcController.wait_background`, as ``
 ``wait_background``). Per variant the CPU time of the thread that runs the step (``time.thread_time``, ms):
 median and 99th percentile over all rounds, the cold first step left out, and the closed-loop cost (the commands
 are the same with the choice on where it never switches, as on this plant).
+
+``switch``: what a switch of filter costs inside its step, the thread CPU time of binding the other filter to the
+prediction (``MpcController``'s switch: its fused prediction, its parameters), alternately with that filter's fused
+prediction built at construction (``prebuilt``, the default) and built again at the switch (``rebuilt``, as before
+it was built ahead), over ``--rounds`` times 40 switches each way after a few steps of the loop.
 """
 
 from __future__ import annotations
@@ -22,6 +27,8 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ[_var] = "2"
 
 import argparse  # noqa: E402
+
+import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
@@ -57,6 +64,30 @@ def measure(rounds: int, steps: int, seed: int) -> dict[str, dict]:
     return out
 
 
+SWITCHES = 20  # switches per round and way (each: to the other filter and back)
+
+
+def switch_cost(rounds: int, seed: int, warm_steps: int = 5) -> dict[str, dict]:
+    """Thread CPU time (ms) of one switch of filter, median and largest, with the other filter's fused prediction
+    kept from construction (``prebuilt``) or built again at each switch (``rebuilt``); both alike otherwise."""
+    ctrl = MpcController(settings=MpcSettings(choose_offset_placement=True))
+    loop = Loop(ctrl, seed, idle_s=IDLE_S)
+    for k in range(warm_steps):
+        loop.step(k)
+    times: dict[str, list[float]] = {"prebuilt": [], "rebuilt": []}
+    for _ in range(rounds):
+        for way in times:
+            for _ in range(2 * SWITCHES):
+                other = next(f for f in ctrl._filters if f is not ctrl.ekf)
+                if way == "rebuilt":
+                    ctrl.solver._fused.pop(id(other), None)
+                t0 = time.thread_time()
+                ctrl._use_filter(other)
+                times[way].append(time.thread_time() - t0)
+    return {way: {"median_ms": 1e3 * float(np.median(t)), "max_ms": 1e3 * float(np.max(t)), "switches": len(t)}
+            for way, t in times.items()}
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m hvac_mpc.benchmarks.placement_time", description=__doc__.split(
         "\n")[0])
@@ -71,6 +102,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{way}: thread CPU per step median {off['median_ms']:.3f} -> {on['median_ms']:.3f} ms "
               f"(+{on['median_ms'] - off['median_ms']:.3f}), 99th percentile {off['p99_ms']:.3f} -> "
               f"{on['p99_ms']:.3f} ms; cost {off['cost']:.2f} / {on['cost']:.2f}; placements used {on['placements']}")
+    sw = switch_cost(args.rounds, args.seed)
+    print(f"switch: thread CPU per switch, rebuilt {sw['rebuilt']['median_ms']:.3f} ms (largest "
+          f"{sw['rebuilt']['max_ms']:.3f}) -> prebuilt {sw['prebuilt']['median_ms']:.3f} ms (largest "
+          f"{sw['prebuilt']['max_ms']:.3f}), {sw['prebuilt']['switches']} switches each")
     return 0
 
 

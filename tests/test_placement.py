@@ -77,7 +77,9 @@ def test_one_outlier_counts_at_most_the_cap_and_a_missing_reading_nothing():
 @pytest.mark.parametrize("field, bad", [("placement_window_s", 0.0), ("placement_ratio", 1.5),
                                         ("placement_ratio", 0.0), ("placement_cap", 0.0),
                                         ("placement_evidence", -1.0), ("placement_q_heater_air_c", 0.0),
-                                        ("choose_offset_placement", "yes")])
+                                        ("choose_offset_placement", "yes"), ("placement_margin", 0.0),
+                                        ("placement_margin", -math.inf), ("placement_margin", math.nan),
+                                        ("placement_from_response", 1)])
 def test_placement_settings_are_checked(field, bad):
     with pytest.raises(InvalidSettings, match=field):
         MpcSettings(**{field: bad})
@@ -253,3 +255,62 @@ def test_a_recovery_restarts_the_filter_not_in_use_and_the_choice_waits_for_it(m
     assert ctrl.ekf is air and rows[0]["stats"]["fallback"] is None
     run(ctrl, plant, [REF_WARM])
     assert default.healthy()  # started from the readings of the sample it missed the step after
+
+
+def test_a_switch_binds_the_fused_prediction_built_with_the_controller_and_commands_the_same(monkeypatch):
+    """Each filter's time update fused with the QP data is built with the controller, so a switch (there and back)
+    builds nothing inside its step; the commands are those of switches that build it afresh (as before it was
+    built ahead), to the bit."""
+    from test_mpc import PARAMS, REF_WARM, START
+    from test_mpc import closed_loop as run
+
+    def no_build(*args, **kwargs):
+        raise AssertionError("a fused prediction was built inside a step")
+
+    commands = {}
+    for ahead in (True, False):
+        plant = SimulatedPlant(PARAMS, seed=6)
+        plant.settle(START)
+        ctrl = MpcController(PARAMS, MpcSettings(initial_command=START))
+        default, air = ctrl._filters
+        assert set(ctrl.solver._fused) == {id(default), id(air)}
+        rows = run(ctrl, plant, [REF_WARM] * 5)
+        with monkeypatch.context() as m:
+            if ahead:
+                m.setattr(ctrl.solver, "_fuse", no_build)
+            for sums, now_in_use in (([1e6, 0.0], air), ([0.0, 1e6], default)):
+                if not ahead:
+                    ctrl.solver._fused.clear()  # built again at the switch
+                ctrl.placement.sums[:] = sums  # the rule switches at the next step
+                rows += run(ctrl, plant, [REF_WARM] * 4)
+                assert ctrl.ekf is now_in_use
+        assert all(r["stats"]["fallback"] is None for r in rows)
+        commands[ahead] = np.array([r["cmd"] for r in rows])
+    np.testing.assert_array_equal(commands[True], commands[False])
+
+
+def test_a_margin_switches_on_a_clear_lead_that_a_shared_start_up_hides_from_the_ratio():
+    """Both filters surprised alike at the cap for a while (a dead time not yet found), then one surprised 40 times
+    as much as the other: the ratio of the sums stays above 0.6 for long (the shared start-up sits in both), the
+    difference passes the margin within a few samples; with the other one no better than the one in use (equal
+    surprise) the margin never switches, and a consistent filter in use is kept whatever the lead."""
+    def first_switch(c, later_own, later_other, n=60):
+        for _ in range(30):
+            c.observe(0, 50.0)
+            c.observe(1, 50.0)
+            assert not c.decide()
+        for t in range(n):
+            c.observe(0, later_own)
+            c.observe(1, later_other)
+            if c.decide():
+                return t
+        return None
+
+    assert first_switch(choice(window_s=60.0), 40.0, 1.0) > 15  # the ratio alone: 17 samples
+    assert first_switch(choice(window_s=60.0, margin=100.0), 40.0, 1.0) <= 3
+    assert first_switch(choice(window_s=60.0, margin=100.0), 40.0, 40.0) is None
+    c = choice(window_s=60.0, margin=10.0)
+    for _ in range(200):
+        c.observe(0, 1.2)  # consistent: below the evidence floor, whatever the other's sum
+        c.observe(1, 0.0)
+        assert not c.decide()
