@@ -16,6 +16,12 @@ are the same with the choice on where it never switches, as on this plant).
 prediction (``MpcController``'s switch: its fused prediction, its parameters), alternately with that filter's fused
 prediction built at construction (``prebuilt``, the default) and built again at the switch (``rebuilt``, as before
 it was built ahead), over ``--rounds`` times 40 switches each way after a few steps of the loop.
+
+``switch_step``: the whole step that switches, in closed loop on a box whose core is not the model's (the quick
+winter heating steps on the independent box with a 4.5 s dead time, the literal cooler fit and a thermocouple 30 %
+faster, seed 0, where the rule switches once), with ``MpcSettings.placement_warm_switch`` off (the switch step's QP
+starts cold) and on (prepared again at the new filter's prediction), alternately for ``--rounds`` rounds: the
+switch step's thread CPU time against the median of the other steps, and the run's thermocouple IAE.
 """
 
 from __future__ import annotations
@@ -88,6 +94,50 @@ def switch_cost(rounds: int, seed: int, warm_steps: int = 5) -> dict[str, dict]:
             for way, t in times.items()}
 
 
+#: The box of ``switch_step`` (hvac_mpc.mismatch.Variant fields; docs/robustness.md sec. 2.11, "R4").
+SWITCH_BOX = dict(transport_delay_s=4.5, thermocouple_tau_scale=0.7, cooler_literal_fit=True)
+
+
+def switch_step(rounds: int, seed: int = 0) -> dict[str, dict]:
+    """Per setting of ``placement_warm_switch`` (off, on): the switch steps' thread CPU time (ms, each), the median of
+    the other steps (ms) and the thermocouple IAE of the scored part (degC s)."""
+    import functools
+
+    from hvac_mpc.mismatch import Variant, make_plant
+
+    from . import plant_seam, scenarios
+    from .bench import DETERMINISTIC_DEADLINE_S
+    from .simulate import plant_seed, simulate
+
+    sc = scenarios.mismatch_scenarios()["winter_heating_steps"].quick()
+    factory = functools.partial(make_plant, Variant(**SWITCH_BOX))
+    out: dict[str, dict] = {"off": {"switch_ms": [], "other_ms": []}, "on": {"switch_ms": [], "other_ms": []}}
+    for _ in range(rounds):
+        for way, warm in (("off", False), ("on", True)):
+            ctrl = MpcController(settings=MpcSettings(initial_command=sc.initial_command, placement_warm_switch=warm,
+                                                      deadline_s=DETERMINISTIC_DEADLINE_S))
+            times, used, step = [], [], ctrl.step
+
+            def timed(measurement, reference, step=step, times=times, used=used):
+                t0 = time.thread_time()
+                res = step(measurement, reference)
+                times.append(time.thread_time() - t0)
+                used.append(res.stats["offset_placement"])
+                return res
+
+            ctrl.step = timed
+            plant = plant_seam.build_plant(factory, plant_seed(seed, sc.seed), 1.0)
+            tr = simulate(sc, ctrl, ctrl.params, seed, name="mpc", dt_s=1.0, plant=plant)
+            switches = [k for k in range(1, len(used)) if used[k] != used[k - 1]]
+            t = 1e3 * np.array(times)
+            out[way]["switch_ms"] += [float(t[k]) for k in switches]
+            out[way]["other_ms"].append(float(np.median(np.delete(t[1:], [k - 1 for k in switches]))))
+            scored = tr.time_s >= tr.metrics_start_s
+            out[way]["iae_cs"] = float(np.sum(np.abs(tr.truth["supply_temp_c"] - tr.reference["supply_temp_c"])[scored]))
+            out[way]["switch_steps"] = switches
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m hvac_mpc.benchmarks.placement_time", description=__doc__.split(
         "\n")[0])
@@ -106,6 +156,12 @@ def main(argv: list[str] | None = None) -> int:
     print(f"switch: thread CPU per switch, rebuilt {sw['rebuilt']['median_ms']:.3f} ms (largest "
           f"{sw['rebuilt']['max_ms']:.3f}) -> prebuilt {sw['prebuilt']['median_ms']:.3f} ms (largest "
           f"{sw['prebuilt']['max_ms']:.3f}), {sw['prebuilt']['switches']} switches each")
+    st = switch_step(args.rounds)
+    for way in ("off", "on"):
+        r = st[way]
+        print(f"switch step, placement_warm_switch {way}: switch at {r['switch_steps']} s, thread CPU "
+              f"{np.median(r['switch_ms']):.2f} ms (median of {len(r['switch_ms'])}), the other steps' median "
+              f"{np.median(r['other_ms']):.2f} ms; IAE {r['iae_cs']:.1f} degC s")
     return 0
 
 

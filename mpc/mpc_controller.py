@@ -213,6 +213,10 @@ class MpcSettings:
             supply air (its dead-time estimate informed, :attr:`~.estimator.DisturbanceEkf.response_seen`): what
             came before is a dead time not yet found, which surprises both filters alike and tells nothing of
             where the error sits. Off by default.
+        placement_warm_switch: at a switch, linearise the QP prepared at the other filter's prediction again at
+            the new filter's (its first node and disturbances, the shifted plan and OSQP's warm start kept) instead
+            of a cold start; the switch step then costs a preparation, not a cold QP (docs/robustness.md sec. 2.15).
+            Off by default.
         rti_relinearise_every: multi-level steps (``rti``, :mod:`hvac_mpc.mpc.multilevel`): a full linearisation
             of the QP (new Jacobians and Hessian, OSQP's equilibration and refactorisation) at least on every this
             many preparations; the ones between keep the QP's matrices of the last full one and renew only its
@@ -282,6 +286,7 @@ class MpcSettings:
     placement_cap: float = 50.0
     placement_margin: float = math.inf
     placement_from_response: bool = False
+    placement_warm_switch: bool = False
     rti_relinearise_every: int = 1
     rti_relinearise_move: float = 0.3
     steady_start_on: str = "any"
@@ -361,6 +366,7 @@ class MpcSettings:
         if self.placement_margin != math.inf:
             check_number(f"{p}.placement_margin", self.placement_margin, 0.0, 1e9, lo_open=True)
         check_flag(f"{p}.placement_from_response", self.placement_from_response)
+        check_flag(f"{p}.placement_warm_switch", self.placement_warm_switch)
 
 
 def _with_model_effects(settings: MpcSettings, model: RefinedModel | None) -> MpcSettings:
@@ -533,6 +539,7 @@ class MpcController:
             f.reset()
         self._pending = None
         self._response_noted = False
+        self._switch_setpoint = None
         if self.placement is not None:
             self.placement.reset()
             self._use_filter(self._filters[0])
@@ -623,6 +630,7 @@ class MpcController:
         self._reference = ref
         setpoint = self._setpoint(measurement)
         u_in = self.u_prev
+        self._switch_setpoint = setpoint
         self._choose_filter()
         # --- estimation
         if not self.ekf.healthy():
@@ -758,6 +766,7 @@ class MpcController:
         prediction, and the next QP prepared afresh (the last one was made with the other filter's estimate)."""
         if ekf is self.ekf:
             return
+        warm = self.settings.placement_warm_switch and self._prepared_for_next and hasattr(self.solver, "rebase")
         self._prepared_for_next = False
         if hasattr(self.solver, "use_prediction"):
             self.solver.use_prediction(ekf)  # first: where it fails, the old filter stays bound and in use
@@ -767,6 +776,9 @@ class MpcController:
         self.solver.set_parameters(p)
         if self.reach is not None:
             self.reach.set_parameters(p)
+        if warm and self._switch_setpoint is not None:  # the QP prepared again at this filter's prediction
+            self.solver.rebase(self.problem.scale_x(ekf.x), self._disturbance(self._switch_setpoint))
+            self._prepared_for_next = True
 
     def wait_background(self, timeout_s: float) -> float:
         """Between two steps: give the reachable-flow solve running on the second thread up to ``timeout_s``

@@ -812,6 +812,18 @@ class RtiOsqpSolver:
         self._load(self.X, self.U, self.S, d, ref, w_y, u_prev)
         return time.perf_counter() - t0
 
+    def rebase(self, x_first: np.ndarray, d: np.ndarray) -> float:
+        """The prepared QP linearised again at its (already shifted) plan with another first node ``x_first``
+        (scaled) and disturbances ``d`` (physical), as :meth:`prepare` takes them, its reference, weights and
+        OSQP's warm start kept: another estimator's prediction of the same sample (a switch of filter) without
+        a cold start. Does nothing without a prepared QP. Returns its wall time (s)."""
+        t0 = time.perf_counter()
+        if self.X is None or self._prepared is None:
+            return 0.0
+        self.X[0] = x_first
+        self._load(self.X, self.U, self.S, d, self._prepared["ref"], self._prepared["w_y"], self.U[0])
+        return time.perf_counter() - t0
+
     def _initialise(self, x0, u_prev, d) -> None:
         pb = self.pb
         self.X = pb.rollout(x0, u_prev, d)

@@ -314,3 +314,24 @@ def test_a_margin_switches_on_a_clear_lead_that_a_shared_start_up_hides_from_the
         c.observe(0, 1.2)  # consistent: below the evidence floor, whatever the other's sum
         c.observe(1, 0.0)
         assert not c.decide()
+
+
+@pytest.mark.parametrize("warm", [False, True])
+def test_a_warm_switch_prepares_the_qp_at_the_new_filter_instead_of_a_cold_start(warm):
+    """With ``placement_warm_switch`` the switch step keeps the shifted plan and OSQP's warm start, the QP linearised
+    again at the new filter's prediction: no cold start and no more QPs than a step without a switch; without it
+    the switch step starts cold (the default)."""
+    from test_mpc import PARAMS, REF_WARM, START
+    from test_mpc import closed_loop as run
+
+    plant = SimulatedPlant(PARAMS, seed=6)
+    plant.settle(START)
+    ctrl = MpcController(PARAMS, MpcSettings(initial_command=START, placement_warm_switch=warm))
+    rows = run(ctrl, plant, [REF_WARM] * 5)
+    assert not rows[-1]["stats"]["cold_start"]
+    ctrl.placement.sums[:] = [1e6, 0.0]  # the rule switches at the next step
+    switch = run(ctrl, plant, [REF_WARM])[0]["stats"]
+    assert ctrl.ekf is ctrl._filters[1] and switch["fallback"] is None
+    assert switch["cold_start"] is (not warm)
+    if warm:
+        assert switch["qp_solves"] <= rows[-1]["stats"]["qp_solves"]
