@@ -335,3 +335,35 @@ def test_a_warm_switch_prepares_the_qp_at_the_new_filter_instead_of_a_cold_start
     assert switch["cold_start"] is (not warm)
     if warm:
         assert switch["qp_solves"] <= rows[-1]["stats"]["qp_solves"]
+
+
+def test_the_sums_are_forgotten_once_when_the_first_response_is_seen():
+    """With ``placement_from_response`` both sums start afresh at the step in which the filter in use first sees a
+    response (its dead-time estimate informed), and not again after it; without it they are never forgotten."""
+    from test_mpc import PARAMS, REF_COOL, REF_WARM, START
+
+    for on in (False, True):
+        plant = SimulatedPlant(PARAMS, seed=6)
+        plant.settle(START)
+        ctrl = MpcController(PARAMS, MpcSettings(initial_command=START, placement_from_response=on))
+        restarts = []
+        original = ctrl.placement.restart
+
+        def counted(original=original, restarts=restarts):
+            restarts.append(ctrl.ekf.time_updates)
+            original()
+
+        ctrl.placement.restart = counted
+        seen_at = None
+        for k in range(120):
+            ref = REF_WARM if k < 20 else REF_COOL  # a step the supply air answers
+            res = ctrl.step(plant.read(), ref)
+            plant.apply(res.command)
+            plant.advance()
+            if seen_at is None and ctrl.ekf.response_seen:
+                seen_at = ctrl.ekf.time_updates
+                if on:  # forgotten in this step, before the filter in use added its sample
+                    assert ctrl.placement.sums[1] == 0.0
+                    assert ctrl.placement.sums[0] == pytest.approx(min(ctrl.ekf.supply_nis, ctrl.placement.cap))
+        assert seen_at is not None
+        assert restarts == ([seen_at - 1] if on else [])
