@@ -202,7 +202,21 @@ class MpcSettings:
             use is brought up to date at the start of the next step, or between steps by :meth:`wait_background`.
             Where ``ekf`` places the error itself (an offset of the core path's air, no heater outlet reading or no
             offset of its own) there is nothing to choose and one filter runs. A switch costs one step the
-            preparation of the QP (a cold start, as after a reset).
+            preparation of the QP (a cold start, as after a reset); each filter's prediction fused with the QP
+            data is built with the controller, so a switch builds nothing.
+        placement_margin: a second way to switch (:class:`~.placement.PlacementChoice`, docs/robustness.md sec.
+            2.15): where the sum of the filter in use (itself inconsistent, as above) exceeds the other's by more
+            than this (normalised squares; twice the log-likelihood ratio of the two filters' innovations over the
+            window), whatever their ratio. A start-up both filters are surprised by alike (each sample capped)
+            inflates both sums and so delays the ratio's switch, not the difference's. inf (the default): off.
+        placement_from_response: forget both sums once, when the filter in use first sees a response of the
+            supply air (its dead-time estimate informed, :attr:`~.estimator.DisturbanceEkf.response_seen`): what
+            came before is a dead time not yet found, which surprises both filters alike and tells nothing of
+            where the error sits. Off by default.
+        placement_warm_switch: at a switch, linearise the QP prepared at the other filter's prediction again at
+            the new filter's (its first node and disturbances, the shifted plan and OSQP's warm start kept) instead
+            of a cold start; the switch step then costs a preparation, not a cold QP (docs/robustness.md sec. 2.15).
+            Off by default.
         rti_relinearise_every: multi-level steps (``rti``, :mod:`hvac_mpc.mpc.multilevel`): a full linearisation
             of the QP (new Jacobians and Hessian, OSQP's equilibration and refactorisation) at least on every this
             many preparations; the ones between keep the QP's matrices of the last full one and renew only its
@@ -275,6 +289,9 @@ class MpcSettings:
     placement_ratio: float = 0.6
     placement_evidence: float = 1.5
     placement_cap: float = 50.0
+    placement_margin: float = math.inf
+    placement_from_response: bool = False
+    placement_warm_switch: bool = False
     rti_relinearise_every: int = 1
     rti_relinearise_move: float = 0.3
     steady_start_on: str = "any"
@@ -357,6 +374,10 @@ class MpcSettings:
         check_number(f"{p}.placement_ratio", self.placement_ratio, 0.0, 1.0, lo_open=True)
         check_number(f"{p}.placement_evidence", self.placement_evidence, 0.0, 100.0)
         check_number(f"{p}.placement_cap", self.placement_cap, 0.0, 1e9, lo_open=True)
+        if self.placement_margin != math.inf:
+            check_number(f"{p}.placement_margin", self.placement_margin, 0.0, 1e9, lo_open=True)
+        check_flag(f"{p}.placement_from_response", self.placement_from_response)
+        check_flag(f"{p}.placement_warm_switch", self.placement_warm_switch)
 
 
 def _with_model_effects(settings: MpcSettings, model: RefinedModel | None) -> MpcSettings:
@@ -478,7 +499,7 @@ class MpcController:
             self._filters.append(DisturbanceEkf(ekf_model, air_settings, s.dt_s, s.water_prediction,
                                                 learn_bypass_flow=True, name="ekf_heater_air"))
             self.placement = PlacementChoice(s.placement_window_s, s.placement_ratio, s.placement_evidence, s.dt_s,
-                                             s.placement_cap)
+                                             s.placement_cap, s.placement_margin)
         self._pending = None  # the other filter's update and time update of the last step, not yet run
         pb = self.problem
         self.reach = ReachableFlow(pb.model, pb.u_lo_phys, pb.u_hi_phys, pb.heater_max_phys, self.params,
@@ -497,6 +518,8 @@ class MpcController:
         if s.codegen:
             self._compile_small_functions()
         if hasattr(self.solver, "use_prediction"):
+            for f in self._filters[1:]:  # each filter's fused prediction built now: a switch binds it, no rebuild
+                self.solver.build_prediction(f)
             self.solver.use_prediction(self.ekf)  # prediction and QP data in one call
         self._baseline = None
         self.reset()
@@ -543,6 +566,8 @@ class MpcController:
         for f in self._filters:
             f.reset()
         self._pending = None
+        self._response_noted = False
+        self._switch_setpoint = None
         if self.placement is not None:
             self.placement.reset()
             self._use_filter(self._filters[0])
@@ -633,6 +658,7 @@ class MpcController:
         self._reference = ref
         setpoint = self._setpoint(measurement)
         u_in = self.u_prev
+        self._switch_setpoint = setpoint
         self._choose_filter()
         # --- estimation
         if not self.ekf.healthy():
@@ -645,6 +671,7 @@ class MpcController:
             self.ekf.reset()
             raise FloatingPointError("state estimate is not finite")
         if self.placement is not None:
+            self._placement_from_response()
             self.placement.observe(self.placement.active, self.ekf.supply_nis)
         self._use_estimated_parameters()
         cap = self._trap_cap(measurement)  # bounds the heater estimate too: before the state is used
@@ -732,6 +759,14 @@ class MpcController:
                 self.placement.active = 1 - self.placement.active  # the filter in use stays
                 raise
 
+    def _placement_from_response(self) -> None:
+        """With ``placement_from_response``: forget both sums once, when the filter in use first sees a response
+        of the supply air (its dead-time estimate informed): before it both filters are surprised alike by a dead
+        time not yet found, which is no evidence of where the error sits."""
+        if self.settings.placement_from_response and not self._response_noted and self.ekf.response_seen:
+            self._response_noted = True
+            self.placement.restart()
+
     def _run_other_filter(self) -> None:
         """The filter not in use: the measurement update with the last step's readings and the time update with
         its command (deferred out of the step: :meth:`wait_background` runs it between steps where it is called)."""
@@ -759,6 +794,7 @@ class MpcController:
         prediction, and the next QP prepared afresh (the last one was made with the other filter's estimate)."""
         if ekf is self.ekf:
             return
+        warm = self.settings.placement_warm_switch and self._prepared_for_next and hasattr(self.solver, "rebase")
         self._prepared_for_next = False
         if hasattr(self.solver, "use_prediction"):
             self.solver.use_prediction(ekf)  # first: where it fails, the old filter stays bound and in use
@@ -768,6 +804,9 @@ class MpcController:
         self.solver.set_parameters(p)
         if self.reach is not None:
             self.reach.set_parameters(p)
+        if warm and self._switch_setpoint is not None:  # the QP prepared again at this filter's prediction
+            self.solver.rebase(self.problem.scale_x(ekf.x), self._disturbance(self._switch_setpoint))
+            self._prepared_for_next = True
 
     def wait_background(self, timeout_s: float) -> float:
         """Between two steps: give the reachable-flow solve running on the second thread up to ``timeout_s``

@@ -11,7 +11,11 @@ start-up transient or a dead time not yet found surprises both alike and would d
 sum that forgets with ``window_s``. The prediction uses the filter whose sum is lower than ``ratio`` times the other's while the
 filter in use is itself inconsistent (its sum above ``evidence`` times the sum a consistent filter would have,
 the window's length in samples); the same rule takes it back (hysteresis: ``ratio`` < 1 each way), multiple-model
-estimation with two models and a hard choice.
+estimation with two models and a hard choice. With a finite ``margin`` the filter in use (inconsistent, as above)
+also gives way where its sum exceeds the other's by more than ``margin``: the difference of the sums is twice the
+log-likelihood ratio of the two filters' innovations over the window (each sample capped), which a start-up that
+surprises both alike leaves unchanged, where it inflates both sums and so delays the ratio's switch
+(docs/robustness.md sec. 2.15).
 
 ASSUMPTION: the filter whose supply readings surprise it less predicts the supply air better, valve a's gain
 included: the filters differ where the core flow moves, and only there do their innovations differ (at rest each
@@ -30,10 +34,12 @@ PLACEMENTS = ("heater_outlet", "heater_air")
 class PlacementChoice:
     """The choice between two filters from their supply innovations (module docstring)."""
 
-    def __init__(self, window_s: float, ratio: float, evidence: float, dt_s: float, cap: float = math.inf):
+    def __init__(self, window_s: float, ratio: float, evidence: float, dt_s: float, cap: float = math.inf,
+                 margin: float = math.inf):
         self.forget = math.exp(-dt_s / window_s)
         self.cap = float(cap)  # the most one sample adds
         self.ratio = float(ratio)
+        self.margin = float(margin)  # a lead of the other's sum that switches whatever the ratio (inf: none)
         self.floor = float(evidence) * window_s / dt_s  # a consistent filter's sum, times evidence
         self.reset()
 
@@ -55,7 +61,7 @@ class PlacementChoice:
     def decide(self) -> bool:
         """Switch to the other filter where the rule says so; True where it switched."""
         mine, other = self.sums[self.active], self.sums[1 - self.active]
-        if mine > self.floor and other < self.ratio * mine:
+        if mine > self.floor and (other < self.ratio * mine or mine - other > self.margin):
             self.active = 1 - self.active
             return True
         return False

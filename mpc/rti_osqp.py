@@ -122,6 +122,20 @@ class SparsePattern:
         return sp.csc_matrix((data, self.indices, self.indptr), shape=self.shape)
 
 
+@dataclass
+class FusedPrediction:
+    """One filter's time update fused with the QP data (:meth:`RtiOsqpSolver.build_prediction`): the filter,
+    its time-update function the fusion was built from, that function's fixed inputs, and the buffered
+    functions with the index of the QP parameters' input (``vec``: the multi-level step's, or None)."""
+    ekf: object
+    predict: object
+    fixed: dict
+    qp: BufferedFunction
+    i_p_qp: int
+    vec: BufferedFunction | None = None
+    i_p_vec: int = -1
+
+
 class RtiOsqpSolver:
     """RTI / Gauss-Newton SQP on :class:`TrackingProblem` with OSQP set up once.
 
@@ -231,6 +245,7 @@ class RtiOsqpSolver:
         self.is0 = self.iu0 + N * nu
         self._lm_all = np.tile(self.lm, N)
         self._p = np.array(pb.model.p_default, float)  # model parameters: an input of the QP data
+        self._fused: dict[int, FusedPrediction] = {}  # per filter (id), its fused prediction (build_prediction)
         self._build_pattern()
         self._i0, self._w1, self._j = shift_maps(pb.t_nodes, pb.dt_s)
         self._build_qp_functions()
@@ -594,9 +609,34 @@ class RtiOsqpSolver:
         (:meth:`prepare_predicted`): the predicted state becomes the first node, its disturbance
         estimates the QP's ``d``. ``ekf`` is a :class:`~.estimator.DisturbanceEkf` (any state size);
         its functions in use (generated C or not) and ``qp_data`` in use are called inside one CasADi
-        function, so the values are those of the two calls one after the other."""
-        pb, N, nx = self.pb, self.pb.N, self.pb.nx
+        function, so the values are those of the two calls one after the other. A filter fused before
+        (:meth:`build_prediction`) is bound again without a rebuild, its fixed inputs refreshed."""
+        fused = self.build_prediction(ekf)
+        self._predict_qp, self._i_p_qp = fused.qp, fused.i_p_qp
+        self._predict_vec, self._i_p_vec = fused.vec, fused.i_p_vec
+        for i, value in fused.fixed.items():
+            self._predict_qp.set_fixed(i, value)
+            if self._predict_vec is not None:
+                self._predict_vec.set_fixed(i, value)
+        self._ekf = ekf
+        self.set_parameters(self._p)
+
+    def build_prediction(self, ekf) -> "FusedPrediction":
+        """The fused time update and QP data of ``ekf`` (:meth:`use_prediction`), built once per filter and
+        kept, so binding another filter later costs no rebuild (1-1.5 ms of CasADi construction inside a
+        step). Built again where the filter's time-update function in use has changed since."""
         predict, fixed = ekf.prediction_function()
+        fused = self._fused.get(id(ekf))
+        if fused is not None and fused.ekf is ekf and fused.predict is predict:
+            fused.fixed = fixed
+            return fused
+        fused = self._fuse(ekf, predict, fixed)
+        self._fused[id(ekf)] = fused
+        return fused
+
+    def _fuse(self, ekf, predict, fixed) -> "FusedPrediction":
+        """Build the fused functions of :meth:`build_prediction`."""
+        pb, N, nx = self.pb, self.pb.N, self.pb.nx
         args = predict.mx_in()
         z, sp = args[0], args[3]
         zn, Pn, air, flow = predict.call(args)
@@ -613,17 +653,17 @@ class RtiOsqpSolver:
         data = self._qp_data.fn.call([X, U, d, SW, self._P_const, self._A_const, p_qp])
         fn = ca.Function("hvac_predict_qp_data", [*args, X_last, U_last, u_prev, SW, p_qp],
                          [zn, Pn, air, flow, X, U, d, *data])
-        self._i_p_qp = len(args) + 4
-        self._predict_qp = BufferedFunction(fn, fixed={**fixed, self._i_p_qp: self._p})
-        self._ekf = ekf
+        i_p_qp = len(args) + 4
+        fused = FusedPrediction(ekf, predict, fixed, BufferedFunction(fn, fixed={**fixed, i_p_qp: self._p}), i_p_qp)
         if self._ml is not None:  # the same with the vectors of a multi-level step in place of the QP data
             AB, G = ca.MX.sym("AB", *self._qp_vectors.fn.size_in(4)), ca.MX.sym("G", *self._qp_vectors.fn.size_in(5))
             uh = ca.MX.sym("uh", self.r_floor.size)
             vec = self._qp_vectors.fn.call([X, U, d, p_qp, AB, G, uh])
             fn = ca.Function("hvac_predict_qp_vectors", [*args, X_last, U_last, u_prev, p_qp, AB, G, uh],
                              [zn, Pn, air, flow, X, U, d, *vec])
-            self._i_p_vec = len(args) + 3
-            self._predict_vec = BufferedFunction(fn, fixed={**fixed, self._i_p_vec: self._p})
+            fused.i_p_vec = len(args) + 3
+            fused.vec = BufferedFunction(fn, fixed={**fixed, fused.i_p_vec: self._p})
+        return fused
 
     @property
     def fused_prediction(self) -> bool:
@@ -790,6 +830,18 @@ class RtiOsqpSolver:
             self.X, self.U, self.S = self._shifted(x_pred)
             self.U[0] = u_prev
         self._load(self.X, self.U, self.S, d, ref, w_y, u_prev)
+        return time.perf_counter() - t0
+
+    def rebase(self, x_first: np.ndarray, d: np.ndarray) -> float:
+        """The prepared QP linearised again at its (already shifted) plan with another first node ``x_first``
+        (scaled) and disturbances ``d`` (physical), as :meth:`prepare` takes them, its reference, weights and
+        OSQP's warm start kept: another estimator's prediction of the same sample (a switch of filter) without
+        a cold start. Does nothing without a prepared QP. Returns its wall time (s)."""
+        t0 = time.perf_counter()
+        if self.X is None or self._prepared is None:
+            return 0.0
+        self.X[0] = x_first
+        self._load(self.X, self.U, self.S, d, self._prepared["ref"], self._prepared["w_y"], self.U[0])
         return time.perf_counter() - t0
 
     def _initialise(self, x0, u_prev, d) -> None:

@@ -77,7 +77,9 @@ def test_one_outlier_counts_at_most_the_cap_and_a_missing_reading_nothing():
 @pytest.mark.parametrize("field, bad", [("placement_window_s", 0.0), ("placement_ratio", 1.5),
                                         ("placement_ratio", 0.0), ("placement_cap", 0.0),
                                         ("placement_evidence", -1.0), ("placement_q_heater_air_c", 0.0),
-                                        ("choose_offset_placement", "yes")])
+                                        ("choose_offset_placement", "yes"), ("placement_margin", 0.0),
+                                        ("placement_margin", -math.inf), ("placement_margin", math.nan),
+                                        ("placement_from_response", 1)])
 def test_placement_settings_are_checked(field, bad):
     with pytest.raises(InvalidSettings, match=field):
         MpcSettings(**{field: bad})
@@ -253,3 +255,115 @@ def test_a_recovery_restarts_the_filter_not_in_use_and_the_choice_waits_for_it(m
     assert ctrl.ekf is air and rows[0]["stats"]["fallback"] is None
     run(ctrl, plant, [REF_WARM])
     assert default.healthy()  # started from the readings of the sample it missed the step after
+
+
+def test_a_switch_binds_the_fused_prediction_built_with_the_controller_and_commands_the_same(monkeypatch):
+    """Each filter's time update fused with the QP data is built with the controller, so a switch (there and back)
+    builds nothing inside its step; the commands are those of switches that build it afresh (as before it was
+    built ahead), to the bit."""
+    from test_mpc import PARAMS, REF_WARM, START
+    from test_mpc import closed_loop as run
+
+    def no_build(*args, **kwargs):
+        raise AssertionError("a fused prediction was built inside a step")
+
+    commands = {}
+    for ahead in (True, False):
+        plant = SimulatedPlant(PARAMS, seed=6)
+        plant.settle(START)
+        ctrl = MpcController(PARAMS, MpcSettings(initial_command=START))
+        default, air = ctrl._filters
+        assert set(ctrl.solver._fused) == {id(default), id(air)}
+        rows = run(ctrl, plant, [REF_WARM] * 5)
+        with monkeypatch.context() as m:
+            if ahead:
+                m.setattr(ctrl.solver, "_fuse", no_build)
+            for sums, now_in_use in (([1e6, 0.0], air), ([0.0, 1e6], default)):
+                if not ahead:
+                    ctrl.solver._fused.clear()  # built again at the switch
+                ctrl.placement.sums[:] = sums  # the rule switches at the next step
+                rows += run(ctrl, plant, [REF_WARM] * 4)
+                assert ctrl.ekf is now_in_use
+        assert all(r["stats"]["fallback"] is None for r in rows)
+        commands[ahead] = np.array([r["cmd"] for r in rows])
+    np.testing.assert_array_equal(commands[True], commands[False])
+
+
+def test_a_margin_switches_on_a_clear_lead_that_a_shared_start_up_hides_from_the_ratio():
+    """Both filters surprised alike at the cap for a while (a dead time not yet found), then one surprised 40 times
+    as much as the other: the ratio of the sums stays above 0.6 for long (the shared start-up sits in both), the
+    difference passes the margin within a few samples; with the other one no better than the one in use (equal
+    surprise) the margin never switches, and a consistent filter in use is kept whatever the lead."""
+    def first_switch(c, later_own, later_other, n=60):
+        for _ in range(30):
+            c.observe(0, 50.0)
+            c.observe(1, 50.0)
+            assert not c.decide()
+        for t in range(n):
+            c.observe(0, later_own)
+            c.observe(1, later_other)
+            if c.decide():
+                return t
+        return None
+
+    assert first_switch(choice(window_s=60.0), 40.0, 1.0) > 15  # the ratio alone: 17 samples
+    assert first_switch(choice(window_s=60.0, margin=100.0), 40.0, 1.0) <= 3
+    assert first_switch(choice(window_s=60.0, margin=100.0), 40.0, 40.0) is None
+    c = choice(window_s=60.0, margin=10.0)
+    for _ in range(200):
+        c.observe(0, 1.2)  # consistent: below the evidence floor, whatever the other's sum
+        c.observe(1, 0.0)
+        assert not c.decide()
+
+
+@pytest.mark.parametrize("warm", [False, True])
+def test_a_warm_switch_prepares_the_qp_at_the_new_filter_instead_of_a_cold_start(warm):
+    """With ``placement_warm_switch`` the switch step keeps the shifted plan and OSQP's warm start, the QP linearised
+    again at the new filter's prediction: no cold start and no more QPs than a step without a switch; without it
+    the switch step starts cold (the default)."""
+    from test_mpc import PARAMS, REF_WARM, START
+    from test_mpc import closed_loop as run
+
+    plant = SimulatedPlant(PARAMS, seed=6)
+    plant.settle(START)
+    ctrl = MpcController(PARAMS, MpcSettings(initial_command=START, placement_warm_switch=warm))
+    rows = run(ctrl, plant, [REF_WARM] * 5)
+    assert not rows[-1]["stats"]["cold_start"]
+    ctrl.placement.sums[:] = [1e6, 0.0]  # the rule switches at the next step
+    switch = run(ctrl, plant, [REF_WARM])[0]["stats"]
+    assert ctrl.ekf is ctrl._filters[1] and switch["fallback"] is None
+    assert switch["cold_start"] is (not warm)
+    if warm:
+        assert switch["qp_solves"] <= rows[-1]["stats"]["qp_solves"]
+
+
+def test_the_sums_are_forgotten_once_when_the_first_response_is_seen():
+    """With ``placement_from_response`` both sums start afresh at the step in which the filter in use first sees a
+    response (its dead-time estimate informed), and not again after it; without it they are never forgotten."""
+    from test_mpc import PARAMS, REF_COOL, REF_WARM, START
+
+    for on in (False, True):
+        plant = SimulatedPlant(PARAMS, seed=6)
+        plant.settle(START)
+        ctrl = MpcController(PARAMS, MpcSettings(initial_command=START, placement_from_response=on))
+        restarts = []
+        original = ctrl.placement.restart
+
+        def counted(original=original, restarts=restarts):
+            restarts.append(ctrl.ekf.time_updates)
+            original()
+
+        ctrl.placement.restart = counted
+        seen_at = None
+        for k in range(120):
+            ref = REF_WARM if k < 20 else REF_COOL  # a step the supply air answers
+            res = ctrl.step(plant.read(), ref)
+            plant.apply(res.command)
+            plant.advance()
+            if seen_at is None and ctrl.ekf.response_seen:
+                seen_at = ctrl.ekf.time_updates
+                if on:  # forgotten in this step, before the filter in use added its sample
+                    assert ctrl.placement.sums[1] == 0.0
+                    assert ctrl.placement.sums[0] == pytest.approx(min(ctrl.ekf.supply_nis, ctrl.placement.cap))
+        assert seen_at is not None
+        assert restarts == ([seen_at - 1] if on else [])
