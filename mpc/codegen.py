@@ -27,8 +27,9 @@ from pathlib import Path
 
 import casadi as ca
 
-#: Compiler flags of the generated code (no fast-math: results stay those of the interpreter).
-CFLAGS = ("-O2", "-fPIC", "-shared")
+#: Compiler flags of the generated code (no fast-math and no fused multiply-adds, where a processor has them:
+#: results stay those of the interpreter).
+CFLAGS = ("-O2", "-ffp-contract=off", "-fPIC", "-shared")
 #: Environment variable naming the cache folder (default ``~/.cache/hvac-mpc``).
 CACHE_ENV = "HVAC_MPC_CACHE_DIR"
 #: Environment variable switching code generation off (``0``) for a whole process.

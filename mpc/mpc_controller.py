@@ -320,7 +320,7 @@ class MpcSettings:
         check_number(f"{p}.rti_relinearise_every", self.rti_relinearise_every, 1, 1000, integer=True)
         check_number(f"{p}.rti_relinearise_move", self.rti_relinearise_move, 0.0, 10.0, lo_open=True)
         if self.osqp_rho_reset is not None:
-            check_number(f"{p}.osqp_rho_reset", self.osqp_rho_reset, 1e-6, 1e6)
+            _check_or_off(f"{p}.osqp_rho_reset", self.osqp_rho_reset, 1e-6, 1e6, "None")
         if self.osqp_rho_reset_on not in RHO_RESET_ON:
             raise InvalidSettings(f"{p}.osqp_rho_reset_on = {self.osqp_rho_reset_on!r} must be one of {list(RHO_RESET_ON)}")
         check_number(f"{p}.sqp_tol", self.sqp_tol, 1e-10, 1.0, lo_open=True)
@@ -375,9 +375,17 @@ class MpcSettings:
         check_number(f"{p}.placement_evidence", self.placement_evidence, 0.0, 100.0)
         check_number(f"{p}.placement_cap", self.placement_cap, 0.0, 1e9, lo_open=True)
         if self.placement_margin != math.inf:
-            check_number(f"{p}.placement_margin", self.placement_margin, 0.0, 1e9, lo_open=True)
+            _check_or_off(f"{p}.placement_margin", self.placement_margin, 0.0, 1e9, "inf", lo_open=True)
         check_flag(f"{p}.placement_from_response", self.placement_from_response)
         check_flag(f"{p}.placement_warm_switch", self.placement_warm_switch)
+
+
+def _check_or_off(name: str, value, lo: float, hi: float, off: str, lo_open: bool = False) -> None:
+    """:func:`check_number` for a setting that also takes an off value (``off``), which the error names too."""
+    try:
+        check_number(name, value, lo, hi, lo_open=lo_open)
+    except InvalidSettings as exc:
+        raise InvalidSettings(f"{exc}; or {off} (off)") from None
 
 
 def _with_model_effects(settings: MpcSettings, model: RefinedModel | None) -> MpcSettings:
@@ -796,6 +804,18 @@ class MpcController:
             return
         warm = self.settings.placement_warm_switch and self._prepared_for_next and hasattr(self.solver, "rebase")
         self._prepared_for_next = False
+        old = self.ekf
+        self._bind_filter(ekf)
+        if warm and self._switch_setpoint is not None:  # the QP prepared again at this filter's prediction
+            try:
+                self.solver.rebase(self.problem.scale_x(ekf.x), self._disturbance(self._switch_setpoint))
+            except Exception:
+                self._bind_filter(old)  # where the rebase fails, the old filter stays bound and in use
+                raise
+            self._prepared_for_next = True
+
+    def _bind_filter(self, ekf: DisturbanceEkf) -> None:
+        """``ekf``'s fused prediction bound to the solver, its parameters in the prediction and the reach solve."""
         if hasattr(self.solver, "use_prediction"):
             self.solver.use_prediction(ekf)  # first: where it fails, the old filter stays bound and in use
         self.ekf = ekf
@@ -804,9 +824,6 @@ class MpcController:
         self.solver.set_parameters(p)
         if self.reach is not None:
             self.reach.set_parameters(p)
-        if warm and self._switch_setpoint is not None:  # the QP prepared again at this filter's prediction
-            self.solver.rebase(self.problem.scale_x(ekf.x), self._disturbance(self._switch_setpoint))
-            self._prepared_for_next = True
 
     def wait_background(self, timeout_s: float) -> float:
         """Between two steps: give the reachable-flow solve running on the second thread up to ``timeout_s``

@@ -27,6 +27,7 @@ from hvac_mpc.models import HvacModel
 from hvac_mpc.mpc.estimator import MEASURED, DisturbanceEkf, EkfSettings
 from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
 from hvac_mpc.mpc.ocp import InvalidSettings
+from hvac_mpc.mpc.ocp import InvalidSettings
 from hvac_mpc.mpc.placement import PLACEMENTS, PlacementChoice
 
 LITERAL_COOLER_BOX = "B:transport_delay_s=4.5,cooler_literal_fit=true"
@@ -337,6 +338,32 @@ def test_a_warm_switch_prepares_the_qp_at_the_new_filter_instead_of_a_cold_start
         assert switch["qp_solves"] <= rows[-1]["stats"]["qp_solves"]
 
 
+def test_a_warm_switch_whose_rebase_fails_leaves_the_old_filter_bound_and_in_use(monkeypatch):
+    """Where the warm switch's preparation raises, the switch is undone as a whole: the filter in use, the one the
+    solver predicts with and the choice's own record stay the old filter's, and the step falls back."""
+    from test_mpc import PARAMS, REF_WARM, START
+    from test_mpc import closed_loop as run
+
+    plant = SimulatedPlant(PARAMS, seed=6)
+    plant.settle(START)
+    ctrl = MpcController(PARAMS, MpcSettings(initial_command=START, placement_warm_switch=True))
+    run(ctrl, plant, [REF_WARM] * 5)
+    old = ctrl.ekf
+    bound = []
+    original = ctrl.solver.use_prediction
+    monkeypatch.setattr(ctrl.solver, "use_prediction", lambda ekf: (bound.append(ekf), original(ekf))[1])
+
+    def fail(*_args, **_kwargs):
+        raise RuntimeError("rebase failed")
+
+    monkeypatch.setattr(ctrl.solver, "rebase", fail)
+    ctrl.placement.sums[:] = [1e6, 0.0]  # the rule switches at the next step
+    step = run(ctrl, plant, [REF_WARM])[0]["stats"]
+    assert step["fallback"] is not None
+    assert ctrl.ekf is old and ctrl._filters[ctrl.placement.active] is old
+    assert bound[:2] == [ctrl._filters[1], old]  # bound to the new filter, then back to the old one
+
+
 def test_the_sums_are_forgotten_once_when_the_first_response_is_seen():
     """With ``placement_from_response`` both sums start afresh at the step in which the filter in use first sees a
     response (its dead-time estimate informed), and not again after it; without it they are never forgotten."""
@@ -367,3 +394,9 @@ def test_the_sums_are_forgotten_once_when_the_first_response_is_seen():
                     assert ctrl.placement.sums[0] == pytest.approx(min(ctrl.ekf.supply_nis, ctrl.placement.cap))
         assert seen_at is not None
         assert restarts == ([seen_at - 1] if on else [])
+
+
+@pytest.mark.parametrize("field, bad, off", [("placement_margin", -1.0, "inf"), ("osqp_rho_reset", 0.0, "None")])
+def test_a_setting_with_an_off_value_names_it_in_its_error(field, bad, off):
+    with pytest.raises(InvalidSettings, match=rf"{field}.*allowed range.*or {off} \(off\)"):
+        MpcSettings(**{field: bad})
