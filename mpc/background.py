@@ -16,10 +16,11 @@ not, the thread costs what the call costs, in the next step instead of this one.
 
 A :class:`BackgroundWorker` is one long-lived thread that runs such calls one after the other
 (``BackgroundCall(..., worker=w)``): the step hands the call over (a queue put at the step's end,
-:meth:`BackgroundWorker.hold`) instead of starting a thread, whose ``Thread.start`` waits inside the step until the new thread runs
-(0.1-0.4 ms of the step's thread CPU and 0.3-2 ms of wall time on the solve-time loop, more on a loaded
-machine; docs/architecture.md 'Slow steps'). Each owner holds its own worker (no state shared between
-controllers); :meth:`BackgroundWorker.close` stops the thread, and so does dropping the worker.
+:meth:`BackgroundWorker.hold`) instead of starting a thread, whose ``Thread.start`` waits inside the step
+until the new thread runs (0.1-0.4 ms of the step's thread CPU and 0.3-2 ms of wall time on the solve-time
+loop, more on a loaded machine; docs/architecture.md 'Slow steps'). Each owner holds its own worker (no
+state shared between controllers); :meth:`BackgroundWorker.close` stops the thread, and so does dropping the
+worker.
 """
 
 from __future__ import annotations

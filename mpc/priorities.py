@@ -35,18 +35,18 @@ re-solve is skipped while its other inputs (the estimator's disturbances, the va
 moved by less than :data:`MATERIAL_CHANGE` since the last solve: fewer slow steps, but measured
 worse with the flow out of reach on the independent box (docs/robustness.md sec. 1).
 
-With ``deferred`` a periodic re-solve (the references unchanged) started in one check is applied at
-the start of the next check (the next control step), which in between answers from the previous
-solve; with ``background`` as well the solve runs on a second thread meanwhile
-(:mod:`hvac_mpc.mpc.background`), off the step's critical path: one thread per object, started with it and
-handed each solve (:class:`~.background.BackgroundWorker`; :meth:`ReachableFlow.close` ends it). Deferred answers are the same with
-and without the thread: the solve's inputs are copied when it starts, and the next check waits for
-it. A change of the references is solved inside its step unless ``changes_deferred``: one step of
-tracking an unreachable flow reference at a reference change doubled the quick mismatch suite's
-temperature IAE ratio on flow_out_of_reach (median over the variants 0.77 -> 1.52, measured with every
-solve deferred, before the flow weights were cut while a flow error is closed: :func:`flow_weight_factor`).
-With ``changes_deferred`` that solve too is started in its step and applied from the next one, the step
-answering from the last solve meanwhile (docs/architecture.md 'Slow steps': the median 0.788 -> 0.782).
+With ``deferred`` a periodic re-solve (the references unchanged) started in one check is applied at the
+start of the next check (the next control step), which in between answers from the previous solve; with
+``background`` as well the solve runs on a second thread meanwhile (:mod:`hvac_mpc.mpc.background`), off the
+step's critical path: one thread per object, started with it and handed each solve
+(:class:`~.background.BackgroundWorker`; :meth:`ReachableFlow.close` ends it). Deferred answers are the same
+with and without the thread: the solve's inputs are copied when it starts, and the next check waits for it.
+A change of the references is solved inside its step unless ``changes_deferred``: one step of tracking an
+unreachable flow reference at a reference change doubled the quick mismatch suite's temperature IAE ratio on
+flow_out_of_reach (median over the variants 0.77 -> 1.52, measured with every solve deferred, before the
+flow weights were cut while a flow error is closed: :func:`flow_weight_factor`). With ``changes_deferred``
+that solve too is started in its step and applied from the next one, the step answering from the last solve
+meanwhile (docs/architecture.md 'Slow steps': the median 0.788 -> 0.782).
 """
 
 from __future__ import annotations
