@@ -595,6 +595,12 @@ class MpcController:
         if self.ring is not None:
             self.ring.reset()
 
+    def close(self) -> None:
+        """End the reachable-flow solve's second thread (after the solve running on it); a later step starts it
+        again. Dropping the controller ends it too."""
+        if self.reach is not None:
+            self.reach.close()
+
     def force_solver_failure(self, steps: int) -> None:
         """Make the next ``steps`` solves fail (tests of the fallback chain; this instance only)."""
         self.solver.fail_next = int(steps)
@@ -603,10 +609,18 @@ class MpcController:
         """One control step; never raises. See the module docstring for the fallback chain."""
         t0 = time.perf_counter()
         self._updates_at_start = self.ekf.time_updates
+        # a reachable-flow solve handed to the second thread in this step starts when the step ends: its Python
+        # parts would take the interpreter lock from the step (docs/architecture.md 'Slow steps')
+        worker = self.reach.worker if self.reach is not None else None
+        if worker is not None:
+            worker.hold()
         try:
             return self._step(measurement, reference, t0)
         except Exception as exc:  # noqa: BLE001 - a control step must always return a command
             return self._recover(measurement, t0, exc)
+        finally:
+            if worker is not None:
+                worker.release()
 
     def _recover(self, measurement: Measurement, t0: float, exc: Exception) -> StepResult:
         """After an unexpected error: fallback command, projected, and a fresh start next step."""

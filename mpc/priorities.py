@@ -35,17 +35,18 @@ re-solve is skipped while its other inputs (the estimator's disturbances, the va
 moved by less than :data:`MATERIAL_CHANGE` since the last solve: fewer slow steps, but measured
 worse with the flow out of reach on the independent box (docs/robustness.md sec. 1).
 
-With ``deferred`` a periodic re-solve (the references unchanged) started in one check is applied at
-the start of the next check (the next control step), which in between answers from the previous
-solve; with ``background`` as well the solve runs on a second thread meanwhile
-(:mod:`hvac_mpc.mpc.background`), off the step's critical path. Deferred answers are the same with
-and without the thread: the solve's inputs are copied when it starts, and the next check waits for
-it. A change of the references is solved inside its step unless ``changes_deferred``: one step of
-tracking an unreachable flow reference at a reference change doubled the quick mismatch suite's
-temperature IAE ratio on flow_out_of_reach (median over the variants 0.77 -> 1.52, measured with every
-solve deferred, before the flow weights were cut while a flow error is closed: :func:`flow_weight_factor`).
-With ``changes_deferred`` that solve too is started in its step and applied from the next one, the step
-answering from the last solve meanwhile (docs/architecture.md 'Slow steps': the median 0.788 -> 0.782).
+With ``deferred`` a periodic re-solve (the references unchanged) started in one check is applied at the
+start of the next check (the next control step), which in between answers from the previous solve; with
+``background`` as well the solve runs on a second thread meanwhile (:mod:`hvac_mpc.mpc.background`), off the
+step's critical path: one thread per object, started with it and handed each solve
+(:class:`~.background.BackgroundWorker`; :meth:`ReachableFlow.close` ends it). Deferred answers are the same
+with and without the thread: the solve's inputs are copied when it starts, and the next check waits for it.
+A change of the references is solved inside its step unless ``changes_deferred``: one step of tracking an
+unreachable flow reference at a reference change doubled the quick mismatch suite's temperature IAE ratio on
+flow_out_of_reach (median over the variants 0.77 -> 1.52, measured with every solve deferred, before the
+flow weights were cut while a flow error is closed: :func:`flow_weight_factor`). With ``changes_deferred``
+that solve too is started in its step and applied from the next one, the step answering from the last solve
+meanwhile (docs/architecture.md 'Slow steps': the median 0.788 -> 0.782).
 """
 
 from __future__ import annotations
@@ -59,7 +60,7 @@ import numpy as np
 from hvac_mpc.models.box import HvacModel
 from hvac_mpc.models.parameters import Parameters
 
-from .background import BackgroundCall
+from .background import BackgroundCall, BackgroundWorker
 from .casadi_eval import BufferedFunction
 
 #: Temperature error weight of the steady-state problem, per degC^2, against flow in units of FLOW_UNIT_M3S.
@@ -139,6 +140,10 @@ class ReachableFlow:
         self.changes_deferred = bool(changes_deferred)
         self.background = bool(background)
         self._pending: BackgroundCall | None = None
+        # one thread of this object's own for all its deferred solves, started here (not inside a step)
+        self.worker: BackgroundWorker | None = BackgroundWorker() if self.background else None
+        if self.worker is not None:
+            self.worker.start()
         self._pending_change = False  # the pending solve is of a changed reference (not a periodic look)
         self.last_wait_s = 0.0  # wall time the last check waited for a solve on the second thread (s)
         self.skip_unmoved = bool(skip_unmoved)
@@ -258,7 +263,7 @@ class ReachableFlow:
         if self.deferred and (periodic or self.changes_deferred):
             # a change answers from the last solve meanwhile: the reachable flow moves little with the
             # temperature reference (0.27 L/s per degC, MATERIAL_CHANGE); without one, the reference as it is
-            self._pending = BackgroundCall(self._solve, args, thread=self.background)
+            self._pending = BackgroundCall(self._solve, args, thread=self.background, worker=self.worker)
             self._pending_change = not periodic
             return self._last if failed else self._limit(flow_ref_m3s, flow_now)
         if not self._apply(self._solve(*args)):
@@ -325,6 +330,12 @@ class ReachableFlow:
         Returns the wall time waited (s); 0 when no solve is running."""
         pending = self._pending
         return 0.0 if pending is None else pending.wait(timeout_s)
+
+    def close(self) -> None:
+        """Wait for a running solve and end the second thread (a later deferred solve starts it again)."""
+        self._drop_pending()
+        if self.worker is not None:
+            self.worker.close()
 
     def _drop_pending(self) -> None:
         """Wait for a running solve (the solver must not run twice at once) and forget its answer."""

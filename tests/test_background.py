@@ -2,6 +2,7 @@
 answered one step later, the same with and without the second thread, never solved inside a step."""
 
 import dataclasses
+import gc
 import sys
 import threading
 import time
@@ -13,7 +14,7 @@ from hvac_mpc.benchmarks import solve_time
 from hvac_mpc.contract import Reference
 from hvac_mpc.models import Parameters
 from hvac_mpc.models.plant import Environment, SimulatedPlant
-from hvac_mpc.mpc.background import BackgroundCall
+from hvac_mpc.mpc.background import BackgroundCall, BackgroundWorker
 from hvac_mpc.mpc.mpc_controller import InvalidSettings, MpcController, MpcSettings
 from hvac_mpc.mpc.priorities import ReachableFlow
 
@@ -206,3 +207,115 @@ def test_time_given_between_steps_keeps_the_steps_from_waiting_and_the_commands_
     assert all(w == 0.0 for w in runs[0.0][1].idle_wait_s)
     with pytest.raises(ValueError, match="idle_s"):
         solve_time.Loop(ctrl, seed=4, idle_s=-1.0)
+
+
+def test_a_worker_runs_every_call_handed_to_it_on_one_thread_and_ends_it_when_closed_or_dropped():
+    worker = BackgroundWorker()
+    calls = [BackgroundCall(lambda i: (i, threading.get_ident()), (i,), worker=worker) for i in range(20)]
+    answers = [call.result() for call in calls]
+    assert [i for i, _ in answers] == list(range(20))
+    assert len({ident for _, ident in answers}) == 1 and answers[0][1] != threading.get_ident()
+    assert worker.threads_started == 1 and worker.running
+    with pytest.raises(ZeroDivisionError):  # an exception is the call's, the thread goes on
+        BackgroundCall(lambda: 1 / 0, (), worker=worker).result()
+    assert BackgroundCall(lambda: 5, (), worker=worker).result() == 5 and worker.threads_started == 1
+    thread = worker._thread
+    worker.close()
+    assert not thread.is_alive() and not worker.running
+    assert BackgroundCall(lambda: 6, (), worker=worker).result() == 6 and worker.threads_started == 2  # again
+    dropped = worker._thread
+    del worker, calls
+    gc.collect()
+    dropped.join(5.0)
+    assert not dropped.is_alive()
+
+
+def _threads_of_solves(ctrl: MpcController) -> list[int]:
+    """Record the thread of every reachable-flow solve of ``ctrl`` from now on."""
+    solver, idents = ctrl.reach.solver, []
+
+    def recorded(**kw):
+        idents.append(threading.get_ident())
+        return solver(**kw)
+
+    ctrl.reach.solver = recorded
+    return idents
+
+
+def test_two_controllers_each_run_all_their_reach_solves_on_one_thread_of_their_own():
+    """HIGH_FLOW over 34 s: the reachable flow solved for new references (0 s, 12 s) and periodically (10 s,
+    22 s, 32 s), all five on the controller's one worker thread (not one thread per solve), two controllers
+    stepped in turn in one process each on its own; the commands those of the solves inside the step; after
+    ``close`` the thread is gone, and a reset controller's next solve starts it again."""
+    steps = 34
+    settings = MpcSettings(codegen=False, deadline_s=3600.0)
+    ctrls = [MpcController(settings=settings) for _ in range(2)]
+    idents = [_threads_of_solves(c) for c in ctrls]
+    loops = [solve_time.Loop(c, seed=4, scenario=HIGH_FLOW) for c in ctrls]
+    commands = [[], []]
+    for k in range(steps):
+        for i in (k % 2, 1 - k % 2):
+            commands[i].append(loops[i].step(k).command.vector())
+    inline = MpcController(settings=dataclasses.replace(settings, reach_background=False))
+    inline_idents = _threads_of_solves(inline)
+    inline_loop = solve_time.Loop(inline, seed=4, scenario=HIGH_FLOW)
+    reference = np.array([inline_loop.step(k).command.vector() for k in range(steps)])
+    for c in ctrls:
+        c.reach.reset()  # waits for a solve still running
+    assert all(np.array_equal(np.array(cmds), reference) for cmds in commands)
+    assert len(inline_idents) == 5 and set(inline_idents) == {threading.get_ident()}
+    workers = [c.reach.worker for c in ctrls]
+    assert [len(i) for i in idents] == [5, 5] and [w.threads_started for w in workers] == [1, 1]
+    assert [set(i) for i in idents] == [{w._thread.ident} for w in workers]
+    assert idents[0][0] != idents[1][0]
+    threads = [w._thread for w in workers]
+    ctrls[0].close()
+    assert not threads[0].is_alive() and threads[1].is_alive()
+    loops[0] = solve_time.Loop(ctrls[0], seed=4, scenario=HIGH_FLOW)  # resets the controller
+    assert np.array_equal(loops[0].step(0).command.vector(), reference[0])
+    ctrls[0].reach.reset()
+    assert workers[0].threads_started == 2 and len(idents[0]) == 6
+    for c in ctrls:
+        c.close()
+    assert not any(w.running for w in workers)
+
+
+def test_a_held_worker_queues_nothing_until_released_and_waiting_for_a_held_call_releases_it():
+    worker = BackgroundWorker()
+    worker.hold()
+    ran = []
+    first = BackgroundCall(ran.append, (1,), worker=worker)
+    second = BackgroundCall(ran.append, (2,), worker=worker)
+    assert worker._jobs.empty() and worker.threads_started == 0 and not first.done
+    worker.release()
+    first.result(), second.result()
+    assert ran == [1, 2] and worker.threads_started == 1
+    worker.hold()
+    held = BackgroundCall(lambda: 3, (), worker=worker)
+    assert held.result() == 3  # released by the wait, not left to wait for ever
+    worker.hold()
+    late = BackgroundCall(lambda: 4, (), worker=worker)
+    worker.close()  # runs what is held before the thread ends
+    assert late.done and late.result() == 4 and not worker.running
+
+
+def test_the_controller_hands_its_reach_solves_over_at_the_end_of_its_step():
+    """The step holds its worker: every solve of HIGH_FLOW (0, 10, 12 s) is handed over while held, and the step
+    returns with nothing held."""
+    ctrl = MpcController(settings=MpcSettings(codegen=False, deadline_s=3600.0))
+    worker, held_at_hand_over, left_held = ctrl.reach.worker, [], []
+    hand_over = worker.hand_over
+
+    def recorded(job):
+        held_at_hand_over.append(worker._held is not None)
+        hand_over(job)
+
+    worker.hand_over = recorded
+    loop = solve_time.Loop(ctrl, seed=4, scenario=HIGH_FLOW)
+    for k in range(14):
+        loop.step(k)
+        left_held.append(worker._held)
+    ctrl.close()
+    # each held hand-over is handed over again by release(): pairs of (held, not held)
+    assert held_at_hand_over == [True, False] * 3
+    assert left_held == [None] * 14
