@@ -237,6 +237,10 @@ class MpcSettings:
             (None: kept). ``osqp_rho_reset_on``: "preparation" (every one) or "change" (only the QPs of a reference
             change, their matrices written again with it: one refactorisation more in that step). Measured in
             docs/architecture.md, 'Slow steps' ('OSQP's step size reset').
+        reweigh_in_place: where the output weights change after the preparation (the flow's weight factor), the
+            QP linearised again at the plan already shifted, not shifted a second time (off: the behaviour the
+            bench was tuned with). Measured in docs/architecture.md, 'Slow steps' ('The weights changed after
+            the preparation').
     """
 
     dt_s: float = 1.0
@@ -297,6 +301,7 @@ class MpcSettings:
     steady_start_on: str = "any"
     osqp_rho_reset: float | None = None
     osqp_rho_reset_on: str = "preparation"
+    reweigh_in_place: bool = False
 
     def __post_init__(self) -> None:
         p = "MpcSettings"
@@ -321,6 +326,7 @@ class MpcSettings:
         check_number(f"{p}.rti_relinearise_move", self.rti_relinearise_move, 0.0, 10.0, lo_open=True)
         if self.osqp_rho_reset is not None:
             _check_or_off(f"{p}.osqp_rho_reset", self.osqp_rho_reset, 1e-6, 1e6, "None")
+        check_flag(f"{p}.reweigh_in_place", self.reweigh_in_place)
         if self.osqp_rho_reset_on not in RHO_RESET_ON:
             raise InvalidSettings(f"{p}.osqp_rho_reset_on = {self.osqp_rho_reset_on!r} must be one of {list(RHO_RESET_ON)}")
         check_number(f"{p}.sqp_tol", self.sqp_tol, 1e-10, 1.0, lo_open=True)
@@ -565,7 +571,7 @@ class MpcController:
                              scaling_interval=s.osqp_scaling_interval, steady_start=s.steady_start,
                              relinearise_every=s.rti_relinearise_every, relinearise_move=s.rti_relinearise_move,
                              steady_start_on=s.steady_start_on, rho_reset=s.osqp_rho_reset,
-                             rho_reset_on=s.osqp_rho_reset_on)
+                             rho_reset_on=s.osqp_rho_reset_on, reweigh_in_place=s.reweigh_in_place)
 
     # ------------------------------------------------------------------ protocol
     def reset(self, command: Command | None = None) -> None:

@@ -197,6 +197,10 @@ class RtiOsqpSolver:
             kept, OSQP's warm-start behaviour). OSQP still adapts it within each QP. ``rho_reset_on="change"``: only
             for the QPs of a reference change (their matrices written again with it: one refactorisation more in that
             step). Measured in docs/architecture.md, 'Slow steps'.
+        reweigh_in_place: where the output weights change after the preparation (the flow's weight factor), the
+            QP linearised again at the plan the preparation already shifted (True) instead of :meth:`prepare`
+            again, which shifts that plan once more, a sample ahead (False, the behaviour the bench was tuned
+            with). Measured in docs/architecture.md, 'Slow steps'.
         steady_start_on: with ``steady_start``, which changes start there (:data:`.steady_target.STEADY_START_ON`):
             "any" change of the reference, or only those of the supply "temperature" reference (a flow or
             split change alone then starts from the shifted plan).
@@ -209,8 +213,12 @@ class RtiOsqpSolver:
                  first_pass_iter: int = 0, accept_max_iter: bool = False, step_fractions: tuple[float, ...] = (),
                  restart_duals_on_change: bool = False, osqp_codegen: bool = False, scaling_interval: int = 1,
                  steady_start: bool = False, steady_start_on: str = "any", relinearise_every: int = 1,
-                 relinearise_move: float = 0.3, rho_reset: float | None = None, rho_reset_on: str = "preparation"):
+                 relinearise_move: float = 0.3, rho_reset: float | None = None, rho_reset_on: str = "preparation",
+                 reweigh_in_place: bool = False):
         self.pb = pb = problem
+        if not isinstance(reweigh_in_place, bool):
+            raise ValueError(f"RtiOsqpSolver: reweigh_in_place = {reweigh_in_place!r}, allowed: True or False")
+        self.reweigh_in_place = reweigh_in_place
         if rho_reset is not None and (isinstance(rho_reset, bool) or not isinstance(rho_reset, (int, float))
                                       or not 1e-6 <= rho_reset <= 1e6):
             raise ValueError(f"RtiOsqpSolver: rho_reset = {rho_reset!r}, allowed: None or a number in [1e-6, 1e6]")
@@ -300,7 +308,7 @@ class RtiOsqpSolver:
                 "scaling_interval": self.scaling_interval,
                 "relinearise_every": self._ml.every if self._ml else 1,
                 "relinearise_move": self._ml.move if self._ml else None, "rho_reset": self.rho_reset,
-                "rho_reset_on": self.rho_reset_on,
+                "rho_reset_on": self.rho_reset_on, "reweigh_in_place": self.reweigh_in_place,
                 "step_fractions": list(self._merit.fractions) if self._merit else []}
 
     # ------------------------------------------------------------------ structure
@@ -832,6 +840,16 @@ class RtiOsqpSolver:
         self._load(self.X, self.U, self.S, d, ref, w_y, u_prev)
         return time.perf_counter() - t0
 
+    def _reweigh(self, x0: np.ndarray, u_prev: np.ndarray, d: np.ndarray, ref: np.ndarray, w_y: np.ndarray) -> float:
+        """The prepared QP linearised again with other output weights ``w_y`` at its plan, which the preparation
+        has already shifted (shifting it again would put the plan a sample ahead), the first node at ``x0`` and
+        the first input at ``u_prev`` as :meth:`prepare` takes them. Returns its wall time (s)."""
+        t0 = time.perf_counter()
+        self.X[0] = x0
+        self.U[0] = u_prev
+        self._load(self.X, self.U, self.S, d, ref, w_y, u_prev)
+        return time.perf_counter() - t0
+
     def rebase(self, x_first: np.ndarray, d: np.ndarray) -> float:
         """The prepared QP linearised again at its (already shifted) plan with another first node ``x_first``
         (scaled) and disturbances ``d`` (physical), as :meth:`prepare` takes them, its reference, weights and
@@ -863,7 +881,10 @@ class RtiOsqpSolver:
         started = False
         if changed and self._steady is not None and starts_at_target(self.steady_start_on, self._prepared["ref"], ref):
             prep, started = self._start_steady(x0, u_prev, d, ref, w_y, u_lo, u_hi)
-        if not started and (self._prepared is None or not np.array_equal(self._prepared["w_y"], w_y)):
+        reweigh = not started and self._prepared is not None and not np.array_equal(self._prepared["w_y"], w_y)
+        if reweigh and self.reweigh_in_place:
+            prep += self._reweigh(x0, u_prev, d, ref, w_y)
+        elif not started and (self._prepared is None or reweigh):
             prep += self.prepare(x0, u_prev, d, ref, w_y)
         elif not started and changed and self._vector_prepared:  # a change linearises in full at the prepared point
             prep += self._relinearise(self._z_lin, self._z_lin[:self.pb.nx], self._prepared["d"], ref, w_y, u_prev)

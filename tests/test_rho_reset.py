@@ -14,6 +14,7 @@ from hvac_mpc.benchmarks import solve_time
 from hvac_mpc.benchmarks.simulate import DETERMINISTIC_DEADLINE_S
 from hvac_mpc.mpc import codegen
 from hvac_mpc.mpc.mpc_controller import InvalidSettings, MpcController, MpcSettings
+from hvac_mpc.mpc.ocp import shift_nodes
 from hvac_mpc.mpc.rti_osqp import RtiOsqpSolver
 
 RHO = 1e-3
@@ -100,3 +101,44 @@ def test_the_solver_refuses_a_bad_step_size_naming_the_argument():
         RtiOsqpSolver(pb, rho_reset=RHO, rho_reset_on="always")
     with pytest.raises(InvalidSettings, match=r"MpcSettings\.osqp_rho_reset_on = 'always' must be one of"):
         MpcSettings(osqp_rho_reset_on="always")
+
+
+@pytest.mark.parametrize("in_place", [False, True])
+def test_weights_changed_after_the_preparation_relinearise_the_prepared_plan_or_one_shifted_again(in_place):
+    """``reweigh_in_place``: where the output weights change between the preparation and the feedback (the flow's
+    weight factor, steps after the loop's reference changes) without a reference change, the QP is linearised
+    again at the plan the preparation shifted (on), or at that plan shifted once more (off, the default)."""
+    ctrl = MpcController(settings=MpcSettings(deadline_s=DETERMINISTIC_DEADLINE_S, reweigh_in_place=in_place))
+    sv = ctrl.solver
+    loaded, pure_reweighs = [], []
+    load, feedback = sv._load, sv.feedback
+
+    def spy_load(X, *args):
+        loaded.append(X.copy())
+        return load(X, *args)
+
+    def spy_feedback(x0, u_prev, d, ref, w_y, *args, **kw):
+        p, plan = sv._prepared, None if sv.X is None else sv.X.copy()
+        before = len(loaded)
+        out = feedback(x0, u_prev, d, ref, w_y, *args, **kw)
+        if p is not None and np.array_equal(p["ref"], ref) and not np.array_equal(p["w_y"], w_y):
+            pure_reweighs.append((plan, loaded[before]))  # (the plan prepared, the one linearised again)
+        return out
+
+    sv._load, sv.feedback = spy_load, spy_feedback
+    loop = solve_time.Loop(ctrl, seed=1)
+    for k in range(160):
+        loop.step(k)
+    assert pure_reweighs, "the loop changes the weights without a reference change (step 151)"
+    for prepared, again in pure_reweighs:
+        shifted = shift_nodes(prepared, sv._i0, sv._w1)
+        if in_place:
+            np.testing.assert_array_equal(again[1:], prepared[1:])
+        else:
+            assert not np.array_equal(again[1:], prepared[1:])
+            np.testing.assert_array_equal(again[1:], shifted[1:])
+
+
+def test_reweigh_in_place_is_checked():
+    with pytest.raises(InvalidSettings, match="reweigh_in_place"):
+        MpcSettings(reweigh_in_place=1)
