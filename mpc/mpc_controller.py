@@ -59,6 +59,7 @@ from .ocp import HEATING_CMD_W, HeaterOffBound, InvalidSettings, OcpSpec, Tracki
 from hvac_mpc.contract import InvalidReference, Reference
 from .placement import PLACEMENTS, PlacementChoice
 from .readiness import HeaterReadiness
+from .reversal_damping import damped_move
 from .ring_gate import RingGate
 from .rti_osqp import RHO_RESET_ON, RtiOsqpSolver, SolveResult
 from .steady_target import check_steady_start_on
@@ -241,6 +242,11 @@ class MpcSettings:
             QP linearised again at the plan already shifted, not shifted a second time (off: the behaviour the
             bench was tuned with). Measured in docs/architecture.md, 'Slow steps' ('The weights changed after
             the preparation').
+        valve_a_reversal_share: the share of a move of valve a that reverses its last applied move (both at least
+            ``valve_a_reversal_min_pct`` (% of travel)) applied, in (0, 1], 1 off (:mod:`~.reversal_damping`: the
+            Gauss-Newton iteration's two-cycle where valve a's pull depends on valve a, the plan alternating between
+            valve a shut and open). 0.3 (the default): measured in docs/identification.md, "The recirculation traced
+            again" (the full built-in bench lower in seven scenarios, chiller +0.0003).
     """
 
     dt_s: float = 1.0
@@ -302,6 +308,8 @@ class MpcSettings:
     osqp_rho_reset: float | None = None
     osqp_rho_reset_on: str = "preparation"
     reweigh_in_place: bool = False
+    valve_a_reversal_share: float = 0.3
+    valve_a_reversal_min_pct: float = 5.0
 
     def __post_init__(self) -> None:
         p = "MpcSettings"
@@ -374,6 +382,8 @@ class MpcSettings:
         check_number(f"{p}.ring_crossings", self.ring_crossings, 1, 100, integer=True)
         check_number(f"{p}.ring_floor", self.ring_floor, 0.0, 1.0, lo_open=True)
         check_number(f"{p}.ring_relax_s", self.ring_relax_s, self.dt_s, 3600.0)
+        check_number(f"{p}.valve_a_reversal_share", self.valve_a_reversal_share, 0.0, 1.0, lo_open=True)
+        check_number(f"{p}.valve_a_reversal_min_pct", self.valve_a_reversal_min_pct, 0.0, 100.0)
         check_flag(f"{p}.choose_offset_placement", self.choose_offset_placement)
         check_number(f"{p}.placement_q_heater_air_c", self.placement_q_heater_air_c, 0.0, 1.0, lo_open=True)
         check_number(f"{p}.placement_window_s", self.placement_window_s, self.dt_s, 3600.0)
@@ -577,6 +587,7 @@ class MpcController:
     def reset(self, command: Command | None = None) -> None:
         """Forget estimates, plans and warm starts; ``command`` is the command now in force."""
         self.u_prev = (command or self.settings.initial_command).vector().copy()
+        self._valve_a_move = 0.0  # the last applied move of valve a (%), for valve_a_reversal_share
         for f in self._filters:
             f.reset()
         self._pending = None
@@ -744,7 +755,9 @@ class MpcController:
             self.solver.reset()
             u_cmd, fallback = self._fallback_command(measurement, ref)
         # project onto bounds, rate limits and the trapped-air cap (np.clip costs ~10 us on 6 values)
+        self._damp_reversal(u_cmd)
         u_cmd = np.minimum(np.maximum(u_cmd, bounds[0]), bounds[1])
+        self._valve_a_move = float(u_cmd[pb.i_valve_a] - self.u_prev[pb.i_valve_a])
         self.u_prev = u_cmd
         self._note_temperature_reach(measurement, ref, u_cmd, bounds[1])
         # --- prediction and preparation of the next step
@@ -894,6 +907,14 @@ class MpcController:
                                                     pb.rate_phys * pb.dt_s)
         w = pb.w_y_full
         return min(factor, flow_weight_factor(error_m3s, w[1], w[0], trade_c))
+
+    def _damp_reversal(self, u_cmd: np.ndarray) -> None:
+        """Valve a's move in ``u_cmd`` (in place, before the projection onto the bounds) applied in part where it
+        reverses the last applied move (``valve_a_reversal_share``, off at 1)."""
+        s, i = self.settings, self.problem.i_valve_a
+        if s.valve_a_reversal_share < 1.0:
+            u_cmd[i] = damped_move(float(self.u_prev[i]), self._valve_a_move, float(u_cmd[i]),
+                                   s.valve_a_reversal_share, s.valve_a_reversal_min_pct)
 
     def _ring_factor(self, measurement: Measurement, ref: Reference) -> float:
         """Factor on valve a's and the heater's rate limits: below 1 while the supply reading rings about its

@@ -122,8 +122,9 @@ def test_the_globalised_step_ends_valve_a_alternating_on_the_recirculating_box()
     sc = scenarios.select(["trapped_air_release"], quick=True)[0]
 
     def run(fractions):
+        # valve a's reversing moves applied whole (valve_a_reversal_share=1): the iteration's steps alone compared
         settings = MpcSettings(initial_command=sc.initial_command, deadline_s=DETERMINISTIC_DEADLINE_S,
-                               rti_step_fractions=fractions)
+                               rti_step_fractions=fractions, valve_a_reversal_share=1.0)
         ctrl = MpcController(settings=settings, model=refined)
         plant = make_plant("recirculation", seed=plant_seed(0, sc.seed), inlet_temp_c=sc.inlet_temp_c,
                            chiller_setpoint_c=sc.chiller_setpoint_c, initial_command=sc.initial_command)
