@@ -754,8 +754,9 @@ class MpcController:
         else:
             self.solver.reset()
             u_cmd, fallback = self._fallback_command(measurement, ref)
+        if sol.ok:
+            self._damp_reversal(u_cmd)  # the QP's answer only: a fallback's command stands as its layer made it
         # project onto bounds, rate limits and the trapped-air cap (np.clip costs ~10 us on 6 values)
-        self._damp_reversal(u_cmd)
         u_cmd = np.minimum(np.maximum(u_cmd, bounds[0]), bounds[1])
         self._valve_a_move = float(u_cmd[pb.i_valve_a] - self.u_prev[pb.i_valve_a])
         self.u_prev = u_cmd

@@ -83,3 +83,28 @@ def test_reversal_share_damps_valve_a_two_cycle_on_the_recirculating_box():
     assert flips_off >= 12, flips_off
     assert flips_on <= flips_off // 2, (flips_on, flips_off)
     assert iae_on < 0.95 * iae_off, (iae_on, iae_off)
+
+
+def test_a_fallback_command_is_applied_as_its_layer_made_it():
+    """The damping takes in part only a QP's answer: a fallback's valve a, reversing the last move, is applied
+    whole (within the bounds)."""
+    from test_mpc import PARAMS, REF_WARM, START
+    from test_mpc import closed_loop as run
+
+    from hvac_mpc.models.plant import SimulatedPlant
+
+    plant = SimulatedPlant(PARAMS, seed=6)
+    plant.settle(START)
+    ctrl = MpcController(PARAMS, MpcSettings(initial_command=START))
+    run(ctrl, plant, [REF_WARM] * 3)
+    i = ctrl.problem.i_valve_a
+    a = float(ctrl.u_prev[i])
+    target = a - 30.0 if a >= 30.0 else a + 30.0
+    ctrl._valve_a_move = 20.0 if target < a else -20.0  # the last applied move the other way
+    safe = ctrl.u_prev.copy()
+    safe[i] = target
+    ctrl._fallback_command = lambda *_args: (safe.copy(), "test")
+    ctrl.force_solver_failure(1)
+    out = run(ctrl, plant, [REF_WARM])[0]
+    assert out["stats"]["fallback"] == "test"
+    assert ctrl.u_prev[i] == pytest.approx(target)
