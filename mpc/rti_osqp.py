@@ -841,9 +841,9 @@ class RtiOsqpSolver:
         return time.perf_counter() - t0
 
     def _reweigh(self, x0: np.ndarray, u_prev: np.ndarray, d: np.ndarray, ref: np.ndarray, w_y: np.ndarray) -> float:
-        """The prepared QP linearised again with other output weights ``w_y`` at its plan, which the preparation
-        has already shifted (shifting it again would put the plan a sample ahead), the first node at ``x0`` and
-        the first input at ``u_prev`` as :meth:`prepare` takes them. Returns its wall time (s)."""
+        """The prepared QP linearised again at its plan, which the preparation has already shifted (shifting it
+        again would put the plan a sample ahead), with the reference ``ref`` and output weights ``w_y``, the first
+        node at ``x0`` and the first input at ``u_prev`` as :meth:`prepare` takes them. Returns its wall time (s)."""
         t0 = time.perf_counter()
         self.X[0] = x0
         self.U[0] = u_prev
@@ -855,12 +855,9 @@ class RtiOsqpSolver:
         (scaled) and disturbances ``d`` (physical), as :meth:`prepare` takes them, its reference, weights and
         OSQP's warm start kept: another estimator's prediction of the same sample (a switch of filter) without
         a cold start. Does nothing without a prepared QP. Returns its wall time (s)."""
-        t0 = time.perf_counter()
         if self.X is None or self._prepared is None:
             return 0.0
-        self.X[0] = x_first
-        self._load(self.X, self.U, self.S, d, self._prepared["ref"], self._prepared["w_y"], self.U[0])
-        return time.perf_counter() - t0
+        return self._reweigh(x_first, self.U[0].copy(), d, self._prepared["ref"], self._prepared["w_y"])
 
     def _initialise(self, x0, u_prev, d) -> None:
         pb = self.pb
