@@ -13,6 +13,7 @@ import dataclasses
 import importlib
 import inspect
 import math
+import threading
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -127,6 +128,12 @@ class FaultInjectingController:
     def wait_background(self, timeout_s: float) -> float:
         """The wrapped controller's work between steps (:func:`between_steps`)."""
         return between_steps(self.inner, timeout_s)
+
+    def close(self) -> None:
+        """The wrapped controller's ``close``, if it has one."""
+        close = getattr(self.inner, "close", None)
+        if callable(close):
+            close()
 
 
 def between_steps(ctrl: Controller, timeout_s: float = 0.0) -> float:
@@ -259,8 +266,29 @@ class ControllerChain:
         return True
 
     def close(self) -> None:
+        """Stop the chain without waiting: the queued steps are dropped; on a thread of its own, once a step still
+        running has ended, each controller's ``close`` (if it has one: the MPC's second thread) is called."""
         if self._executor is not None:
             self._executor.shutdown(wait=False, cancel_futures=True)
+        closers = [c for c in (getattr(ctrl, "close", None) for _, ctrl in self.controllers) if callable(c)]
+        if closers:
+            threading.Thread(target=_close_after, args=(self._executor, closers), name=CLOSE_THREAD_NAME,
+                             daemon=True).start()
+
+
+#: Name of the thread that closes a chain's controllers.
+CLOSE_THREAD_NAME = "hvac-chain-close"
+
+
+def _close_after(executor: ThreadPoolExecutor | None, closers: list[Callable[[], None]]) -> None:
+    """Wait for the step still running on ``executor`` (if any), then call each controller's ``close``."""
+    if executor is not None:
+        executor.shutdown(wait=True)
+    for close in closers:
+        try:
+            close()
+        except Exception:  # noqa: BLE001 - a controller that fails to close is dropped all the same
+            pass
 
 
 def _quiet_between(ctrl: Controller) -> None:

@@ -280,6 +280,41 @@ def test_controller_chain_a_slow_between_job_is_named_and_the_fallback_answers()
     chain.close()
 
 
+class Closing(Deferring):
+    """Records its ``close`` and whether a step was still running then."""
+
+    def __init__(self, heater_w, **kw):
+        super().__init__(heater_w, **kw)
+        self.closed_while_stepping, self.closed, self.stepping = None, threading.Event(), False
+
+    def step(self, measurement, reference):
+        self.stepping = True
+        try:
+            return super().step(measurement, reference)
+        finally:
+            self.stepping = False
+
+    def close(self):
+        self.closed_while_stepping = self.stepping
+        self.closed.set()
+
+
+def test_controller_chain_close_ends_the_controllers_after_the_running_step_without_waiting():
+    primary, inner = Closing(10.0), Closing(20.0)
+    chain = ControllerChain([("p", primary), ("b", FaultInjectingController(inner, [], clock=lambda: 0.0))],
+                            deadline_s=0.05)
+    ref = Reference(20.0, 0.03)
+    assert chain.step(meas(), ref).used == "p"
+    primary.delay = 0.3  # still stepping when the chain is closed
+    assert chain.step(meas(), ref).used == "b"
+    t0 = time.perf_counter()
+    chain.close()
+    assert time.perf_counter() - t0 < 0.1  # the caller does not wait for the step
+    assert not primary.closed.is_set()
+    assert primary.closed.wait(5.0) and inner.closed.wait(5.0)
+    assert primary.closed_while_stepping is False
+
+
 # ------------------------------------------------------------------------------ daemon in-process
 def _cfg(tmp_path, **over):
     data = {"loop": {"speedup": "max", "max_ticks": 30}, "log": {"path": str(tmp_path / "log.csv"), "fsync": False},
