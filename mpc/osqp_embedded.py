@@ -45,7 +45,7 @@ from pathlib import Path
 import numpy as np
 import osqp
 
-from .codegen import SWITCH_ENV, CodegenReport, _ensure, cache_dir, compile_shared
+from .codegen import SWITCH_ENV, CodegenReport, _ensure, cache_dir, compile_shared, processor
 
 #: Compiler flags of the generated solver. No fast-math and no contraction into fused multiply-adds:
 #: the arithmetic stays that of OSQP's own build, so the answers are the Python interface's.
@@ -297,18 +297,8 @@ def structure_key(wrapper: osqp.OSQP, P_pattern: tuple, A_pattern: tuple) -> str
     h.update(" ".join(CFLAGS).encode())
     h.update(GLUE.encode())
     h.update(platform.machine().encode())
-    h.update(_processor().encode())
+    h.update(processor().encode())
     return h.hexdigest()[:20]
-
-
-def _processor() -> str:
-    """The processor's model and instruction-set flags (``-march=native`` code runs only where they are)."""
-    try:
-        lines = Path("/proc/cpuinfo").read_text().splitlines()
-    except OSError:
-        return platform.processor()
-    keys = ("model name", "flags", "Features", "CPU implementer", "CPU architecture", "CPU variant", "CPU part")
-    return "|".join(sorted({ln.split(":", 1)[1].strip() for ln in lines if ln.startswith(keys) and ":" in ln}))
 
 
 def load(wrapper: osqp.OSQP, P_pattern: tuple, A_pattern: tuple, first_pass_iter: int = 0,
