@@ -1,7 +1,7 @@
 """Where a median control step's time goes: wall time around each part of ``MpcController.step``.
 
     python -m hvac_mpc.benchmarks.step_parts [--loops 3] [--seed 1] [--max-iterations 20]
-                                             [--changes] [--settings JSON] [--thread-cpu]
+                                             [--changes] [--settings JSON] [--thread-cpu] [--back-to-back]
 
 Runs the solve-time loop (:class:`.solve_time.Loop`, default :class:`~hvac_mpc.mpc.mpc_controller.MpcSettings`,
 the idle time of a sample between steps) with a timer around each of the parts below, and prints each
@@ -12,7 +12,11 @@ step's kind); with ``--changes`` over the steps with two QPs or more instead (a 
 thread (``time.thread_time``; every part runs on the step's thread) instead of wall time, for a loaded machine.
 Parts that take no time in the selected steps are not printed. The timers are put on the classes for the
 run and taken off after it; their own cost (a microsecond or so per call) is in the times, so the parts are
-shares, not exact times. A part nested in another (OSQP's calls in the feedback) is counted in both.
+shares, not exact times. A part nested in another (OSQP's calls in the feedback) is counted in both. A part
+counts only inside the step: the filter not in use (``choose_offset_placement``) is brought up to the sample
+between the steps, in the loop's idle time (:meth:`MpcController.wait_background`), and its updates are not the
+step's (with ``--back-to-back``, the steps one after the other as ``step_versions`` runs them, they are, under
+"the other filter").
 """
 
 from __future__ import annotations
@@ -48,6 +52,7 @@ PARTS = (
     (rti_osqp._OsqpCore, "update_vectors", "  OSQP vectors"),
     (osqp_embedded.EmbeddedOsqp, "update_vectors", "  OSQP vectors"),
     (estimator.DisturbanceEkf, "update", "estimator update"),
+    (mpc_controller.MpcController, "_run_other_filter", "the other filter (measurement and time update)"),
     (ocp.TrackingProblem, "input_bounds", "input bounds"),
     (ocp.TrackingProblem, "command_bounds", "command bounds"),
     (priorities.ReachableFlow, "check", "priorities check"),
@@ -57,20 +62,30 @@ PARTS = (
 )
 
 
+#: The label of the whole step, within which the other parts are timed.
+WHOLE = "whole step"
+
+
 @contextlib.contextmanager
 def timed(totals: dict[str, float], clock=time.perf_counter) -> Iterator[None]:
     """Timers around :data:`PARTS` (``clock``'s time, wall time by default, added to ``totals`` by label) for the
-    ``with`` block."""
+    ``with`` block; a part's time counts only inside the step (:data:`WHOLE`)."""
     saved = []
+    depth = [0]  # steps under way (the parts' calls between the steps are not the step's)
     for cls, name, label in PARTS:
         original = cls.__dict__[name]
 
         def wrapper(*args, _f=original, _label=label, **kwargs):
+            whole = _label == WHOLE
+            if not (whole or depth[0]):
+                return _f(*args, **kwargs)
+            depth[0] += whole
             t0 = clock()
             try:
                 return _f(*args, **kwargs)
             finally:
                 totals[_label] = totals.get(_label, 0.0) + clock() - t0
+                depth[0] -= whole
 
         saved.append((cls, name, original))
         setattr(cls, name, wrapper)
@@ -88,9 +103,10 @@ def selected(stats: dict, max_iterations: int, changes: bool) -> bool:
 
 
 def measure(loops: int, seed: int, max_iterations: int, steps: int = solve_time.FULL_STEPS, changes: bool = False,
-            settings: dict | None = None, clock=time.perf_counter) -> dict[str, float]:
+            settings: dict | None = None, clock=time.perf_counter, idle_s: float = solve_time.IDLE_S) -> dict[str, float]:
     """Median time (s, ``clock``'s) of each part over the selected steps (:func:`selected`) of ``loops`` loops, and the
-    median OSQP iterations of those steps."""
+    median OSQP iterations of those steps. ``idle_s``: the time given between the steps (:class:`.solve_time.Loop`;
+    0: back to back)."""
     rows: dict[str, list[float]] = defaultdict(list)
     iterations = []
     for _ in range(loops):
@@ -98,7 +114,7 @@ def measure(loops: int, seed: int, max_iterations: int, steps: int = solve_time.
         with timed(totals, clock):
             fields = {k: tuple(v) if isinstance(v, list) else v for k, v in (settings or {}).items()}  # JSON lists
             ctrl = MpcController(settings=MpcSettings(**fields))
-            loop = solve_time.Loop(ctrl, seed, idle_s=solve_time.IDLE_S)
+            loop = solve_time.Loop(ctrl, seed, idle_s=idle_s)
             for k in range(steps):
                 totals.clear()
                 st = loop.step(k).stats
@@ -119,12 +135,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--settings", type=json.loads, default=None,
                         help='MpcSettings fields as a JSON object, e.g. \'{"steady_start": true}\'')
     parser.add_argument("--thread-cpu", action="store_true", help="the thread's CPU time instead of wall time")
+    parser.add_argument("--back-to-back", action="store_true",
+                        help="no idle time between the steps (the filter not in use then updates inside the step)")
     args = parser.parse_args(argv)
     if args.loops < 1 or args.max_iterations < 1:
         parser.error("--loops and --max-iterations must be at least 1")
     clock = time.thread_time if args.thread_cpu else time.perf_counter
     out = measure(args.loops, args.seed, args.max_iterations, changes=args.changes, settings=args.settings,
-                  clock=clock)
+                  clock=clock, idle_s=0.0 if args.back_to_back else solve_time.IDLE_S)
     kind = "two QPs or more" if args.changes else f"one QP of at most {args.max_iterations} OSQP iterations"
     print(f"median over {out.pop('steps')} steps with {kind} (OSQP iterations {out.pop('iterations'):.0f}; "
           f"{'thread CPU' if args.thread_cpu else 'wall'} time, timers' own cost included):")

@@ -42,7 +42,7 @@ class Command:
 
     @classmethod
     def from_vector(cls, v) -> "Command":
-        return cls(**{n: float(x) for n, x in zip(INPUTS, np.asarray(v, float).ravel())})
+        return cls(**dict(zip(INPUTS, np.asarray(v, float).ravel().tolist())))  # tolist: the values as floats
 
     def as_dict(self) -> dict[str, float]:
         return asdict(self)

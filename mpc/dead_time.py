@@ -37,6 +37,8 @@ LEAD_SAMPLES = 20
 #: Candidates whose residual is within this factor of the least count as explaining the reading
 #: equally; the shortest of them is taken.
 TIE_RATIO = 1.1
+#: Rows of the estimator's sums: each candidate's squared change, and its change times the reading's.
+SSS, SSY = 0, 1
 
 
 def shortest_tied_minimum(res: np.ndarray) -> int:
@@ -103,8 +105,10 @@ class DeadTimeEstimator:
         self._last_reading = None
         self._w = 0.0
         self._syy = 0.0
-        self._sss = np.zeros(n)
-        self._ssy = np.zeros(n)
+        # the forgetting sums of each candidate's squared change (row SSS) and of its change times the reading's
+        # (row SSY), and a buffer of the changes of the sample (row SSS: the candidate's, row SSY: the reading's)
+        self._sums = np.zeros((2, n))
+        self._moves = np.zeros((2, n))
         self.residuals = np.full(n, np.nan)
         self.informed = False  # the window has held a response (the candidates ranked at least once)
         self._lead = None  # a candidate ahead of the estimate by LEAD_RATIO ...
@@ -141,18 +145,27 @@ class DeadTimeEstimator:
         self._last_reading = y
         if last is None:
             return self.steps
-        f, ds, dy = self.forget, self._pred - self._last_pred, y - last
+        f, dy = self.forget, y - last
         self._w = f * self._w + 1.0
         self._syy = f * self._syy + dy * dy
-        self._sss = f * self._sss + ds * ds
-        self._ssy = f * self._ssy + ds * dy
-        w, sss, ssy = self._w, self._sss, self._ssy
+        # both sums in one pass: f * sss + ds * ds and f * ssy + ds * dy (the same operations as apart)
+        moves = self._moves
+        np.subtract(self._pred, self._last_pred, out=moves[SSS])
+        moves[SSY] = dy
+        sums = f * self._sums
+        sums += moves * moves[SSS]
+        self._sums = sums
+        w, sss, ssy = self._w, sums[SSS], sums[SSY]
         if sss.min() / w < self.min_var:
             self.residuals[:] = np.nan
             return self.steps
         self.informed = True
-        # least-squares gain per candidate; a response of the wrong sign explains nothing
-        res = np.where(ssy > 0.0, self._syy - ssy ** 2 / sss, self._syy)
+        # least-squares gain per candidate, syy - ssy^2 / sss; a response of the wrong sign (ssy <= 0) explains
+        # nothing: its residual is syy less 0
+        explained = np.maximum(ssy, 0.0)
+        explained *= explained
+        explained /= sss
+        res = self._syy - explained
         self.residuals = res / w
         best = shortest_tied_minimum(res)
         cur = self._best

@@ -410,6 +410,7 @@ class DisturbanceEkf:
         # ln of the reference mass flow (kg/s), next to the exponent
         self.i_anchor = self.i_exponent + 1 if self.anchors_bypass_flow else None
         self.i_own = list(range(self.nc - len(own), self.nc))
+        self._own_idx = (np.array(self.i_own_p, int), np.array(self.i_own, int))  # model_parameters' copy, once
         self.i_outlet_offset = self.nc - 1 - len(own) if self.has_outlet_offset else None
         self.n_hist = int(round(s.dead_time_max_s / self.dt_s))
         self.nz = self.nc + self.n_hist  # ... and the history of the undelayed thermocouple state
@@ -421,6 +422,7 @@ class DisturbanceEkf:
         q_state.update({n: s.q_sensor_c for n in model.delay_states})
         # the offset's walk: the smaller of its two rates in Q, the rest added while it applies (accept_prediction)
         self._q_mix = (s.q_mix_offset_c, s.q_mix_offset_unseen_c or s.q_mix_offset_c)
+        self._q_mix_in_q = min(self._q_mix) ** 2  # the part of the offset's walk that Q holds (accept_prediction)
         q = [q_state[n] for n in names] + [min(self._q_mix), s.q_flow_offset_m3s, s.q_inlet_c]
         q += [s.q_bypass_flow_exponent] * int(self.learns_bypass_flow) + [0.0] * int(self.anchors_bypass_flow)
         q += [s.q_heater_outlet_offset_c] * int(self.has_outlet_offset)
@@ -666,6 +668,7 @@ class DisturbanceEkf:
         self._predict_in_use = predict_fn
         self._predict = BufferedFunction(predict_fn, fixed={4: self.p, 5: self.Q})
         self._update = BufferedFunction(update_fn, fixed={7: self.p, 8: self.R_diag})
+        self._r_in_use = self.R_diag  # the reading variances in the update's input (update)
         self._R_rest = self.R_diag.copy()
         self._R_rest[0] = self.settings.r_supply_rest_c ** 2
 
@@ -696,14 +699,14 @@ class DisturbanceEkf:
         q_mix = self._q_mix[0] if self.response_seen else self._q_mix[1]
         if self._relearning and self.settings.reanchor_hold_q_mix_c > 0.0:
             q_mix = self.settings.reanchor_hold_q_mix_c
-        self.P[self.i_mix_offset, self.i_mix_offset] += q_mix * q_mix - min(self._q_mix) ** 2 + self._flow_step_var(
-            float(flow[0]))
+        air_c, flow_m3s = float(air[0]), float(flow[0])
+        self.P[self.i_mix_offset, self.i_mix_offset] += q_mix * q_mix - self._q_mix_in_q + self._flow_step_var(flow_m3s)
         if self.n_hist:
-            self.dead_time.push_air(float(air[0]))
+            self.dead_time.push_air(air_c)
         if self.rest_gate is not None:
-            self.rest_gate.push(float(air[0]), float(flow[0]), self.mix_offset_c)
+            self.rest_gate.push(air_c, flow_m3s, self.mix_offset_c)
         if self.learns_bypass_flow and not self.anchors_bypass_flow:
-            self._gate(float(flow[0]))
+            self._gate(flow_m3s)
 
     @property
     def response_seen(self) -> bool:
@@ -793,7 +796,7 @@ class DisturbanceEkf:
 
     def readings(self, measurement: Measurement) -> tuple[np.ndarray, np.ndarray]:
         """The measured values (order ``MEASURED``, 0 where unused) and which are used (finite and enabled)."""
-        values = np.array([finite_or(getattr(measurement, n, None), np.nan) for n in MEASURED])
+        values = measured_values(measurement)
         ok = np.isfinite(values) & self.use
         return np.where(ok, values, 0.0), ok
 
@@ -801,7 +804,8 @@ class DisturbanceEkf:
         """Measurement update with the finite readings; returns how many were used."""
         self.supply_innovation_c = self.supply_nis = math.nan  # until this update's supply reading is weighed
         values, ok = self.readings(measurement)
-        if not ok.any():
+        used = int(np.count_nonzero(ok))
+        if not used:
             return 0
         if self.anchors_bypass_flow:
             self._move_anchor(u, setpoint_c)
@@ -812,7 +816,9 @@ class DisturbanceEkf:
         r_diag = self.R_diag
         if self.rest_gate is not None:  # the supply reading's variance at rest or in a transient (EkfSettings)
             r_diag = self._R_rest if self.rest_gate.at_rest else self.R_diag
-            self._update.set_fixed(8, r_diag)
+            if r_diag is not self._r_in_use:  # copied into the call's input only when it changes
+                self._update.set_fixed(8, r_diag)
+                self._r_in_use = r_diag
         self._note_supply_innovation(values[0], ok[0], weights, float(r_diag[0]))
         zn, Pt = self._update(self.z, self.P, values, ok, u, setpoint_c, weights, float(self.learning))
         self.z, self.P = zn, Pt.T
@@ -824,7 +830,7 @@ class DisturbanceEkf:
                                               s.bypass_flow_exponent_max)
         if self.rest_steps is not None:
             self._learn_at_rest(u, setpoint_c)
-        return int(ok.sum())
+        return used
 
     def _note_supply_innovation(self, supply_c: float, used: bool, weights: np.ndarray, r_c2: float) -> None:
         """Keep the supply reading's innovation (degC) against the filter's prediction at the dead time honoured and
@@ -960,8 +966,8 @@ class DisturbanceEkf:
             p[self.i_exponent_p] = self.bypass_flow_exponent if exponent is None else exponent
         if self.anchors_bypass_flow and self.z is not None:
             p[self.i_ref_p] = math.exp(float(self.z[self.i_anchor]))
-        if self.z is not None:
-            p[self.i_own_p] = self.z[self.i_own]
+        if self.z is not None and self.own_offsets:
+            p[self._own_idx[0]] = self.z[self._own_idx[1]]
         return p
 
     @property
@@ -995,6 +1001,18 @@ def check_state_names(name: str, value) -> None:
     """``value`` a tuple of distinct names of :data:`~.reanchor.REANCHORABLE`, else a clear error."""
     if not isinstance(value, tuple) or any(v not in REANCHORABLE for v in value) or len(set(value)) != len(value):
         raise InvalidSettings(f"{name} must be a tuple of distinct names among {REANCHORABLE}; got {value!r}")
+
+
+def measured_values(measurement: Measurement) -> np.ndarray:
+    """The readings of ``MEASURED`` as floats, nan where a reading is missing (``None``) or not a number: one
+    conversion of the five (a few microseconds a step less than :func:`finite_or` on each), each value on its own
+    where one is not a plain number. An infinite reading stays infinite here; :meth:`DisturbanceEkf.readings`
+    leaves it unused as :func:`finite_or`'s nan."""
+    raw = [getattr(measurement, n, None) for n in MEASURED]
+    try:
+        return np.array(raw, float)
+    except (TypeError, ValueError):
+        return np.array([finite_or(v, np.nan) for v in raw])
 
 
 def finite_or(value, default: float) -> float:

@@ -588,7 +588,7 @@ class TrackingProblem:
         cap = (min(cap_a_pct, 100.0) - self.u_off[ia]) / self.u_sc[ia]
         reachable = (u_prev_phys[ia] - self.u_off[ia]) / self.u_sc[ia] - self._a_travel
         hi[:, ia] = np.minimum(hi[:, ia], np.maximum(cap, reachable))
-        first = self.scale_u(np.array(command or self.command_bounds(u_prev_phys, cap_a_pct, heater_temp_c)))  # (2, nu)
+        first = self.scale_u(command or self.command_bounds(u_prev_phys, cap_a_pct, heater_temp_c))  # (2, nu)
         lo[0] = np.maximum(lo[0], first[0])
         hi[0] = np.minimum(hi[0], first[1])
         lo[0] = np.minimum(lo[0], hi[0])

@@ -45,7 +45,7 @@ from pathlib import Path
 import numpy as np
 import osqp
 
-from .codegen import SWITCH_ENV, CodegenReport, _ensure, cache_dir, compile_shared
+from .codegen import SWITCH_ENV, CodegenReport, _ensure, cache_dir, compile_shared, processor
 
 #: Compiler flags of the generated solver. No fast-math and no contraction into fused multiply-adds:
 #: the arithmetic stays that of OSQP's own build, so the answers are the Python interface's.
@@ -297,18 +297,8 @@ def structure_key(wrapper: osqp.OSQP, P_pattern: tuple, A_pattern: tuple) -> str
     h.update(" ".join(CFLAGS).encode())
     h.update(GLUE.encode())
     h.update(platform.machine().encode())
-    h.update(_processor().encode())
+    h.update(processor().encode())
     return h.hexdigest()[:20]
-
-
-def _processor() -> str:
-    """The processor's model and instruction-set flags (``-march=native`` code runs only where they are)."""
-    try:
-        lines = Path("/proc/cpuinfo").read_text().splitlines()
-    except OSError:
-        return platform.processor()
-    keys = ("model name", "flags", "Features", "CPU implementer", "CPU architecture", "CPU variant", "CPU part")
-    return "|".join(sorted({ln.split(":", 1)[1].strip() for ln in lines if ln.startswith(keys) and ":" in ln}))
 
 
 def load(wrapper: osqp.OSQP, P_pattern: tuple, A_pattern: tuple, first_pass_iter: int = 0,
@@ -434,6 +424,7 @@ class EmbeddedOsqp(TwoPassSolve):
         self._nnz_p, self._nnz_a = int(f.hq_nnz_p()), int(f.hq_nnz_a())
         self._info = np.zeros(2, np.int64)
         self._info_p = self._info.ctypes.data
+        self._bounds: tuple | None = None  # the bound arrays last handed over and their addresses (update_vectors)
         self._passes(wrapper.settings, first_pass_iter)
 
     @staticmethod
@@ -464,9 +455,13 @@ class EmbeddedOsqp(TwoPassSolve):
     def update_vectors(self, q: np.ndarray, l: np.ndarray, u: np.ndarray) -> None:
         """``l``, ``u`` already within OSQP's infinity."""
         n, m = self.n, self.m
+        if self._bounds is None or self._bounds[0] is not l or self._bounds[1] is not u:
+            # the caller's bound arrays are the same from QP to QP: their addresses are taken (and checked) once, and
+            # the arrays held, so neither can be freed or moved meanwhile
+            self._bounds = (l, u, self._p(l, m), self._p(u, m))
         # its exit flag (e.g. a lower bound above an upper one) is not raised, as OSQP's Python interface does not:
         # the solve then reports the problem infeasible, which the RTI treats as a failed QP
-        self._lib.hq_update_vec(self._p(q, n), self._p(l, m), self._p(u, m))
+        self._lib.hq_update_vec(self._p(q, n), self._bounds[2], self._bounds[3])
 
     def warm_start(self, x: np.ndarray, y: np.ndarray | None = None) -> None:
         """Primal warm start; the multipliers stay those of the last solve unless ``y`` is given."""

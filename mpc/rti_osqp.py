@@ -684,7 +684,7 @@ class RtiOsqpSolver:
         its prediction, in one call (:meth:`use_prediction`). Returns the wall time (s)."""
         t0 = time.perf_counter()
         if self._ml is not None and not self._ml.due() and self._prepared is not None \
-                and np.array_equal(self._prepared["w_y"], w_y):
+                and same_values(self._prepared["w_y"], w_y):
             self._prepare_vectors(u_cmd, setpoint_c, u_prev, ref, w_y)
             return time.perf_counter() - t0
         ekf = self._ekf
@@ -872,13 +872,13 @@ class RtiOsqpSolver:
         prep = 0.0
         cold = self.X is None
         max_qps = max(self.sqp_max_iter, self.cold_start_qps) if cold else self.sqp_max_iter
-        changed = self._prepared is not None and not np.array_equal(self._prepared["ref"], ref)
+        changed = self._prepared is not None and not same_values(self._prepared["ref"], ref)
         if changed:
             max_qps = max(max_qps, self.reference_change_qps)
         started = False
         if changed and self._steady is not None and starts_at_target(self.steady_start_on, self._prepared["ref"], ref):
             prep, started = self._start_steady(x0, u_prev, d, ref, w_y, u_lo, u_hi)
-        reweigh = not started and self._prepared is not None and not np.array_equal(self._prepared["w_y"], w_y)
+        reweigh = not started and self._prepared is not None and not same_values(self._prepared["w_y"], w_y)
         if reweigh and self.reweigh_in_place:
             prep += self._reweigh(x0, u_prev, d, ref, w_y)
         elif not started and (self._prepared is None or reweigh):
@@ -1091,3 +1091,9 @@ def _selection(slots: np.ndarray, size: int) -> ca.DM:
     slots = np.asarray(slots, np.int64).ravel()
     sp_m = sp.csc_matrix((np.ones(slots.size), (slots, np.arange(slots.size))), shape=(size, slots.size))
     return ca.DM(ca.Sparsity(size, slots.size, sp_m.indptr.tolist(), sp_m.indices.tolist()), sp_m.data.tolist())
+
+
+def same_values(a: np.ndarray, b: np.ndarray) -> bool:
+    """``np.array_equal(a, b)`` for two numpy arrays (the same shape and every value equal; nan equals nothing),
+    without its conversions: the references and weights a step compares with the preparation's."""
+    return a.shape == b.shape and bool((a == b).all())

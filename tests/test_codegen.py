@@ -74,6 +74,11 @@ def test_weights_are_inputs_of_the_generated_code_and_the_model_is_part_of_its_k
     base_ekf = MpcController(settings=MpcSettings(codegen=False)).ekf
     for name in ("update_fn", "predict_fn"):
         assert key(getattr(base_ekf, name)) == key(getattr(other_params.ekf, name))
+    # code built for this processor (-march=native) is another build on another processor
+    assert "-march=native" in codegen.CFLAGS and codegen.processor()
+    here = key(base.qp_data)
+    monkeypatch.setattr(codegen, "processor", lambda: "another processor")
+    assert key(base.qp_data) != here
 
 
 def test_without_a_compiler_the_interpreter_runs_the_same_function(tmp_path, monkeypatch):

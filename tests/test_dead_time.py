@@ -181,6 +181,57 @@ def test_shortest_tied_minimum_takes_the_index_of_its_first_formulation():
         _tied_minimum_by_concatenation(np.array([np.nan, 1.0, 2.0]))
 
 
+def _plain_residuals(air, reading, max_steps=6, sensor_tau_s=5.73, window_s=60.0, min_excitation_c=0.05):
+    """The ranking's residuals per sample in their first formulation (each sum apart, the wrong sign's residual by
+    ``np.where``), nan where the window holds no response: the reference of the one-pass sums in use."""
+    lag, forget = np.exp(-1.0 / sensor_tau_s), np.exp(-1.0 / window_s)
+    cand = np.arange(2 * max_steps + 1) / 2.0
+    i0 = np.floor(cand).astype(int)
+    w1 = cand - i0
+    w0, i1 = 1.0 - w1, np.minimum(i0 + 1, max_steps)
+    held = np.full(max_steps + 1, air[0])
+    pred, last_pred = np.full(cand.size, air[0]), None
+    w = syy = 0.0
+    sss, ssy = np.zeros(cand.size), np.zeros(cand.size)
+    out, last_y = [], None
+    for k, (a, y) in enumerate(zip(air, reading)):
+        if k > 0:
+            held = np.r_[a, held[:-1]]
+        last_pred = pred
+        pred = lag * pred + (1.0 - lag) * (w0 * held[i0] + w1 * held[i1])
+        if last_y is None:
+            last_y = y
+            out.append(np.full(cand.size, np.nan))
+            continue
+        ds, dy, last_y = pred - last_pred, y - last_y, y
+        w, syy = forget * w + 1.0, forget * syy + dy * dy
+        sss, ssy = forget * sss + ds * ds, forget * ssy + ds * dy
+        if sss.min() / w < min_excitation_c ** 2:
+            out.append(np.full(cand.size, np.nan))
+            continue
+        out.append(np.where(ssy > 0.0, syy - ssy ** 2 / sss, syy) / w)
+    return out
+
+
+def test_the_one_pass_sums_give_the_residuals_of_their_first_formulation():
+    """The candidates' sums updated together (one array, the wrong sign's residual as syy less 0) give each
+    residual of the sums apart to the bit, on responses of both signs, a quiet stretch and a sign flip of the
+    reading."""
+    rng = np.random.default_rng(11)
+    n = 300
+    air = np.r_[np.full(40, 20.0), 20.0 + np.cumsum(rng.normal(0.0, 0.5, n - 40))]
+    reading = np.r_[np.full(45, 20.0), 40.0 - air[40:n - 5]] + rng.normal(0.0, 0.02, n)  # a response of wrong sign
+    reading[200:] = air[196:n - 4] + rng.normal(0.0, 0.05, n - 200)  # then the right sign, 4 samples late
+    est = DeadTimeEstimator(max_steps=6, sensor_tau_s=5.73)
+    informed = 0
+    for a, y, ref in zip(air, reading, _plain_residuals(air, reading)):
+        est.push_air(a)
+        est.observe(y)
+        assert np.array_equal(est.residuals, ref, equal_nan=True)
+        informed += bool(np.isfinite(ref).all())
+    assert 100 < informed < n - 40  # the quiet start ranks nothing, the responses rank every sample after it
+
+
 def _walk_response(est_settings, n=400, delay=4, seed=4):
     """Estimators fed the model's air (a random walk) and a reading that is that air ``delay`` samples late
     through the sensor lag plus an unmodelled random walk of its own (0.25 C per sample); their estimates."""

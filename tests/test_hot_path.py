@@ -9,7 +9,7 @@ import numpy as np
 from hvac_mpc.benchmarks import solve_time
 from hvac_mpc.contract import Measurement
 from hvac_mpc.models import Environment, Parameters, SimulatedPlant
-from hvac_mpc.mpc.estimator import MEASURED
+from hvac_mpc.mpc.estimator import MEASURED, finite_or, measured_values
 from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
 from hvac_mpc.mpc.valve_map import VALVE_NAMES, ValveMap
 
@@ -209,3 +209,45 @@ def test_the_estimators_numpy_shortcuts_give_the_values_of_their_general_forms()
     ekf._note_supply_innovation(18.3, True, unit, 0.0025)
     assert (ekf.supply_innovation_c, ekf.supply_nis) == fast
     assert np.isfinite(fast[1]) and fast[1] > 0.0
+
+
+def test_the_readings_converted_at_once_are_those_of_each_alone():
+    """The five readings as one array equal each converted on its own (:func:`finite_or`): plain numbers, a missing
+    reading (None), nan, numpy scalars, a numeric string; where one is not a number at all, each on its own gives it
+    nan. An infinite reading stays infinite, and :meth:`DisturbanceEkf.readings` leaves it unused all the same."""
+
+    class Reading:
+        def __init__(self, **values):
+            self.__dict__.update(values)
+
+    cases = [dict(supply_temp_c=18.4, volume_flow_m3s=0.031, hvac_inlet_temp_c=25.7, water_temp_c=6.3,
+                  heater_outlet_temp_c=19.0),
+             dict(supply_temp_c=np.float32(18.4), volume_flow_m3s=np.float64(0.031), hvac_inlet_temp_c=26,
+                  water_temp_c=None, heater_outlet_temp_c=float("nan")),
+             dict(supply_temp_c="18.5", volume_flow_m3s=True, hvac_inlet_temp_c=25.0),
+             dict(supply_temp_c="warm", volume_flow_m3s=object(), hvac_inlet_temp_c=25.0, water_temp_c=[1.0]),
+             dict(supply_temp_c=float("inf"), volume_flow_m3s=-float("inf"), hvac_inlet_temp_c=25.0)]
+    ekf = MpcController(settings=MpcSettings(codegen=False)).ekf
+    for case in cases:
+        m = Reading(**case)
+        each = np.array([finite_or(getattr(m, n, None), np.nan) for n in MEASURED])
+        at_once = measured_values(m)
+        finite = np.isfinite(at_once)
+        assert np.array_equal(at_once[finite], each[finite]) and np.array_equal(np.isfinite(each), finite)
+        values, ok = ekf.readings(m)
+        assert np.array_equal(ok, np.isfinite(each) & ekf.use)
+        assert np.array_equal(values, np.where(ok, each, 0.0))
+
+
+def test_the_preparations_comparison_is_numpys_array_equal():
+    """:func:`~hvac_mpc.mpc.rti_osqp.same_values` (the reference and weights against the preparation's) answers as
+    ``np.array_equal``: equal values, another value, nan (equal to nothing), signed zeros, another shape."""
+    from hvac_mpc.mpc.rti_osqp import same_values
+    a = np.array([22.0, 0.03, 0.0, 0.0, 0.0, 0.0, 0.0])
+    others = [a.copy(), a + 1e-15, np.r_[a[:-1], -0.0], np.r_[np.nan, a[1:]], a[:-1], a.reshape(1, -1),
+              np.zeros(7)]
+    for b in others:
+        assert same_values(a, b) == np.array_equal(a, b)
+    nan = np.r_[np.nan, a[1:]]
+    assert same_values(nan, nan.copy()) == np.array_equal(nan, nan.copy()) is False
+    assert [same_values(a, b) for b in others].count(True) == 2  # the copy and the signed zero

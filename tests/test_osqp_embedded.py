@@ -105,6 +105,29 @@ def test_each_solver_has_a_workspace_of_its_own(cache, recorded):
         assert one.rho == two.rho
 
 
+def test_bound_arrays_written_in_place_give_the_answers_of_new_ones(cache, recorded):
+    """The RTI writes its bounds into the same two arrays every QP, whose addresses the generated solver takes once:
+    the values written in place between QPs are the ones solved with (the Python interface's answers, as with new
+    arrays each QP), and arrays handed over in their place are checked and taken."""
+    qps, lay = recorded
+    kept = osqp_embedded.load(_setup(lay, qps[0]), lay.P_pattern, lay.A_pattern)
+    python = _OsqpCore(_setup(lay, qps[0]))
+    lo, hi = np.empty_like(qps[0]["l"]), np.empty_like(qps[0]["u"])
+    for qp in qps[:12]:
+        lo[:], hi[:] = qp["l"], qp["u"]
+        answers = []
+        for core, bounds in ((kept, (lo, hi)), (python, (qp["l"], qp["u"]))):
+            core.update_matrices(qp["Px"], qp["Ax"])
+            core.update_vectors(qp["q"], *bounds)
+            core.warm_start(qp["warm"])
+            answers.append(core.solve())
+        (s1, t1, n1, x1), (s2, t2, n2, x2) = answers
+        assert (s1, t1, n1) == (s2, t2, n2) and np.array_equal(x1, x2)
+    assert len({float(np.abs(qp["l"] - qps[0]["l"]).max()) for qp in qps[:12]}) > 1  # the bounds did move
+    with pytest.raises(ValueError, match="contiguous float64 array of"):
+        kept.update_vectors(qps[0]["q"], lo[:-1], hi)
+
+
 def test_without_a_compiler_the_python_interface_solves(tmp_path, monkeypatch, recorded):
     qps, lay = recorded
     monkeypatch.setenv(codegen.CACHE_ENV, str(tmp_path))

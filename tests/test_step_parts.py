@@ -24,3 +24,20 @@ def test_the_steps_measured_are_the_median_kind_or_the_changes():
     assert step_parts.selected(one, 20, changes=False) and not step_parts.selected(change, 20, changes=False)
     assert not step_parts.selected({"qp_solves": 1, "iterations": 21}, 20, changes=False)
     assert step_parts.selected(change, 20, changes=True) and not step_parts.selected(one, 20, changes=True)
+
+
+def test_a_part_counts_inside_the_step_only():
+    """The filter not in use is brought up to the sample between the steps where the loop idles (its updates are
+    not the step's, so not counted), and inside the next step back to back (counted under its own label)."""
+    for idle_s, inside in ((0.2, False), (0.0, True)):
+        totals: dict[str, float] = {}
+        with step_parts.timed(totals):
+            loop = solve_time.Loop(MpcController(settings=MpcSettings(codegen=False)), seed=7, idle_s=idle_s)
+            loop.step(0)
+            loop.step(1)
+            totals.clear()
+            loop.step(2)
+        other = totals.get("the other filter (measurement and time update)", 0.0)
+        # idling, the step finds the other filter already brought up (a call that returns at once)
+        assert (other > 0.01 * totals["whole step"]) == inside and other < totals["whole step"]
+        assert 0.0 < totals["estimator update"] < totals["whole step"]
