@@ -83,7 +83,7 @@ OWN_RANGES = {"bypass_flow_after_s": (0.0, 3600.0), "motor_sd_after_response_c":
               "bypass_flow_settle_s": (1.0, 3600.0), "reanchor_hold_s": (0.0, 3600.0),
               "r_supply_rest_c": (0.0, 100.0), "rest_window_s": (1.0, 3600.0), "rest_air_band_c": (0.0, 100.0),
               "rest_log_flow_band": (0.0, 10.0), "rest_offset_band_c": (0.0, 100.0),
-              "response_wait_c": (0.0, 10.0), "response_wait_share": (0.01, 1.0)}
+              "response_wait_c": (0.0, 10.0), "response_wait_share": (0.01, 1.0), "response_wait_flat_c": (0.0, 10.0)}
 #: Settings that shape the learning of the bypass-flow exponent and do nothing without ``learn_bypass_flow``
 #: (field -> its value that leaves learning as it is).
 BYPASS_FLOW_LEARNING_GATES = {"bypass_flow_anchored": False, "bypass_flow_after_response": False,
@@ -98,10 +98,9 @@ REST_HEATER_TOL_W = 50.0
 OWN_OFFSETS = (("q_cooler_offset_c", "cooler_outlet_offset_c"), ("q_heater_air_offset_c", "heater_air_offset_c"))
 #: Standard deviation (degC) of those offsets at the start. ASSUMPTION: as the heater outlet reading's offset's.
 OWN_OFFSET_SD0_C = 1.0
-#: Longest wait for a predicted response (``EkfSettings.response_wait_c``), in units of the longest dead time the
-#: filter estimates (plus a sample). ASSUMPTION: the dead time itself and as long again for its estimate to rank the
-#: response (8 s after a valve step on the 3 s box, docs/robustness.md sec. 2.17).
-RESPONSE_WAIT_SPAN = 2
+#: No wait for a predicted response (``EkfSettings.response_wait_c``) within this long after the filter starts (s):
+#: its own corrections move the model's air then. ASSUMPTION: as ``rest_window_s`` and ``reanchor_hold_s`` (20 s).
+RESPONSE_WAIT_AFTER_S = 20.0
 #: Measurement names in the order of the filter's measurement vector.
 MEASURED = ("supply_temp_c", "volume_flow_m3s", "water_temp_c", "hvac_inlet_temp_c", "heater_outlet_temp_c")
 
@@ -271,6 +270,20 @@ class EkfSettings:
     heater body's creep does not; the gate of the bypass-flow fit; about twice the offset's noise wander at rest.
     Measured (sec. 2.10): the quick mismatch suite's flow-out-of-reach column, seeds 0-4, and the unlisted boxes
     improve on every seed, the built-in bench within 0.005 of before in every scenario.
+
+    ``response_wait_c``: leave the supply reading out of the measurement update while a response the model predicts
+    is still to show (degC in [0, 10]; 0: never, the default): a wait starts at a sample whose prediction of the
+    reading at the dead time honoured (the model's air without the offset, through the thermocouple lag) changed by at
+    least this while the reading changed by less than ``response_wait_share`` (in [0.01, 1]) of it (not within the
+    filter's first ``RESPONSE_WAIT_AFTER_S``), and ends when the honoured dead time moves, at once where the reading
+    followed within ``dead_time_min_s``, else as long again after the response began; at once where the reading moves
+    against the prediction or stays put longer than ``dead_time_max_s`` (a model error, not a dead time;
+    :mod:`~.response_wait`). Where the box has a dead time nothing has shown yet, the plain update takes the missing
+    response of a large move for a model error and the MPC overshoots when it arrives (the full mismatch suite's
+    worst cells, a temperature step with the flow
+    out of reach). ``response_wait_flat_c`` (degC in [0, 10]; 0: no bound): a wait begins only where the reading's
+    change in that sample is at most this as well (a reading that stays put; a response smaller than the model's
+    starts none). ASSUMPTIONS: 0.2 degC, four times the reading's noise; 0.5. docs/robustness.md sec. 2.17.
     """
 
     q_motor_c: float = 0.01
@@ -329,6 +342,7 @@ class EkfSettings:
     rest_offset_band_c: float = 0.07
     response_wait_c: float = 0.0
     response_wait_share: float = 0.5
+    response_wait_flat_c: float = 0.0
 
     def validate(self, prefix: str = "ekf") -> None:
         for f in fields(self):
@@ -446,7 +460,8 @@ class DisturbanceEkf:
         # the supply reading left out while a predicted response is still to show (EkfSettings.response_wait_c)
         self.response_wait = (ResponseWait(s.response_wait_c, s.response_wait_share,
                                            max(1, math.ceil(s.dead_time_min_s / self.dt_s - 1e-9)),
-                                           RESPONSE_WAIT_SPAN * (self.n_hist + 1))
+                                           self.n_hist + 1, int(round(RESPONSE_WAIT_AFTER_S / self.dt_s)),
+                                           s.response_wait_flat_c)
                               if s.response_wait_c > 0.0 and self.n_hist else None)
         self.use = np.array([True, True, True, True, s.use_heater_outlet])
         # the filter states the supply reading is compared with: the thermocouple state now and its history

@@ -12,11 +12,13 @@ the step itself (docs/robustness.md sec. 2.17).
 reading at the dead time honoured now (the estimate's candidate of :class:`~.dead_time.DeadTimeEstimator`,
 the model's air without the offset through the thermocouple lag) and the reading. A wait starts at a sample
 whose predicted change is at least ``trigger_c`` while the reading's change is less than ``share`` of it (in the
-predicted direction). It ends once the dead time the prediction honours moves (the filter then compares the
-reading with the model's state of that dead time ago), at once where the reading's change since the wait began
+predicted direction), and only at the onset of the predicted change (:data:`ONSET_SHARE`). It ends once the dead time the prediction honours moves (the filter then compares the
+reading with the model's state of that dead time ago); at once where the reading's change since the wait began
 reaches ``share`` of the predicted one within ``min_samples`` (a dead time shorter than the filter honours),
 otherwise as many samples after that as the response took to begin (the dead-time estimate ranks the response
-meanwhile), and after ``max_samples`` at the latest. While it waits the estimator leaves the supply reading out of its
+meanwhile); at once where the reading moves against the prediction by ``share`` of it or stays put for
+``max_samples`` (a model error, not a dead time: on the built-in plant, whose split depends on the flow as the
+filter's model does not, a flow change moved the prediction and not the reading). While it waits the estimator leaves the supply reading out of its
 measurement update: the model's states run open loop over the wait, the controller steers the response the
 model predicts (a Smith predictor for the samples of the wait), and the offsets stay where the last rest left
 them. A box without a dead time shows the response in the sample of the move (the thermocouple's lag moves the
@@ -30,15 +32,26 @@ from __future__ import annotations
 import math
 
 
+#: A wait begins only at the onset of a predicted change: the prediction's change in the sample before below this share
+#: of ``trigger_c``. Within a transient already under way (the prediction moving for a while) a reading that stops
+#: short of the model's is a model error, not a dead time (on the built-in plant, the second sample of a cooling
+#: step: the reading settled 1.2 degC above the model's air while the model kept falling). ASSUMPTION: a half.
+ONSET_SHARE = 0.5
+
+
 class ResponseWait:
     """A wait for the reading to follow a predicted change (module docstring).
 
     Per sample :meth:`observe` with the prediction of the reading (degC), the reading (degC) and the dead time
     the prediction honours (samples); ``waiting`` is True while the reading is to be left out. ``trigger_c``
     (degC, > 0), ``share`` (in (0, 1]), ``min_samples`` (>= 1) and ``max_samples`` (>= ``min_samples``) as in the
-    module docstring."""
+    module docstring; no wait begins within the first ``after_samples`` samples after a reset (the filter's start-up,
+    whose own corrections move the model's air while the reading does not). ``flat_c`` (degC, 0: no bound): a wait
+    begins only where the reading's change in that sample is also at most this (a reading that stays put, as behind
+    a dead time; a response smaller than the model's, a gain error, does not start one)."""
 
-    def __init__(self, trigger_c: float, share: float, min_samples: int, max_samples: int):
+    def __init__(self, trigger_c: float, share: float, min_samples: int, max_samples: int, after_samples: int = 0,
+                 flat_c: float = 0.0):
         if not trigger_c > 0.0:
             raise ValueError(f"ResponseWait: trigger_c must be > 0 degC, got {trigger_c}")
         if not 0.0 < share <= 1.0:
@@ -49,6 +62,8 @@ class ResponseWait:
         self.share = float(share)
         self.min_samples = int(min_samples)
         self.max_samples = int(max_samples)
+        self.after_samples = max(0, int(after_samples))
+        self.flat_c = float(flat_c)
         self.reset()
 
     def reset(self) -> None:
@@ -56,7 +71,9 @@ class ResponseWait:
         self._last: tuple[float, float, float] | None = None  # (prediction, reading, dead time) of the last sample
         self._start: tuple[float, float, float] | None = None  # ... of the sample before the wait began
         self._samples = 0  # samples of the wait so far
-        self._end = self.max_samples  # the wait's last sample
+        self._seen = 0  # samples observed since the reset
+        self._last_dp = 0.0  # the prediction's change in the last sample (degC)
+        self._end: int | None = None  # the wait's last sample, once known
         self.waits = 0  # waits begun since the reset
 
     @property
@@ -68,14 +85,20 @@ class ResponseWait:
         return read_c * math.copysign(1.0, predicted_c) >= self.share * abs(predicted_c)
 
     def _continue(self, prediction_c: float, reading_c: float, steps: float) -> None:
-        """One more sample of the wait: it ends where the dead time honoured moved, at its last sample, or at once
-        where the response began within ``min_samples`` (a dead time too short to honour); a response that began
-        later keeps the wait for as long again (the estimate of the dead time ranks it meanwhile)."""
+        """One more sample of the wait. It ends where the dead time honoured moved; where the reading moved against
+        the prediction by ``share`` of it (a model error, not a dead time); where the reading stayed put for
+        ``max_samples`` (longer than any dead time honoured); at once where the response began within
+        ``min_samples`` (a dead time too short to honour); otherwise as many samples after the response began as it
+        took to begin (the estimate of the dead time ranks the response meanwhile)."""
         self._samples += 1
         p0, y0, steps0 = self._start
-        if self._end == self.max_samples and self._followed(prediction_c - p0, reading_c - y0):
-            self._end = 0 if self._samples <= self.min_samples else min(2 * self._samples, self.max_samples)
-        if steps != steps0 or self._samples > self._end:
+        moved_c, read_c = prediction_c - p0, reading_c - y0
+        if self._end is None:  # the response has not begun
+            if self._followed(moved_c, read_c):
+                self._end = 0 if self._samples <= self.min_samples else 2 * self._samples
+            elif self._followed(-moved_c, read_c) or self._samples > self.max_samples:
+                self._end = 0
+        if steps != steps0 or (self._end is not None and self._samples > self._end):
             self._start = None
 
     def observe(self, prediction_c: float, reading_c: float, steps: float = 0.0) -> bool:
@@ -87,10 +110,14 @@ class ResponseWait:
         if self._start is not None:
             self._continue(prediction_c, reading_c, float(steps))
             return self.waiting
-        if last is None or last[2] != float(steps):  # a new dead time honoured: its prediction is not comparable
-            return False
+        self._seen += 1
+        if last is None or last[2] != float(steps) or self._seen <= self.after_samples:
+            return False  # a new dead time honoured (its prediction is not comparable), or the filter's start-up
         dp = prediction_c - last[0]
-        if abs(dp) >= self.trigger_c and not self._followed(dp, reading_c - last[1]):
-            self._start, self._samples, self._end = last, 1, self.max_samples
+        dy, onset = reading_c - last[1], abs(self._last_dp) < ONSET_SHARE * self.trigger_c
+        self._last_dp = dp
+        flat = self.flat_c <= 0.0 or abs(dy) <= self.flat_c
+        if abs(dp) >= self.trigger_c and onset and flat and not self._followed(dp, dy):
+            self._start, self._samples, self._end = last, 1, None
             self.waits += 1
         return self.waiting

@@ -31,11 +31,13 @@ def lagged_step(n: int, start: int, size_c: float, delay: int = 0) -> np.ndarray
     return np.where(k > 0, size_c * (1.0 - np.exp(-np.maximum(k, 0) / TAU_S)), 0.0)
 
 
-def waits(delay: int, steps=None, size_c: float = -2.0) -> list[bool]:
-    """Per sample whether the rule waits: the prediction a lagged step at sample 5, the reading the same ``delay``
-    samples later (noise-free); ``steps`` the dead time the prediction honours per sample (0 throughout)."""
-    rule = ResponseWait(trigger_c=0.2, share=0.5, min_samples=2, max_samples=14)
-    pred, read = 18.0 + lagged_step(40, 5, size_c), 18.0 + lagged_step(40, 5, size_c, delay)
+def waits(delay: int, steps=None, size_c: float = -2.0, read_c: float | None = None, after: int = 0) -> list[bool]:
+    """Per sample whether the rule waits: the prediction a lagged step of ``size_c`` at sample 5, the reading a step
+    of ``read_c`` (the same by default) ``delay`` samples later (noise-free); ``steps`` the dead time the prediction
+    honours per sample (0 throughout by default); the longest dead time 6 samples (``max_samples`` 7)."""
+    rule = ResponseWait(trigger_c=0.2, share=0.5, min_samples=2, max_samples=7, after_samples=after)
+    pred = 18.0 + lagged_step(40, 5, size_c)
+    read = 18.0 + lagged_step(40, 5, size_c if read_c is None else read_c, delay)
     steps = np.zeros(40) if steps is None else steps
     return [rule.observe(p, y, s) for p, y, s in zip(pred, read, steps)]
 
@@ -48,22 +50,47 @@ def test_a_late_response_is_waited_for_and_a_prompt_one_is_not():
     # wait keeps as long again, then ends (the dead-time estimate ranks the response meanwhile)
     assert sum(late) == 10 and not any(late[16:])
     assert sum(waits(1)) <= 2  # a dead time shorter than honoured (min_samples): released once the reading follows
-    assert sum(waits(12)) == 14  # a response later than the longest dead time: the wait ends at max_samples
 
 
-def test_the_wait_ends_where_the_dead_time_honoured_moves():
+def test_a_reading_that_stays_put_or_moves_against_the_prediction_ends_the_wait():
+    """Not a dead time but a model error: a reading flat for longer than the longest dead time (7 samples), or
+    moving against the prediction."""
+    assert sum(waits(30)) == 7 and sum(waits(0, read_c=0.0)) == 7
+    assert sum(waits(0, read_c=+2.0)) <= 2 and sum(waits(3, read_c=+2.0)) <= 4
+
+
+def test_the_wait_ends_where_the_dead_time_honoured_moves_and_none_begins_in_the_start_up():
     steps = np.zeros(40)
     steps[8:] = 3.0  # the estimate moves two samples into the wait
     w = waits(3, steps=steps)
     assert w[6] and w[7] and not any(w[8:])
+    assert not any(waits(3, after=10))  # the move at sample 5, within the filter's first 10 samples
+
+
+def test_only_the_onset_of_a_predicted_change_starts_a_wait_and_flat_c_bounds_the_reading():
+    """A prediction falling 0.3 degC per sample from sample 5: a reading that stops at sample 10 while the model's
+    keeps falling is a model error within a transient (no wait), one that stays put from the start waits. With
+    ``flat_c`` a reading that moved by more than it in the sample of the onset (here 0.17 degC the wrong way, the
+    reading's noise) starts no wait."""
+    ramp = 18.0 - 0.3 * np.clip(np.arange(30) - 5, 0, None)
+    stalls = np.where(np.arange(30) < 10, ramp, ramp[9])
+    rule = ResponseWait(0.2, 0.5, 2, 7)
+    assert not any(rule.observe(p, y) for p, y in zip(ramp, stalls))
+    rule = ResponseWait(0.2, 0.5, 2, 7)
+    assert any(rule.observe(p, 18.0) for p in ramp)
+    noisy = np.full(30, 18.0)
+    noisy[6:] += 0.17
+    for flat_c, waited in ((0.0, True), (0.1, False), (0.2, True)):
+        rule = ResponseWait(0.2, 0.5, 2, 7, flat_c=flat_c)
+        assert any(rule.observe(p, y) for p, y in zip(ramp, noisy)) == waited
 
 
 def test_small_changes_and_gaps_start_no_wait():
     assert not any(waits(3, size_c=-0.5))  # the largest one-sample change of the prediction below 0.2 degC
-    rule = ResponseWait(0.2, 0.5, 2, 14)
+    rule = ResponseWait(0.2, 0.5, 2, 7)
     assert not rule.observe(math.nan, 18.0) and not rule.observe(18.0, 18.0) and not rule.observe(17.0, math.nan)
     for bad in (dict(trigger_c=0.0), dict(share=0.0), dict(share=1.5), dict(min_samples=0), dict(max_samples=1)):
-        args = dict(trigger_c=0.2, share=0.5, min_samples=2, max_samples=14) | bad
+        args = dict(trigger_c=0.2, share=0.5, min_samples=2, max_samples=7) | bad
         with pytest.raises(ValueError, match="ResponseWait"):
             ResponseWait(**args)
 
@@ -107,7 +134,7 @@ def test_response_wait_settings_are_checked():
     assert DisturbanceEkf(HvacModel(Parameters()), EkfSettings(response_wait_c=0.2, dead_time_max_s=0.0)
                           ).response_wait is None  # no dead-time handling: nothing to wait for
     for field, bad in (("response_wait_c", -0.1), ("response_wait_c", 11.0), ("response_wait_share", 0.0),
-                       ("response_wait_share", 1.2)):
+                       ("response_wait_share", 1.2), ("response_wait_flat_c", -0.1)):
         with pytest.raises(InvalidSettings, match=f"ekf.{field}"):
             MpcSettings(ekf=EkfSettings(**{field: bad}))
 
