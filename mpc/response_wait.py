@@ -9,22 +9,22 @@ the offset with a larger move still, and when the response arrives the air overs
 the step itself (docs/robustness.md sec. 2.17).
 
 :class:`ResponseWait` tells the estimator when that is so, from the filter's own signals: the prediction of the
-reading at the dead time honoured now (the estimate's candidate of :class:`~.dead_time.DeadTimeEstimator`,
-the model's air without the offset through the thermocouple lag) and the reading. A wait starts at a sample
-whose predicted change is at least ``trigger_c`` while the reading's change is less than ``share`` of it (in the
-predicted direction), and only at the onset of the predicted change (:data:`ONSET_SHARE`). It ends once the dead time the prediction honours moves (the filter then compares the
-reading with the model's state of that dead time ago); at once where the reading's change since the wait began
-reaches ``share`` of the predicted one within ``min_samples`` (a dead time shorter than the filter honours),
-otherwise as many samples after that as the response took to begin (the dead-time estimate ranks the response
-meanwhile); at once where the reading moves against the prediction by ``share`` of it or stays put for
-``max_samples`` (a model error, not a dead time: on the built-in plant, whose split depends on the flow as the
-filter's model does not, a flow change moved the prediction and not the reading). While it waits the estimator leaves the supply reading out of its
-measurement update: the model's states run open loop over the wait, the controller steers the response the
-model predicts (a Smith predictor for the samples of the wait), and the offsets stay where the last rest left
-them. A box without a dead time shows the response in the sample of the move (the thermocouple's lag moves the
-reading at once), so no wait starts there but on the noise (a predicted change of 0.2 degC against a reading
-noise of 0.05 degC: about one move in twelve, for a sample or two). Pure Python, no model code: the estimator
-feeds it.
+reading at the dead time honoured now (the estimate's candidate of :class:`~.dead_time.DeadTimeEstimator`, the
+model's air without the offset through the thermocouple lag) and the reading. A wait starts at a sample whose
+predicted change is at least ``trigger_c`` while the reading's change is less than ``share`` of it (in the
+predicted direction), and only at the onset of the predicted change (:data:`ONSET_SHARE`). It ends once the dead
+time the prediction honours moves (the filter then compares the reading with the model's state of that dead time
+ago); at once where the reading's change since the wait began reaches ``share`` of the predicted one within
+``min_samples`` (a dead time shorter than the filter honours), otherwise as many samples after that as the
+response took to begin (the dead-time estimate ranks the response meanwhile); at once where the reading moves
+against the prediction by ``share`` of it or stays put for ``max_samples`` (a model error, not a dead time: on the
+built-in plant, whose split depends on the flow as the filter's model's does not, a flow change moved the
+prediction and not the reading). While it waits the estimator leaves the supply reading out of its measurement
+update: the model's states run open loop over the wait, the controller steers the response the model predicts (a
+Smith predictor for the samples of the wait), and the offsets stay where they were. A box without a dead time shows
+the response in the sample of the move (the thermocouple's lag moves the reading at once), so a wait starts there
+only where the reading's noise or a model error hides that (sec. 2.17 has what that cost on the built-in plant).
+Pure Python, no model code: the estimator feeds it.
 """
 
 from __future__ import annotations
