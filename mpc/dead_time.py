@@ -122,6 +122,14 @@ class DeadTimeEstimator:
     def seconds(self) -> float:
         return self.steps * self.dt_s
 
+    def prediction_c(self, steps: float) -> float:
+        """The prediction of the reading last observed (or next, before :meth:`observe`) by the candidate of
+        ``steps`` samples (degC; the model's air without its offset, through the thermocouple lag; nan before
+        any air)."""
+        if self._air is None:
+            return math.nan
+        return float(self._pred[int(np.argmin(np.abs(self.candidates - float(steps))))])
+
     def push_air(self, air_c: float) -> None:
         """The model's mixed-air temperature held over the coming sample (degC)."""
         if not math.isfinite(air_c):

@@ -67,6 +67,7 @@ from .casadi_eval import BufferedFunction
 from .dead_time import DeadTimeEstimator
 from .flow_term import FlowStepFit, SettledFlowSteps
 from .reanchor import REANCHORABLE, FilterLayout, OpenLoopShadow, reanchor
+from .response_wait import ResponseWait
 from .rest_gate import RestGate
 from .ocp import InvalidSettings, check_flag, check_number
 
@@ -81,7 +82,8 @@ BYPASS_FLOW_EXPONENT_RANGE = (-3.0, 3.0)
 OWN_RANGES = {"bypass_flow_after_s": (0.0, 3600.0), "motor_sd_after_response_c": (0.0, 10.0),
               "bypass_flow_settle_s": (1.0, 3600.0), "reanchor_hold_s": (0.0, 3600.0),
               "r_supply_rest_c": (0.0, 100.0), "rest_window_s": (1.0, 3600.0), "rest_air_band_c": (0.0, 100.0),
-              "rest_log_flow_band": (0.0, 10.0), "rest_offset_band_c": (0.0, 100.0)}
+              "rest_log_flow_band": (0.0, 10.0), "rest_offset_band_c": (0.0, 100.0),
+              "response_wait_c": (0.0, 10.0), "response_wait_share": (0.01, 1.0), "response_wait_flat_c": (0.0, 10.0)}
 #: Settings that shape the learning of the bypass-flow exponent and do nothing without ``learn_bypass_flow``
 #: (field -> its value that leaves learning as it is).
 BYPASS_FLOW_LEARNING_GATES = {"bypass_flow_anchored": False, "bypass_flow_after_response": False,
@@ -96,6 +98,9 @@ REST_HEATER_TOL_W = 50.0
 OWN_OFFSETS = (("q_cooler_offset_c", "cooler_outlet_offset_c"), ("q_heater_air_offset_c", "heater_air_offset_c"))
 #: Standard deviation (degC) of those offsets at the start. ASSUMPTION: as the heater outlet reading's offset's.
 OWN_OFFSET_SD0_C = 1.0
+#: No wait for a predicted response (``EkfSettings.response_wait_c``) within this long after the filter starts (s):
+#: its own corrections move the model's air then. ASSUMPTION: as ``rest_window_s`` and ``reanchor_hold_s`` (20 s).
+RESPONSE_WAIT_AFTER_S = 20.0
 #: Measurement names in the order of the filter's measurement vector.
 MEASURED = ("supply_temp_c", "volume_flow_m3s", "water_temp_c", "hvac_inlet_temp_c", "heater_outlet_temp_c")
 
@@ -265,6 +270,20 @@ class EkfSettings:
     heater body's creep does not; the gate of the bypass-flow fit; about twice the offset's noise wander at rest.
     Measured (sec. 2.10): the quick mismatch suite's flow-out-of-reach column, seeds 0-4, and the unlisted boxes
     improve on every seed, the built-in bench within 0.005 of before in every scenario.
+
+    ``response_wait_c``: leave the supply reading out of the measurement update while a response the model predicts
+    is still to show (degC in [0, 10]; 0: never, the default): a wait starts at a sample whose prediction of the
+    reading at the dead time honoured (the model's air without the offset, through the thermocouple lag) changed by at
+    least this while the reading changed by less than ``response_wait_share`` (in [0.01, 1]) of it (not within the
+    filter's first ``RESPONSE_WAIT_AFTER_S``), and ends when the honoured dead time moves, at once where the reading
+    followed within ``dead_time_min_s``, else as long again after the response began; at once where the reading moves
+    against the prediction or stays put longer than ``dead_time_max_s`` (a model error, not a dead time;
+    :mod:`~.response_wait`). Where the box has a dead time nothing has shown yet, the plain update takes the missing
+    response of a large move for a model error and the MPC overshoots when it arrives (the full mismatch suite's
+    worst cells, a temperature step with the flow
+    out of reach). ``response_wait_flat_c`` (degC in [0, 10]; 0: no bound): a wait begins only where the reading's
+    change in that sample is at most this as well (a reading that stays put; a response smaller than the model's
+    starts none). ASSUMPTIONS: 0.2 degC, four times the reading's noise; 0.5. docs/robustness.md sec. 2.17.
     """
 
     q_motor_c: float = 0.01
@@ -321,6 +340,9 @@ class EkfSettings:
     rest_air_band_c: float = 0.2
     rest_log_flow_band: float = 0.05
     rest_offset_band_c: float = 0.07
+    response_wait_c: float = 0.0
+    response_wait_share: float = 0.5
+    response_wait_flat_c: float = 0.0
 
     def validate(self, prefix: str = "ekf") -> None:
         for f in fields(self):
@@ -437,6 +459,12 @@ class DisturbanceEkf:
         # the supply reading's deviation at rest (EkfSettings.r_supply_rest_c): the rest gate and the variances there
         self.rest_gate = (RestGate(s.rest_window_s, s.rest_air_band_c, s.rest_log_flow_band, s.rest_offset_band_c,
                                    self.dt_s) if s.r_supply_rest_c > 0.0 else None)
+        # the supply reading left out while a predicted response is still to show (EkfSettings.response_wait_c)
+        self.response_wait = (ResponseWait(s.response_wait_c, s.response_wait_share,
+                                           max(1, math.ceil(s.dead_time_min_s / self.dt_s - 1e-9)),
+                                           self.n_hist + 1, int(round(RESPONSE_WAIT_AFTER_S / self.dt_s)),
+                                           s.response_wait_flat_c)
+                              if s.response_wait_c > 0.0 and self.n_hist else None)
         self.use = np.array([True, True, True, True, s.use_heater_outlet])
         # the filter states the supply reading is compared with: the thermocouple state now and its history
         self._supply_idx = np.array([self.i_sensor] + list(range(self.nc, self.nz)))
@@ -488,6 +516,8 @@ class DisturbanceEkf:
         self.supply_innovation_c = self.supply_nis = math.nan  # no measurement update of this run yet
         if self.rest_gate is not None:
             self.rest_gate.reset()
+        if self.response_wait is not None:
+            self.response_wait.reset()
         self._committed = self.settings.bypass_flow_exponent_prior  # the exponent at the end of the last flow change
         for learner in (getattr(self, "rest_steps", None), getattr(self, "rest_fit", None)):
             if learner is not None:
@@ -811,6 +841,8 @@ class DisturbanceEkf:
             self._move_anchor(u, setpoint_c)
         self._release_motor()
         weights = self._supply_weights(values[0], ok[0])
+        if ok[0] and self._response_due(values[0], weights):
+            ok[0] = False  # the reading left out while the response the model made is still to show
         if self.shadow is not None:
             self._follow_shadow(u, setpoint_c, weights)
         r_diag = self.R_diag
@@ -831,6 +863,14 @@ class DisturbanceEkf:
         if self.rest_steps is not None:
             self._learn_at_rest(u, setpoint_c)
         return used
+
+    def _response_due(self, supply_c: float, weights: np.ndarray) -> bool:
+        """Whether the supply reading is still to show a response the model predicts at the dead time honoured now
+        (:mod:`~.response_wait`, ``EkfSettings.response_wait_c``; False without it)."""
+        if self.response_wait is None:
+            return False
+        steps = 0.0 if weights is self.c_now else self.dead_time.steps
+        return self.response_wait.observe(self.dead_time.prediction_c(steps), supply_c, steps)
 
     def _note_supply_innovation(self, supply_c: float, used: bool, weights: np.ndarray, r_c2: float) -> None:
         """Keep the supply reading's innovation (degC) against the filter's prediction at the dead time honoured and
