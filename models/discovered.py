@@ -70,6 +70,12 @@ FEATURES: dict[str, tuple[str, str, Callable]] = {
     "cabin_minus_inlet": _f("cabin minus inlet air temperature", "C", lambda q: q["t_cabin"] - q["t_in"]),
 }
 
+#: Features of an exchange between the supply air and a reservoir over the duct: feature -> the reservoir's
+#: temperature in ``q``. Fitted linear in one over the mass flow (the exchange's number of transfer units UA / (m_dot
+#: c_p), small over a log's flows), the model evaluates such a term with a positive coefficient c = UA / c_p as the
+#: exchanger it is, (T_res - T_mix) (1 - exp(-c / m_dot)) (:func:`exchange_c`).
+EXCHANGE_FEATURES = {"cabin_minus_mix_over_mass_flow": "t_cabin", "inlet_minus_mix_over_mass_flow": "t_in"}
+
 #: Features a ``cooler_out`` term may use: functions of the quantities known before the cooler core's outlet
 #: (t_in, t_blower, t_water, mass_flow, core_share).
 COOLER_OUT_FEATURES = ("one", "inlet", "core_in", "water", "core_in_minus_water", "mass_flow",
@@ -123,7 +129,10 @@ class DiscoveredTerm:
         """The term for quantities ``q`` (numpy or CasADi)."""
         total = 0.0
         for f, c in zip(self.features, self.coefficients):
-            total = total + c * FEATURES[f][2](q)
+            if f in EXCHANGE_FEATURES and c > 0.0:
+                total = total + exchange_c(c, q[EXCHANGE_FEATURES[f]] - q["t_mix"], q["mass_flow"])
+            else:
+                total = total + c * FEATURES[f][2](q)
         return total
 
     def formula(self) -> str:
@@ -145,6 +154,23 @@ def terms_at(terms, location: str, q: Mapping[str, Any]) -> Any:
         if t.location == location:
             total = total + t.value(q)
     return total
+
+
+def exchange_c(ua_over_cp_kgs: float, difference_c: Any, mass_flow_kgs: Any) -> Any:
+    """Temperature change (degC) of air at ``mass_flow_kgs`` exchanging heat over the duct with a reservoir
+    ``difference_c`` warmer than it, through a conductance UA = ``ua_over_cp_kgs`` c_p: plug flow past a wall at the
+    reservoir's temperature, difference (1 - exp(-UA / (m_dot c_p))) (numpy or CasADi). Its first order in
+    UA / (m_dot c_p) is the linear feature the term was fitted with (``difference / m_dot``, :data:`EXCHANGE_FEATURES`),
+    the same within half the number of transfer units over a log's flows; below them the linear form grows without
+    bound as the flow falls, past the reservoir's temperature (second law), where the exchange tends to the
+    difference (docs/identification.md, "The literal cooler and the duct exchange at low flow").
+    ASSUMPTION: the duct wall stores no heat and the reservoir's temperature holds along the duct."""
+    import casadi as ca
+    ntu = ua_over_cp_kgs / mass_flow_kgs
+    if isinstance(ntu, (ca.SX, ca.MX, ca.DM)):
+        return difference_c * (1.0 - ca.exp(-ntu))
+    import numpy as np
+    return difference_c * -np.expm1(-ntu)
 
 
 def core_outlet_bounded_c(t_out_c: Any, t_air_in_c: Any, t_water_c: Any) -> Any:
