@@ -76,8 +76,13 @@ def log_case(name: str) -> LogCase:
 def time_one(name: str, duration_s: float, seed: int, folder: Path, pairs: bool = True, joint: bool = True) -> dict:
     """Generate one log (untimed) and time the identification of it (``pairs``: with the pair step; ``joint``: with
     the joint refit)."""
+    return time_case(name, log_case(name), duration_s, seed, folder, pairs, joint)
+
+
+def time_case(name: str, case: LogCase, duration_s: float, seed: int, folder: Path, pairs: bool = True,
+              joint: bool = True) -> dict:
+    """:func:`time_one` for a :class:`LogCase` given directly (a variant that has no registry name)."""
     path = folder / f"{name}.csv"
-    case = log_case(name)
     simulate_log(path, case.variant, duration_s=duration_s, seed=seed, excitation=case.excitation,
                  bad_rows=case.bad_rows, omit=case.omit)
     t0, c0 = time.perf_counter(), cpu_seconds()

@@ -32,6 +32,8 @@ Procedure (stated in the report):
    primary output's held-out structure with the others in, ``BIAS_MIN`` an offset, at most ``max_effects`` left),
    and discovery runs on what is left; that model replaces the forward path's if it removes ``FORWARD_MIN`` of its
    held-out supply structure and lowers the total held-out error.
+   While the model holds a term and the supply stays structured, discovery runs again at the places that hold no
+   term yet (a further term on the first's gates; effects outside the library at two places).
    Then a backward pass re-tests every kept effect: dropped if taking it out costs less than ``FORWARD_MIN`` of its
    primary output's held-out structure, or if its own change of the held-out readings (the other parameters fixed)
    is below ``CONTRIBUTION_MIN`` of the noise variance (a magnitude the procedure cannot tell from zero).
@@ -536,12 +538,12 @@ def _drop_removed_partners(accepted: list[CandidateResult], discovered: dict | N
         discovered["jointly_with"] = ""
 
 
-def _discover(fitter: Fitter, current: Fit, free: list[FreeParam], quick: bool, say, notes: list[str]
-              ) -> tuple[Fit, dict | None, list[tuple[Fit, dict]]]:
-    """Term discovery on the supply temperature when its residual stays structured (:mod:`.discovery`). Returns the
-    model, the record of the term kept (or of the best place) and the terms refit and rejected, each with its fit
-    (for the pair step)."""
-    if "supply_temp_c" not in fitter.outputs:
+def _discover(fitter: Fitter, current: Fit, free: list[FreeParam], quick: bool, say, notes: list[str],
+              locations=tuple(discovery.TERM_NAMES)) -> tuple[Fit, dict | None, list[tuple[Fit, dict]]]:
+    """Term discovery on the supply temperature when its residual stays structured (:mod:`.discovery`), at the
+    places ``locations``. Returns the model, the record of the term kept (or of the best place) and the terms refit
+    and rejected, each with its fit (for the pair step)."""
+    if "supply_temp_c" not in fitter.outputs or not locations:
         return current, None, []
     ratios = diagnostics_ratio(fitter, current)
     if ratios < STRUCTURE_MIN:
@@ -553,7 +555,7 @@ def _discover(fitter: Fitter, current: Fit, free: list[FreeParam], quick: bool, 
     dy_supply = dy[:, fitter.outputs.index("supply_temp_c"), :]
     # every place (after mixing; at the cooler core's outlet, before the split; the heater body; the air entering the
     # box), ranked by their best prefix's held-out error; the first whose term passes after the whole-model refit wins
-    tried = sorted((discovery.select(fitter, current, dy_supply, location) for location in discovery.TERM_NAMES),
+    tried = sorted((discovery.select(fitter, current, dy_supply, location) for location in locations),
                    key=lambda t: t[2]["holdout_sse_best"])
     for _, _, rec in tried:
         rec["other_locations"] = [{"location": r["location"], "path_order": r["path_order"],
@@ -576,6 +578,26 @@ def _discover(fitter: Fitter, current: Fit, free: list[FreeParam], quick: bool, 
         notes.append(f"discovery: term {record['formula']} rejected (removes {100 * record['explained_holdout']:.0f} % "
                      f"of the held-out structure, information criterion {record['bic_change']:+.1f})")
     return current, tried[0][2], rejected
+
+
+def _further_terms(fitter: Fitter, current: Fit, free: list[FreeParam], discovered: dict | None, quick: bool, say,
+                   notes: list[str]) -> tuple[Fit, dict | None]:
+    """Discovery again, at the places that hold no term yet, while a term is in and the supply stays structured: two
+    effects outside the library at two places (cabin air drawn in at the box inlet and a duct losing heat after the
+    mixing point) leave, after the first term, the other's residual, which no term at the first place can take. Each
+    further term passes the gates of the first (:func:`_fit_term`); its record goes to ``discovered["further"]``."""
+    while current.terms:
+        used = {t.location for t in current.terms}
+        fit, record, _ = _discover(fitter, current, free, quick, say, notes,
+                                   tuple(loc for loc in discovery.TERM_NAMES if loc not in used))
+        if not (record and record.get("accepted")):
+            break
+        current = fit
+        if discovered is not None:
+            discovered.setdefault("further", []).append(record)
+        else:
+            discovered = record
+    return current, discovered
 
 
 def _joint(fitter: Fitter, current: Fit, free: list[FreeParam], accepted: list[CandidateResult], open_round, lib,
@@ -729,6 +751,9 @@ def identify(log: LogData, base: Parameters | None = None, base_effects: Iterabl
             fitter, current, current_free, accepted, open_round, lib, base, max_effects, quick, len(rounds) + 1,
             discovered, say, notes, discover)
     clock.lap("joint")
+    if discover:
+        current, discovered = _further_terms(fitter, current, current_free, discovered, quick, say, notes)
+    clock.lap("discovery")
     current, current_free = _backward(fitter, current, current_free, accepted, lib, base, quick, say, notes)
     _drop_removed_partners(accepted, discovered)
     clock.lap("candidates")

@@ -345,7 +345,9 @@ def _markdown(res: IdentificationResult, data: dict, model_name: str) -> list[st
            "the discovered terms, eliminated backward (each must earn its share with the others in) and discovery "
            "runs again, that model replacing the forward path's if it removes the same share of the held-out supply "
            "structure the forward path left and lowers the total held-out error (several effects that mask one "
-           "another); then a backward pass that re-tests each kept effect with the others in (dropped if taking it out "
+           "another); while a term is in and the supply stays structured, discovery again at the places without a "
+           "term (a further term on the same gates: effects outside the library at two places); then a backward "
+           "pass that re-tests each kept effect with the others in (dropped if taking it out "
            "costs less than the same share, or if its own change of the held-out readings, the other parameters "
            f"fixed, is below {CONTRIBUTION_MIN:.1f} of the noise variance: below what the procedure calls structure).",
            "5. Whatever structure remains is located instead of being named: the residual is regressed on each "

@@ -166,7 +166,8 @@ class IndependentBox:
     def read(self) -> Measurement:
         """Sensor readings at ``time_s`` (seeded Gaussian noise unless ``noise`` is off)."""
         y = self._y
-        e = self._rng.normal(0.0, 1.0, 5).tolist() if self.noise else [0.0] * 5
+        scale = self.variant.noise_scale
+        e = (scale * self._rng.normal(0.0, 1.0, 5)).tolist() if self.noise else [0.0] * 5
         return Measurement(
             time_s=self.time_s,
             supply_temp_c=y["supply_temp_c"] + k.NOISE_SUPPLY_C * e[0],

@@ -28,10 +28,12 @@ COLUMNS = ("time_s",) + INPUTS + ("hvac_inlet_temp_c", "volume_flow_m3s", "suppl
                                   "water_temp_c", "chiller_setpoint_c", "heater_outlet_temp_c", "cabin_temp_c")
 #: "steps": cooling and heating phases with random steps; "hot_heater": the same, but the heating phases
 #: run the heater near full power at low flow, so its body passes the PTC's knee (~60 C) and the PTC
-#: power fall shows in the logged heater power.
-EXCITATIONS = ("steps", "hot_heater")
+#: power fall shows in the logged heater power; "short_holds": the "steps" ranges with shorter holds (5-90 s),
+#: another excitation than the one the identification was developed on.
+EXCITATIONS = ("steps", "hot_heater", "short_holds")
 
 HOLD_S = (20, 300)                 # ASSUMPTION: hold times of the steps (s)
+SHORT_HOLD_S = (5, 90)             # ASSUMPTION: hold times of the "short_holds" excitation (s)
 PHASE_S = (900, 1800)              # ASSUMPTION: length of a cooling or heating phase
 COOLING_SETPOINT_C = 5.0           # docs/model.md sec. 1: chiller at 5 C while cooling
 HEATING_SETPOINT_C = 20.0          # ASSUMPTION: chiller set point while heating (water ramps up)
@@ -63,28 +65,29 @@ class Schedule:
     inlet_c: np.ndarray
 
 
-def _steps(n: int, lo: float, hi: float, rng: np.random.Generator) -> np.ndarray:
-    """Random piecewise-constant signal in [lo, hi] with hold times of 20-300 samples."""
+def _steps(n: int, lo: float, hi: float, rng: np.random.Generator, hold_s: tuple[int, int] = HOLD_S) -> np.ndarray:
+    """Random piecewise-constant signal in [lo, hi] with hold times of ``hold_s`` samples (20-300)."""
     out = np.empty(n)
     i = 0
     while i < n:
-        hold = int(rng.integers(HOLD_S[0], HOLD_S[1] + 1))
+        hold = int(rng.integers(hold_s[0], hold_s[1] + 1))
         out[i:i + hold] = rng.uniform(lo, hi)
         i += hold
     return out
 
 
-def _phase_commands(n: int, heating: bool, rng: np.random.Generator, hot: bool = False) -> np.ndarray:
+def _phase_commands(n: int, heating: bool, rng: np.random.Generator, hot: bool = False,
+                    hold_s: tuple[int, int] = HOLD_S) -> np.ndarray:
     """Commands of one phase: cooling (heater off, valve a anywhere) or heating (heater on, a partly open);
-    ``hot``: heating near full heater power at low flow (the "hot_heater" excitation)."""
+    ``hot``: heating near full heater power at low flow (the "hot_heater" excitation); ``hold_s``: hold times."""
     u = np.empty((n, len(INPUTS)))
     blower = HOT_BLOWER_W if heating and hot else (HEATING_MIN_BLOWER_W if heating else k.BLOWER_MIN_W,
                                                      k.BLOWER_MAX_W)
-    u[:, 0] = _steps(n, *blower, rng)
-    u[:, 1] = _steps(n, *(HOT_HEATER_W if hot else HEATING_HEATER_W), rng) if heating else 0.0
-    u[:, 2] = _steps(n, *HEATING_VALVE_A_PCT, rng) if heating else _steps(n, 0.0, 100.0, rng)
+    u[:, 0] = _steps(n, *blower, rng, hold_s)
+    u[:, 1] = _steps(n, *(HOT_HEATER_W if hot else HEATING_HEATER_W), rng, hold_s) if heating else 0.0
+    u[:, 2] = _steps(n, *HEATING_VALVE_A_PCT, rng, hold_s) if heating else _steps(n, 0.0, 100.0, rng, hold_s)
     for j in (3, 4, 5):
-        u[:, j] = _steps(n, 0.0, 100.0, rng)
+        u[:, j] = _steps(n, 0.0, 100.0, rng, hold_s)
     return u
 
 
@@ -95,7 +98,8 @@ def excitation_schedule(n: int, rng: np.random.Generator, excitation: str = "ste
     i, heating = 0, False
     while i < n:
         length = min(n - i, int(rng.integers(PHASE_S[0], PHASE_S[1] + 1)))
-        commands[i:i + length] = _phase_commands(length, heating, rng, hot=excitation == "hot_heater")
+        commands[i:i + length] = _phase_commands(length, heating, rng, hot=excitation == "hot_heater",
+                                                 hold_s=SHORT_HOLD_S if excitation == "short_holds" else HOLD_S)
         setpoint[i:i + length] = HEATING_SETPOINT_C if heating else COOLING_SETPOINT_C
         i, heating = i + length, not heating
     t = np.arange(n, dtype=float)
@@ -112,7 +116,7 @@ def run_open_loop(box: IndependentBox, schedule: Schedule, rng: np.random.Genera
     for i in range(n):
         box.set_environment(inlet_temp_c=schedule.inlet_c[i], chiller_setpoint_c=schedule.setpoint_c[i])
         m = box.read()
-        cabin = box.cabin_temp_c + (k.NOISE_OTHER_C * rng.normal() if box.noise else 0.0)
+        cabin = box.cabin_temp_c + (box.variant.noise_scale * k.NOISE_OTHER_C * rng.normal() if box.noise else 0.0)
         sensors[i] = (m.hvac_inlet_temp_c, m.volume_flow_m3s, m.supply_temp_c, m.heater_power_w, m.water_temp_c,
                       m.heater_outlet_temp_c, cabin)
         applied[i] = box.apply(schedule.commands[i])

@@ -45,6 +45,8 @@ class Variant:
     recirculation_share     share of cabin air (``cabin_temp_c``) in the air entering the box behind the inlet sensor
     tc_radiation_share      the thermocouple settles at T_air + share (T_heater_body - T_air) (radiation)
     heater_wall_ua_w_per_k  heater body heat loss (W/K) to the box walls at the temperature of the air entering the box
+    noise_scale             every sensor's noise standard deviation times this (0: no noise). ASSUMPTION: a noisier
+                            installation scales all sensors alike (docs/identification.md, "A sweep over magnitudes")
     """
 
     transport_delay_s: float = 0.0
@@ -64,6 +66,7 @@ class Variant:
     recirculation_share: float = 0.0
     tc_radiation_share: float = 0.0
     heater_wall_ua_w_per_k: float = 0.0
+    noise_scale: float = 1.0
 
     def __post_init__(self) -> None:
         for name in ("transport_delay_s", "duct_loss_ua_w_per_k", "cabin_temp_c", "valve_shift_pct",
@@ -78,7 +81,7 @@ class Variant:
             raise ValueError("Variant.transport_delay_s and duct_loss_ua_w_per_k must be >= 0")
         if not -100.0 <= self.valve_shift_pct <= 100.0:
             raise ValueError(f"Variant.valve_shift_pct must be within [-100, 100], got {self.valve_shift_pct}")
-        for name in ("cooler_ntu", "recirculation_share", "tc_radiation_share", "heater_wall_ua_w_per_k"):
+        for name in ("cooler_ntu", "recirculation_share", "tc_radiation_share", "heater_wall_ua_w_per_k", "noise_scale"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0.0):
                 raise ValueError(f"Variant.{name} must be a number >= 0, got {value!r}")
