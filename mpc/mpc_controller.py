@@ -203,13 +203,14 @@ class MpcSettings:
             use is brought up to date at the start of the next step, or between steps by :meth:`wait_background`.
             Where ``ekf`` places the error itself (an offset of the core path's air, no heater outlet reading or no
             offset of its own) there is nothing to choose and one filter runs. A switch costs one step the
-            preparation of the QP (a cold start, as after a reset); each filter's prediction fused with the QP
-            data is built with the controller, so a switch builds nothing.
+            preparation of the QP (with ``placement_warm_switch`` off a cold start, as after a reset); each
+            filter's prediction fused with the QP data is built with the controller, so a switch builds nothing.
         placement_margin: a second way to switch (:class:`~.placement.PlacementChoice`, docs/robustness.md sec.
             2.15): where the sum of the filter in use (itself inconsistent, as above) exceeds the other's by more
             than this (normalised squares; twice the log-likelihood ratio of the two filters' innovations over the
             window), whatever their ratio. A start-up both filters are surprised by alike (each sample capped)
-            inflates both sums and so delays the ratio's switch, not the difference's. inf (the default): off.
+            inflates both sums and so delays the ratio's switch, not the difference's. inf (the default): off
+            (100 with ``placement_dead_time_hold_s`` 6 is measured in docs/robustness.md sec. 2.16).
         placement_from_response: forget both sums once, when the filter in use first sees a response of the
             supply air (its dead-time estimate informed, :attr:`~.estimator.DisturbanceEkf.response_seen`): what
             came before is a dead time not yet found, which surprises both filters alike and tells nothing of
@@ -223,7 +224,8 @@ class MpcSettings:
             where neither filter's honoured dead time (:attr:`~.estimator.DisturbanceEkf.honoured_dead_time_s`)
             changed within this time: a filter that has just moved the sample its reading is compared with is
             surprised by that move, not by where the heater outlet's error sits (docs/robustness.md sec. 2.16).
-            0 (the default): off, each filter's innovations count as they come.
+            0 (the default): off, each filter's innovations count as they come; 6 (the model's thermocouple time
+            constant, 5.7 s, rounded up) is what sec. 2.16 measures.
         rti_relinearise_every: multi-level steps (``rti``, :mod:`hvac_mpc.mpc.multilevel`): a full linearisation
             of the QP (new Jacobians and Hessian, OSQP's equilibration and refactorisation) at least on every this
             many preparations; the ones between keep the QP's matrices of the last full one and renew only its
