@@ -644,6 +644,13 @@ class DisturbanceEkf:
         """The dead time of the thermocouple beyond the model's that the filter honours now (s)."""
         return self.dead_time.seconds
 
+    @property
+    def honoured_dead_time_s(self) -> float:
+        """The dead time (s) the supply reading is compared at: :attr:`dead_time_s` once it reaches
+        ``dead_time_min_s``, else 0 (the reading against the thermocouple state now; :meth:`_supply_weights`)."""
+        seconds = self.dead_time_s if self.n_hist else 0.0
+        return seconds if seconds >= self.settings.dead_time_min_s else 0.0
+
     def initialise(self, measurement: Measurement, u: np.ndarray, setpoint_c: float) -> None:
         """Start at the model's rest state for the current command, matched to the first readings."""
         m = self.model

@@ -203,13 +203,14 @@ class MpcSettings:
             use is brought up to date at the start of the next step, or between steps by :meth:`wait_background`.
             Where ``ekf`` places the error itself (an offset of the core path's air, no heater outlet reading or no
             offset of its own) there is nothing to choose and one filter runs. A switch costs one step the
-            preparation of the QP (a cold start, as after a reset); each filter's prediction fused with the QP
-            data is built with the controller, so a switch builds nothing.
+            preparation of the QP (with ``placement_warm_switch`` off a cold start, as after a reset); each
+            filter's prediction fused with the QP data is built with the controller, so a switch builds nothing.
         placement_margin: a second way to switch (:class:`~.placement.PlacementChoice`, docs/robustness.md sec.
             2.15): where the sum of the filter in use (itself inconsistent, as above) exceeds the other's by more
             than this (normalised squares; twice the log-likelihood ratio of the two filters' innovations over the
             window), whatever their ratio. A start-up both filters are surprised by alike (each sample capped)
-            inflates both sums and so delays the ratio's switch, not the difference's. inf (the default): off.
+            inflates both sums and so delays the ratio's switch, not the difference's. inf (the default): off
+            (100 with ``placement_dead_time_hold_s`` 6 is measured in docs/robustness.md sec. 2.16).
         placement_from_response: forget both sums once, when the filter in use first sees a response of the
             supply air (its dead-time estimate informed, :attr:`~.estimator.DisturbanceEkf.response_seen`): what
             came before is a dead time not yet found, which surprises both filters alike and tells nothing of
@@ -218,6 +219,13 @@ class MpcSettings:
             the new filter's (its first node and disturbances, the shifted plan and OSQP's warm start kept) instead
             of a cold start; the switch step then costs a preparation, not a cold QP (docs/robustness.md sec. 2.15).
             Off by default.
+        placement_dead_time_hold_s: with a positive value (s, at most 600) the two filters' innovations count in
+            :class:`~.placement.PlacementChoice` only in pairs (the same sample of each, both with a reading) and only
+            where neither filter's honoured dead time (:attr:`~.estimator.DisturbanceEkf.honoured_dead_time_s`)
+            changed within this time: a filter that has just moved the sample its reading is compared with is
+            surprised by that move, not by where the heater outlet's error sits (docs/robustness.md sec. 2.16).
+            0 (the default): off, each filter's innovations count as they come; 6 (the model's thermocouple time
+            constant, 5.7 s, rounded up) is what sec. 2.16 measures.
         rti_relinearise_every: multi-level steps (``rti``, :mod:`hvac_mpc.mpc.multilevel`): a full linearisation
             of the QP (new Jacobians and Hessian, OSQP's equilibration and refactorisation) at least on every this
             many preparations; the ones between keep the QP's matrices of the last full one and renew only its
@@ -302,6 +310,7 @@ class MpcSettings:
     placement_margin: float = math.inf
     placement_from_response: bool = False
     placement_warm_switch: bool = False
+    placement_dead_time_hold_s: float = 0.0
     rti_relinearise_every: int = 1
     rti_relinearise_move: float = 0.3
     steady_start_on: str = "any"
@@ -394,6 +403,7 @@ class MpcSettings:
             _check_or_off(f"{p}.placement_margin", self.placement_margin, 0.0, 1e9, "inf", lo_open=True)
         check_flag(f"{p}.placement_from_response", self.placement_from_response)
         check_flag(f"{p}.placement_warm_switch", self.placement_warm_switch)
+        check_number(f"{p}.placement_dead_time_hold_s", self.placement_dead_time_hold_s, 0.0, 600.0)
 
 
 def _check_or_off(name: str, value, lo: float, hi: float, off: str, lo_open: bool = False) -> None:
@@ -523,7 +533,8 @@ class MpcController:
             self._filters.append(DisturbanceEkf(ekf_model, air_settings, s.dt_s, s.water_prediction,
                                                 learn_bypass_flow=True, name="ekf_heater_air"))
             self.placement = PlacementChoice(s.placement_window_s, s.placement_ratio, s.placement_evidence, s.dt_s,
-                                             s.placement_cap, s.placement_margin)
+                                             s.placement_cap, s.placement_margin,
+                                             hold=int(round(s.placement_dead_time_hold_s / s.dt_s)))
         self._pending = None  # the other filter's update and time update of the last step, not yet run
         pb = self.problem
         self.reach = ReachableFlow(pb.model, pb.u_lo_phys, pb.u_hi_phys, pb.heater_max_phys, self.params,
@@ -711,7 +722,7 @@ class MpcController:
             raise FloatingPointError("state estimate is not finite")
         if self.placement is not None:
             self._placement_from_response()
-            self.placement.observe(self.placement.active, self.ekf.supply_nis)
+            self.placement.observe(self.placement.active, self.ekf.supply_nis, self.ekf.honoured_dead_time_s)
         self._use_estimated_parameters()
         cap = self._trap_cap(measurement)  # bounds the heater estimate too: before the state is used
         x0 = pb.scale_x(self.ekf.x)
@@ -822,7 +833,7 @@ class MpcController:
                 other.initialise(measurement, u_in, setpoint)
             else:
                 other.update(measurement, u_in, setpoint)
-                self.placement.observe(1 - self.placement.active, other.supply_nis)
+                self.placement.observe(1 - self.placement.active, other.supply_nis, other.honoured_dead_time_s)
             other.predict(u_cmd, setpoint)
             ok = other.healthy()
         except Exception:  # noqa: BLE001 - the filter not in use must not take the step down

@@ -15,7 +15,10 @@ estimation with two models and a hard choice. With a finite ``margin`` the filte
 also gives way where its sum exceeds the other's by more than ``margin``: the difference of the sums is twice the
 log-likelihood ratio of the two filters' innovations over the window (each sample capped), which a start-up that
 surprises both alike leaves unchanged, where it inflates both sums and so delays the ratio's switch
-(docs/robustness.md sec. 2.15).
+(docs/robustness.md sec. 2.15). With a ``hold`` (samples) the two filters' innovations count only in pairs, the
+same sample's of each, and only where neither filter's honoured dead time changed within the last ``hold`` samples:
+a filter that has just moved the sample its supply reading is compared with is surprised by that move for about the
+thermocouple's lag, which is no evidence of where the heater outlet's error sits (docs/robustness.md sec. 2.16).
 
 ASSUMPTION: the filter whose supply readings surprise it less predicts the supply air better, valve a's gain
 included: the filters differ where the core flow moves, and only there do their innovations differ (at rest each
@@ -35,12 +38,13 @@ class PlacementChoice:
     """The choice between two filters from their supply innovations (module docstring)."""
 
     def __init__(self, window_s: float, ratio: float, evidence: float, dt_s: float, cap: float = math.inf,
-                 margin: float = math.inf):
+                 margin: float = math.inf, hold: int = 0):
         self.forget = math.exp(-dt_s / window_s)
         self.cap = float(cap)  # the most one sample adds
         self.ratio = float(ratio)
         self.margin = float(margin)  # a lead of the other's sum that switches whatever the ratio (inf: none)
         self.floor = float(evidence) * window_s / dt_s  # a consistent filter's sum, times evidence
+        self.hold = int(hold)  # samples after a change of either filter's honoured dead time that count nothing (0: off)
         self.reset()
 
     def reset(self) -> None:
@@ -52,11 +56,38 @@ class PlacementChoice:
         """Forget both sums (a filter started afresh: its first innovations are no evidence), keeping the filter
         in use."""
         self.sums = [0.0, 0.0]
+        self._pending = None  # with a hold: the filter in use's (nis, dead time) of the last sample, not yet paired
+        self._dead_times = [0.0, 0.0]  # with a hold: each filter's honoured dead time at its last paired sample (s)
+        self._steady = 0  # with a hold: paired samples since either honoured dead time last changed
 
-    def observe(self, index: int, nis: float) -> None:
-        """The normalised square innovation of filter ``index`` at one sample (nan: no reading, nothing added)."""
+    def observe(self, index: int, nis: float, dead_time_s: float = 0.0) -> None:
+        """The normalised square innovation of filter ``index`` at one sample (nan: no reading, nothing added) and
+        the dead time (s) its supply reading was compared at (used with a ``hold`` only). With a hold the filter in
+        use reports a sample first and the other the same sample next: the pair counts, or neither does."""
+        if self.hold <= 0:
+            self._add(index, nis)
+        elif index == self.active:
+            self._pending = (nis, dead_time_s)
+        elif self._pending is not None:
+            (mine, my_dead), self._pending = self._pending, None
+            self._observe_pair(mine, my_dead, nis, dead_time_s)
+
+    def _add(self, index: int, nis: float) -> None:
         if math.isfinite(nis):
             self.sums[index] = self.forget * self.sums[index] + min(nis, self.cap)
+
+    def _observe_pair(self, mine: float, my_dead_s: float, other: float, other_dead_s: float) -> None:
+        """One sample of both filters (the one in use first): counted where both have a reading and neither honoured
+        dead time changed within the last ``hold`` samples."""
+        dead = [0.0, 0.0]
+        dead[self.active], dead[1 - self.active] = my_dead_s, other_dead_s
+        if dead != self._dead_times:
+            self._dead_times, self._steady = dead, 0
+        else:
+            self._steady += 1
+        if self._steady >= self.hold and math.isfinite(mine) and math.isfinite(other):
+            self._add(self.active, mine)
+            self._add(1 - self.active, other)
 
     def decide(self) -> bool:
         """Switch to the other filter where the rule says so; True where it switched."""

@@ -372,7 +372,8 @@ def test_the_sums_are_forgotten_once_when_the_first_response_is_seen():
     for on in (False, True):
         plant = SimulatedPlant(PARAMS, seed=6)
         plant.settle(START)
-        ctrl = MpcController(PARAMS, MpcSettings(initial_command=START, placement_from_response=on))
+        ctrl = MpcController(PARAMS, MpcSettings(initial_command=START, placement_from_response=on,
+                                                 placement_dead_time_hold_s=0.0))  # each sample counted as it comes
         restarts = []
         original = ctrl.placement.restart
 
