@@ -340,7 +340,7 @@ class EkfSettings:
     rest_air_band_c: float = 0.2
     rest_log_flow_band: float = 0.05
     rest_offset_band_c: float = 0.07
-    response_wait_c: float = 0.0
+    response_wait_c: float = 0.2
     response_wait_share: float = 0.5
     response_wait_flat_c: float = 0.0
 

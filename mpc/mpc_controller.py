@@ -307,10 +307,10 @@ class MpcSettings:
     placement_ratio: float = 0.6
     placement_evidence: float = 1.5
     placement_cap: float = 50.0
-    placement_margin: float = math.inf
-    placement_from_response: bool = False
-    placement_warm_switch: bool = False
-    placement_dead_time_hold_s: float = 0.0
+    placement_margin: float = 100.0
+    placement_from_response: bool = True
+    placement_warm_switch: bool = True
+    placement_dead_time_hold_s: float = 6.0
     rti_relinearise_every: int = 1
     rti_relinearise_move: float = 0.3
     steady_start_on: str = "any"

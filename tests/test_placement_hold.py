@@ -114,7 +114,7 @@ def test_the_hold_reaches_the_rule_in_samples():
     ctrl = MpcController(settings=MpcSettings(placement_dead_time_hold_s=4.0))
     assert ctrl.placement.hold == 4
     assert MpcController(settings=MpcSettings(placement_dead_time_hold_s=0.0)).placement.hold == 0
-    assert MpcSettings().placement_dead_time_hold_s == RATIO_ONLY["placement_dead_time_hold_s"]
+    assert all(getattr(MpcSettings(), k) == v for k, v in HELD.items())  # the defaults
 
 
 def test_the_honoured_dead_time_is_zero_below_the_shortest_honoured():

@@ -23,6 +23,8 @@ from hvac_mpc.mpc.response_wait import ResponseWait
 
 TAU_S = 5.7  # a thermocouple lag of the order of the model's
 WAITING = EkfSettings(response_wait_c=0.2)
+#: The plain filter: no wait.
+PLAIN = EkfSettings(response_wait_c=0.0)
 
 
 def lagged_step(n: int, start: int, size_c: float, delay: int = 0) -> np.ndarray:
@@ -114,7 +116,7 @@ def test_a_dead_time_not_yet_found_does_not_go_into_the_offset(variant):
     """Nothing has shown the box's dead time before the step (the estimate is 0 there). The plain filter takes the
     missing response for a model error: the offset moves by 3.2-4.2 degC within 5 s (measured) and unwinds only
     once the estimate has found the dead time (8 s after the step). With the wait it stays within 0.1 degC."""
-    plain, _ = offset_after_valve_step(variant, EkfSettings())
+    plain, _ = offset_after_valve_step(variant, PLAIN)
     waited, n = offset_after_valve_step(variant, WAITING)
     assert np.abs(plain).max() > 2.0
     assert np.abs(waited).max() < 0.15 and n >= 1
@@ -124,13 +126,14 @@ def test_a_dead_time_not_yet_found_does_not_go_into_the_offset(variant):
 def test_a_box_without_dead_time_is_filtered_as_before(variant):
     """No dead time: the reading follows the prediction in the sample of the step (the literal cooler fit with a gain
     the model does not have too), so no wait begins and the offset is the plain filter's to the bit."""
-    plain, _ = offset_after_valve_step(variant, EkfSettings())
+    plain, _ = offset_after_valve_step(variant, PLAIN)
     waited, n = offset_after_valve_step(variant, WAITING)
     assert n == 0 and np.array_equal(plain, waited)
 
 
 def test_response_wait_settings_are_checked():
-    assert DisturbanceEkf(HvacModel(Parameters()), EkfSettings()).response_wait is None  # off by default
+    assert DisturbanceEkf(HvacModel(Parameters()), EkfSettings()).response_wait is not None  # on by default
+    assert DisturbanceEkf(HvacModel(Parameters()), PLAIN).response_wait is None
     assert DisturbanceEkf(HvacModel(Parameters()), EkfSettings(response_wait_c=0.2, dead_time_max_s=0.0)
                           ).response_wait is None  # no dead-time handling: nothing to wait for
     for field, bad in (("response_wait_c", -0.1), ("response_wait_c", 11.0), ("response_wait_share", 0.0),
