@@ -272,7 +272,7 @@ class EkfSettings:
     improve on every seed, the built-in bench within 0.005 of before in every scenario.
 
     ``response_wait_c``: leave the supply reading out of the measurement update while a response the model predicts
-    is still to show (degC in [0, 10]; 0: never, the default): a wait starts at a sample whose prediction of the
+    is still to show (degC in [0, 10]; 0: never; 0.2 the default, docs/robustness.md sec. 2.18): a wait starts at a sample whose prediction of the
     reading at the dead time honoured (the model's air without the offset, through the thermocouple lag) changed by at
     least this while the reading changed by less than ``response_wait_share`` (in [0.01, 1]) of it (not within the
     filter's first ``RESPONSE_WAIT_AFTER_S``), and ends when the honoured dead time moves, at once where the reading

@@ -209,23 +209,23 @@ class MpcSettings:
             2.15): where the sum of the filter in use (itself inconsistent, as above) exceeds the other's by more
             than this (normalised squares; twice the log-likelihood ratio of the two filters' innovations over the
             window), whatever their ratio. A start-up both filters are surprised by alike (each sample capped)
-            inflates both sums and so delays the ratio's switch, not the difference's. inf (the default): off
-            (100 with ``placement_dead_time_hold_s`` 6 is measured in docs/robustness.md sec. 2.16).
+            inflates both sums and so delays the ratio's switch, not the difference's. 100 (the default, with
+            ``placement_dead_time_hold_s`` 6, measured in docs/robustness.md sec. 2.16 and 2.18); inf: off.
         placement_from_response: forget both sums once, when the filter in use first sees a response of the
             supply air (its dead-time estimate informed, :attr:`~.estimator.DisturbanceEkf.response_seen`): what
             came before is a dead time not yet found, which surprises both filters alike and tells nothing of
-            where the error sits. Off by default.
+            where the error sits. On by default (sec. 2.18).
         placement_warm_switch: at a switch, linearise the QP prepared at the other filter's prediction again at
             the new filter's (its first node and disturbances, the shifted plan and OSQP's warm start kept) instead
             of a cold start; the switch step then costs a preparation, not a cold QP (docs/robustness.md sec. 2.15).
-            Off by default.
+            On by default (sec. 2.18).
         placement_dead_time_hold_s: with a positive value (s, at most 600) the two filters' innovations count in
             :class:`~.placement.PlacementChoice` only in pairs (the same sample of each, both with a reading) and only
             where neither filter's honoured dead time (:attr:`~.estimator.DisturbanceEkf.honoured_dead_time_s`)
             changed within this time: a filter that has just moved the sample its reading is compared with is
             surprised by that move, not by where the heater outlet's error sits (docs/robustness.md sec. 2.16).
-            0 (the default): off, each filter's innovations count as they come; 6 (the model's thermocouple time
-            constant, 5.7 s, rounded up) is what sec. 2.16 measures.
+            0: off, each filter's innovations count as they come; 6 (the default; ASSUMPTION: the model's
+            thermocouple time constant, 5.7 s, rounded up) is what sec. 2.16 and 2.18 measure.
         rti_relinearise_every: multi-level steps (``rti``, :mod:`hvac_mpc.mpc.multilevel`): a full linearisation
             of the QP (new Jacobians and Hessian, OSQP's equilibration and refactorisation) at least on every this
             many preparations; the ones between keep the QP's matrices of the last full one and renew only its

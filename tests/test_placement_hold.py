@@ -150,7 +150,7 @@ def test_on_a_dead_time_box_whose_core_is_the_model_the_hold_keeps_the_reading_o
     20 s on the default filter's dead-time transient (sec. 2.15); with the hold it never switches."""
     sc = scenarios.mismatch_scenarios()["flow_out_of_reach"].quick()
     factory = mismatch_suite.variant_factory("delay_3s")
-    without = {k: v for k, v in HELD.items() if k != "placement_dead_time_hold_s"}
+    without = dict(HELD, placement_dead_time_hold_s=0.0)
     _, unheld = closed_loop(factory, sc, 4, **without)
     _, held = closed_loop(factory, sc, 4, **HELD)
     assert PLACEMENTS[1] in unheld[:20]
