@@ -32,6 +32,7 @@ def _commands(settings: MpcSettings, steps: int, params: Parameters | None = Non
     return np.array(out), ctrl
 
 
+@pytest.mark.slow  # builds every generated function at -O3 from an empty cache (about 19 s)
 def test_compiled_and_interpreted_closed_loops_give_the_same_commands_from_an_empty_cache(tmp_path, monkeypatch):
     monkeypatch.setenv(codegen.CACHE_ENV, str(tmp_path))
     monkeypatch.setenv(codegen.SWITCH_ENV, "1")
