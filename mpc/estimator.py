@@ -649,7 +649,12 @@ class DisturbanceEkf:
         """The dead time (s) the supply reading is compared at: :attr:`dead_time_s` once it reaches
         ``dead_time_min_s``, else 0 (the reading against the thermocouple state now; :meth:`_supply_weights`)."""
         seconds = self.dead_time_s if self.n_hist else 0.0
-        return seconds if seconds >= self.settings.dead_time_min_s else 0.0
+        return seconds if self._honours(seconds) else 0.0
+
+    def _honours(self, seconds: float) -> bool:
+        """Whether a dead time of ``seconds`` (s) is honoured: ``dead_time_min_s`` at least (the one rule of
+        :meth:`_supply_weights` and :attr:`honoured_dead_time_s`)."""
+        return seconds >= self.settings.dead_time_min_s
 
     def initialise(self, measurement: Measurement, u: np.ndarray, setpoint_c: float) -> None:
         """Start at the model's rest state for the current command, matched to the first readings."""
@@ -955,7 +960,7 @@ class DisturbanceEkf:
         if not (self.n_hist and used):
             return self.c_now
         lag = self.dead_time.observe(supply_c)
-        if lag * self.dt_s < self.settings.dead_time_min_s:
+        if not self._honours(lag * self.dt_s):
             return self.c_now
         j0 = int(np.floor(lag))
         w1 = lag - j0
