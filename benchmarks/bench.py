@@ -15,7 +15,7 @@ import shlex
 import sys
 import time
 from pathlib import Path
-from typing import Callable, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -46,7 +46,8 @@ def baseline_factory() -> Callable[[Command], object]:
 
 
 def mpc_factory(params: Parameters | None = None,
-                deadline_s: float = DETERMINISTIC_DEADLINE_S) -> Callable[[Command], object]:
+                deadline_s: float = DETERMINISTIC_DEADLINE_S,
+                settings: Mapping[str, Any] | None = None) -> Callable[[Command], object]:
     """Factory of the MPC (``hvac_mpc.mpc.mpc_controller``) on the nominal parameters (or ``params``,
     e.g. a lab's parameter file with its transport delay) and default settings.
 
@@ -54,14 +55,16 @@ def mpc_factory(params: Parameters | None = None,
     scenario starts (the MPC rate-limits its first move from it), and ``deadline_s``: by default
     :data:`DETERMINISTIC_DEADLINE_S`, so the run depends on the iteration caps, not on the machine's
     load (``hvac-mpc bench --deadline-s 0.5`` runs with the box's wall-clock deadline and fallbacks).
+    ``settings``: fields of ``MpcSettings`` to change (``--mpc-settings FILE``, :func:`mpc_settings_values`).
     """
     try:
         from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
+        from hvac_mpc.mpc.settings_file import settings_with
     except ImportError as exc:
         raise RuntimeError(f"the MPC hvac_mpc.mpc.mpc_controller.MpcController is not available: {exc}")
     chosen = params or Parameters()
-    return lambda initial_command: MpcController(chosen, MpcSettings(initial_command=initial_command,
-                                                                     deadline_s=deadline_s))
+    base = settings_with(MpcSettings(deadline_s=deadline_s), settings or {})  # checked here, before any run
+    return lambda initial_command: MpcController(chosen, dataclasses.replace(base, initial_command=initial_command))
 
 
 def describe_controller(ctrl) -> str:
@@ -266,6 +269,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mpc-params", metavar="FILE", default=None,
                         help="the MPC's parameters from this TOML or JSON file (e.g. transport_delay_s of the "
                              "box); the baseline keeps the thesis values")
+    parser.add_argument("--mpc-settings", metavar="FILE", default=None,
+                        help="the MPC's settings from this TOML or JSON file: fields of MpcSettings, sub-tables "
+                             "[ocp], [ocp.weights], [ekf] (docs/extending.md); every run of the MPC, the --model "
+                             "comparison's included, uses them; the baseline is untouched")
     parser.add_argument("--suite", choices=("mismatch",), default=None,
                         help="mismatch: both controllers on every variant of the independent simulator "
                              "(hvac_mpc.mismatch) on the cooling, heating and proband scenarios; a matrix of "
@@ -328,7 +335,8 @@ def run(args: argparse.Namespace) -> int:
         if getattr(args, "plant", None):
             plant_factory = plant_seam.load_factory(args.plant)
         chosen = scenario_defs.select(args.scenario, quick=args.quick)
-        factories = {"baseline": baseline_factory(), "mpc": mpc_factory(mpc_parameters(args), mpc_deadline(args))}
+        factories = {"baseline": baseline_factory(), "mpc": mpc_factory(mpc_parameters(args), mpc_deadline(args),
+                                                                    mpc_settings_values(args))}
         if args.model:
             from . import refined_model
             refined_model.check(args.model, args.model_plant)
@@ -353,7 +361,9 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     notes = write_outputs(results, traces, out, plots=not args.no_plots)
     if args.model:
-        refined_model.add_to_outputs(refined_model.compare(args.model, args.model_plant, chosen, args.seed), out)
+        refined_model.add_to_outputs(refined_model.compare(args.model, args.model_plant, chosen, args.seed,
+                                                            deadline_s=mpc_deadline(args),
+                                                            overrides=mpc_settings_values(args)), out)
     print(report.terminal_table(results))
     for n in notes:
         print(n)
@@ -375,7 +385,8 @@ def run_mismatch_suite(args: argparse.Namespace) -> int:
               f"{list(known)}", file=sys.stderr)
         return 2
     try:
-        factories = {"baseline": baseline_factory(), "mpc": mpc_factory(mpc_parameters(args), mpc_deadline(args))}
+        factories = {"baseline": baseline_factory(), "mpc": mpc_factory(mpc_parameters(args), mpc_deadline(args),
+                                                                    mpc_settings_values(args))}
     except (ValueError, RuntimeError) as exc:
         print(f"hvac-mpc bench: {exc}", file=sys.stderr)
         return 2
@@ -415,6 +426,21 @@ def mpc_parameters(args: argparse.Namespace) -> Parameters | None:
         raise ValueError(f"--mpc-params {path}: {exc}") from exc
 
 
+def mpc_settings_values(args: argparse.Namespace) -> dict[str, Any]:
+    """The MPC's settings from ``--mpc-settings`` ({} without it); errors name the file and the field.
+    ``initial_command`` and ``deadline_s`` are the bench's own (each scenario's command, ``--deadline-s``)."""
+    path = getattr(args, "mpc_settings", None)
+    if not path:
+        return {}
+    from hvac_mpc.mpc.settings_file import read_settings_file
+    values = read_settings_file(path)
+    owned = sorted({"initial_command", "deadline_s"} & set(values))
+    if owned:
+        raise ValueError(f"--mpc-settings {path}: {owned} are set by the bench (each scenario's command, "
+                         f"--deadline-s), not by the settings file")
+    return values
+
+
 def _argv_from(args: argparse.Namespace) -> list[str]:
     """The options as typed, rebuilt from the parsed arguments (for the report's command line)."""
     argv = []
@@ -432,6 +458,8 @@ def _argv_from(args: argparse.Namespace) -> list[str]:
         argv += ["--plant", args.plant]
     if getattr(args, "mpc_params", None):
         argv += ["--mpc-params", args.mpc_params]
+    if getattr(args, "mpc_settings", None):
+        argv += ["--mpc-settings", args.mpc_settings]
     if getattr(args, "suite", None):
         argv += ["--suite", args.suite]
     for v in getattr(args, "variant", None) or []:

@@ -19,6 +19,7 @@ from hvac_mpc.mismatch import make_plant
 from hvac_mpc.models.model_file import RefinedModel
 from hvac_mpc.models.model_file import load as load_model
 from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
+from hvac_mpc.mpc.settings_file import settings_with
 
 from .scenarios import Scenario
 from .simulate import DETERMINISTIC_DEADLINE_S, plant_seed
@@ -64,7 +65,8 @@ def _without(settings: MpcSettings, effects: Sequence[str]) -> MpcSettings:
 
 def with_overrides(settings: MpcSettings, overrides: Mapping[str, Any] | None = None,
                    weights: Mapping[str, float] | None = None) -> MpcSettings:
-    """``settings`` with fields of :class:`MpcSettings` (``overrides``) and of its cost weights (``weights``,
+    """``settings`` with fields of :class:`MpcSettings` (``overrides``, sub-tables into the settings it holds,
+    :func:`~hvac_mpc.mpc.settings_file.settings_with`) and of its cost weights (``weights``,
     :class:`~hvac_mpc.mpc.ocp.Weights`) replaced; a name that is not a field raises ValueError naming it."""
     def _replace(obj, values, what):
         unknown = sorted(set(values) - {f.name for f in dataclasses.fields(obj)})
@@ -72,8 +74,7 @@ def with_overrides(settings: MpcSettings, overrides: Mapping[str, Any] | None = 
             raise ValueError(f"unknown {what} field(s) {unknown}")
         return dataclasses.replace(obj, **values)
     if overrides:
-        settings = _replace(settings, {k: tuple(v) if isinstance(v, list) else v for k, v in overrides.items()},
-                            "MpcSettings")
+        settings = settings_with(settings, overrides)
     if weights:
         ocp = settings.ocp
         settings = dataclasses.replace(settings, ocp=dataclasses.replace(

@@ -9,7 +9,6 @@ over, so it starts from the current measurement (no stale integrator state).
 
 from __future__ import annotations
 
-import dataclasses
 import importlib
 import inspect
 import math
@@ -50,28 +49,18 @@ def load_controller(spec: str, params: Parameters, dt_s: float, settings: Mappin
         raise ControllerLoadError(f"controller {spec!r}: cannot import {known[spec].value} ({exc})") from None
     try:
         if spec == "mpc":
+            from hvac_mpc.mpc.settings_file import settings_with  # the MPC's own module, loaded with it
             settings_cls = getattr(importlib.import_module(cls.__module__), "MpcSettings")
             if "dt_s" in getattr(settings_cls, "__dataclass_fields__", {}) and "dt_s" not in settings:
                 settings["dt_s"] = dt_s
             if model is not None:
-                return cls(params, settings_cls(**_nested(settings_cls, settings)), model=model)
-            return cls(params, settings_cls(**_nested(settings_cls, settings)))
+                return cls(params, settings_with(settings_cls(), settings), model=model)
+            return cls(params, settings_with(settings_cls(), settings))
         if spec == "baseline":
             return cls(params, dt_s=dt_s, **settings)
         return cls(params=params, dt_s=dt_s, **settings)
     except (TypeError, ValueError) as exc:
         raise ControllerLoadError(f"controller {spec!r}: bad settings {sorted(settings)} ({exc})") from None
-
-
-def _nested(settings_cls: type, settings: dict[str, Any]) -> dict[str, Any]:
-    """TOML sub-tables become the dataclasses the settings fields hold (e.g. MpcSettings.ocp)."""
-    out = dict(settings)
-    defaults = settings_cls()
-    for name, value in settings.items():
-        current = getattr(defaults, name, None)
-        if isinstance(value, Mapping) and dataclasses.is_dataclass(current):
-            out[name] = type(current)(**_nested(type(current), dict(value)))
-    return out
 
 
 def reset_controller(ctrl: Controller, command: Command | None) -> None:
