@@ -522,34 +522,49 @@ class RtiOsqpSolver:
                                    [Px, Ax, ca.vec(e_dyn), gw2, c_base, y, floor_l, *more],
                                    ["X", "U", "d", "SW", "P0", "A0", "p"],
                                    ["Px", "Ax", "e_dyn", "Gw2", "c_base", "y", "floor_l", "AB", "G"][:7 + len(more)])
-        # gradient
-        G2 = ca.SX.sym("Gw2", nr * nz, N + 1)
-        C = ca.SX.sym("c_base", nr, N + 1)
-        Y = ca.SX.sym("y", ny, N + 1)
+        self.qp_gradient = self._gradient_function()
+
+    def _gradient_function(self) -> ca.Function:
+        """``qp_gradient`` (:meth:`_build_qp_functions`): each stage's block 2 (W G)' c of the gradient from one SX
+        function mapped over the N + 1 stages (a loop in the generated code, about a tenth of the machine code of
+        the stages written out one by one, so less to fetch inside a step), then the blocks put in place with the
+        move and Levenberg-Marquardt terms by a second SX function. Every value is the same expression as the
+        stages written out in one SX function gave (``tests/test_hot_path.py``), so the same numbers to the bit."""
+        pb, N, nu, ny = self.pb, self.pb.N, self.pb.nu, self.pb.ny
+        nz, nr = self.nz_stage, ny + 1
+        g2 = ca.SX.sym("gw2", nr * nz)
+        c_k = ca.SX.sym("c_base", nr)
+        y_k = ca.SX.sym("y", ny)
         ref = ca.SX.sym("ref", ny)
         dd = ca.SX.sym("dd", 2)
-        u_lin = ca.SX.sym("u_lin", N * nu)
-        u_prev = ca.SX.sym("u_prev", nu)
-        q0, lm, w_du = ca.SX.sym("q0", self.n), ca.SX.sym("lm", N * nu), ca.SX.sym("w_du", nu)
-        c = C - ca.vertcat(ref, 0)
+        c = c_k - ca.vertcat(ref, 0)
         # disturbance estimates that moved since preparation enter the outputs additively: the
         # mixed-air offset adds to the supply temperature, the flow offset to the total flow
         # and, in proportion, to each outlet
-        rows = [c[i, :] for i in range(nr)]
+        rows = [c[i] for i in range(nr)]
         rows[Y_TEMP] += (1.0 - pb.spec.temperature_sensor_share) * dd[0]
         rows[Y_FLOW] += dd[1]
         for i in Y_OUTLETS:
-            rows[i] += dd[1] * Y[i, :] / ca.fmax(Y[Y_FLOW, :], 1e-6)
-        c = ca.vertcat(*rows)
-        blocks = ca.horzcat(*[ca.mtimes(ca.reshape(G2[:, k], nr, nz).T, c[:, k]) for k in range(N + 1)])
+            rows[i] += dd[1] * y_k[i] / ca.fmax(y_k[Y_FLOW], 1e-6)
+        block = ca.mtimes(ca.reshape(g2, nr, nz).T, ca.vertcat(*rows))
+        stage = ca.Function("qp_gradient_stage", [g2, c_k, y_k, ref, dd], [block])
+        blocks = ca.SX.sym("blocks", nz * (N + 1))
+        u_lin, u_prev = ca.SX.sym("u_lin", N * nu), ca.SX.sym("u_prev", nu)
+        q0, lm, w_du = ca.SX.sym("q0", self.n), ca.SX.sym("lm", N * nu), ca.SX.sym("w_du", nu)
         m_q = _selection(self.stage_cols.ravel(), self.n)
-        q = q0 + ca.mtimes(m_q, ca.vec(blocks))
+        q = q0 + ca.mtimes(m_q, blocks)
         lm_term = ca.vertcat(ca.DM.zeros(self.iu0), -2.0 * lm * u_lin, ca.DM.zeros(N))
         du_term = ca.vertcat(ca.DM.zeros(self.iu0), -2.0 * w_du * u_prev, ca.DM.zeros(self.n - self.iu0 - nu))
-        self.qp_gradient = ca.Function("hvac_qp_gradient", [G2, C, Y, ref, dd, u_lin, u_prev, q0, lm, w_du],
-                                       [q + lm_term + du_term],
-                                       ["Gw2", "c_base", "y", "ref", "dd", "u_lin", "u_prev", "q0", "lm", "w_du"],
-                                       ["q"])
+        place = ca.Function("qp_gradient_place", [blocks, u_lin, u_prev, q0, lm, w_du], [q + lm_term + du_term])
+        G2m = ca.MX.sym("Gw2", nr * nz, N + 1)
+        Cm, Ym = ca.MX.sym("c_base", nr, N + 1), ca.MX.sym("y", ny, N + 1)
+        refm, ddm = ca.MX.sym("ref", ny), ca.MX.sym("dd", 2)
+        u_linm, u_prevm = ca.MX.sym("u_lin", N * nu), ca.MX.sym("u_prev", nu)
+        q0m, lmm, w_dum = ca.MX.sym("q0", self.n), ca.MX.sym("lm", N * nu), ca.MX.sym("w_du", nu)
+        blocks_m = stage.map(N + 1, "serial")(G2m, Cm, Ym, refm, ddm)
+        qm = place(ca.vec(blocks_m), u_linm, u_prevm, q0m, lmm, w_dum)
+        return ca.Function("hvac_qp_gradient", [G2m, Cm, Ym, refm, ddm, u_linm, u_prevm, q0m, lmm, w_dum], [qm],
+                           ["Gw2", "c_base", "y", "ref", "dd", "u_lin", "u_prev", "q0", "lm", "w_du"], ["q"])
 
     def _stage_qp_function(self, stage: ca.Function) -> ca.Function:
         """One stage's QP data from the model's stage function: dynamics residual, -[A B] (row
@@ -659,8 +674,9 @@ class RtiOsqpSolver:
         X1 = X_last[:, i0.tolist()] * ca.DM(1.0 - w1) + X_last[:, np.minimum(i0 + 1, N).tolist()] * ca.DM(w1)
         X, U = ca.horzcat(x0, X1), ca.horzcat(u_prev, U_last[:, self._j[1:].tolist()])
         data = self._qp_data.fn.call([X, U, d, SW, self._P_const, self._A_const, p_qp])
-        fn = ca.Function("hvac_predict_qp_data", [*args, X_last, U_last, u_prev, SW, p_qp],
+        fn = ca.Function(f"hvac_predict_qp_data_{ekf.name}", [*args, X_last, U_last, u_prev, SW, p_qp],
                          [zn, Pn, air, flow, X, U, d, *data])
+        fn = self._compiled_calling(fn, predict, self._qp_data.fn)
         i_p_qp = len(args) + 4
         fused = FusedPrediction(ekf, predict, fixed, BufferedFunction(fn, fixed={**fixed, i_p_qp: self._p}), i_p_qp)
         if self._ml is not None:  # the same with the vectors of a multi-level step in place of the QP data
@@ -672,6 +688,15 @@ class RtiOsqpSolver:
             fused.i_p_vec = len(args) + 3
             fused.vec = BufferedFunction(fn, fixed={**fixed, fused.i_p_vec: self._p})
         return fused
+
+    def _compiled_calling(self, fn: ca.Function, *called: ca.Function) -> ca.Function:
+        """``fn`` as generated C linked against the generated functions it calls (:func:`~.codegen.compiled` with ``link``:
+        the shift and the scaling in C, not in CasADi's MX virtual machine, about 10 us of a step), where every one of
+        them runs as generated C loaded through this solver's code report; else ``fn`` (the same values)."""
+        libraries = [self.codegen.libraries.get(f.name()) for f in called]
+        if not all(f.class_name() == "External" for f in called) or None in libraries:
+            return fn
+        return compiled(fn, self.codegen, link=tuple(libraries))
 
     @property
     def fused_prediction(self) -> bool:
