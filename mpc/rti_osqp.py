@@ -663,7 +663,11 @@ class RtiOsqpSolver:
         args = predict.mx_in()
         z, sp = args[0], args[3]
         zn, Pn, air, flow = predict.call(args)
-        x0 = (ekf.model_state(zn) - ca.DM(pb.x_off)) / ca.DM(pb.x_sc)
+        # the scaling and the constant parts of P and A are inputs (fixed), not constants: the generated code of one
+        # structure serves every parameter set and weight (:meth:`_compiled_calling`)
+        x_off, x_sc = ca.MX.sym("x_off", nx), ca.MX.sym("x_sc", nx)
+        P0, A0 = ca.MX.sym("P0", self._P_const.size), ca.MX.sym("A0", self._A_const.size)
+        x0 = (ekf.model_state(zn) - x_off) / x_sc
         d = ekf.disturbance(zn, sp)
         X_last, U_last = ca.MX.sym("X_last", nx, N + 1), ca.MX.sym("U_last", pb.nu, N)
         u_prev, SW = ca.MX.sym("u_prev", pb.nu), ca.MX.sym("SW", pb.ny + 1, N + 1)
@@ -673,12 +677,14 @@ class RtiOsqpSolver:
         i0, w1 = self._i0[1:], np.tile(self._w1[1:], (nx, 1))
         X1 = X_last[:, i0.tolist()] * ca.DM(1.0 - w1) + X_last[:, np.minimum(i0 + 1, N).tolist()] * ca.DM(w1)
         X, U = ca.horzcat(x0, X1), ca.horzcat(u_prev, U_last[:, self._j[1:].tolist()])
-        data = self._qp_data.fn.call([X, U, d, SW, self._P_const, self._A_const, p_qp])
-        fn = ca.Function(f"hvac_predict_qp_data_{ekf.name}", [*args, X_last, U_last, u_prev, SW, p_qp],
+        data = self._qp_data.fn.call([X, U, d, SW, P0, A0, p_qp])
+        fn = ca.Function(f"hvac_predict_qp_data_{ekf.name}", [*args, X_last, U_last, u_prev, SW, p_qp, x_off, x_sc, P0, A0],
                          [zn, Pn, air, flow, X, U, d, *data])
         fn = self._compiled_calling(fn, predict, self._qp_data.fn)
         i_p_qp = len(args) + 4
-        fused = FusedPrediction(ekf, predict, fixed, BufferedFunction(fn, fixed={**fixed, i_p_qp: self._p}), i_p_qp)
+        constants = {i_p_qp + 1: pb.x_off, i_p_qp + 2: pb.x_sc, i_p_qp + 3: self._P_const, i_p_qp + 4: self._A_const}
+        fused = FusedPrediction(ekf, predict, fixed, BufferedFunction(fn, fixed={**fixed, i_p_qp: self._p, **constants}),
+                                i_p_qp)
         if self._ml is not None:  # the same with the vectors of a multi-level step in place of the QP data
             AB, G = ca.MX.sym("AB", *self._qp_vectors.fn.size_in(4)), ca.MX.sym("G", *self._qp_vectors.fn.size_in(5))
             uh = ca.MX.sym("uh", self.r_floor.size)

@@ -1,7 +1,10 @@
-"""Generated functions written smaller give the numbers of their first formulation to the bit.
+"""Generated functions written smaller, and calls made fewer, give the numbers of their first formulation to the bit.
 
 The QP's gradient is a loop over the stages (one stage's SX function mapped) instead of every stage written out in
-one SX function; the values must be the same floating-point operations on the same numbers.
+one SX function, the estimator's measurement update has its products as MX (loops in the generated C), the
+reachable-flow check's three flows come from one call, and the estimator's time update fused with the QP data is
+generated C linked against the two functions it calls: each must be the same floating-point operations on the same
+numbers.
 
 Budget: about 5-20 s (interpreted; the generated build only where the code cache does not hold it yet).
 """
@@ -13,6 +16,7 @@ import pytest
 from hvac_mpc.benchmarks import solve_time
 from hvac_mpc.mpc import codegen, rti_osqp
 from hvac_mpc.mpc.codegen import compiled, compiler
+from hvac_mpc.mpc.estimator import MEASURED, EkfSettings
 from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
 from hvac_mpc.mpc.rti_osqp import Y_FLOW, Y_OUTLETS, Y_TEMP
 
@@ -176,3 +180,39 @@ def test_a_function_calling_a_library_not_there_is_left_to_casadi(tmp_path, monk
     linked = codegen.compiled(outer, report, link=(lib,))
     assert report.outcomes["small_outer"] == "built" and linked.class_name() == "External"
     assert np.array_equal(np.asarray(linked([0.25, -3.0])), [[1.5], [-5.0]])
+
+
+@pytest.mark.parametrize("learn", [False, True])
+def test_the_estimators_update_with_mx_products_is_the_sx_one_to_the_bit(learn, monkeypatch):
+    """The measurement update's products as MX (generated C loops over them) give the SX function's numbers to the
+    bit: interpreted, and as generated C against the interpreted SX function, on the states of a closed loop with
+    readings left out, other weights and variances, with and without the bypass-flow exponent learned."""
+    ctrl = MpcController(settings=MpcSettings(codegen=False, ekf=EkfSettings(learn_bypass_flow=learn)))
+    pairs = []
+    for ekf in ctrl._filters:
+        assert ekf.learns_bypass_flow == learn
+        assert ekf.update_fn.is_a("MXFunction")
+        pairs.append((ekf, ekf.update_fn, ekf._update_function(ca.SX)))  # the first formulation: SX
+    if compiler() is not None:
+        monkeypatch.setenv(codegen.SWITCH_ENV, "1")
+        pairs += [(ekf, compiled(new), old) for ekf, new, old in pairs[:1]]
+        assert pairs[-1][1].class_name() == "External"
+    loop = solve_time.Loop(ctrl, seed=4)
+    rng = np.random.default_rng(4)
+    nm = len(MEASURED)
+    compared = [0] * len(pairs)
+    for k in range(30):
+        loop.step(k)
+        for i, (ekf, new, old) in enumerate(pairs):
+            if not ekf.initialised:  # the second filter starts with its first sample in use
+                continue
+            compared[i] += 1
+            ok = (rng.uniform(size=nm) > 0.25).astype(float)
+            ok[k % nm] = 0.0
+            A = rng.normal(size=(ekf.nz, ekf.nz))
+            P = ekf.P + 1e-3 * A @ A.T
+            args = [ekf.z, P, rng.normal(size=nm) + ekf.z[0], ok, ctrl.u_prev, 5.0 + k,
+                    rng.uniform(size=ekf.n_hist + 1), ekf.p, ekf.R_diag * rng.uniform(0.5, 2.0, nm), float(k % 2)]
+            for a, b in zip(new(*args), old(*args)):
+                assert np.array_equal(np.asarray(a), np.asarray(b)), (k, ekf.name)
+    assert min(compared) >= 20
