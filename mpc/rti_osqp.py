@@ -526,11 +526,12 @@ class RtiOsqpSolver:
 
     def _gradient_function(self) -> ca.Function:
         """``qp_gradient`` (:meth:`_build_qp_functions`): each stage's block 2 (W G)' c of the gradient from one SX
-        function mapped over the N + 1 stages (a loop in the generated code, about a tenth of the machine code of
-        the stages written out one by one, so less to fetch inside a step), then the blocks put in place with the
-        move and Levenberg-Marquardt terms by a second SX function. Every value is the same expression as the
-        stages written out in one SX function gave (``tests/test_hot_path.py``), so the same numbers to the bit."""
-        pb, N, nu, ny = self.pb, self.pb.N, self.pb.nu, self.pb.ny
+        function mapped over the N + 1 stages (a loop in the generated code), then the blocks put in place with the
+        move and Levenberg-Marquardt terms by elementwise MX operations over vectors (loops too): a fifth of the C of
+        the stages written out in one SX function, so less to fetch inside a step. Every value is the same
+        operations in the same order as that function's (``tests/test_small_code.py``), so the same numbers to the
+        bit."""
+        pb, N, nx, nu, ny = self.pb, self.pb.N, self.pb.nx, self.pb.nu, self.pb.ny
         nz, nr = self.nz_stage, ny + 1
         g2 = ca.SX.sym("gw2", nr * nz)
         c_k = ca.SX.sym("c_base", nr)
@@ -548,22 +549,21 @@ class RtiOsqpSolver:
             rows[i] += dd[1] * y_k[i] / ca.fmax(y_k[Y_FLOW], 1e-6)
         block = ca.mtimes(ca.reshape(g2, nr, nz).T, ca.vertcat(*rows))
         stage = ca.Function("qp_gradient_stage", [g2, c_k, y_k, ref, dd], [block])
-        blocks = ca.SX.sym("blocks", nz * (N + 1))
-        u_lin, u_prev = ca.SX.sym("u_lin", N * nu), ca.SX.sym("u_prev", nu)
-        q0, lm, w_du = ca.SX.sym("q0", self.n), ca.SX.sym("lm", N * nu), ca.SX.sym("w_du", nu)
-        m_q = _selection(self.stage_cols.ravel(), self.n)
-        q = q0 + ca.mtimes(m_q, blocks)
-        lm_term = ca.vertcat(ca.DM.zeros(self.iu0), -2.0 * lm * u_lin, ca.DM.zeros(N))
-        du_term = ca.vertcat(ca.DM.zeros(self.iu0), -2.0 * w_du * u_prev, ca.DM.zeros(self.n - self.iu0 - nu))
-        place = ca.Function("qp_gradient_place", [blocks, u_lin, u_prev, q0, lm, w_du], [q + lm_term + du_term])
-        G2m = ca.MX.sym("Gw2", nr * nz, N + 1)
-        Cm, Ym = ca.MX.sym("c_base", nr, N + 1), ca.MX.sym("y", ny, N + 1)
-        refm, ddm = ca.MX.sym("ref", ny), ca.MX.sym("dd", 2)
-        u_linm, u_prevm = ca.MX.sym("u_lin", N * nu), ca.MX.sym("u_prev", nu)
-        q0m, lmm, w_dum = ca.MX.sym("q0", self.n), ca.MX.sym("lm", N * nu), ca.MX.sym("w_du", nu)
-        blocks_m = stage.map(N + 1, "serial")(G2m, Cm, Ym, refm, ddm)
-        qm = place(ca.vec(blocks_m), u_linm, u_prevm, q0m, lmm, w_dum)
-        return ca.Function("hvac_qp_gradient", [G2m, Cm, Ym, refm, ddm, u_linm, u_prevm, q0m, lmm, w_dum], [qm],
+        G2 = ca.MX.sym("Gw2", nr * nz, N + 1)
+        C, Y = ca.MX.sym("c_base", nr, N + 1), ca.MX.sym("y", ny, N + 1)
+        ref_m, dd_m = ca.MX.sym("ref", ny), ca.MX.sym("dd", 2)
+        u_lin, u_prev = ca.MX.sym("u_lin", N * nu), ca.MX.sym("u_prev", nu)
+        q0, lm, w_du = ca.MX.sym("q0", self.n), ca.MX.sym("lm", N * nu), ca.MX.sym("w_du", nu)
+        blocks = stage.map(N + 1, "serial")(G2, C, Y, ref_m, dd_m)
+        # the blocks put in place (stage_cols, _build_pattern): x_k's block at x_k, u_k's at u_k, the terminal
+        # stage's u-block added to u_{N-1}'s (after it, as the selection matrix's product added them); then the
+        # Levenberg-Marquardt term on every u and the move term on u_0: each an elementwise operation over a vector
+        q_x = q0[:self.iu0] + ca.vec(blocks[:nx, :])
+        b_u = ca.horzcat(blocks[nx:, :N - 1], blocks[nx:, N - 1] + blocks[nx:, N])
+        q_u = (q0[self.iu0:self.is0] + ca.vec(b_u)) + -2.0 * lm * u_lin
+        q_u = ca.vertcat(q_u[:nu] + -2.0 * w_du * u_prev, q_u[nu:])
+        return ca.Function("hvac_qp_gradient", [G2, C, Y, ref_m, dd_m, u_lin, u_prev, q0, lm, w_du],
+                           [ca.vertcat(q_x, q_u, q0[self.is0:])],
                            ["Gw2", "c_base", "y", "ref", "dd", "u_lin", "u_prev", "q0", "lm", "w_du"], ["q"])
 
     def _stage_qp_function(self, stage: ca.Function) -> ca.Function:

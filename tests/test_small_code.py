@@ -83,11 +83,11 @@ def test_the_generated_mapped_gradient_is_the_unrolled_one_to_the_bit_and_smalle
     for trial in range(10):
         args = _inputs(old, rng, zeros=trial % 3 == 0)
         assert np.array_equal(np.asarray(new(*args)), np.asarray(old(*args))), trial
-    # the stages as a loop: less than half the C source of the stages written out (about 59 against 217 kB)
+    # the stages as a loop: less than a fifth of the C source of the stages written out (about 16 against 217 kB)
     monkeypatch.chdir(tmp_path)
     sizes = [(tmp_path / f.generate(f"{name}.c", {"with_header": False})).stat().st_size
              for name, f in (("mapped", solver.qp_gradient), ("unrolled", old))]
-    assert sizes[0] < sizes[1] / 2, sizes
+    assert sizes[0] < sizes[1] / 5, sizes
 
 
 def _flows_apart(reach, x, u, d, step):
