@@ -689,10 +689,11 @@ class RtiOsqpSolver:
             AB, G = ca.MX.sym("AB", *self._qp_vectors.fn.size_in(4)), ca.MX.sym("G", *self._qp_vectors.fn.size_in(5))
             uh = ca.MX.sym("uh", self.r_floor.size)
             vec = self._qp_vectors.fn.call([X, U, d, p_qp, AB, G, uh])
-            fn = ca.Function("hvac_predict_qp_vectors", [*args, X_last, U_last, u_prev, p_qp, AB, G, uh],
+            fn = ca.Function("hvac_predict_qp_vectors", [*args, X_last, U_last, u_prev, p_qp, AB, G, uh, x_off, x_sc],
                              [zn, Pn, air, flow, X, U, d, *vec])
             fused.i_p_vec = len(args) + 3
-            fused.vec = BufferedFunction(fn, fixed={**fixed, fused.i_p_vec: self._p})
+            scaling = {fused.i_p_vec + 4: pb.x_off, fused.i_p_vec + 5: pb.x_sc}
+            fused.vec = BufferedFunction(fn, fixed={**fixed, fused.i_p_vec: self._p, **scaling})
         return fused
 
     def _compiled_calling(self, fn: ca.Function, *called: ca.Function) -> ca.Function:
