@@ -141,9 +141,11 @@ def _linked_key(fn: ca.Function, link: tuple[Path, ...]) -> str:
 
 
 def _link_flags(link: tuple[Path, ...]) -> tuple[str, ...]:
-    """The linker's arguments: the shared objects by path, their folders as run paths, and the maths library."""
+    """The linker's arguments: the shared objects by path, their folders as run paths (handed to the linker as they
+    are, commas included), and the maths library."""
     paths = [Path(path).resolve() for path in link]
-    return (*map(str, paths), *(f"-Wl,-rpath,{d}" for d in sorted({str(p.parent) for p in paths})), "-lm")
+    rpaths = [arg for d in sorted({str(p.parent) for p in paths}) for arg in ("-Xlinker", "-rpath", "-Xlinker", d)]
+    return (*map(str, paths), *rpaths, "-lm")
 
 
 def _ensure(lib: Path, build, report: CodegenReport) -> str:

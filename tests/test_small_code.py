@@ -167,7 +167,8 @@ def test_a_function_calling_a_library_not_there_is_left_to_casadi(tmp_path, monk
     if compiler() is None:
         pytest.skip("no C compiler: nothing is built either way")
     monkeypatch.setenv(codegen.SWITCH_ENV, "1")
-    monkeypatch.setenv(codegen.CACHE_ENV, str(tmp_path))
+    cache = tmp_path / "a cache, with a comma"  # the run path reaches the linker as it is
+    monkeypatch.setenv(codegen.CACHE_ENV, str(cache))
     x = ca.SX.sym("x", 2)
     inner = compiled(ca.Function("small_inner", [x], [2.0 * x]))
     assert inner.class_name() == "External"
@@ -176,7 +177,7 @@ def test_a_function_calling_a_library_not_there_is_left_to_casadi(tmp_path, monk
     report = codegen.CodegenReport()
     out = codegen.compiled(outer, report, link=(tmp_path / "not_there.so",))
     assert out is outer and report.outcomes["small_outer"].startswith("interpreted")
-    lib = next(tmp_path.glob("small_inner_*.so"))
+    lib = next(cache.glob("small_inner_*.so"))
     linked = codegen.compiled(outer, report, link=(lib,))
     assert report.outcomes["small_outer"] == "built" and linked.class_name() == "External"
     assert np.array_equal(np.asarray(linked([0.25, -3.0])), [[1.5], [-5.0]])
@@ -216,3 +217,48 @@ def test_the_estimators_update_with_mx_products_is_the_sx_one_to_the_bit(learn, 
             for a, b in zip(new(*args), old(*args)):
                 assert np.array_equal(np.asarray(a), np.asarray(b)), (k, ekf.name)
     assert min(compared) >= 20
+
+
+def test_the_functions_with_common_subexpressions_computed_once_give_the_same_numbers(monkeypatch):
+    """``codegen.shared`` (``casadi.cse``) on the step's small functions: fewer instructions, and on the arguments
+    the step hands them in a closed loop the same numbers to the bit as the functions as written, interpreted and
+    as the generated C the controller loads."""
+    from hvac_mpc.mpc.casadi_eval import BufferedFunction
+    ctrl = MpcController(settings=MpcSettings(codegen=False))
+    ekf = ctrl.ekf
+    targets = {f.name(): f for f in (ekf.shadow.step_fn, ekf.shadow.air_fn, ctrl.reach.out_fn, ctrl.reach.flows_fn)}
+    seen: dict[str, list] = {name: [] for name in targets}
+    original = BufferedFunction.__call__
+
+    def recorded(self, *args):
+        out = original(self, *args)
+        if self.fn.name() in seen:
+            seen[self.fn.name()].append([a.copy() for a in self._args])
+        return out
+    monkeypatch.setattr(BufferedFunction, "__call__", recorded)
+    loop = solve_time.Loop(ctrl, seed=6)
+    predict_args = []
+    for k in range(25):
+        loop.step(k)
+        predict_args.append([ekf.z.copy(), ekf.P.copy(), ctrl.u_prev.copy(), 5.0 + 0.1 * k, ekf.p, ekf.Q,
+                             float(ekf.learning)])
+    monkeypatch.setattr(BufferedFunction, "__call__", original)
+    targets[ekf.predict_fn.name()] = ekf.predict_fn
+    seen[ekf.predict_fn.name()] = predict_args
+    # the shadow's airs (read where it re-anchors) and the reachable-flow outputs (the flows' call reads them in the
+    # step) on the states, commands and disturbances of the flows' calls, with the parameters of each
+    flows = ctrl.reach.flows_fn
+    for fn, p in ((ekf.shadow.air_fn, ekf.p), (ctrl.reach.out_fn, ctrl.reach._p)):
+        assert [fn.size_in(i) for i in range(4)] == [flows.size_in(i) for i in range(4)]
+        seen[fn.name()] += [[*args[:3], p] for args in seen[flows.name()]]
+    monkeypatch.setenv(codegen.SWITCH_ENV, "1")
+    for name, fn in targets.items():
+        assert len(seen[name]) >= 20, name
+        cut = codegen.shared(fn)
+        assert cut.n_instructions() < fn.n_instructions(), name
+        variants = [cut] + ([compiled(cut)] if compiler() is not None else [])
+        for args in seen[name]:
+            want = [np.asarray(v) for v in fn(*args)] if fn.n_out() > 1 else [np.asarray(fn(*args))]
+            for f in variants:
+                got = [np.asarray(v) for v in f(*args)] if f.n_out() > 1 else [np.asarray(f(*args))]
+                assert all(np.array_equal(a, b) for a, b in zip(got, want)), (name, f.class_name())
