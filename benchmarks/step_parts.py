@@ -55,6 +55,7 @@ PARTS = (
     (mpc_controller.MpcController, "_run_other_filter", "the other filter (measurement and time update)"),
     (ocp.TrackingProblem, "input_bounds", "input bounds"),
     (ocp.TrackingProblem, "command_bounds", "command bounds"),
+    (priorities.ReachableFlow, "flows", "reachable-flow check's flows (generated call)"),
     (priorities.ReachableFlow, "check", "priorities check"),
     (priorities.ReachableFlow, "transient_flow_error", "flow-weight factor's flow error"),
     (mpc_controller.MpcController, "_trap_cap", "trapped-air cap"),

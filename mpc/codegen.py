@@ -44,6 +44,9 @@ class CodegenReport:
 
     outcomes: dict[str, str] = field(default_factory=dict)
     build_time_s: float = 0.0
+    #: the shared object each generated function was loaded from (name -> path): what a function calling it is
+    #: linked against (:func:`compiled` with ``link``)
+    libraries: dict[str, Path] = field(default_factory=dict)
 
     @property
     def active(self) -> bool:
@@ -90,9 +93,25 @@ def compiler() -> str | None:
     return None
 
 
-def compiled(fn: ca.Function, report: CodegenReport | None = None) -> ca.Function:
+def shared(fn: ca.Function) -> ca.Function:
+    """``fn`` (an SX function) with its common subexpressions computed once (``casadi.cse``): the same operations on
+    the same values, so the same numbers to the bit, in fewer instructions (the open-loop shadow's step a third of
+    them, the estimator's time update 0.7x), so less generated code to fetch inside a step. Its name, inputs and
+    outputs are ``fn``'s; a function that is not SX is returned as it is."""
+    if not fn.is_a("SXFunction"):
+        return fn
+    sym = fn.sx_in()
+    return ca.Function(fn.name(), sym, ca.cse(fn.call(sym)), fn.name_in(), fn.name_out())
+
+
+def compiled(fn: ca.Function, report: CodegenReport | None = None, link: tuple[Path, ...] = ()) -> ca.Function:
     """``fn`` as generated C (built on first use, then loaded from the cache), or ``fn`` itself
-    when code generation is off or fails (the reason goes into ``report``)."""
+    when code generation is off or fails (the reason goes into ``report``).
+
+    ``link``: the shared objects of generated functions ``fn`` calls (an MX function calling functions loaded by this
+    module, their paths in a report's ``libraries``): ``fn``'s own operations (index, scale, shift) are generated and
+    linked against them instead of compiling what they hold again (a build of a second or so), the libraries' names
+    (their hashes) in the cache key. Where one is missing the build fails and ``fn`` is evaluated by CasADi."""
     report = report if report is not None else CodegenReport()
     name = fn.name()
     if os.environ.get(SWITCH_ENV, "1") == "0":
@@ -100,14 +119,33 @@ def compiled(fn: ca.Function, report: CodegenReport | None = None) -> ca.Functio
         return fn
     try:
         folder = cache_dir()
-        lib = folder / f"{name}_{structure_key(fn)}.so"
-        outcome = _ensure(lib, lambda: _build(fn, folder, lib), report)
+        lib = folder / f"{name}_{_linked_key(fn, link)}.so"
+        outcome = _ensure(lib, lambda: _build(fn, folder, lib, _link_flags(link)), report)
         ext = ca.external(name, str(lib))
         report.outcomes[name] = outcome
+        report.libraries[name] = lib
         return ext
     except Exception as exc:  # noqa: BLE001 - no compiler, read-only cache, ...: the interpreter works
         report.outcomes[name] = f"interpreted: {type(exc).__name__}: {str(exc)[:200]}"
         return fn
+
+
+def _linked_key(fn: ca.Function, link: tuple[Path, ...]) -> str:
+    """:func:`structure_key`, with the names of the shared objects linked against where there are any."""
+    if not link:
+        return structure_key(fn)
+    h = hashlib.sha256(structure_key(fn).encode())
+    for path in link:
+        h.update(Path(path).name.encode())
+    return h.hexdigest()[:20]
+
+
+def _link_flags(link: tuple[Path, ...]) -> tuple[str, ...]:
+    """The linker's arguments: the shared objects by path, their folders as run paths (handed to the linker as they
+    are, commas included), and the maths library."""
+    paths = [Path(path).resolve() for path in link]
+    rpaths = [arg for d in sorted({str(p.parent) for p in paths}) for arg in ("-Xlinker", "-rpath", "-Xlinker", d)]
+    return (*map(str, paths), *rpaths, "-lm")
 
 
 def _ensure(lib: Path, build, report: CodegenReport) -> str:
@@ -120,8 +158,8 @@ def _ensure(lib: Path, build, report: CodegenReport) -> str:
     return "built"
 
 
-def _build(fn: ca.Function, folder: Path, lib: Path) -> None:
-    """Generate C for ``fn``, compile it and move the shared object into place atomically."""
+def _build(fn: ca.Function, folder: Path, lib: Path, libs: tuple[str, ...] = ("-lm",)) -> None:
+    """Generate C for ``fn``, compile it (linked with ``libs``) and move the shared object into place atomically."""
     folder.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=folder) as tmp:
         cwd = os.getcwd()
@@ -130,7 +168,7 @@ def _build(fn: ca.Function, folder: Path, lib: Path) -> None:
             source = fn.generate(f"{lib.stem}.c", {"with_header": False})
         finally:
             os.chdir(cwd)
-        compile_shared(Path(tmp) / source, lib, CFLAGS, ("-lm",), timeout_s=600)
+        compile_shared(Path(tmp) / source, lib, CFLAGS, libs, timeout_s=600)
 
 
 def compiled_nlpsol(name: str, plugin: str, nlp: dict, opts: dict, report: CodegenReport | None = None,

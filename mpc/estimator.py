@@ -601,31 +601,43 @@ class DisturbanceEkf:
             return ca.DM.ones(self.nz)
         return ca.vertcat(ca.DM.ones(self.i_exponent), learn, ca.DM.ones(self.nz - self.i_exponent - 1))
 
-    def _update_function(self) -> ca.Function:
+    def _update_function(self, sym=ca.MX) -> ca.Function:
         """(z, P, y, ok, u, setpoint, c, p, R, learn) -> (z+, P+): the measurement update of
         :meth:`update` (Joseph form) with the readings where ``ok`` is 1 and the supply reading
         compared at the weights ``c``. A reading left out has its row of H and its innovation zeroed
         and a unit variance, so it adds an uncoupled identity block to S and a zero column to K: the
         same update as with the used readings alone. ``learn`` (0 or 1) scales the bypass-flow
-        exponent's column of H and row of the gain (0: a constant to the filter, see :meth:`_exponent_mask`)."""
+        exponent's column of H and row of the gain (0: a constant to the filter, see :meth:`_exponent_mask`).
+
+        The matrix products are MX (``sym``), so generated C loops over them (a third of the C an SX function writes
+        out, less code to fetch inside a step); they add in the order the SX products (``sym=ca.SX``, the first
+        formulation) did, and the solve for the gain is the SX function's (:meth:`_gain_solve`), so the numbers are the
+        same (``tests/test_small_code.py``)."""
         nz, nm = self.nz, len(MEASURED)
-        z, P = ca.SX.sym("z", nz), ca.SX.sym("P", nz, nz)
-        y, ok = ca.SX.sym("y", nm), ca.SX.sym("ok", nm)
-        u, sp = ca.SX.sym("u", len(self.model.inputs)), ca.SX.sym("setpoint")
-        c = ca.SX.sym("c", self.n_hist + 1)
-        p, R = ca.SX.sym("p", len(self.p)), ca.SX.sym("R", nm)
+        z, P = sym.sym("z", nz), sym.sym("P", nz, nz)
+        y, ok = sym.sym("y", nm), sym.sym("ok", nm)
+        u, sp = sym.sym("u", len(self.model.inputs)), sym.sym("setpoint")
+        c = sym.sym("c", self.n_hist + 1)
+        p, R = sym.sym("p", len(self.p)), sym.sym("R", nm)
         hz, H = self.h_p(z, u, sp, p, c)
-        learn = ca.SX.sym("learn")
+        learn = sym.sym("learn")
         mask = ca.diag(self._exponent_mask(learn))
         H = ca.diag(ok) @ H @ mask
         innov = ok * (y - hz)
         Rm = ca.diag(ok * R + (1 - ok))
         S = H @ P @ H.T + Rm
-        K = mask @ ca.solve(S, H @ P).T
+        HP = H @ P
+        K = mask @ self._gain_solve(S.sparsity(), HP.sparsity())(S, HP).T
         IKH = ca.DM.eye(nz) - K @ H
         Pn = IKH @ P @ IKH.T + K @ ca.diag(ok * R) @ K.T
         return ca.Function(f"{self.name}_update", [z, P, y, ok, u, sp, c, p, R, learn], [z + K @ innov, 0.5 * (Pn + Pn.T)],
                            ["z", "P", "y", "ok", "u", "setpoint", "c", "p", "R", "learn"], ["z_next", "P_next"])
+
+    @staticmethod
+    def _gain_solve(s_sparsity: ca.Sparsity, b_sparsity: ca.Sparsity) -> ca.Function:
+        """``(S, B) -> S \\ B`` as CasADi solves it on SX (the measurement update's gain, :meth:`_update_function`)."""
+        S, B = ca.SX.sym("S", s_sparsity), ca.SX.sym("B", b_sparsity)
+        return ca.Function("ekf_gain_solve", [S, B], [ca.solve(S, B)])
 
     # ------------------------------------------------------------------ interface
     @property

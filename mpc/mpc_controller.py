@@ -52,7 +52,7 @@ from hvac_mpc.models.parameters import Parameters
 from hvac_mpc.contract import Command, Measurement
 
 from hvac_mpc.contract import StepResult
-from .codegen import CodegenReport, compiled, structure_key
+from .codegen import CodegenReport, compiled, shared, structure_key
 from .estimator import DisturbanceEkf, EkfSettings, finite_or
 from .priorities import ReachableFlow, flow_weight_factor
 from .ocp import HEATING_CMD_W, HeaterOffBound, InvalidSettings, OcpSpec, TrackingProblem, check_flag, check_number, trap_cap_pct
@@ -565,16 +565,18 @@ class MpcController:
         done: dict[str, Any] = {}  # structure key -> the generated function: one load per structure
 
         def once(fn):
+            fn = shared(fn)
             key = structure_key(fn)
             if key not in done:
                 done[key] = compiled(fn, self.codegen)
             return done[key]
         for f in self._filters:
-            f.use_functions(compiled(f.predict_fn, self.codegen), compiled(f.update_fn, self.codegen))
+            f.use_functions(compiled(shared(f.predict_fn), self.codegen), compiled(shared(f.update_fn), self.codegen))
             if f.shadow is not None:  # the filters' shadows are one function where they share the model
                 f.shadow.use_functions(once(f.shadow.step_fn), once(f.shadow.air_fn))
         if self.reach is not None:
             self.reach.use_out_function(once(self.reach.out_fn))
+            self.reach.use_flows_function(once(self.reach.flows_fn))
 
     def _make_solver(self):
         s, pb = self.settings, self.problem
@@ -887,8 +889,11 @@ class MpcController:
         self._out_of_reach = {}
         if self.reach is None:
             return y_ref
+        # the model's flows the check and the flow-weight factor read, in one call (the same values as theirs)
+        pb = self.problem
+        self._reach_flows = self.reach.flows(self.ekf.x, self.u_prev, d, pb.rate_phys * pb.dt_s)
         reach = self.reach.check(self.ekf.x, self.u_prev, d, ref.supply_temp_c, ref.volume_flow_m3s, cap,
-                                 self.settings.dt_s)
+                                 self.settings.dt_s, flows=self._reach_flows)
         self._out_of_reach = dict(reach.out_of_reach)
         if reach.flow_m3s is not None and reach.flow_m3s < ref.volume_flow_m3s:
             y_ref[1:5] *= reach.flow_m3s / ref.volume_flow_m3s
@@ -916,7 +921,7 @@ class MpcController:
             return factor
         pb = self.problem
         error_m3s = self.reach.transient_flow_error(self.ekf.x, self.u_prev, d, float(y_ref[1]),
-                                                    pb.rate_phys * pb.dt_s)
+                                                    pb.rate_phys * pb.dt_s, flows=self._reach_flows)
         w = pb.w_y_full
         return min(factor, flow_weight_factor(error_m3s, w[1], w[0], trade_c))
 

@@ -101,6 +101,16 @@ def flow_weight_factor(flow_error_m3s: float, flow_weight: float, temp_weight: f
     return 1.0 if pull <= limit else limit / pull
 
 
+class Flows(NamedTuple):
+    """The model's total flows (m3/s) a control step reads (:meth:`ReachableFlow.flows`): at the command in force
+    (``now_m3s``), with the blower and the outlet valves at their upper bounds (``full_m3s``) and with each of them
+    one sample's move up, at most to its bound (``up_m3s``)."""
+
+    now_m3s: float
+    full_m3s: float
+    up_m3s: float
+
+
 class Solution(NamedTuple):
     """One reachable-flow solve: the steady state of the largest flow (stacked x, u), its flow (m3/s), its
     supply-temperature error against the reference (degC) and whether IPOPT converged."""
@@ -176,6 +186,8 @@ class ReachableFlow:
         self.solver = ca.nlpsol("reachable_flow", "ipopt", nlp, opts)
         self.out_fn = ca.Function("reach_out", [x, u, d, p], [flow, temp])
         self.use_out_function(self.out_fn)
+        self.flows_fn = self._flows_function(model, x, u, d, p)
+        self.use_flows_function(self.flows_fn)
         # the same outputs as a function object of its own for the solve, which may run on a second
         # thread: no memory shared with the buffered calls of the step
         self._out_fn = ca.Function("reach_solution_out", [x, u, d, p], [flow, temp])
@@ -191,6 +203,29 @@ class ReachableFlow:
         :func:`~.codegen.compiled`), numpy in and out."""
         self._out = BufferedFunction(fn)
 
+    def _flows_function(self, model: HvacModel, x, u, d, p) -> ca.Function:
+        """(x, u, d, p, step, u_hi) -> the three flows of :class:`Flows`: the model's flow evaluated at the three
+        commands in one function (the same expression as :attr:`out_fn`'s flow at each, so the same numbers as
+        three calls of it; the bounds and moves are inputs, not constants, so nothing is folded at build time)."""
+        step, hi = ca.SX.sym("step", u.numel()), ca.SX.sym("u_hi", u.numel())
+        moved = [self.i_blower, *self.i_outlets]
+        full = ca.vertcat(*[hi[i] if i in moved else u[i] for i in range(u.numel())])
+        up = ca.vertcat(*[ca.fmin(u[i] + step[i], hi[i]) if i in moved else u[i] for i in range(u.numel())])
+        i_flow = model.outputs.index("volume_flow_m3s")
+        flows = [model.output(x, v, d, p)[i_flow] for v in (u, full, up)]
+        return ca.Function("reach_flows", [x, u, d, p, step, hi], flows)
+
+    def use_flows_function(self, fn) -> None:
+        """Evaluate :meth:`flows` with ``fn`` (the signature of :attr:`flows_fn`, e.g. generated C of it)."""
+        self._flows = BufferedFunction(fn, fixed={5: self.u_hi})
+
+    def flows(self, x: np.ndarray, u: np.ndarray, d: np.ndarray, step: np.ndarray) -> Flows:
+        """The model's flows a step reads (:class:`Flows`) at the estimate ``x``, the command ``u`` and the
+        disturbances ``d`` (physical), ``step`` each input's largest move in a sample: one call, where
+        :meth:`check` and :meth:`transient_flow_error` alone make two each (the same values)."""
+        now, full, up = self._flows(x, u, d, self._p, step)
+        return Flows(float(now[0]), float(full[0]), float(up[0]))
+
     def set_parameters(self, p: np.ndarray) -> None:
         """Model parameters (``HvacModel.p_default`` order) of the checks that follow."""
         self._p[...] = p
@@ -200,14 +235,17 @@ class ReachableFlow:
         return self._out(x, u, d, self._p)
 
     def transient_flow_error(self, x: np.ndarray, u: np.ndarray, d: np.ndarray, flow_m3s: float,
-                             step: np.ndarray) -> float:
+                             step: np.ndarray, flows: Flows | None = None) -> float:
         """The flow error (m3/s, the target less the model's flow at the estimate ``x``) whose pull on valve a
         :func:`flow_weight_factor` caps. A flow above the target counts whole: it is never a hazard, and the
         energy term pulls it down as well. A flow below it counts only beyond what the blower and the outlet
         valves reach within one sample at their rate limits (``step``: each input's largest move in a sample,
         physical), valve a and the heater held: a shortfall the MPC chose itself, giving up flow for a supply
         temperature out of reach, keeps the full weight, so the flow is not let go further (the heater's
-        minimum flow)."""
+        minimum flow). ``flows``: :meth:`flows` at the same arguments, where the step has them already."""
+        if flows is not None:
+            excess = flow_m3s - flows.now_m3s
+            return excess if excess <= 0.0 else max(flow_m3s - flows.up_m3s, 0.0)
         excess = flow_m3s - float(self.out(x, u, d)[0][0])
         if excess <= 0.0:
             return excess
@@ -227,24 +265,29 @@ class ReachableFlow:
         self._saturated_for_s = 0.0
 
     def check(self, x: np.ndarray, u: np.ndarray, d: np.ndarray, temp_ref_c: float, flow_ref_m3s: float,
-              a_cap_pct: float, dt_s: float) -> Reach:
+              a_cap_pct: float, dt_s: float, flows: Flows | None = None) -> Reach:
         """The flow to track (``None``: the reference as it is) and the out-of-reach report.
 
         ``x``, ``u``, ``d``: the estimate, the command in force and the disturbances (physical).
         Re-solved when the reference changes or every ``every_s``; otherwise the last answer.
         With ``deferred`` a periodic re-solve started here is applied at the start of the next check.
+        ``flows``: :meth:`flows` at the same ``x``, ``u``, ``d``, where the step has them already (one call).
         """
         failed = self._collect()
         if flow_ref_m3s < self.check_flow_m3s:
             self.reset()
             return self._last
-        flow_now = float(self.out(x, u, d)[0][0])
         # plainly within reach: the blower at full power with the outlets open gives the reference
         # with headroom without moving valve a or the heater (so without touching the temperature)
-        u_full = np.array(u, float)
-        u_full[self.i_blower] = self.u_hi[self.i_blower]
-        u_full[self.i_outlets] = self.u_hi[self.i_outlets]
-        if flow_ref_m3s <= self.headroom * float(self.out(x, u_full, d)[0][0]):
+        if flows is not None:
+            flow_now, flow_full = flows.now_m3s, flows.full_m3s
+        else:
+            flow_now = float(self.out(x, u, d)[0][0])
+            u_full = np.array(u, float)
+            u_full[self.i_blower] = self.u_hi[self.i_blower]
+            u_full[self.i_outlets] = self.u_hi[self.i_outlets]
+            flow_full = float(self.out(x, u_full, d)[0][0])
+        if flow_ref_m3s <= self.headroom * flow_full:
             self.reset()
             return self._last
         key = (round(temp_ref_c, 6), round(flow_ref_m3s, 9))

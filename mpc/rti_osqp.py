@@ -522,34 +522,49 @@ class RtiOsqpSolver:
                                    [Px, Ax, ca.vec(e_dyn), gw2, c_base, y, floor_l, *more],
                                    ["X", "U", "d", "SW", "P0", "A0", "p"],
                                    ["Px", "Ax", "e_dyn", "Gw2", "c_base", "y", "floor_l", "AB", "G"][:7 + len(more)])
-        # gradient
-        G2 = ca.SX.sym("Gw2", nr * nz, N + 1)
-        C = ca.SX.sym("c_base", nr, N + 1)
-        Y = ca.SX.sym("y", ny, N + 1)
+        self.qp_gradient = self._gradient_function()
+
+    def _gradient_function(self) -> ca.Function:
+        """``qp_gradient`` (:meth:`_build_qp_functions`): each stage's block 2 (W G)' c of the gradient from one SX
+        function mapped over the N + 1 stages (a loop in the generated code), then the blocks put in place with the
+        move and Levenberg-Marquardt terms by elementwise MX operations over vectors (loops too): a fifth of the C of
+        the stages written out in one SX function, so less to fetch inside a step. Every value is the same
+        operations in the same order as that function's (``tests/test_small_code.py``), so the same numbers to the
+        bit."""
+        pb, N, nx, nu, ny = self.pb, self.pb.N, self.pb.nx, self.pb.nu, self.pb.ny
+        nz, nr = self.nz_stage, ny + 1
+        g2 = ca.SX.sym("gw2", nr * nz)
+        c_k = ca.SX.sym("c_base", nr)
+        y_k = ca.SX.sym("y", ny)
         ref = ca.SX.sym("ref", ny)
         dd = ca.SX.sym("dd", 2)
-        u_lin = ca.SX.sym("u_lin", N * nu)
-        u_prev = ca.SX.sym("u_prev", nu)
-        q0, lm, w_du = ca.SX.sym("q0", self.n), ca.SX.sym("lm", N * nu), ca.SX.sym("w_du", nu)
-        c = C - ca.vertcat(ref, 0)
+        c = c_k - ca.vertcat(ref, 0)
         # disturbance estimates that moved since preparation enter the outputs additively: the
         # mixed-air offset adds to the supply temperature, the flow offset to the total flow
         # and, in proportion, to each outlet
-        rows = [c[i, :] for i in range(nr)]
+        rows = [c[i] for i in range(nr)]
         rows[Y_TEMP] += (1.0 - pb.spec.temperature_sensor_share) * dd[0]
         rows[Y_FLOW] += dd[1]
         for i in Y_OUTLETS:
-            rows[i] += dd[1] * Y[i, :] / ca.fmax(Y[Y_FLOW, :], 1e-6)
-        c = ca.vertcat(*rows)
-        blocks = ca.horzcat(*[ca.mtimes(ca.reshape(G2[:, k], nr, nz).T, c[:, k]) for k in range(N + 1)])
-        m_q = _selection(self.stage_cols.ravel(), self.n)
-        q = q0 + ca.mtimes(m_q, ca.vec(blocks))
-        lm_term = ca.vertcat(ca.DM.zeros(self.iu0), -2.0 * lm * u_lin, ca.DM.zeros(N))
-        du_term = ca.vertcat(ca.DM.zeros(self.iu0), -2.0 * w_du * u_prev, ca.DM.zeros(self.n - self.iu0 - nu))
-        self.qp_gradient = ca.Function("hvac_qp_gradient", [G2, C, Y, ref, dd, u_lin, u_prev, q0, lm, w_du],
-                                       [q + lm_term + du_term],
-                                       ["Gw2", "c_base", "y", "ref", "dd", "u_lin", "u_prev", "q0", "lm", "w_du"],
-                                       ["q"])
+            rows[i] += dd[1] * y_k[i] / ca.fmax(y_k[Y_FLOW], 1e-6)
+        block = ca.mtimes(ca.reshape(g2, nr, nz).T, ca.vertcat(*rows))
+        stage = ca.Function("qp_gradient_stage", [g2, c_k, y_k, ref, dd], [block])
+        G2 = ca.MX.sym("Gw2", nr * nz, N + 1)
+        C, Y = ca.MX.sym("c_base", nr, N + 1), ca.MX.sym("y", ny, N + 1)
+        ref_m, dd_m = ca.MX.sym("ref", ny), ca.MX.sym("dd", 2)
+        u_lin, u_prev = ca.MX.sym("u_lin", N * nu), ca.MX.sym("u_prev", nu)
+        q0, lm, w_du = ca.MX.sym("q0", self.n), ca.MX.sym("lm", N * nu), ca.MX.sym("w_du", nu)
+        blocks = stage.map(N + 1, "serial")(G2, C, Y, ref_m, dd_m)
+        # the blocks put in place (stage_cols, _build_pattern): x_k's block at x_k, u_k's at u_k, the terminal
+        # stage's u-block added to u_{N-1}'s (after it, as the selection matrix's product added them); then the
+        # Levenberg-Marquardt term on every u and the move term on u_0: each an elementwise operation over a vector
+        q_x = q0[:self.iu0] + ca.vec(blocks[:nx, :])
+        b_u = ca.horzcat(blocks[nx:, :N - 1], blocks[nx:, N - 1] + blocks[nx:, N])
+        q_u = (q0[self.iu0:self.is0] + ca.vec(b_u)) + -2.0 * lm * u_lin
+        q_u = ca.vertcat(q_u[:nu] + -2.0 * w_du * u_prev, q_u[nu:])
+        return ca.Function("hvac_qp_gradient", [G2, C, Y, ref_m, dd_m, u_lin, u_prev, q0, lm, w_du],
+                           [ca.vertcat(q_x, q_u, q0[self.is0:])],
+                           ["Gw2", "c_base", "y", "ref", "dd", "u_lin", "u_prev", "q0", "lm", "w_du"], ["q"])
 
     def _stage_qp_function(self, stage: ca.Function) -> ca.Function:
         """One stage's QP data from the model's stage function: dynamics residual, -[A B] (row
@@ -648,7 +663,11 @@ class RtiOsqpSolver:
         args = predict.mx_in()
         z, sp = args[0], args[3]
         zn, Pn, air, flow = predict.call(args)
-        x0 = (ekf.model_state(zn) - ca.DM(pb.x_off)) / ca.DM(pb.x_sc)
+        # the scaling and the constant parts of P and A are inputs (fixed), not constants: the generated code of one
+        # structure serves every parameter set and weight (:meth:`_compiled_calling`)
+        x_off, x_sc = ca.MX.sym("x_off", nx), ca.MX.sym("x_sc", nx)
+        P0, A0 = ca.MX.sym("P0", self._P_const.size), ca.MX.sym("A0", self._A_const.size)
+        x0 = (ekf.model_state(zn) - x_off) / x_sc
         d = ekf.disturbance(zn, sp)
         X_last, U_last = ca.MX.sym("X_last", nx, N + 1), ca.MX.sym("U_last", pb.nu, N)
         u_prev, SW = ca.MX.sym("u_prev", pb.nu), ca.MX.sym("SW", pb.ny + 1, N + 1)
@@ -658,20 +677,33 @@ class RtiOsqpSolver:
         i0, w1 = self._i0[1:], np.tile(self._w1[1:], (nx, 1))
         X1 = X_last[:, i0.tolist()] * ca.DM(1.0 - w1) + X_last[:, np.minimum(i0 + 1, N).tolist()] * ca.DM(w1)
         X, U = ca.horzcat(x0, X1), ca.horzcat(u_prev, U_last[:, self._j[1:].tolist()])
-        data = self._qp_data.fn.call([X, U, d, SW, self._P_const, self._A_const, p_qp])
-        fn = ca.Function("hvac_predict_qp_data", [*args, X_last, U_last, u_prev, SW, p_qp],
+        data = self._qp_data.fn.call([X, U, d, SW, P0, A0, p_qp])
+        fn = ca.Function(f"hvac_predict_qp_data_{ekf.name}", [*args, X_last, U_last, u_prev, SW, p_qp, x_off, x_sc, P0, A0],
                          [zn, Pn, air, flow, X, U, d, *data])
+        fn = self._compiled_calling(fn, predict, self._qp_data.fn)
         i_p_qp = len(args) + 4
-        fused = FusedPrediction(ekf, predict, fixed, BufferedFunction(fn, fixed={**fixed, i_p_qp: self._p}), i_p_qp)
+        constants = {i_p_qp + 1: pb.x_off, i_p_qp + 2: pb.x_sc, i_p_qp + 3: self._P_const, i_p_qp + 4: self._A_const}
+        fused = FusedPrediction(ekf, predict, fixed, BufferedFunction(fn, fixed={**fixed, i_p_qp: self._p, **constants}),
+                                i_p_qp)
         if self._ml is not None:  # the same with the vectors of a multi-level step in place of the QP data
             AB, G = ca.MX.sym("AB", *self._qp_vectors.fn.size_in(4)), ca.MX.sym("G", *self._qp_vectors.fn.size_in(5))
             uh = ca.MX.sym("uh", self.r_floor.size)
             vec = self._qp_vectors.fn.call([X, U, d, p_qp, AB, G, uh])
-            fn = ca.Function("hvac_predict_qp_vectors", [*args, X_last, U_last, u_prev, p_qp, AB, G, uh],
+            fn = ca.Function("hvac_predict_qp_vectors", [*args, X_last, U_last, u_prev, p_qp, AB, G, uh, x_off, x_sc],
                              [zn, Pn, air, flow, X, U, d, *vec])
             fused.i_p_vec = len(args) + 3
-            fused.vec = BufferedFunction(fn, fixed={**fixed, fused.i_p_vec: self._p})
+            scaling = {fused.i_p_vec + 4: pb.x_off, fused.i_p_vec + 5: pb.x_sc}
+            fused.vec = BufferedFunction(fn, fixed={**fixed, fused.i_p_vec: self._p, **scaling})
         return fused
+
+    def _compiled_calling(self, fn: ca.Function, *called: ca.Function) -> ca.Function:
+        """``fn`` as generated C linked against the generated functions it calls (:func:`~.codegen.compiled` with ``link``:
+        the shift and the scaling in C, not in CasADi's MX virtual machine, about 10 us of a step), where every one of
+        them runs as generated C loaded through this solver's code report; else ``fn`` (the same values)."""
+        libraries = [self.codegen.libraries.get(f.name()) for f in called]
+        if not all(f.class_name() == "External" for f in called) or None in libraries:
+            return fn
+        return compiled(fn, self.codegen, link=tuple(libraries))
 
     @property
     def fused_prediction(self) -> bool:
