@@ -204,11 +204,11 @@ MODEL_CANDIDATES = (
               signature=("supply_temp_c",), regressor="water_temp_c", requires=_needs_no_water_log, screen_each=True),
 )
 
-#: Candidates scored only when asked for (``identify(optional_candidates=...)``, ``hvac-mpc identify --candidate``):
-#: the thesis's cooler fit as written names the literal-cooler box exactly (held-out supply RMS 0.563 -> 0.052 C on the
-#: seed-5 log, 0.204 -> 0.078 C with the delay and the duct loss), but the MPC with that model runs the heater body
-#: lean in heating and loses the heater-limited steps (docs/identification.md, "The literal cooler as a library
-#: effect"), so the default library leaves it out and discovery's core-outlet term stands in for it.
+#: Candidates scored only when asked for (``identify(optional_candidates=...)``, ``hvac-mpc identify --candidate``).
+#: The thesis's cooler fit as written names the literal-cooler box exactly (held-out supply RMS 0.563 -> 0.052 C on
+#: the seed-5 log; with the delay and the duct loss 1.417 -> 0.078 C, 0.204 without it), but the MPC with that model
+#: runs the heater body lean in heating and loses the heater-limited steps (docs/identification.md, "The literal
+#: cooler as a library effect"), so the default library leaves it out and discovery's core-outlet term stands in.
 OPTIONAL_CANDIDATES = (
     Candidate("cooler_literal_fit", "model",
               "cooler core outlet follows the water alone, whatever the air entering the core (the thesis fit "
