@@ -43,15 +43,16 @@ CASES = {"ptc_fall": ("nominal", ("fan_curve", "valve_leakage"))}
 
 def run_one(name: str, folder: Path, seed: int, duration_s: float, scenario_names: list[str] | None,
             quick: bool = True, deadline_s: float | None = None, attribution: bool = True,
-            overrides: dict | None = None, weights: dict | None = None) -> dict:
+            overrides: dict | None = None, weights: dict | None = None, candidates: tuple[str, ...] = ()) -> dict:
     """Log, identification, model file and closed-loop comparison of one variant (``quick``: the scenarios'
     quick versions, their first segments only; ``deadline_s``: the MPCs' feedback deadline, None the default;
     ``attribution``: both MPCs once more without the effects the file lists as absent; ``overrides``, ``weights``:
-    both MPCs' settings and cost weights changed alike, :func:`.refined_model.with_overrides`)."""
+    both MPCs' settings and cost weights changed alike, :func:`.refined_model.with_overrides`; ``candidates``: optional
+    library candidates identification also scores, ``identify(optional_candidates=...)``)."""
     variant, effects = CASES.get(name, (name, DOCUMENTED_EFFECTS))
     path = folder / f"{name}.csv"
     simulate_log(path, variant, duration_s=duration_s, seed=seed)
-    res = identify(log_data.load(path), Parameters(), effects)
+    res = identify(log_data.load(path), Parameters(), effects, optional_candidates=candidates)
     model = write_model_file(folder / f"{name}.toml", res.params, res.effects, res.extras, res.terms, res.absent)
     cmp = compare(model, variant, scenarios.select(scenario_names, quick=quick), seed=0, attribution=attribution,
                   deadline_s=deadline_s, overrides=overrides, weights=weights)
@@ -101,13 +102,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--weights", type=json.loads, default=None,
                         help='both MPCs\' cost weights changed alike, JSON of Weights fields, e.g. '
                              '\'{"heater_ready_per_c2": 0.5}\'')
+    parser.add_argument("--candidate", action="append", default=[],
+                        help="optional library candidate identification also scores (repeatable; e.g. "
+                             "cooler_literal_fit, docs/identification.md)")
     args = parser.parse_args(argv)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.variant or DEFAULT_VARIANTS:
             r = run_one(name, Path(tmp), args.seed, args.duration, args.scenario, quick=not args.full,
                         deadline_s=args.deadline, attribution=not args.no_attribution, overrides=args.settings,
-                        weights=args.weights)
+                        weights=args.weights, candidates=tuple(args.candidate))
             rows.append(r)
             t = r["comparison"]["total"]
             print(f"{name:26s} added {r['added'] + r['terms'] or ['nothing']}", flush=True)

@@ -18,6 +18,10 @@ from pathlib import Path
 from hvac_mpc.models.measurement_log import LogFormatError
 
 
+#: Names of :data:`.candidates.OPTIONAL_CANDIDATES` (here so that the command line builds without the model's imports).
+OPTIONAL_CANDIDATE_NAMES = ("cooler_literal_fit",)
+
+
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("log", nargs="?", help="measurement log (CSV, or Parquet with pyarrow installed)")
     parser.add_argument("--map", action="append", default=[], metavar="OLD=NEW",
@@ -34,6 +38,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="no pair step (pairs of effects that only help together; on by default)")
     parser.add_argument("--thesis-tables", action="store_true",
                         help="run the loop on the thesis's valve measurements (tables 3-6) instead of a log")
+    parser.add_argument("--candidate", action="append", default=[], choices=OPTIONAL_CANDIDATE_NAMES,
+                        help="also score this optional library candidate (repeatable; off by default: "
+                             "docs/identification.md, 'The literal cooler as a library effect')")
     parser.add_argument("--quiet", action="store_true", help="no progress messages")
 
 
@@ -78,7 +85,7 @@ def _run_log(args, say) -> int:
     log = log_data.load(path, _mapping(args.map), args.holdout_fraction)
     say(f"{log.n} rows, outputs {', '.join(log.output_names())}")
     res = identify(log, base, effects, quick=args.quick, max_effects=args.max_effects, progress=say,
-                   pairs=not args.no_pairs)
+                   pairs=not args.no_pairs, optional_candidates=args.candidate)
     out = Path(args.out or "out/identify")
     files = write_report(res, out, plots=not args.no_plots)
     added = [a.name for a in res.accepted] or ["none"]

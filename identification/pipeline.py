@@ -55,7 +55,7 @@ from hvac_mpc.models.parameters import Parameters
 
 from . import discovery, localise, timing
 from . import statistics as st
-from .candidates import MIN_ABS_VALUE, MODEL_CANDIDATES, Candidate, library
+from .candidates import MIN_ABS_VALUE, MODEL_CANDIDATES, OPTIONAL_CANDIDATES, Candidate, library
 from .discovery import CABIN_CANDIDATES
 from .diagnostics import diagnose, innovations_nll
 from .fitting import FLOW_PARAMS, IDENTIFIED_REL_SE, NOMINAL_FREE, Fit, Fitter, FreeParam, parameter_confidence
@@ -140,7 +140,7 @@ class IdentificationResult:
 
 def _candidate_effects(name: str) -> tuple[str, ...]:
     """The model effects the library candidate ``name`` switches on."""
-    return next((c.effects for c in MODEL_CANDIDATES if c.name == name), ())
+    return next((c.effects for c in MODEL_CANDIDATES + OPTIONAL_CANDIDATES if c.name == name), ())
 
 
 def _grid_start(fitter: Fitter, effects, p: np.ndarray, post: OutputPost, cand: Candidate) -> np.ndarray:
@@ -703,9 +703,11 @@ class _Clock:
 
 def identify(log: LogData, base: Parameters | None = None, base_effects: Iterable[str] = (),
              quick: bool = False, max_effects: int = 4, progress: Callable[[str], None] | None = None,
-             discover: bool = True, pairs: bool = True, joint: bool = True) -> IdentificationResult:
+             discover: bool = True, pairs: bool = True, joint: bool = True,
+             optional_candidates: Iterable[str] = ()) -> IdentificationResult:
     """Run the whole procedure of the module docstring on a prepared log (``pairs``: its step 7, the pairs of
-    effects that only help together; ``joint``: its step 8, the joint refit)."""
+    effects that only help together; ``joint``: its step 8, the joint refit; ``optional_candidates``: names from
+    :data:`~.candidates.OPTIONAL_CANDIDATES` scored with the library)."""
     say = progress or (lambda _msg: None)
     clock = _Clock()
     base = base or Parameters()
@@ -720,7 +722,7 @@ def identify(log: LogData, base: Parameters | None = None, base_effects: Iterabl
     say("diagnosing the nominal residuals")
     diag_before = diagnose(fitter, nominal)
     clock.lap("diagnostics")
-    lib = library(fitter.outputs)
+    lib = library(fitter.outputs, optional_candidates)
     current, current_free, accepted, rounds = _forward(fitter, nominal, free, lib, max_effects, quick, say, notes)
     clock.lap("candidates")
     discovered, rejected_terms = None, []

@@ -36,7 +36,7 @@ OUTPUTS = ("supply_temp_c", "volume_flow_m3s", "flow_m_m3s", "flow_f_m3s", "flow
 
 #: Continuous effects the model can include (each off in the thesis model).
 MODEL_EFFECTS = ("ptc_power_fall", "motor_asymmetry", "bypass_flow", "trapped_air", "fan_curve",
-                 "valve_leakage", "chiller_asymmetry")
+                 "valve_leakage", "chiller_asymmetry", "cooler_literal_fit")
 
 INPUT_LOWER = {"blower_power_w": 30.0, "heater_cmd_w": 0.0, "valve_a_pct": 0.0,
                "valve_m_pct": 0.0, "valve_f_pct": 0.0, "valve_w_pct": 0.0}
@@ -176,7 +176,7 @@ class HvacModel:
         if any(t.location == "box_in" for t in self.terms):
             t_enter = t_in + terms_at(self.terms, "box_in", dict(t_in=t_in, t_cabin=prm.cabin_temp_c))
         t_blower = t_enter + sx["motor_rise_c"]
-        t_cooler = chiller.cooler_outlet_c(t_blower, sx["water_temp_c"], prm)
+        t_cooler = chiller.cooler_outlet_c(t_blower, sx["water_temp_c"], prm, literal="cooler_literal_fit" in e)
         if any(t.location == "cooler_out" for t in self.terms):  # discovered terms on the air leaving the core,
             # before the split, the outlet held between the air entering the core and the water (models/discovered.py)
             t_cooler = core_outlet_bounded_c(t_cooler + terms_at(self.terms, "cooler_out", dict(

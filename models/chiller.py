@@ -32,17 +32,30 @@ def hysteresis_target_c(water_c: float, setpoint_c: float, on: bool, p) -> tuple
     return target, on
 
 
-def cooler_outlet_c(air_in_c, water_c, p):
+def cooler_outlet_c(air_in_c, water_c, p, literal: bool = False):
     """Air temperature after the cooler core (thesis sec. 4.2).
 
     The thesis fit T_a = 0.7564 T_w + 6.312 was measured at one inlet temperature; it equals the
     effectiveness form T_in + eps (T_w - T_in) with eps = 0.7564 at
     T_in = 6.312 / (1 - 0.7564) = 25.9 C (docs/model.md, 'traps'). The effectiveness form is used so
-    that the cooler responds to the inlet temperature. ``p.cooler_outlet_offset_c`` (0 in the thesis model) is
-    added: the estimator's estimate of the core outlet's error, where a box's core does not follow the
-    effectiveness form (docs/robustness.md sec. 2.13).
+    that the cooler responds to the inlet temperature. ``literal`` (effect ``cooler_literal_fit``): the
+    thesis fit as written, ``p.cooler_slope`` T_w + ``p.cooler_offset_c`` whatever the air entering the core,
+    for a box whose log shows that (:func:`literal_outlet_c`). ``p.cooler_outlet_offset_c`` (0 in the thesis
+    model) is added: the estimator's estimate of the core outlet's error, where a box's core does not follow
+    the effectiveness form (docs/robustness.md sec. 2.13).
     """
+    if literal:
+        return literal_outlet_c(water_c, p) + p.cooler_outlet_offset_c
     return air_in_c + p.cooler_slope * (water_c - air_in_c) + p.cooler_outlet_offset_c
+
+
+def literal_outlet_c(water_c, p):
+    """The thesis cooler fit as written (sec. 4.2): core outlet air ``p.cooler_slope`` T_w + ``p.cooler_offset_c``
+    (degC), independent of the air entering the core. Not held between the air and the water: below the fit's
+    inlet range (cold air, cold water) it warms the air past both streams, as the fit's equation does; it is the
+    model only where identification named the effect on a log (docs/identification.md, "The literal cooler as a
+    library effect"). ASSUMPTION: the equation holds outside the log's inlet range as within it."""
+    return p.cooler_slope * water_c + p.cooler_offset_c
 
 
 def cooler_fit_inlet_c(p) -> float:

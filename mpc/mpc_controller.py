@@ -459,10 +459,11 @@ def _model_symbols(model: HvacModel) -> tuple:
 
 
 def _heater_inlet_function(model: HvacModel) -> Callable | None:
-    """(x, u, d) -> air entering the heater (degC) of ``model`` where discovered terms change it (a term at the
-    cooler core's outlet or on the air entering the box), else None (the cooler equation alone, as the trapped-air
-    guard reads it)."""
-    if not any(t.location in ("cooler_out", "box_in") for t in model.terms):
+    """(x, u, d) -> air entering the heater (degC) of ``model`` where discovered terms or the literal cooler fit
+    change it (a term at the cooler core's outlet or on the air entering the box, effect ``cooler_literal_fit``),
+    else None (the cooler equation alone, as the trapped-air guard reads it)."""
+    if "cooler_literal_fit" not in model.effects and not any(t.location in ("cooler_out", "box_in")
+                                                             for t in model.terms):
         return None
     import casadi as ca
     x, u, d = _model_symbols(model)
