@@ -83,7 +83,8 @@ OWN_RANGES = {"bypass_flow_after_s": (0.0, 3600.0), "motor_sd_after_response_c":
               "bypass_flow_settle_s": (1.0, 3600.0), "reanchor_hold_s": (0.0, 3600.0),
               "r_supply_rest_c": (0.0, 100.0), "rest_window_s": (1.0, 3600.0), "rest_air_band_c": (0.0, 100.0),
               "rest_log_flow_band": (0.0, 10.0), "rest_offset_band_c": (0.0, 100.0),
-              "response_wait_c": (0.0, 10.0), "response_wait_share": (0.01, 1.0), "response_wait_flat_c": (0.0, 10.0)}
+              "response_wait_c": (0.0, 10.0), "response_wait_share": (0.01, 1.0), "response_wait_flat_c": (0.0, 10.0),
+              "response_wait_rearm_s": (0.0, 3600.0)}
 #: Settings that shape the learning of the bypass-flow exponent and do nothing without ``learn_bypass_flow``
 #: (field -> its value that leaves learning as it is).
 BYPASS_FLOW_LEARNING_GATES = {"bypass_flow_anchored": False, "bypass_flow_after_response": False,
@@ -284,6 +285,11 @@ class EkfSettings:
     out of reach). ``response_wait_flat_c`` (degC in [0, 10]; 0: no bound): a wait begins only where the reading's
     change in that sample is at most this as well (a reading that stays put; a response smaller than the model's
     starts none). ASSUMPTIONS: 0.2 degC, four times the reading's noise; 0.5. docs/robustness.md sec. 2.17.
+    ``response_wait_rearm_s`` (s in [0, 3600]; 0: none): after a wait that ended as a model error (the reading moved
+    against the prediction or stayed put longer than any dead time), no wait begins for this long: the model's error
+    for a move of its own is a gain the next move shares, not a dead time. Default 60 s. ASSUMPTION: a valve or
+    heater gain error lasts at least the dead-time estimate's window (``dead_time_window_s``, 60 s), over which that
+    estimate ranks the same responses (docs/robustness.md sec. 2.19).
     """
 
     q_motor_c: float = 0.01
@@ -343,6 +349,7 @@ class EkfSettings:
     response_wait_c: float = 0.2
     response_wait_share: float = 0.5
     response_wait_flat_c: float = 0.0
+    response_wait_rearm_s: float = 60.0
 
     def validate(self, prefix: str = "ekf") -> None:
         for f in fields(self):
@@ -463,7 +470,8 @@ class DisturbanceEkf:
         self.response_wait = (ResponseWait(s.response_wait_c, s.response_wait_share,
                                            max(1, math.ceil(s.dead_time_min_s / self.dt_s - 1e-9)),
                                            self.n_hist + 1, int(round(RESPONSE_WAIT_AFTER_S / self.dt_s)),
-                                           s.response_wait_flat_c)
+                                           s.response_wait_flat_c,
+                                           int(round(s.response_wait_rearm_s / self.dt_s)))
                               if s.response_wait_c > 0.0 and self.n_hist else None)
         self.use = np.array([True, True, True, True, s.use_heater_outlet])
         # the filter states the supply reading is compared with: the thermocouple state now and its history

@@ -24,6 +24,14 @@ update: the model's states run open loop over the wait, the controller steers th
 Smith predictor for the samples of the wait), and the offsets stay where they were. A box without a dead time shows
 the response in the sample of the move (the thermocouple's lag moves the reading at once), so a wait starts there
 only where the reading's noise or a model error hides that (sec. 2.17 has what that cost on the built-in plant).
+
+A wait that ends as a model error (the reading moved against the prediction or stayed put too long) is evidence
+that what the model predicts for a move of its own is not coming at the dead time honoured, and the next move of
+the controller makes the same prediction: with ``rearm_samples`` no wait begins for that many samples after it
+(``EkfSettings.response_wait_rearm_s``). Without it, on a box whose valve gain differs from the model's (its curves
+shifted, a duct losing heat) with the dead time already found, each move the controller makes to answer the
+offset starts a wait of ``max_samples`` again, and the offset stays where it was for most of a step
+(docs/robustness.md sec. 2.19).
 Pure Python, no model code: the estimator feeds it.
 """
 
@@ -48,10 +56,11 @@ class ResponseWait:
     module docstring; no wait begins within the first ``after_samples`` samples after a reset (the filter's start-up,
     whose own corrections move the model's air while the reading does not). ``flat_c`` (degC, 0: no bound): a wait
     begins only where the reading's change in that sample is also at most this (a reading that stays put, as behind
-    a dead time; a response smaller than the model's, a gain error, does not start one)."""
+    a dead time; a response smaller than the model's, a gain error, does not start one). ``rearm_samples`` (>= 0; 0:
+    none): after a wait that ended as a model error, no wait begins for this many samples."""
 
     def __init__(self, trigger_c: float, share: float, min_samples: int, max_samples: int, after_samples: int = 0,
-                 flat_c: float = 0.0):
+                 flat_c: float = 0.0, rearm_samples: int = 0):
         if not trigger_c > 0.0:
             raise ValueError(f"ResponseWait: trigger_c must be > 0 degC, got {trigger_c}")
         if not 0.0 < share <= 1.0:
@@ -64,6 +73,9 @@ class ResponseWait:
         self.max_samples = int(max_samples)
         self.after_samples = max(0, int(after_samples))
         self.flat_c = float(flat_c)
+        if int(rearm_samples) < 0:
+            raise ValueError(f"ResponseWait: rearm_samples must be >= 0, got {rearm_samples}")
+        self.rearm_samples = int(rearm_samples)
         self.reset()
 
     def reset(self) -> None:
@@ -75,6 +87,8 @@ class ResponseWait:
         self._last_dp = 0.0  # the prediction's change in the last sample (degC)
         self._end: int | None = None  # the wait's last sample, once known
         self.waits = 0  # waits begun since the reset
+        self.model_errors = 0  # waits ended as a model error since the reset
+        self._quiet = 0  # samples left in which no wait begins (after a model error, ``rearm_samples``)
 
     @property
     def waiting(self) -> bool:
@@ -98,8 +112,14 @@ class ResponseWait:
                 self._end = 0 if self._samples <= self.min_samples else 2 * self._samples
             elif self._followed(-moved_c, read_c) or self._samples > self.max_samples:
                 self._end = 0
+                self._model_error()
         if steps != steps0 or (self._end is not None and self._samples > self._end):
             self._start = None
+
+    def _model_error(self) -> None:
+        """A wait ended as a model error: no wait begins for ``rearm_samples`` samples."""
+        self.model_errors += 1
+        self._quiet = self.rearm_samples
 
     def observe(self, prediction_c: float, reading_c: float, steps: float = 0.0) -> bool:
         """One sample's prediction of the reading, the reading and the dead time (samples) the prediction honours;
@@ -117,7 +137,8 @@ class ResponseWait:
         dy, onset = reading_c - last[1], abs(self._last_dp) < ONSET_SHARE * self.trigger_c
         self._last_dp = dp
         flat = self.flat_c <= 0.0 or abs(dy) <= self.flat_c
-        if abs(dp) >= self.trigger_c and onset and flat and not self._followed(dp, dy):
+        armed, self._quiet = self._quiet <= 0, max(0, self._quiet - 1)
+        if armed and abs(dp) >= self.trigger_c and onset and flat and not self._followed(dp, dy):
             self._start, self._samples, self._end = last, 1, None
             self.waits += 1
         return self.waiting
