@@ -151,7 +151,7 @@ def _grid_start(fitter: Fitter, effects, p: np.ndarray, post: OutputPost, cand: 
         for k, v in point.items():
             q[names.index(k)] = v
         try:
-            cost = fitter.evaluate(effects, q, post).cost_train
+            cost = fitter.train_cost(effects, q, post)
         except (RuntimeError, np.linalg.LinAlgError):
             continue
         if np.isfinite(cost) and (best_cost is None or cost < best_cost):

@@ -92,8 +92,9 @@ class Simulator:
         self.nz = self.z.shape[0]
         self._build()
         self._aug_cache: dict[tuple, ca.Function] = {}
+        self._sim_cache: dict[int, ca.Function] = {}  # the step mapped over fewer rows than the log's
         self._ekf_fn: ca.Function | None = None
-        self._runs: list[tuple[bytes, tuple[np.ndarray, np.ndarray]]] = []  # the last free runs, newest first
+        self._runs: list[tuple[bytes, "_Run"]] = []  # the last free runs, newest first
 
     # ------------------------------------------------------------------ building blocks
     def _sym(self):
@@ -209,24 +210,51 @@ class Simulator:
         return x
 
     # ------------------------------------------------------------------ free run
-    def simulate(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def simulate(self, p: np.ndarray, rows: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Free-run outputs (n x n_y) and states (n x n_x; state k is the state at row k).
 
+        ``rows``: only the first ``rows`` rows are run (the others NaN): a fit's residual and Jacobian use the
+        training rows, the first part of the log, alone. A run of the whole log continues a kept shorter run of the
+        same vector from its last state (the same steps in the same order: the same values to the bit).
         The last ``RUNS_KEPT`` runs are kept (copies returned): a fit's final evaluation is at the point of its last
         accepted step, and the next step starts from it, so the same vector is run again and again."""
+        n = self.log.n
+        rows = n if rows is None else int(min(max(rows, 1), n))
         key = np.asarray(p, dtype=float).tobytes()
-        hit = next((run for k, run in self._runs if k == key), None)
+        hit = next((run for k, run in self._runs if k == key and run.rows >= rows), None)
         if hit is None:
-            x0, _ = self.initial_state(p)
-            xs, ys = self.f_sim(x0, self.z_for(p), p)
-            xs = np.asarray(xs).T
-            hit = (np.asarray(ys).T, np.vstack([x0[None, :], xs[:-1]]))
-            self._runs = ([(key, hit)] + self._runs)[:RUNS_KEPT]
-        return hit[0].copy(), hit[1].copy()
+            part = next((run for k, run in self._runs if k == key), None)
+            hit = self._continue(p, part, rows) if part is not None else self._run(p, rows)
+            self._runs = ([(key, hit)] + [(k, r) for k, r in self._runs if k != key])[:RUNS_KEPT]
+        return hit.rows_of(n, rows)
 
-    def _aug(self, idx: tuple[int, ...]) -> ca.Function:
-        if idx in self._aug_cache:
-            return self._aug_cache[idx]
+    def _mapped(self, rows: int) -> ca.Function:
+        """The step mapped over ``rows`` rows (the whole log: :attr:`f_sim`)."""
+        if rows == self.log.n:
+            return self.f_sim
+        if rows not in self._sim_cache:
+            self._sim_cache[rows] = self.f_step_y.mapaccum(f"f_sim_{rows}", rows, [0], [0])
+        return self._sim_cache[rows]
+
+    def _run(self, p: np.ndarray, rows: int) -> "_Run":
+        """The first ``rows`` rows run from the steady state at the first row."""
+        x0, _ = self.initial_state(p)
+        xs, ys = self._mapped(rows)(x0, self.z_for(p)[:, :rows], p)
+        xs = np.asarray(xs).T
+        return _Run(np.asarray(ys).T, np.vstack([x0[None, :], xs[:-1]]), xs[-1])
+
+    def _continue(self, p: np.ndarray, part: "_Run", rows: int) -> "_Run":
+        """``part`` (a run of the first rows of ``p``) continued to ``rows`` rows from its last state."""
+        start = part.rows
+        xs, ys = self._mapped(rows - start)(part.x_end, self.z_for(p)[:, start:rows], p)
+        xs = np.asarray(xs).T
+        return _Run(np.vstack([part.y, np.asarray(ys).T]), np.vstack([part.states, part.x_end[None, :], xs[:-1]]),
+                    xs[-1])
+
+    def _aug(self, idx: tuple[int, ...], rows: int | None = None) -> ca.Function:
+        rows = self.log.n if rows is None else rows
+        if (idx, rows) in self._aug_cache:
+            return self._aug_cache[(idx, rows)]
         n_theta = len(idx)
         x, z, p = self._sym()
         s = ca.SX.sym("s", self.nx, n_theta)
@@ -239,26 +267,30 @@ class Simulator:
         dy = ca.mtimes(cy, s) + ca.mtimes(dp, ca.diag(c))
         f = ca.Function("f_aug", [ca.vertcat(x, ca.vec(s)), z, p, c],
                         [ca.vertcat(x_next, ca.vec(s_next)), ca.vertcat(y, ca.vec(dy))])
-        fm = f.mapaccum("f_aug_map", self.log.n, [0], [0])
-        self._aug_cache[idx] = fm
+        fm = f.mapaccum("f_aug_map", rows, [0], [0])
+        self._aug_cache[(idx, rows)] = fm
         return fm
 
-    def simulate_with_sensitivity(self, p: np.ndarray, e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def simulate_with_sensitivity(self, p: np.ndarray, e: np.ndarray, rows: int | None = None
+                                  ) -> tuple[np.ndarray, np.ndarray]:
         """Free run and dY/dtheta for p = p(theta) with dp/dtheta = ``e`` (n_p x n_theta).
 
         Each column of ``e`` must have one non-zero entry (one parameter per theta).
-        Returns ``y`` (n x n_y) and ``dy`` (n x n_y x n_theta).
+        Returns ``y`` (n x n_y) and ``dy`` (n x n_y x n_theta). ``rows``: only the first ``rows`` rows are run (the
+        others NaN; the same values to the bit in those rows).
         """
+        n = self.log.n
+        rows = n if rows is None else int(min(max(rows, 1), n))
         n_theta = e.shape[1]
         idx = tuple(int(np.flatnonzero(e[:, j])[0]) if np.any(e[:, j]) else 0 for j in range(n_theta))
         scale = np.array([e[i, j] for j, i in enumerate(idx)])
         x0, dx0 = self.initial_state(p)
         s0 = dx0 @ e
         xa0 = np.concatenate([x0, s0.ravel(order="F")])
-        _, out = self._aug(idx)(xa0, self.z_for(p), p, scale)
-        out = np.asarray(out).T
+        _, out = self._aug(idx, rows)(xa0, self.z_for(p)[:, :rows], p, scale)
+        out = _padded(np.asarray(out).T, n)
         y = out[:, :self.ny]
-        dy = out[:, self.ny:].reshape(self.log.n, self.ny, n_theta, order="F")
+        dy = out[:, self.ny:].reshape(n, self.ny, n_theta, order="F")
         return y, dy
 
     def internals(self, p: np.ndarray, states: np.ndarray) -> dict[str, np.ndarray]:
@@ -379,6 +411,28 @@ class OutputPost:
     def describe(self) -> dict:
         return {"delays_samples": dict(self.delays), "bias": {k: list(v) for k, v in self.bias.items()},
                 "gain": dict(self.gain)}
+
+
+class _Run:
+    """A free run of the first ``rows`` rows: outputs, states (state k at row k) and the state after the last row."""
+
+    def __init__(self, y: np.ndarray, states: np.ndarray, x_end: np.ndarray):
+        self.y, self.states, self.x_end = y, states, np.asarray(x_end, float).copy()
+
+    @property
+    def rows(self) -> int:
+        return self.y.shape[0]
+
+    def rows_of(self, n: int, rows: int) -> tuple[np.ndarray, np.ndarray]:
+        """Copies of the outputs and states of the first ``rows`` rows, NaN up to ``n`` rows."""
+        return _padded(self.y[:rows], n), _padded(self.states[:rows], n)
+
+
+def _padded(values: np.ndarray, n: int) -> np.ndarray:
+    """``values`` (rows first) as a new array of ``n`` rows, the rows it lacks NaN."""
+    out = np.full((n,) + values.shape[1:], np.nan)
+    out[:values.shape[0]] = values
+    return out
 
 
 def shift(values: np.ndarray, lag: int) -> np.ndarray:
