@@ -1,7 +1,8 @@
 """Whole-log simulation of one model structure: free run, output sensitivities, EKF innovations.
 
 Everything is built once per model structure as CasADi functions of the full parameter vector
-``p`` (order :meth:`Parameters.scalar_names`) and mapped over the log with ``mapaccum``:
+``p`` (order :meth:`Parameters.scalar_names`) and run over the log by ``mapaccum`` in calls of
+:data:`CHUNK_ROWS` rows:
 
 - free run ``Y = sim(p)`` from the steady state at the first row (the error for reporting and
   for the fit);
@@ -34,6 +35,12 @@ from .log_data import LogData
 
 #: Free runs a simulator keeps (their parameter vector, outputs and states; about 1 MB each on a 2 h log).
 RUNS_KEPT = 4
+#: Rows per call of a mapped step function: a run of the log is a chain of calls of the step mapped over this many
+#: rows (and one over the rows left), each from the state the last one ended in. The same steps in the same order as
+#: one function mapped over the whole log, so the same values to the bit; building a map over 200 rows takes about
+#: 1.5 ms against 25-30 ms over 7200, and the identification builds one per model structure and parameter set
+#: (docs/identification.md, "Cheaper runs").
+CHUNK_ROWS = 200
 
 #: Quantities inside the model exported for the diagnostics (derived regressors).
 INTERNALS = ("heater_temp_c", "mass_flow_kgs", "bypass_fraction", "core_mass_flow_kgs", "motor_rise_c",
@@ -92,7 +99,8 @@ class Simulator:
         self.nz = self.z.shape[0]
         self._build()
         self._aug_cache: dict[tuple, ca.Function] = {}
-        self._sim_cache: dict[int, ca.Function] = {}  # the step mapped over fewer rows than the log's
+        self._maps: dict[tuple, ca.Function] = {}
+        self._internals_map: ca.Function | None = None  # (step function's name, rows): the step mapped over rows
         self._ekf_fn: ca.Function | None = None
         self._runs: list[tuple[bytes, "_Run"]] = []  # the last free runs, newest first
 
@@ -152,7 +160,6 @@ class Simulator:
         self.f_step = ca.Function("f_step", [x, z, p], [x_next])
         self.f_y = ca.Function("f_y", [x, z, p], [y])
         self.f_step_y = ca.Function("f_step_y", [x, z, p], [x_next, y])
-        self.f_sim = self.f_step_y.mapaccum("f_sim", self.log.n, [0], [0])
         # steady state at the first row: ode = 0 (water state pinned to the logged value)
         xdot = m.ode(xe, u, d, pz)
         e = np.zeros(self.nx)
@@ -228,33 +235,46 @@ class Simulator:
             self._runs = ([(key, hit)] + [(k, r) for k, r in self._runs if k != key])[:RUNS_KEPT]
         return hit.rows_of(n, rows)
 
-    def _mapped(self, rows: int) -> ca.Function:
-        """The step mapped over ``rows`` rows (the whole log: :attr:`f_sim`)."""
-        if rows == self.log.n:
-            return self.f_sim
-        if rows not in self._sim_cache:
-            self._sim_cache[rows] = self.f_step_y.mapaccum(f"f_sim_{rows}", rows, [0], [0])
-        return self._sim_cache[rows]
+    def _mapped(self, fn: ca.Function, rows: int) -> ca.Function:
+        """``fn`` (a step: state, row inputs, constants -> next state, row outputs) mapped over ``rows`` rows."""
+        key = (fn.name(), rows)
+        if key not in self._maps:
+            self._maps[key] = fn.mapaccum(f"{fn.name()}_{rows}", rows, [0], [0])
+        return self._maps[key]
+
+    def _chain(self, fn: ca.Function, x0: np.ndarray, z: np.ndarray, *const, per_row: tuple = ()
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """``fn(x, z, *const, *per_row)`` run over the columns of ``z`` (and of the arrays ``per_row``, one column
+        per row too) from the state ``x0``, in calls of :data:`CHUNK_ROWS` rows: the states after each row and the
+        outputs of each row (one column per row)."""
+        xs, ys = [], []
+        x = x0
+        for k in range(0, z.shape[1], CHUNK_ROWS):
+            zk = z[:, k:k + CHUNK_ROWS]
+            x_k, y_k = self._mapped(fn, zk.shape[1])(x, zk, *const, *(a[:, k:k + CHUNK_ROWS] for a in per_row))
+            xs.append(np.asarray(x_k))
+            ys.append(np.asarray(y_k))
+            x = xs[-1][:, -1]
+        return np.hstack(xs), np.hstack(ys)
 
     def _run(self, p: np.ndarray, rows: int) -> "_Run":
         """The first ``rows`` rows run from the steady state at the first row."""
         x0, _ = self.initial_state(p)
-        xs, ys = self._mapped(rows)(x0, self.z_for(p)[:, :rows], p)
-        xs = np.asarray(xs).T
-        return _Run(np.asarray(ys).T, np.vstack([x0[None, :], xs[:-1]]), xs[-1])
+        xs, ys = self._chain(self.f_step_y, x0, self.z_for(p)[:, :rows], p)
+        xs = xs.T
+        return _Run(ys.T, np.vstack([x0[None, :], xs[:-1]]), xs[-1])
 
     def _continue(self, p: np.ndarray, part: "_Run", rows: int) -> "_Run":
         """``part`` (a run of the first rows of ``p``) continued to ``rows`` rows from its last state."""
         start = part.rows
-        xs, ys = self._mapped(rows - start)(part.x_end, self.z_for(p)[:, start:rows], p)
-        xs = np.asarray(xs).T
-        return _Run(np.vstack([part.y, np.asarray(ys).T]), np.vstack([part.states, part.x_end[None, :], xs[:-1]]),
-                    xs[-1])
+        xs, ys = self._chain(self.f_step_y, part.x_end, self.z_for(p)[:, start:rows], p)
+        xs = xs.T
+        return _Run(np.vstack([part.y, ys.T]), np.vstack([part.states, part.x_end[None, :], xs[:-1]]), xs[-1])
 
-    def _aug(self, idx: tuple[int, ...], rows: int | None = None) -> ca.Function:
-        rows = self.log.n if rows is None else rows
-        if (idx, rows) in self._aug_cache:
-            return self._aug_cache[(idx, rows)]
+    def _aug(self, idx: tuple[int, ...]) -> ca.Function:
+        """The step with the forward sensitivities of the parameters ``idx`` (one step; :meth:`_chain` runs it)."""
+        if idx in self._aug_cache:
+            return self._aug_cache[idx]
         n_theta = len(idx)
         x, z, p = self._sym()
         s = ca.SX.sym("s", self.nx, n_theta)
@@ -265,11 +285,10 @@ class Simulator:
         cy, dp = ca.jacobian(y, x), ca.jacobian(y, p_sel)
         s_next = ca.mtimes(a, s) + ca.mtimes(bp, ca.diag(c))
         dy = ca.mtimes(cy, s) + ca.mtimes(dp, ca.diag(c))
-        f = ca.Function("f_aug", [ca.vertcat(x, ca.vec(s)), z, p, c],
+        f = ca.Function(f"f_aug_{len(self._aug_cache)}", [ca.vertcat(x, ca.vec(s)), z, p, c],
                         [ca.vertcat(x_next, ca.vec(s_next)), ca.vertcat(y, ca.vec(dy))])
-        fm = f.mapaccum("f_aug_map", rows, [0], [0])
-        self._aug_cache[(idx, rows)] = fm
-        return fm
+        self._aug_cache[idx] = f
+        return f
 
     def simulate_with_sensitivity(self, p: np.ndarray, e: np.ndarray, rows: int | None = None
                                   ) -> tuple[np.ndarray, np.ndarray]:
@@ -287,15 +306,17 @@ class Simulator:
         x0, dx0 = self.initial_state(p)
         s0 = dx0 @ e
         xa0 = np.concatenate([x0, s0.ravel(order="F")])
-        _, out = self._aug(idx, rows)(xa0, self.z_for(p)[:, :rows], p, scale)
-        out = _padded(np.asarray(out).T, n)
+        _, out = self._chain(self._aug(idx), xa0, self.z_for(p)[:, :rows], p, scale)
+        out = _padded(out.T, n)
         y = out[:, :self.ny]
         dy = out[:, self.ny:].reshape(n, self.ny, n_theta, order="F")
         return y, dy
 
     def internals(self, p: np.ndarray, states: np.ndarray) -> dict[str, np.ndarray]:
         """Derived regressors along a free run (heater temperature, mass flow, bypass ...)."""
-        f = self.f_internals.map(self.log.n)
+        if self._internals_map is None:
+            self._internals_map = self.f_internals.map(self.log.n)
+        f = self._internals_map
         vals = np.asarray(f(states.T, self.z_for(p), p)).T
         out = {k: vals[:, i] for i, k in enumerate(INTERNALS)}
         out["network_resistance_kg_m7"] = network_resistance(self.params, self.log.u)
@@ -328,9 +349,8 @@ class Simulator:
         x_next, a = f_jac(xk, z, p)
         cov = ca.mtimes(ca.mtimes(a, cov), a.T) + ca.diag(q)
         cov = 0.5 * (cov + cov.T)
-        f = ca.Function("ekf", [ca.vertcat(x, pv), z, p, ym, mask, r, q],
-                        [ca.vertcat(x_next, ca.vec(cov)), ca.vertcat(*nus, *ss)])
-        self._ekf_fn = f.mapaccum("ekf_map", self.log.n, [0], [0])
+        self._ekf_fn = ca.Function("ekf", [ca.vertcat(x, pv), z, p, r, q, ym, mask],
+                                   [ca.vertcat(x_next, ca.vec(cov)), ca.vertcat(*nus, *ss)])
         return self._ekf_fn
 
     def innovations(self, p: np.ndarray, y_meas: np.ndarray, r_var: np.ndarray,
@@ -350,9 +370,9 @@ class Simulator:
         ym = y_meas if post is None else post.undo(y_meas)
         mask = np.isfinite(ym).astype(float)
         ym = np.where(mask > 0, ym, 0.0)
-        _, out = self._ekf()(np.concatenate([x0, p0.ravel()]), self.z_for(p), p, ym.T, mask.T,
-                             np.asarray(r_var, float), q)
-        out = np.asarray(out).T
+        _, out = self._chain(self._ekf(), np.concatenate([x0, p0.ravel()]), self.z_for(p), p,
+                             np.asarray(r_var, float), q, per_row=(ym.T, mask.T))
+        out = out.T
         nu = out[:, :self.ny]
         s = out[:, self.ny:]
         nu[mask == 0] = np.nan

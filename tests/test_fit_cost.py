@@ -66,7 +66,7 @@ def test_a_fit_stopped_at_its_cap_runs_one_sensitivity_less_than_evaluations(fit
     sim = fitter.simulator(DOCUMENTED_EFFECTS)
     runs = []
     real = sim.simulate_with_sensitivity
-    monkeypatch.setattr(sim, "simulate_with_sensitivity", lambda p, e: runs.append(1) or real(p, e))
+    monkeypatch.setattr(sim, "simulate_with_sensitivity", lambda p, e, *rows: runs.append(1) or real(p, e, *rows))
     free = [fp for fp in NOMINAL_FREE if fp.name in ("cooler_slope", "motor_gain_max_c")]
     p = np.array(Parameters().vector(), dtype=float)
     p[fitter.names.index("cooler_slope")] += 0.05
