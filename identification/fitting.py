@@ -318,8 +318,20 @@ class Fitter:
                 y[:, j] += b0 + b1 * ramp
             return y
 
+        ahead: dict[bytes, tuple] = {}  # the sensitivity run of the last evaluation (the solver's next Jacobian)
+        evaluations = [0]
+
         def resid(theta):
-            y, _ = sim.simulate(params(theta), self.train_rows)
+            evaluations[0] += 1
+            p = params(theta)
+            ahead.clear()
+            if n_model and evaluations[0] < max_nfev:
+                # the solver asks for the Jacobian at each point it accepts (every point, in the fits here): one run
+                # gives both; after the last evaluation no Jacobian is used (capped_least_squares)
+                y, dy = sim.simulate_with_sensitivity(p, self._e_matrix(p, free), self.train_rows)
+                ahead[theta.tobytes()] = (y, dy)
+            else:
+                y, _ = sim.simulate(p, self.train_rows)
             y = add_bias(post.apply(y), theta)
             r = np.where(ok, (y - self.y_meas) / self.sigma, 0.0)
             return r[train].ravel()
@@ -328,7 +340,9 @@ class Fitter:
             p = params(theta)
             cols = []
             if n_model:
-                y, dy = sim.simulate_with_sensitivity(p, self._e_matrix(p, free), self.train_rows)
+                run = ahead.pop(theta.tobytes(), None)
+                y, dy = run if run is not None else sim.simulate_with_sensitivity(p, self._e_matrix(p, free),
+                                                                                  self.train_rows)
                 y, dy = post.apply(y, dy)
                 for k, j in enumerate(gain_idx):
                     dy[:, j, :] *= 1.0 + theta[n_model + n_bias + k]

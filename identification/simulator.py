@@ -231,9 +231,16 @@ class Simulator:
         hit = next((run for k, run in self._runs if k == key and run.rows >= rows), None)
         if hit is None:
             part = next((run for k, run in self._runs if k == key), None)
-            hit = self._continue(p, part, rows) if part is not None else self._run(p, rows)
-            self._runs = ([(key, hit)] + [(k, r) for k, r in self._runs if k != key])[:RUNS_KEPT]
+            hit = self._keep(p, self._continue(p, part, rows) if part is not None else self._run(p, rows))
         return hit.rows_of(n, rows)
+
+    def _keep(self, p: np.ndarray, run: "_Run") -> "_Run":
+        """``run`` kept as the newest run of ``p`` (unless a longer one of ``p`` is kept)."""
+        key = np.asarray(p, dtype=float).tobytes()
+        if any(k == key and r.rows > run.rows for k, r in self._runs):
+            return run
+        self._runs = ([(key, run)] + [(k, r) for k, r in self._runs if k != key])[:RUNS_KEPT]
+        return run
 
     def _mapped(self, fn: ca.Function, rows: int) -> ca.Function:
         """``fn`` (a step: state, row inputs, constants -> next state, row outputs) mapped over ``rows`` rows."""
@@ -306,7 +313,9 @@ class Simulator:
         x0, dx0 = self.initial_state(p)
         s0 = dx0 @ e
         xa0 = np.concatenate([x0, s0.ravel(order="F")])
-        _, out = self._chain(self._aug(idx), xa0, self.z_for(p)[:, :rows], p, scale)
+        xs, out = self._chain(self._aug(idx), xa0, self.z_for(p)[:, :rows], p, scale)
+        xs = xs[:self.nx].T
+        self._keep(p, _Run(out[:self.ny].T, np.vstack([x0[None, :], xs[:-1]]), xs[-1]))  # its free run
         out = _padded(out.T, n)
         y = out[:, :self.ny]
         dy = out[:, self.ny:].reshape(n, self.ny, n_theta, order="F")

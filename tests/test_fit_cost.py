@@ -99,7 +99,7 @@ def test_a_run_in_calls_of_200_rows_is_the_run_over_the_whole_log_to_the_bit(fit
     idx = tuple(fitter.names.index(fp.name) for fp in free)
     _, out = _whole_log(sim._aug(idx), n, xa0, sim.z_for(p), p, scale)
     y, dy = sim.simulate_with_sensitivity(p, e)
-    assert np.array_equal(y, out[:, :sim.ny])
+    assert np.array_equal(y, out[:, :sim.ny]) and np.array_equal(y, y_whole)  # the free run inside it too
     assert np.array_equal(dy, out[:, sim.ny:].reshape(n, sim.ny, len(free), order="F"))
 
 
