@@ -57,7 +57,7 @@ from . import discovery, localise, timing
 from . import statistics as st
 from .candidates import MIN_ABS_VALUE, MODEL_CANDIDATES, Candidate, library
 from .discovery import CABIN_CANDIDATES
-from .diagnostics import diagnose, innovations_nll
+from .diagnostics import diagnose, training_nll
 from .fitting import FLOW_PARAMS, IDENTIFIED_REL_SE, NOMINAL_FREE, Fit, Fitter, FreeParam, parameter_confidence
 from .log_data import LogData
 from .joint_step import joint_step
@@ -374,7 +374,7 @@ def _polish(fitter: Fitter, current: Fit, free, pairs: list, quick: bool) -> lis
                          gain_outputs=gains(r.fit.post, [cand.output] if cand.kind == "gain" else ()))
         if not fit.cost_train < r.fit.cost_train:
             fit = r.fit
-        return _slim(fit), innovations_nll(fitter, fit)[2]
+        return _slim(fit), training_nll(fitter, fit)
     return fork_map(task, len(pairs))
 
 
@@ -438,7 +438,7 @@ def _forward(fitter: Fitter, nominal: Fit, free: list[FreeParam], lib, max_effec
             r.reason = _gate(r)
         eligible = sorted((r for r in scored if not r.reason), key=lambda r: r.cost_holdout)
         best = None
-        nll_current = innovations_nll(fitter, current)[2] if eligible else None
+        nll_current = training_nll(fitter, current) if eligible else None
         m = max(len(scored), 1)
         pairs = [(r, next(c for c in lib if c.name == r.name)) for r in eligible[:POLISH]]
         for (r, cand), (polished, nll) in zip(pairs, _polish(fitter, current, current_free, pairs, quick)):

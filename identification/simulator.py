@@ -363,8 +363,9 @@ class Simulator:
         return self._ekf_fn
 
     def innovations(self, p: np.ndarray, y_meas: np.ndarray, r_var: np.ndarray,
-                    post: "OutputPost | None" = None) -> tuple[np.ndarray, np.ndarray]:
-        """EKF one-step innovations ``nu`` and their variances ``s`` (both n x n_y).
+                    post: "OutputPost | None" = None, rows: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """EKF one-step innovations ``nu`` and their variances ``s`` (both n x n_y; ``rows``: of the first rows
+        only, NaN after).
 
         ``y_meas`` (n x n_y, NaN = missing) is first mapped through ``post`` inverse (output
         delays and offsets are taken off the measurement). ``r_var`` are the measurement-noise
@@ -379,9 +380,10 @@ class Simulator:
         ym = y_meas if post is None else post.undo(y_meas)
         mask = np.isfinite(ym).astype(float)
         ym = np.where(mask > 0, ym, 0.0)
-        _, out = self._chain(self._ekf(), np.concatenate([x0, p0.ravel()]), self.z_for(p), p,
-                             np.asarray(r_var, float), q, per_row=(ym.T, mask.T))
-        out = out.T
+        rows = self.log.n if rows is None else int(min(max(rows, 1), self.log.n))
+        _, out = self._chain(self._ekf(), np.concatenate([x0, p0.ravel()]), self.z_for(p)[:, :rows], p,
+                             np.asarray(r_var, float), q, per_row=(ym.T[:, :rows], mask.T[:, :rows]))
+        out = _padded(out.T, self.log.n)
         nu = out[:, :self.ny]
         s = out[:, self.ny:]
         nu[mask == 0] = np.nan

@@ -7,12 +7,15 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
+from hvac_mpc.identification import discovery
+from hvac_mpc.identification.diagnostics import innovations_nll, training_nll
 from hvac_mpc.identification.fitting import NOMINAL_FREE, Fitter, capped_least_squares
 from hvac_mpc.identification.log_data import load
 from hvac_mpc.identification.pipeline import DOCUMENTED_EFFECTS
 from hvac_mpc.identification.simulator import CHUNK_ROWS, INITIAL_STD, PROCESS_NOISE, OutputPost, Simulator
 from hvac_mpc.mismatch import simulate_log
 from hvac_mpc.models import Parameters
+from hvac_mpc.models.discovered import DiscoveredTerm
 
 T = np.linspace(0.0, 5.0, 200)
 Y = 3.0 * np.exp(-0.7 * T) + 0.5 * np.sin(2.0 * T)
@@ -153,3 +156,18 @@ def test_the_filters_innovations_in_calls_of_200_rows_are_those_of_one_call(fitt
     nu_ref = out[:, :sim.ny]
     nu_ref[mask == 0] = np.nan
     assert np.array_equal(nu, nu_ref, equal_nan=True) and np.array_equal(s, out[:, sim.ny:])
+
+
+def test_the_training_likelihood_and_a_terms_coefficients_from_training_rows_are_those_from_whole_runs(fitter):
+    p = np.array(Parameters().vector(), dtype=float)
+    p[fitter.names.index("heater_kp")] *= 1.04
+    post = OutputPost(fitter.outputs, fitter.log.time_s, delays={"supply_temp_c": 2})
+    fit = fitter.evaluate(DOCUMENTED_EFFECTS, p, post)
+    assert training_nll(fitter, fit) == innovations_nll(fitter, fit)[2]
+    term = DiscoveredTerm("box_inlet_term", "box_in", ("inlet", "one"), (0.01, -0.2))
+    with_term = fitter.evaluate(DOCUMENTED_EFFECTS, p, post, terms=(term,))
+    short = discovery.refit_coefficients(fitter, with_term, term)
+    whole = Fitter(fitter.log, fitter.base)
+    whole.train_rows = fitter.log.n
+    assert short.coefficients == discovery.refit_coefficients(whole, with_term, term).coefficients
+    assert short.coefficients != term.coefficients
