@@ -100,7 +100,8 @@ class Simulator:
         self._build()
         self._aug_cache: dict[tuple, ca.Function] = {}
         self._maps: dict[tuple, ca.Function] = {}
-        self._internals_map: ca.Function | None = None  # (step function's name, rows): the step mapped over rows
+        self._internals_map: ca.Function | None = None
+        self._f_internals: ca.Function | None = None  # (step function's name, rows): the step mapped over rows
         self._ekf_fn: ca.Function | None = None
         self._runs: list[tuple[bytes, "_Run"]] = []  # the last free runs, newest first
 
@@ -167,17 +168,26 @@ class Simulator:
         _, _, _, w, flag = self._split_z(z)
         g = xdot + ca.DM(e) * (flag * (x[self._iw] - w) - flag * xdot[self._iw])
         self.f_g = ca.Function("f_g", [x, z, p], [g, ca.jacobian(g, x), ca.jacobian(g, p)])
-        # internals for diagnostics
-        q = m.algebraic(xe, up, d, pz)
-        b = q["bypass"]
-        internals = {
-            "heater_temp_c": q["sx"]["heater_temp_c"], "mass_flow_kgs": q["mass_flow"], "bypass_fraction": b,
-            "core_mass_flow_kgs": (1 - b) * q["mass_flow"], "motor_rise_c": q["sx"]["motor_rise_c"],
-            "blower_out_temp_c": q["t_blower"], "cooler_out_temp_c": q["t_cooler"],
-            "heater_out_temp_c": q["t_heater_out"], "heater_electric_w": q["p_el"],
-            "cooler_drive_c": (1 - b) * (q["t_blower"] - q["t_cooler"]),
-            "heater_rise_c": (1 - b) * (q["t_heater_out"] - q["t_cooler"]), "mix_temp_c": q["t_mix"]}
-        self.f_internals = ca.Function("f_int", [x, z, p], [ca.vertcat(*[internals[k] for k in INTERNALS])])
+
+    @property
+    def f_internals(self) -> ca.Function:
+        """Quantities inside the model (:data:`INTERNALS`) at one row, for the diagnostics and discovery (built on
+        first use: most simulators, a discovery's probes among them, never need it)."""
+        if self._f_internals is None:
+            m = self.model
+            x, z, p = self._sym()
+            _, up, d, _, _ = self._split_z(z)
+            q = m.algebraic(self._override(x, z), up, d, self._params(z, p))
+            b = q["bypass"]
+            internals = {
+                "heater_temp_c": q["sx"]["heater_temp_c"], "mass_flow_kgs": q["mass_flow"], "bypass_fraction": b,
+                "core_mass_flow_kgs": (1 - b) * q["mass_flow"], "motor_rise_c": q["sx"]["motor_rise_c"],
+                "blower_out_temp_c": q["t_blower"], "cooler_out_temp_c": q["t_cooler"],
+                "heater_out_temp_c": q["t_heater_out"], "heater_electric_w": q["p_el"],
+                "cooler_drive_c": (1 - b) * (q["t_blower"] - q["t_cooler"]),
+                "heater_rise_c": (1 - b) * (q["t_heater_out"] - q["t_cooler"]), "mix_temp_c": q["t_mix"]}
+            self._f_internals = ca.Function("f_int", [x, z, p], [ca.vertcat(*[internals[k] for k in INTERNALS])])
+        return self._f_internals
 
     # ------------------------------------------------------------------ steady state
     def initial_state(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
