@@ -210,11 +210,12 @@ class Fitter:
             for k, j in enumerate(gain_idx):
                 trial.gain[self.outputs[j]] = float(1.0 + np.clip(theta[len(all_free) + 2 * len(bias_idx) + k],
                                                                   *GAIN_THETA))
-            fit = self.evaluate(effects, p, trial, [fp.name for fp in all_free], 1, "one Gauss-Newton step", terms)
-            if best is None or fit.cost_train < best.cost_train:
-                best = fit
-            if np.isfinite(fit.cost_train) and fit.cost_train <= cost_start:
+            cost = self.train_cost(effects, p, trial, terms)  # the whole log is run for the scale kept only
+            if best is None or cost < best[0]:
+                best = (cost, p, trial)
+            if np.isfinite(cost) and cost <= cost_start:
                 break
+        best = self.evaluate(effects, best[1], best[2], [fp.name for fp in all_free], 1, "one Gauss-Newton step", terms)
         best.extra["start_p"] = p0.copy()  # where the step started (a pair's linear screening starts there too)
         return best
 
