@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Callable, Iterable
 
@@ -720,6 +721,22 @@ class _Clock:
         return dict(self.parts, total_s=self.t - self.t0, total_cpu_s=self.c - self.c0)
 
 
+@contextmanager
+def one_blas_thread():
+    """The linear algebra library on one thread while the identification runs (where ``threadpoolctl``, which
+    scikit-learn brings, is installed). Its matrices are tall and thin (a Jacobian of a few tens of thousands of rows
+    and 10-30 columns): on two cores shared with the forked scoring workers and other jobs, OpenBLAS's second thread
+    only waits. The SVD of scipy's trust-region step on such a matrix: 0.35 CPU s on two threads under load, 0.025 s
+    on one, the same values (docs/identification.md, "Cheaper runs")."""
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover - without it the library keeps its threads
+        yield
+        return
+    with threadpool_limits(limits=1, user_api="blas"):
+        yield
+
+
 def identify(log: LogData, base: Parameters | None = None, base_effects: Iterable[str] = (),
              quick: bool = False, max_effects: int = 4, progress: Callable[[str], None] | None = None,
              discover: bool = True, pairs: bool = True, joint: bool = True,
@@ -727,9 +744,17 @@ def identify(log: LogData, base: Parameters | None = None, base_effects: Iterabl
     """Run the whole procedure of the module docstring on a prepared log (``pairs``: its step 7, the pairs of
     effects that only help together; ``joint``: its step 8, the joint refit; ``best_place``: a discovered term's
     place the one whose term leaves the lowest held-out error after the whole-model refit among those that pass,
-    instead of the first that passes)."""
+    instead of the first that passes). The linear algebra runs on one thread (:func:`one_blas_thread`)."""
     if not isinstance(best_place, bool):
         raise TypeError(f"best_place must be True or False, not {best_place!r}")
+    with one_blas_thread():
+        return _identify(log, base, base_effects, quick, max_effects, progress, discover, pairs, joint, best_place)
+
+
+def _identify(log: LogData, base: Parameters | None, base_effects: Iterable[str], quick: bool, max_effects: int,
+              progress: Callable[[str], None] | None, discover: bool, pairs: bool, joint: bool,
+              best_place: bool) -> IdentificationResult:
+    """:func:`identify` on the library's threads as they are set."""
     say = progress or (lambda _msg: None)
     clock = _Clock()
     base = base or Parameters()
