@@ -11,7 +11,7 @@ from hvac_mpc.identification import discovery
 from hvac_mpc.identification.diagnostics import innovations_nll, training_nll
 from hvac_mpc.identification.fitting import NOMINAL_FREE, Fitter, capped_least_squares
 from hvac_mpc.identification.log_data import load
-from hvac_mpc.identification.pipeline import DOCUMENTED_EFFECTS
+from hvac_mpc.identification.pipeline import DOCUMENTED_EFFECTS, identify
 from hvac_mpc.identification.simulator import CHUNK_ROWS, INITIAL_STD, PROCESS_NOISE, OutputPost, Simulator
 from hvac_mpc.mismatch import simulate_log
 from hvac_mpc.models import Parameters
@@ -171,3 +171,20 @@ def test_the_training_likelihood_and_a_terms_coefficients_from_training_rows_are
     whole.train_rows = fitter.log.n
     assert short.coefficients == discovery.refit_coefficients(whole, with_term, term).coefficients
     assert short.coefficients != term.coefficients
+
+
+def test_identify_runs_the_linear_algebra_on_one_thread_and_gives_the_threads_back(tmp_path):
+    threadpoolctl = pytest.importorskip("threadpoolctl", reason="threadpoolctl comes with scikit-learn "
+                                                                "(pip install 'hvac-mpc[discovery]')")
+
+    def blas_threads():
+        return [i["num_threads"] for i in threadpoolctl.threadpool_info() if i["user_api"] == "blas"]
+    before = blas_threads()
+    seen = []
+    path = tmp_path / "log.csv"
+    simulate_log(path, "nominal", duration_s=600, seed=3)
+    res = identify(load(path), progress=lambda msg: seen.append(blas_threads()))
+    assert seen and all(set(s) == {1} for s in seen)
+    assert blas_threads() == before
+    t = res.timings
+    assert 0.0 <= t["further_discovery_cpu_s"] <= t["discovery_cpu_s"] + 1e-9  # its share of the discovery's time
