@@ -16,7 +16,7 @@ from .pipeline import identify as _identify
 def identify(log: str | Path | LogData, params: Parameters | None = None, effects: Iterable[str] = (), *,
              mapping: Mapping[str, str] | None = None, holdout_fraction: float = 1 / 3, quick: bool = False,
              max_effects: int = 4, progress: Callable[[str], None] | None = None,
-             pairs: bool = True) -> IdentificationResult:
+             pairs: bool = True, best_place: bool = False) -> IdentificationResult:
     """Refine the model from a measurement log (a CSV/Parquet path or a prepared :class:`LogData`).
 
     ``params``/``effects``: the starting model (default: the thesis model); ``mapping``: log column ->
@@ -24,8 +24,10 @@ def identify(log: str | Path | LogData, params: Parameters | None = None, effect
     holds the effects added, the refit parameters and the held-out errors before and after
     (``result.holdout_errors()``); ``hvac_mpc.identification.report.write_report`` writes the report
     and the model file. ``pairs``: screen pairs of effects that only help together when forward
-    selection keeps nothing more (docs/identification.md, "Effects that only help together").
+    selection keeps nothing more (docs/identification.md, "Effects that only help together"). ``best_place``: a
+    discovered term's place the one whose term leaves the lowest held-out error among those that pass after the
+    whole-model refit, not the first that passes (off by default; docs/identification.md, "The term's place").
     """
     data = log if isinstance(log, LogData) else log_data.load(log, mapping, holdout_fraction)
     return _identify(data, params or Parameters(), tuple(effects), quick=quick, max_effects=max_effects,
-                     progress=progress, pairs=pairs)
+                     progress=progress, pairs=pairs, best_place=best_place)
