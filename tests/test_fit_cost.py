@@ -183,7 +183,7 @@ def test_identify_runs_the_linear_algebra_on_one_thread_and_gives_the_threads_ba
     seen = []
     path = tmp_path / "log.csv"
     simulate_log(path, "nominal", duration_s=600, seed=3)
-    res = identify(load(path), progress=lambda msg: seen.append(blas_threads()))
+    res = identify(load(path), quick=True, progress=lambda msg: seen.append(blas_threads()))
     assert seen and all(set(s) == {1} for s in seen)
     assert blas_threads() == before
     t = res.timings
