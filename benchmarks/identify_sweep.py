@@ -127,6 +127,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--duration", type=float, default=7200.0, help="log length, s (default 7200)")
     parser.add_argument("--threads", type=int, default=2, choices=(1, 2))
     parser.add_argument("--json", type=Path, default=None, help="write the rows here")
+    parser.add_argument("--best-place", action="store_true",
+                        help="a discovered term's place the best after the refit among those that pass (identify's "
+                             "best_place), not the first that passes")
     args = parser.parse_args(argv)
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, sorted(os.sched_getaffinity(0))[:args.threads])
@@ -135,7 +138,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for log in picked:
-            row = time_case(log.name, log.case(), args.duration, args.seed, Path(tmp))
+            row = time_case(log.name, log.case(), args.duration, args.seed, Path(tmp), best_place=args.best_place)
             row.update(check=verdict(log, row), variant=log.variant.differences(), excitation=log.excitation,
                        bad_rows=log.bad_rows, seed=args.seed)
             rows.append(row)

@@ -80,15 +80,16 @@ def time_one(name: str, duration_s: float, seed: int, folder: Path, pairs: bool 
 
 
 def time_case(name: str, case: LogCase, duration_s: float, seed: int, folder: Path, pairs: bool = True,
-              joint: bool = True) -> dict:
-    """:func:`time_one` for a :class:`LogCase` given directly (a variant that has no registry name)."""
+              joint: bool = True, best_place: bool = False) -> dict:
+    """:func:`time_one` for a :class:`LogCase` given directly (a variant that has no registry name; ``best_place``:
+    ``identify``'s setting of that name)."""
     path = folder / f"{name}.csv"
     simulate_log(path, case.variant, duration_s=duration_s, seed=seed, excitation=case.excitation,
                  bad_rows=case.bad_rows, omit=case.omit)
     t0, c0 = time.perf_counter(), cpu_seconds()
     log = log_data.load(path)
     load_wall, load_cpu = time.perf_counter() - t0, cpu_seconds() - c0
-    res = identify(log, base_effects=case.base_effects, pairs=pairs, joint=joint)
+    res = identify(log, base_effects=case.base_effects, pairs=pairs, joint=joint, best_place=best_place)
     wall, cpu = time.perf_counter() - t0, cpu_seconds() - c0
     errors = res.holdout_errors()
     e = errors["supply_temp_c"]

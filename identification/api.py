@@ -16,7 +16,8 @@ from .pipeline import identify as _identify
 def identify(log: str | Path | LogData, params: Parameters | None = None, effects: Iterable[str] = (), *,
              mapping: Mapping[str, str] | None = None, holdout_fraction: float = 1 / 3, quick: bool = False,
              max_effects: int = 4, progress: Callable[[str], None] | None = None,
-             pairs: bool = True, optional_candidates: Iterable[str] = ()) -> IdentificationResult:
+             pairs: bool = True, best_place: bool = False,
+             optional_candidates: Iterable[str] = ()) -> IdentificationResult:
     """Refine the model from a measurement log (a CSV/Parquet path or a prepared :class:`LogData`).
 
     ``params``/``effects``: the starting model (default: the thesis model); ``mapping``: log column ->
@@ -24,10 +25,12 @@ def identify(log: str | Path | LogData, params: Parameters | None = None, effect
     holds the effects added, the refit parameters and the held-out errors before and after
     (``result.holdout_errors()``); ``hvac_mpc.identification.report.write_report`` writes the report
     and the model file. ``pairs``: screen pairs of effects that only help together when forward
-    selection keeps nothing more (docs/identification.md, "Effects that only help together").
+    selection keeps nothing more (docs/identification.md, "Effects that only help together"). ``best_place``: a
+    discovered term's place the one whose term leaves the lowest held-out error among those that pass after the
+    whole-model refit, not the first that passes (off by default; docs/identification.md, "The term's place").
     ``optional_candidates``: names from ``identification.candidates.OPTIONAL_CANDIDATES`` scored with the library
     (docs/identification.md, "The literal cooler as a library effect").
     """
     data = log if isinstance(log, LogData) else log_data.load(log, mapping, holdout_fraction)
     return _identify(data, params or Parameters(), tuple(effects), quick=quick, max_effects=max_effects,
-                     progress=progress, pairs=pairs, optional_candidates=optional_candidates)
+                     progress=progress, pairs=pairs, best_place=best_place, optional_candidates=optional_candidates)

@@ -36,6 +36,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-plots", action="store_true", help="write the report without plots")
     parser.add_argument("--no-pairs", action="store_true",
                         help="no pair step (pairs of effects that only help together; on by default)")
+    parser.add_argument("--best-place", action="store_true",
+                        help="a discovered term's place: the best after the refit among those that pass (held-out "
+                             "error), not the first that passes (off by default)")
     parser.add_argument("--thesis-tables", action="store_true",
                         help="run the loop on the thesis's valve measurements (tables 3-6) instead of a log")
     parser.add_argument("--candidate", action="append", default=[], choices=OPTIONAL_CANDIDATE_NAMES,
@@ -85,7 +88,7 @@ def _run_log(args, say) -> int:
     log = log_data.load(path, _mapping(args.map), args.holdout_fraction)
     say(f"{log.n} rows, outputs {', '.join(log.output_names())}")
     res = identify(log, base, effects, quick=args.quick, max_effects=args.max_effects, progress=say,
-                   pairs=not args.no_pairs, optional_candidates=args.candidate)
+                   pairs=not args.no_pairs, best_place=args.best_place, optional_candidates=args.candidate)
     out = Path(args.out or "out/identify")
     files = write_report(res, out, plots=not args.no_plots)
     added = [a.name for a in res.accepted] or ["none"]

@@ -90,6 +90,15 @@ def innovations_nll(fitter: Fitter, fit: Fit) -> tuple[np.ndarray, np.ndarray, f
     return nu, s, nll
 
 
+def training_nll(fitter: Fitter, fit: Fit) -> float:
+    """The training negative log-likelihood of :func:`innovations_nll` (the same value), from a filter run over the
+    training rows alone (the log's first part)."""
+    sim = fitter.simulator(fit.effects, fit.terms)
+    nu, s = sim.innovations(fit.p, fitter.y_meas, fitter.sigma ** 2, fit.post, fitter.train_rows)
+    ok = np.isfinite(nu) & fitter.log.train[:, None]
+    return float(np.sum(np.where(ok, nu ** 2 / s + np.log(s), 0.0)))
+
+
 def holdout_tests(fitter: Fitter, fit: Fit, nu: np.ndarray, s: np.ndarray) -> dict:
     """Residual tests on the held-out rows, per output: Ljung-Box whiteness of the EKF innovations
     and the cross-correlation of the free-run residual with each command and the inlet temperature

@@ -112,25 +112,26 @@ def sensor_view(fitter: Fitter, fit: Fit, feats: dict[str, np.ndarray]) -> dict[
     return {k: shift(_lfilter_lag(v, tau, fitter.log.dt_s), delay) for k, v in feats.items()}
 
 
-def _probe_responses(fitter: Fitter, fit: Fit, location: str, names) -> np.ndarray:
+def _probe_responses(fitter: Fitter, fit: Fit, location: str, names, rows: int | None = None) -> np.ndarray:
     """The model's free-run response on every logged output per unit coefficient of each feature in ``names`` at
-    ``location`` (a key of :data:`PROBED`), before the output corrections (n, outputs, len(names))."""
+    ``location`` (a key of :data:`PROBED`), before the output corrections (n, outputs, len(names); ``rows``: of the
+    first rows only, NaN after)."""
     probes = PROBE_BODY if location == "heater_body" else PROBE
-    y0 = fitter.simulator(fit.effects, fit.terms).simulate(fit.p)[0]
+    y0 = fitter.simulator(fit.effects, fit.terms).simulate(fit.p, rows)[0]
     out = np.zeros(y0.shape + (len(names),))
     for k, f in enumerate(names):
         c = probes[FEATURES[f][1]]
         probe = DiscoveredTerm("probe_" + f, location, (f,), (c,))
-        out[:, :, k] = (fitter.simulator(fit.effects, fit.terms + (probe,)).simulate(fit.p)[0] - y0) / c
+        out[:, :, k] = (fitter.simulator(fit.effects, fit.terms + (probe,)).simulate(fit.p, rows)[0] - y0) / c
     return out
 
 
-def probe_view(fitter: Fitter, fit: Fit, location: str, names=None) -> dict[str, np.ndarray]:
+def probe_view(fitter: Fitter, fit: Fit, location: str, names=None, rows: int | None = None) -> dict[str, np.ndarray]:
     """Each feature of ``location`` (a key of :data:`PROBED`) as the supply reading shows it: the model's response
-    per unit coefficient (n,)."""
+    per unit coefficient (n,; ``rows``: the first rows only, NaN after)."""
     names = _candidates(fitter, location) + ("one",) if names is None else names
     j = fitter.outputs.index("supply_temp_c")
-    resp = _probe_responses(fitter, fit, location, names)
+    resp = _probe_responses(fitter, fit, location, names, rows)
     return {f: shift(resp[:, j, k], fit.post.delays.get("supply_temp_c", 0)) for k, f in enumerate(names)}
 
 
@@ -148,10 +149,11 @@ def term_columns(fitter: Fitter, fit: Fit, term: DiscoveredTerm) -> np.ndarray:
     return cols
 
 
-def views(fitter: Fitter, fit: Fit, location: str, names=None) -> dict[str, np.ndarray]:
-    """The features of ``location`` as the supply reading shows them (linear in the coefficients)."""
+def views(fitter: Fitter, fit: Fit, location: str, names=None, rows: int | None = None) -> dict[str, np.ndarray]:
+    """The features of ``location`` as the supply reading shows them (linear in the coefficients; ``rows``: a place
+    seen through the model's response is run over the first rows only, NaN after)."""
     if location in PROBED:
-        return probe_view(fitter, fit, location, None if names is None else tuple(names))
+        return probe_view(fitter, fit, location, None if names is None else tuple(names), rows)
     return sensor_view(fitter, fit, features(fitter, fit))
 
 
@@ -286,7 +288,7 @@ def refit_coefficients(fitter: Fitter, fit: Fit, term: DiscoveredTerm) -> Discov
     term): the residual is linear in them, so one solve is the exact optimum for fixed parameters."""
     j = fitter.outputs.index("supply_temp_c")
     resid = fitter.y_meas[:, j] - fit.y[:, j]
-    view = views(fitter, fit, term.location, term.features)
+    view = views(fitter, fit, term.location, term.features, fitter.train_rows)  # the training rows are used alone
     a = np.column_stack([view[k] for k in term.features])
     ok = np.isfinite(resid) & fitter.log.train & np.all(np.isfinite(a), axis=1)
     dc, *_ = np.linalg.lstsq(a[ok], resid[ok], rcond=None)

@@ -99,6 +99,9 @@ class Fitter:
                                for o in self.outputs])
         self.names = Parameters.scalar_names()
         self._sims: dict[frozenset, Simulator] = {}
+        #: Rows up to the last training row: a fit's residual and Jacobian, a screening step and a training cost
+        #: use these alone (the held-out rows are the log's last part, log_data.prepare), so runs stop there.
+        self.train_rows = int(np.flatnonzero(log.train)[-1]) + 1 if np.any(log.train) else log.n
 
     def simulator(self, effects: Iterable[str], terms: tuple = ()) -> Simulator:
         key = (frozenset(effects), tuple(terms))
@@ -142,13 +145,18 @@ class Fitter:
                    terms=tuple(terms))
 
     # ------------------------------------------------------------------ fitting
+    def train_cost(self, effects: Iterable[str], p: np.ndarray, post: OutputPost, terms: tuple = ()) -> float:
+        """The training cost of :meth:`evaluate` (the same value), from a run of the training rows alone."""
+        y = post.apply(self.simulator(effects, terms).simulate(p, self.train_rows)[0])
+        return float((self.scaled(y) ** 2)[self.log.train].sum())
+
     def identifiable(self, effects, p, post, free: Sequence[FreeParam], terms: tuple = ()) -> list[FreeParam]:
         """Drop free parameters the training data barely excite (theta column norm < 1)."""
         if not free:
             return []
         sim = self.simulator(effects, terms)
         e = self._e_matrix(p, free)
-        _, dy = sim.simulate_with_sensitivity(p, e)
+        _, dy = sim.simulate_with_sensitivity(p, e, self.train_rows)
         dy = post.apply(np.zeros(dy.shape[:2]), dy)[1]
         scaled = dy / self.sigma[None, :, None]
         ok = np.isfinite(self.y_meas) & self.log.train[:, None]
@@ -175,7 +183,9 @@ class Fitter:
         for o in gain_outputs:
             post.gain.pop(o, None)
         kept = self._kept_bias(post, gain_outputs)
-        y0, dy_own = sim.simulate_with_sensitivity(p0, self._e_matrix(p0, own)) if own else (sim.simulate(p0)[0], None)
+        rows = self.train_rows  # the step is taken on the training rows
+        y0, dy_own = (sim.simulate_with_sensitivity(p0, self._e_matrix(p0, own), rows) if own else
+                      (sim.simulate(p0, rows)[0], None))
         cols = [dy_free] + ([dy_own] if own else [])
         d = np.concatenate(cols, axis=2)
         y0, d = post.apply(y0, d)
@@ -200,11 +210,12 @@ class Fitter:
             for k, j in enumerate(gain_idx):
                 trial.gain[self.outputs[j]] = float(1.0 + np.clip(theta[len(all_free) + 2 * len(bias_idx) + k],
                                                                   *GAIN_THETA))
-            fit = self.evaluate(effects, p, trial, [fp.name for fp in all_free], 1, "one Gauss-Newton step", terms)
-            if best is None or fit.cost_train < best.cost_train:
-                best = fit
-            if np.isfinite(fit.cost_train) and fit.cost_train <= cost_start:
+            cost = self.train_cost(effects, p, trial, terms)  # the whole log is run for the scale kept only
+            if best is None or cost < best[0]:
+                best = (cost, p, trial)
+            if np.isfinite(cost) and cost <= cost_start:
                 break
+        best = self.evaluate(effects, best[1], best[2], [fp.name for fp in all_free], 1, "one Gauss-Newton step", terms)
         best.extra["start_p"] = p0.copy()  # where the step started (a pair's linear screening starts there too)
         return best
 
@@ -308,8 +319,20 @@ class Fitter:
                 y[:, j] += b0 + b1 * ramp
             return y
 
+        ahead: dict[bytes, tuple] = {}  # the sensitivity run of the last evaluation (the solver's next Jacobian)
+        evaluations = [0]
+
         def resid(theta):
-            y, _ = sim.simulate(params(theta))
+            evaluations[0] += 1
+            p = params(theta)
+            ahead.clear()
+            if n_model and evaluations[0] < max_nfev:
+                # the solver asks for the Jacobian at each point it accepts (every point, in the fits here): one run
+                # gives both; after the last evaluation no Jacobian is used (capped_least_squares)
+                y, dy = sim.simulate_with_sensitivity(p, self._e_matrix(p, free), self.train_rows)
+                ahead[theta.tobytes()] = (y, dy)
+            else:
+                y, _ = sim.simulate(p, self.train_rows)
             y = add_bias(post.apply(y), theta)
             r = np.where(ok, (y - self.y_meas) / self.sigma, 0.0)
             return r[train].ravel()
@@ -318,13 +341,15 @@ class Fitter:
             p = params(theta)
             cols = []
             if n_model:
-                y, dy = sim.simulate_with_sensitivity(p, self._e_matrix(p, free))
+                run = ahead.pop(theta.tobytes(), None)
+                y, dy = run if run is not None else sim.simulate_with_sensitivity(p, self._e_matrix(p, free),
+                                                                                  self.train_rows)
                 y, dy = post.apply(y, dy)
                 for k, j in enumerate(gain_idx):
                     dy[:, j, :] *= 1.0 + theta[n_model + n_bias + k]
                 cols.append(dy)
             elif gain_idx:
-                y = post.apply(sim.simulate(p)[0])
+                y = post.apply(sim.simulate(p, self.train_rows)[0])
             cols += self.offset_gain_columns(bias_idx, gain_idx, y if gain_idx else None, ramp)
             d = np.concatenate(cols, axis=2) if cols else np.zeros((self.log.n, len(self.outputs), 0))
             d = np.where(ok[:, :, None], d / self.sigma[None, :, None], 0.0)

@@ -15,7 +15,7 @@ from scipy import stats
 
 from . import discovery
 from .candidates import MIN_ABS_VALUE, Candidate
-from .diagnostics import innovations_nll
+from .diagnostics import training_nll
 from .fitting import FLOW_PARAMS, Fit, Fitter, FreeParam
 from .joint_step import Structure
 from .pairs import Frame, Member, Step, screen_pairs, structure_share
@@ -230,10 +230,10 @@ def pair_step(fitter: Fitter, current: Fit, free: list[FreeParam], lib, rejected
     if not top:
         notes.append(f"pairs: {m} pairs of {', '.join(sd.name for sd in sides)} screened jointly; in none does each "
                      f"member remove {100 * FORWARD_MIN:.0f} % of the held-out structure the other leaves alone")
-    records, nll_current = [], innovations_nll(fitter, current)[2] if top else 0.0
+    records, nll_current = [], training_nll(fitter, current) if top else 0.0
     for two, st_ in top:  # best linearised step first; the first pair that passes the gates is kept
         fit = _refit_pair(fitter, current, _pair_model(fitter, current, free, two, st_), quick)
-        reason, info = _pair_gate(fitter, current, fit, two, nll_current - innovations_nll(fitter, fit)[2], m)
+        reason, info = _pair_gate(fitter, current, fit, two, nll_current - training_nll(fitter, fit), m)
         records.append(dict(info, members=[sd.name for sd in two], screened_pairs=m, status="rejected" if reason else
                             "accepted", reason=reason, linear_holdout_cost=float(st_.cost_holdout.sum()),
                             linear_joint_share=st_.joint_share, cost_holdout=fit.cost_holdout))

@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Callable, Iterable
 
@@ -57,7 +58,7 @@ from . import discovery, localise, timing
 from . import statistics as st
 from .candidates import MIN_ABS_VALUE, MODEL_CANDIDATES, OPTIONAL_CANDIDATES, Candidate, library
 from .discovery import CABIN_CANDIDATES
-from .diagnostics import diagnose, innovations_nll
+from .diagnostics import diagnose, training_nll
 from .fitting import FLOW_PARAMS, IDENTIFIED_REL_SE, NOMINAL_FREE, Fit, Fitter, FreeParam, parameter_confidence
 from .log_data import LogData
 from .joint_step import joint_step
@@ -151,7 +152,7 @@ def _grid_start(fitter: Fitter, effects, p: np.ndarray, post: OutputPost, cand: 
         for k, v in point.items():
             q[names.index(k)] = v
         try:
-            cost = fitter.evaluate(effects, q, post).cost_train
+            cost = fitter.train_cost(effects, q, post)
         except (RuntimeError, np.linalg.LinAlgError):
             continue
         if np.isfinite(cost) and (best_cost is None or cost < best_cost):
@@ -374,7 +375,7 @@ def _polish(fitter: Fitter, current: Fit, free, pairs: list, quick: bool) -> lis
                          gain_outputs=gains(r.fit.post, [cand.output] if cand.kind == "gain" else ()))
         if not fit.cost_train < r.fit.cost_train:
             fit = r.fit
-        return _slim(fit), innovations_nll(fitter, fit)[2]
+        return _slim(fit), training_nll(fitter, fit)
     return fork_map(task, len(pairs))
 
 
@@ -438,7 +439,7 @@ def _forward(fitter: Fitter, nominal: Fit, free: list[FreeParam], lib, max_effec
             r.reason = _gate(r)
         eligible = sorted((r for r in scored if not r.reason), key=lambda r: r.cost_holdout)
         best = None
-        nll_current = innovations_nll(fitter, current)[2] if eligible else None
+        nll_current = training_nll(fitter, current) if eligible else None
         m = max(len(scored), 1)
         pairs = [(r, next(c for c in lib if c.name == r.name)) for r in eligible[:POLISH]]
         for (r, cand), (polished, nll) in zip(pairs, _polish(fitter, current, current_free, pairs, quick)):
@@ -539,10 +540,13 @@ def _drop_removed_partners(accepted: list[CandidateResult], discovered: dict | N
 
 
 def _discover(fitter: Fitter, current: Fit, free: list[FreeParam], quick: bool, say, notes: list[str],
-              locations=tuple(discovery.TERM_NAMES)) -> tuple[Fit, dict | None, list[tuple[Fit, dict]]]:
+              locations=tuple(discovery.TERM_NAMES), best_place: bool = False
+              ) -> tuple[Fit, dict | None, list[tuple[Fit, dict]]]:
     """Term discovery on the supply temperature when its residual stays structured (:mod:`.discovery`), at the
     places ``locations``. Returns the model, the record of the term kept (or of the best place) and the terms refit
-    and rejected, each with its fit (for the pair step)."""
+    and rejected, each with its fit (for the pair step). ``best_place``: every place refit (up to
+    ``PLACES_TRIED``) and, of those whose term passes, the one with the lowest held-out error kept; else the first
+    that passes."""
     if "supply_temp_c" not in fitter.outputs or not locations:
         return current, None, []
     ratios = diagnostics_ratio(fitter, current)
@@ -565,23 +569,37 @@ def _discover(fitter: Fitter, current: Fit, free: list[FreeParam], quick: bool, 
         notes.append("discovery: no prefix of the LARS path lowers the held-out supply error by "
                      f"{100 * discovery.MIN_STEP_GAIN:.0f} % (LARS path order: {tried[0][2]['path_order'][:5]})")
         return current, tried[0][2], []
-    rejected = []
+    rejected, passed = [], []
     for chosen, coef, record in [t for t in tried if t[0]][:PLACES_TRIED]:
         fit = _fit_term(fitter, current, free, discovery.term_from(chosen, coef, location=record["location"]),
                         record, quick)
         if record["accepted"]:
-            fit.free = tuple(fp.name for fp in free)
-            notes.append(f"discovery: added {record['term']['name']}: {record['formula']} ({record['words']}); "
-                         f"removes {100 * record['explained_holdout']:.0f} % of the held-out structure of supply_temp_c")
-            return fit, record, []
+            passed.append((fit, record))
+            if not best_place:
+                break
+            continue
         rejected.append((fit, record))
         notes.append(f"discovery: term {record['formula']} rejected (removes {100 * record['explained_holdout']:.0f} % "
                      f"of the held-out structure, information criterion {record['bic_change']:+.1f})")
-    return current, tried[0][2], rejected
+    if not passed:
+        return current, tried[0][2], rejected
+    fit, record = min(passed, key=lambda fr: fr[0].cost_holdout)
+    fit.free = tuple(fp.name for fp in free)
+    if best_place:
+        record["places_passed"] = [{"location": r["location"], "formula": r["formula"],
+                                    "holdout_cost": float(f.cost_holdout)} for f, r in passed]
+        for f, r in passed:
+            if r is not record:
+                r["accepted"] = False
+                notes.append(f"discovery: term {r['formula']} passes too, but {record['term']['name']} leaves a lower "
+                             f"held-out error ({f.cost_holdout:.0f} against {fit.cost_holdout:.0f}, scaled)")
+    notes.append(f"discovery: added {record['term']['name']}: {record['formula']} ({record['words']}); "
+                 f"removes {100 * record['explained_holdout']:.0f} % of the held-out structure of supply_temp_c")
+    return fit, record, []
 
 
 def _further_terms(fitter: Fitter, current: Fit, free: list[FreeParam], discovered: dict | None, quick: bool, say,
-                   notes: list[str]) -> tuple[Fit, dict | None]:
+                   notes: list[str], best_place: bool = False) -> tuple[Fit, dict | None]:
     """Discovery again, at the places that hold no term yet, while a term is in and the supply stays structured: two
     effects outside the library at two places (cabin air drawn in at the box inlet and a duct losing heat after the
     mixing point) leave, after the first term, the other's residual, which no term at the first place can take. Each
@@ -589,7 +607,7 @@ def _further_terms(fitter: Fitter, current: Fit, free: list[FreeParam], discover
     while current.terms:
         used = {t.location for t in current.terms}
         fit, record, _ = _discover(fitter, current, free, quick, say, notes,
-                                   tuple(loc for loc in discovery.TERM_NAMES if loc not in used))
+                                   tuple(loc for loc in discovery.TERM_NAMES if loc not in used), best_place)
         if not (record and record.get("accepted")):
             break
         current = fit
@@ -602,11 +620,13 @@ def _further_terms(fitter: Fitter, current: Fit, free: list[FreeParam], discover
 
 def _joint(fitter: Fitter, current: Fit, free: list[FreeParam], accepted: list[CandidateResult], open_round, lib,
            base: Parameters, max_effects: int, quick: bool, rnd: int, discovered: dict | None, say, notes: list[str],
-           terms: bool = True) -> tuple[Fit, list[FreeParam], list[CandidateResult], dict | None, dict | None]:
+           terms: bool = True, best_place: bool = False
+           ) -> tuple[Fit, list[FreeParam], list[CandidateResult], dict | None, dict | None]:
     """Procedure step 8 (:mod:`.joint_step`), its discovery that of step 6 (none without ``terms``); the forward
     path's term record stays unless the joint model replaces that path's model."""
     def discover(fit, fit_free, log):
-        return _discover(fitter, fit, fit_free, quick, say, log) if terms else (fit, None, [])
+        return (_discover(fitter, fit, fit_free, quick, say, log, best_place=best_place) if terms else
+                (fit, None, []))
     current, free, accepted, joint_term, record = joint_step(fitter, current, free, accepted, open_round, lib, base,
                                                              max_effects, rnd, discover, say, notes)
     return current, free, accepted, (joint_term if record and record["accepted"] else discovered), record
@@ -701,13 +721,42 @@ class _Clock:
         return dict(self.parts, total_s=self.t - self.t0, total_cpu_s=self.c - self.c0)
 
 
+@contextmanager
+def one_blas_thread():
+    """The linear algebra library on one thread while the identification runs (where ``threadpoolctl``, which
+    scikit-learn brings, is installed). Its matrices are tall and thin (a Jacobian of a few tens of thousands of rows
+    and 10-30 columns): on two cores shared with the forked scoring workers and other jobs, OpenBLAS's second thread
+    only waits. The SVD of scipy's trust-region step on such a matrix: 0.35 CPU s on two threads under load, 0.025 s
+    on one, the same values (docs/identification.md, "Cheaper runs")."""
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover - without it the library keeps its threads
+        yield
+        return
+    with threadpool_limits(limits=1, user_api="blas"):
+        yield
+
+
 def identify(log: LogData, base: Parameters | None = None, base_effects: Iterable[str] = (),
              quick: bool = False, max_effects: int = 4, progress: Callable[[str], None] | None = None,
              discover: bool = True, pairs: bool = True, joint: bool = True,
-             optional_candidates: Iterable[str] = ()) -> IdentificationResult:
+             best_place: bool = False, optional_candidates: Iterable[str] = ()) -> IdentificationResult:
     """Run the whole procedure of the module docstring on a prepared log (``pairs``: its step 7, the pairs of
-    effects that only help together; ``joint``: its step 8, the joint refit; ``optional_candidates``: names from
-    :data:`~.candidates.OPTIONAL_CANDIDATES` scored with the library)."""
+    effects that only help together; ``joint``: its step 8, the joint refit; ``best_place``: a discovered term's
+    place the one whose term leaves the lowest held-out error after the whole-model refit among those that pass,
+    instead of the first that passes; ``optional_candidates``: names from :data:`~.candidates.OPTIONAL_CANDIDATES`
+    scored with the library). The linear algebra runs on one thread (:func:`one_blas_thread`)."""
+    if not isinstance(best_place, bool):
+        raise TypeError(f"best_place must be True or False, not {best_place!r}")
+    with one_blas_thread():
+        return _identify(log, base, base_effects, quick, max_effects, progress, discover, pairs, joint, best_place,
+                         optional_candidates)
+
+
+def _identify(log: LogData, base: Parameters | None, base_effects: Iterable[str], quick: bool, max_effects: int,
+              progress: Callable[[str], None] | None, discover: bool, pairs: bool, joint: bool,
+              best_place: bool, optional_candidates: Iterable[str] = ()) -> IdentificationResult:
+    """:func:`identify` on the library's threads as they are set."""
     say = progress or (lambda _msg: None)
     clock = _Clock()
     base = base or Parameters()
@@ -727,7 +776,8 @@ def identify(log: LogData, base: Parameters | None = None, base_effects: Iterabl
     clock.lap("candidates")
     discovered, rejected_terms = None, []
     if discover:
-        current, discovered, rejected_terms = _discover(fitter, current, current_free, quick, say, notes)
+        current, discovered, rejected_terms = _discover(fitter, current, current_free, quick, say, notes,
+                                                        best_place=best_place)
     clock.lap("discovery")
     if discovered and discovered.get("accepted") and len(accepted) < max_effects:
         # with the term in, effects its residual hid may now show: one more forward pass
@@ -751,10 +801,13 @@ def identify(log: LogData, base: Parameters | None = None, base_effects: Iterabl
     if joint:
         current, current_free, accepted, discovered, joint_record = _joint(
             fitter, current, current_free, accepted, open_round, lib, base, max_effects, quick, len(rounds) + 1,
-            discovered, say, notes, discover)
+            discovered, say, notes, discover, best_place)
     clock.lap("joint")
+    further_cpu_s = 0.0  # the further discovery's share of the discovery's time (a term at a second place)
     if discover:
-        current, discovered = _further_terms(fitter, current, current_free, discovered, quick, say, notes)
+        c_further = cpu_seconds()
+        current, discovered = _further_terms(fitter, current, current_free, discovered, quick, say, notes, best_place)
+        further_cpu_s = cpu_seconds() - c_further
     clock.lap("discovery")
     current, current_free = _backward(fitter, current, current_free, accepted, lib, base, quick, say, notes)
     _drop_removed_partners(accepted, discovered)
@@ -778,7 +831,7 @@ def identify(log: LogData, base: Parameters | None = None, base_effects: Iterabl
     confidence = parameter_confidence(fitter, final, [fp for fp in NOMINAL_FREE if fp.name in final.free], p_base)
     params = _keep_unidentified(params, base, confidence, notes)
     clock.lap("final_diagnostics")
-    timings = clock.totals()
+    timings = dict(clock.totals(), further_discovery_cpu_s=further_cpu_s)
     res = IdentificationResult(log, fitter, base, base_effects, nominal, final, accepted, rounds, diag_before,
                                diag_after, localisation, params, effects, extras, notes, timings)
     res.terms = final.terms

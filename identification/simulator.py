@@ -1,7 +1,8 @@
 """Whole-log simulation of one model structure: free run, output sensitivities, EKF innovations.
 
 Everything is built once per model structure as CasADi functions of the full parameter vector
-``p`` (order :meth:`Parameters.scalar_names`) and mapped over the log with ``mapaccum``:
+``p`` (order :meth:`Parameters.scalar_names`) and run over the log by ``mapaccum`` in calls of
+:data:`CHUNK_ROWS` rows:
 
 - free run ``Y = sim(p)`` from the steady state at the first row (the error for reporting and
   for the fit);
@@ -34,6 +35,12 @@ from .log_data import LogData
 
 #: Free runs a simulator keeps (their parameter vector, outputs and states; about 1 MB each on a 2 h log).
 RUNS_KEPT = 4
+#: Rows per call of a mapped step function: a run of the log is a chain of calls of the step mapped over this many
+#: rows (and one over the rows left), each from the state the last one ended in. The same steps in the same order as
+#: one function mapped over the whole log, so the same values to the bit; building a map over 200 rows takes about
+#: 1.5 ms against 25-30 ms over 7200, and the identification builds one per model structure and parameter set
+#: (docs/identification.md, "Cheaper runs").
+CHUNK_ROWS = 200
 
 #: Quantities inside the model exported for the diagnostics (derived regressors).
 INTERNALS = ("heater_temp_c", "mass_flow_kgs", "bypass_fraction", "core_mass_flow_kgs", "motor_rise_c",
@@ -92,8 +99,11 @@ class Simulator:
         self.nz = self.z.shape[0]
         self._build()
         self._aug_cache: dict[tuple, ca.Function] = {}
+        self._maps: dict[tuple, ca.Function] = {}
+        self._internals_map: ca.Function | None = None
+        self._f_internals: ca.Function | None = None  # (step function's name, rows): the step mapped over rows
         self._ekf_fn: ca.Function | None = None
-        self._runs: list[tuple[bytes, tuple[np.ndarray, np.ndarray]]] = []  # the last free runs, newest first
+        self._runs: list[tuple[bytes, "_Run"]] = []  # the last free runs, newest first
 
     # ------------------------------------------------------------------ building blocks
     def _sym(self):
@@ -151,7 +161,6 @@ class Simulator:
         self.f_step = ca.Function("f_step", [x, z, p], [x_next])
         self.f_y = ca.Function("f_y", [x, z, p], [y])
         self.f_step_y = ca.Function("f_step_y", [x, z, p], [x_next, y])
-        self.f_sim = self.f_step_y.mapaccum("f_sim", self.log.n, [0], [0])
         # steady state at the first row: ode = 0 (water state pinned to the logged value)
         xdot = m.ode(xe, u, d, pz)
         e = np.zeros(self.nx)
@@ -159,17 +168,26 @@ class Simulator:
         _, _, _, w, flag = self._split_z(z)
         g = xdot + ca.DM(e) * (flag * (x[self._iw] - w) - flag * xdot[self._iw])
         self.f_g = ca.Function("f_g", [x, z, p], [g, ca.jacobian(g, x), ca.jacobian(g, p)])
-        # internals for diagnostics
-        q = m.algebraic(xe, up, d, pz)
-        b = q["bypass"]
-        internals = {
-            "heater_temp_c": q["sx"]["heater_temp_c"], "mass_flow_kgs": q["mass_flow"], "bypass_fraction": b,
-            "core_mass_flow_kgs": (1 - b) * q["mass_flow"], "motor_rise_c": q["sx"]["motor_rise_c"],
-            "blower_out_temp_c": q["t_blower"], "cooler_out_temp_c": q["t_cooler"],
-            "heater_out_temp_c": q["t_heater_out"], "heater_electric_w": q["p_el"],
-            "cooler_drive_c": (1 - b) * (q["t_blower"] - q["t_cooler"]),
-            "heater_rise_c": (1 - b) * (q["t_heater_out"] - q["t_cooler"]), "mix_temp_c": q["t_mix"]}
-        self.f_internals = ca.Function("f_int", [x, z, p], [ca.vertcat(*[internals[k] for k in INTERNALS])])
+
+    @property
+    def f_internals(self) -> ca.Function:
+        """Quantities inside the model (:data:`INTERNALS`) at one row, for the diagnostics and discovery (built on
+        first use: most simulators, a discovery's probes among them, never need it)."""
+        if self._f_internals is None:
+            m = self.model
+            x, z, p = self._sym()
+            _, up, d, _, _ = self._split_z(z)
+            q = m.algebraic(self._override(x, z), up, d, self._params(z, p))
+            b = q["bypass"]
+            internals = {
+                "heater_temp_c": q["sx"]["heater_temp_c"], "mass_flow_kgs": q["mass_flow"], "bypass_fraction": b,
+                "core_mass_flow_kgs": (1 - b) * q["mass_flow"], "motor_rise_c": q["sx"]["motor_rise_c"],
+                "blower_out_temp_c": q["t_blower"], "cooler_out_temp_c": q["t_cooler"],
+                "heater_out_temp_c": q["t_heater_out"], "heater_electric_w": q["p_el"],
+                "cooler_drive_c": (1 - b) * (q["t_blower"] - q["t_cooler"]),
+                "heater_rise_c": (1 - b) * (q["t_heater_out"] - q["t_cooler"]), "mix_temp_c": q["t_mix"]}
+            self._f_internals = ca.Function("f_int", [x, z, p], [ca.vertcat(*[internals[k] for k in INTERNALS])])
+        return self._f_internals
 
     # ------------------------------------------------------------------ steady state
     def initial_state(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -209,22 +227,69 @@ class Simulator:
         return x
 
     # ------------------------------------------------------------------ free run
-    def simulate(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def simulate(self, p: np.ndarray, rows: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Free-run outputs (n x n_y) and states (n x n_x; state k is the state at row k).
 
+        ``rows``: only the first ``rows`` rows are run (the others NaN): a fit's residual and Jacobian use the
+        training rows, the first part of the log, alone. A run of the whole log continues a kept shorter run of the
+        same vector from its last state (the same steps in the same order: the same values to the bit).
         The last ``RUNS_KEPT`` runs are kept (copies returned): a fit's final evaluation is at the point of its last
         accepted step, and the next step starts from it, so the same vector is run again and again."""
+        n = self.log.n
+        rows = n if rows is None else int(min(max(rows, 1), n))
         key = np.asarray(p, dtype=float).tobytes()
-        hit = next((run for k, run in self._runs if k == key), None)
+        hit = next((run for k, run in self._runs if k == key and run.rows >= rows), None)
         if hit is None:
-            x0, _ = self.initial_state(p)
-            xs, ys = self.f_sim(x0, self.z_for(p), p)
-            xs = np.asarray(xs).T
-            hit = (np.asarray(ys).T, np.vstack([x0[None, :], xs[:-1]]))
-            self._runs = ([(key, hit)] + self._runs)[:RUNS_KEPT]
-        return hit[0].copy(), hit[1].copy()
+            part = next((run for k, run in self._runs if k == key), None)
+            hit = self._keep(p, self._continue(p, part, rows) if part is not None else self._run(p, rows))
+        return hit.rows_of(n, rows)
+
+    def _keep(self, p: np.ndarray, run: "_Run") -> "_Run":
+        """``run`` kept as the newest run of ``p`` (unless a longer one of ``p`` is kept)."""
+        key = np.asarray(p, dtype=float).tobytes()
+        if any(k == key and r.rows > run.rows for k, r in self._runs):
+            return run
+        self._runs = ([(key, run)] + [(k, r) for k, r in self._runs if k != key])[:RUNS_KEPT]
+        return run
+
+    def _mapped(self, fn: ca.Function, rows: int) -> ca.Function:
+        """``fn`` (a step: state, row inputs, constants -> next state, row outputs) mapped over ``rows`` rows."""
+        key = (fn.name(), rows)
+        if key not in self._maps:
+            self._maps[key] = fn.mapaccum(f"{fn.name()}_{rows}", rows, [0], [0])
+        return self._maps[key]
+
+    def _chain(self, fn: ca.Function, x0: np.ndarray, z: np.ndarray, *const, per_row: tuple = ()
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """``fn(x, z, *const, *per_row)`` run over the columns of ``z`` (and of the arrays ``per_row``, one column
+        per row too) from the state ``x0``, in calls of :data:`CHUNK_ROWS` rows: the states after each row and the
+        outputs of each row (one column per row)."""
+        xs, ys = [], []
+        x = x0
+        for k in range(0, z.shape[1], CHUNK_ROWS):
+            zk = z[:, k:k + CHUNK_ROWS]
+            x_k, y_k = self._mapped(fn, zk.shape[1])(x, zk, *const, *(a[:, k:k + CHUNK_ROWS] for a in per_row))
+            xs.append(np.asarray(x_k))
+            ys.append(np.asarray(y_k))
+            x = xs[-1][:, -1]
+        return np.hstack(xs), np.hstack(ys)
+
+    def _run(self, p: np.ndarray, rows: int) -> "_Run":
+        """The first ``rows`` rows run from the steady state at the first row."""
+        x0, _ = self.initial_state(p)
+        xs, ys = self._chain(self.f_step_y, x0, self.z_for(p)[:, :rows], p)
+        xs = xs.T
+        return _Run(ys.T, np.vstack([x0[None, :], xs[:-1]]), xs[-1])
+
+    def _continue(self, p: np.ndarray, part: "_Run", rows: int) -> "_Run":
+        """``part`` (a run of the first rows of ``p``) continued to ``rows`` rows from its last state."""
+        start = part.rows
+        xs, ys = self._chain(self.f_step_y, part.x_end, self.z_for(p)[:, start:rows], p)
+        xs = xs.T
+        return _Run(np.vstack([part.y, ys.T]), np.vstack([part.states, part.x_end[None, :], xs[:-1]]), xs[-1])
 
     def _aug(self, idx: tuple[int, ...]) -> ca.Function:
+        """The step with the forward sensitivities of the parameters ``idx`` (one step; :meth:`_chain` runs it)."""
         if idx in self._aug_cache:
             return self._aug_cache[idx]
         n_theta = len(idx)
@@ -237,33 +302,40 @@ class Simulator:
         cy, dp = ca.jacobian(y, x), ca.jacobian(y, p_sel)
         s_next = ca.mtimes(a, s) + ca.mtimes(bp, ca.diag(c))
         dy = ca.mtimes(cy, s) + ca.mtimes(dp, ca.diag(c))
-        f = ca.Function("f_aug", [ca.vertcat(x, ca.vec(s)), z, p, c],
+        f = ca.Function(f"f_aug_{len(self._aug_cache)}", [ca.vertcat(x, ca.vec(s)), z, p, c],
                         [ca.vertcat(x_next, ca.vec(s_next)), ca.vertcat(y, ca.vec(dy))])
-        fm = f.mapaccum("f_aug_map", self.log.n, [0], [0])
-        self._aug_cache[idx] = fm
-        return fm
+        self._aug_cache[idx] = f
+        return f
 
-    def simulate_with_sensitivity(self, p: np.ndarray, e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def simulate_with_sensitivity(self, p: np.ndarray, e: np.ndarray, rows: int | None = None
+                                  ) -> tuple[np.ndarray, np.ndarray]:
         """Free run and dY/dtheta for p = p(theta) with dp/dtheta = ``e`` (n_p x n_theta).
 
         Each column of ``e`` must have one non-zero entry (one parameter per theta).
-        Returns ``y`` (n x n_y) and ``dy`` (n x n_y x n_theta).
+        Returns ``y`` (n x n_y) and ``dy`` (n x n_y x n_theta). ``rows``: only the first ``rows`` rows are run (the
+        others NaN; the same values to the bit in those rows).
         """
+        n = self.log.n
+        rows = n if rows is None else int(min(max(rows, 1), n))
         n_theta = e.shape[1]
         idx = tuple(int(np.flatnonzero(e[:, j])[0]) if np.any(e[:, j]) else 0 for j in range(n_theta))
         scale = np.array([e[i, j] for j, i in enumerate(idx)])
         x0, dx0 = self.initial_state(p)
         s0 = dx0 @ e
         xa0 = np.concatenate([x0, s0.ravel(order="F")])
-        _, out = self._aug(idx)(xa0, self.z_for(p), p, scale)
-        out = np.asarray(out).T
+        xs, out = self._chain(self._aug(idx), xa0, self.z_for(p)[:, :rows], p, scale)
+        xs = xs[:self.nx].T
+        self._keep(p, _Run(out[:self.ny].T, np.vstack([x0[None, :], xs[:-1]]), xs[-1]))  # its free run
+        out = _padded(out.T, n)
         y = out[:, :self.ny]
-        dy = out[:, self.ny:].reshape(self.log.n, self.ny, n_theta, order="F")
+        dy = out[:, self.ny:].reshape(n, self.ny, n_theta, order="F")
         return y, dy
 
     def internals(self, p: np.ndarray, states: np.ndarray) -> dict[str, np.ndarray]:
         """Derived regressors along a free run (heater temperature, mass flow, bypass ...)."""
-        f = self.f_internals.map(self.log.n)
+        if self._internals_map is None:
+            self._internals_map = self.f_internals.map(self.log.n)
+        f = self._internals_map
         vals = np.asarray(f(states.T, self.z_for(p), p)).T
         out = {k: vals[:, i] for i, k in enumerate(INTERNALS)}
         out["network_resistance_kg_m7"] = network_resistance(self.params, self.log.u)
@@ -296,14 +368,14 @@ class Simulator:
         x_next, a = f_jac(xk, z, p)
         cov = ca.mtimes(ca.mtimes(a, cov), a.T) + ca.diag(q)
         cov = 0.5 * (cov + cov.T)
-        f = ca.Function("ekf", [ca.vertcat(x, pv), z, p, ym, mask, r, q],
-                        [ca.vertcat(x_next, ca.vec(cov)), ca.vertcat(*nus, *ss)])
-        self._ekf_fn = f.mapaccum("ekf_map", self.log.n, [0], [0])
+        self._ekf_fn = ca.Function("ekf", [ca.vertcat(x, pv), z, p, r, q, ym, mask],
+                                   [ca.vertcat(x_next, ca.vec(cov)), ca.vertcat(*nus, *ss)])
         return self._ekf_fn
 
     def innovations(self, p: np.ndarray, y_meas: np.ndarray, r_var: np.ndarray,
-                    post: "OutputPost | None" = None) -> tuple[np.ndarray, np.ndarray]:
-        """EKF one-step innovations ``nu`` and their variances ``s`` (both n x n_y).
+                    post: "OutputPost | None" = None, rows: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """EKF one-step innovations ``nu`` and their variances ``s`` (both n x n_y; ``rows``: of the first rows
+        only, NaN after).
 
         ``y_meas`` (n x n_y, NaN = missing) is first mapped through ``post`` inverse (output
         delays and offsets are taken off the measurement). ``r_var`` are the measurement-noise
@@ -318,9 +390,10 @@ class Simulator:
         ym = y_meas if post is None else post.undo(y_meas)
         mask = np.isfinite(ym).astype(float)
         ym = np.where(mask > 0, ym, 0.0)
-        _, out = self._ekf()(np.concatenate([x0, p0.ravel()]), self.z_for(p), p, ym.T, mask.T,
-                             np.asarray(r_var, float), q)
-        out = np.asarray(out).T
+        rows = self.log.n if rows is None else int(min(max(rows, 1), self.log.n))
+        _, out = self._chain(self._ekf(), np.concatenate([x0, p0.ravel()]), self.z_for(p)[:, :rows], p,
+                             np.asarray(r_var, float), q, per_row=(ym.T[:, :rows], mask.T[:, :rows]))
+        out = _padded(out.T, self.log.n)
         nu = out[:, :self.ny]
         s = out[:, self.ny:]
         nu[mask == 0] = np.nan
@@ -379,6 +452,28 @@ class OutputPost:
     def describe(self) -> dict:
         return {"delays_samples": dict(self.delays), "bias": {k: list(v) for k, v in self.bias.items()},
                 "gain": dict(self.gain)}
+
+
+class _Run:
+    """A free run of the first ``rows`` rows: outputs, states (state k at row k) and the state after the last row."""
+
+    def __init__(self, y: np.ndarray, states: np.ndarray, x_end: np.ndarray):
+        self.y, self.states, self.x_end = y, states, np.asarray(x_end, float).copy()
+
+    @property
+    def rows(self) -> int:
+        return self.y.shape[0]
+
+    def rows_of(self, n: int, rows: int) -> tuple[np.ndarray, np.ndarray]:
+        """Copies of the outputs and states of the first ``rows`` rows, NaN up to ``n`` rows."""
+        return _padded(self.y[:rows], n), _padded(self.states[:rows], n)
+
+
+def _padded(values: np.ndarray, n: int) -> np.ndarray:
+    """``values`` (rows first) as a new array of ``n`` rows, the rows it lacks NaN."""
+    out = np.full((n,) + values.shape[1:], np.nan)
+    out[:values.shape[0]] = values
+    return out
 
 
 def shift(values: np.ndarray, lag: int) -> np.ndarray:
