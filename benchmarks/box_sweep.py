@@ -25,7 +25,6 @@ one core. The seed-0 sweep, its cells above 1.0 traced and what was built on the
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -88,28 +87,13 @@ def box_option(label: str, variant: Variant) -> str:
 
 def mpc_factory_with(settings: Mapping[str, Any] | None = None, ekf: Mapping[str, Any] | None = None):
     """The bench's MPC factory with ``MpcSettings`` fields (``settings``) and ``EkfSettings`` fields (``ekf``)
-    replaced; a name that is not a field raises ValueError naming it."""
-    from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
-
-    from .bench import DETERMINISTIC_DEADLINE_S
-    from .refined_model import with_overrides
-
-    def _ekf(base):
-        if not ekf:
-            return base
-        unknown = sorted(set(ekf) - {f.name for f in dataclasses.fields(base)})
-        if unknown:
-            raise ValueError(f"unknown EkfSettings field(s) {unknown}")
-        return dataclasses.replace(base, **ekf)
-
-    def make(initial_command):
-        base = MpcSettings(deadline_s=DETERMINISTIC_DEADLINE_S)
-        if initial_command is not None:
-            base = dataclasses.replace(base, initial_command=initial_command)
-        chosen = with_overrides(base, settings)
-        return MpcController(settings=dataclasses.replace(chosen, ekf=_ekf(chosen.ekf)))
-    make(None)  # fail early on a bad field
-    return make
+    replaced (:func:`~hvac_mpc.mpc.settings_file.settings_with`, checked here: a name that is not a field raises
+    ValueError naming it and the allowed ones)."""
+    from .bench import mpc_factory
+    values = dict(settings or {})
+    if ekf:
+        values["ekf"] = {**values.get("ekf", {}), **ekf}
+    return mpc_factory(settings=values)
 
 
 def run_sweep(boxes: Sequence[tuple[str, Variant]], plant_seed: int = 0, quick: bool = True,

@@ -27,7 +27,7 @@ from pathlib import Path
 
 from .identify_sweep import SETS, STRESS, SWEEP
 from .identify_time import log_case
-from .step_versions import import_root
+from .step_versions import version_arguments, version_roots
 
 #: The worker each version runs on one log (argv: the log's path, its starting effects as JSON): prints one JSON line.
 WORKER = """
@@ -81,9 +81,7 @@ def main(argv: list[str] | None = None) -> int:
     from hvac_mpc.mismatch import simulate_log
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--before", required=True, help="git revision or import root of the version before")
-    p.add_argument("--after", default=None, help="git revision or import root of the version after "
-                                                 "(default: the installed one)")
+    version_arguments(p)
     p.add_argument("--log", action="append", choices=[log.name for log in SWEEP + STRESS],
                    help="a log of identify_sweep (repeatable)")
     p.add_argument("--set", choices=sorted(SETS), default=None, help="every log of an identify_sweep set")
@@ -100,11 +98,8 @@ def main(argv: list[str] | None = None) -> int:
         p.error("give at least one --log, --set or --variant")
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        try:
-            roots = {name: import_root(getattr(args, name), Path(tmp) / name) if getattr(args, name) else None
-                     for name in ("before", "after")}
-        except ValueError as exc:
-            print(f"identify_versions: {exc}")
+        roots = version_roots(args, Path(tmp), "identify_versions")
+        if roots is None:
             return 2
         for k, (name, case) in enumerate(cases):
             path = Path(tmp) / f"{name}.csv"

@@ -149,11 +149,27 @@ def side_by_side(roots: dict[str, Path | None], steps: int, seed: int,
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def version_arguments(p: argparse.ArgumentParser) -> None:
+    """``--before`` and ``--after``: the two versions compared (:func:`import_root`)."""
     p.add_argument("--before", required=True, help="git revision or import root of the version before")
     p.add_argument("--after", default=None, help="git revision or import root of the version after "
                                                  "(default: the installed one)")
+
+
+def version_roots(args: argparse.Namespace, workdir: Path, prog: str) -> dict[str, Path | None] | None:
+    """The import roots of ``--before`` and ``--after`` (None: the installed version) under ``workdir``; None
+    after printing why where a version cannot be had."""
+    try:
+        return {name: import_root(getattr(args, name), workdir / name) if getattr(args, name) else None
+                for name in ("before", "after")}
+    except ValueError as exc:
+        print(f"{prog}: {exc}")
+        return None
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    version_arguments(p)
     p.add_argument("--after-settings", default=None, metavar="JSON",
                    help="MpcSettings fields of the version after, as a JSON object (lists become tuples)")
     solve_time.side_by_side_arguments(p)
@@ -168,11 +184,8 @@ def main(argv: list[str] | None = None) -> int:
     if solve_time.side_by_side_refused(args, "step_versions"):
         return 2
     with tempfile.TemporaryDirectory() as tmp:
-        try:
-            roots = {name: import_root(getattr(args, name), Path(tmp) / name) if getattr(args, name) else None
-                     for name in ("before", "after")}
-        except ValueError as exc:
-            print(f"step_versions: {exc}")
+        roots = version_roots(args, Path(tmp), "step_versions")
+        if roots is None:
             return 2
         rounds = [side_by_side(roots, args.steps, args.seed, args.after_settings) for _ in range(args.rounds)]
     for i, r in enumerate(rounds, 1):

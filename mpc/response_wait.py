@@ -57,7 +57,9 @@ class ResponseWait:
     whose own corrections move the model's air while the reading does not). ``flat_c`` (degC, 0: no bound): a wait
     begins only where the reading's change in that sample is also at most this (a reading that stays put, as behind
     a dead time; a response smaller than the model's, a gain error, does not start one). ``rearm_samples`` (>= 0; 0:
-    none): after a wait that ended as a model error, no wait begins for this many samples."""
+    none): after a wait that ended as a model error, no wait begins for at least this many samples (counted on the
+    samples that reach the onset test; a sample that returns early, a new dead time honoured or a reading that is
+    not finite, does not count)."""
 
     def __init__(self, trigger_c: float, share: float, min_samples: int, max_samples: int, after_samples: int = 0,
                  flat_c: float = 0.0, rearm_samples: int = 0):

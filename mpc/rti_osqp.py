@@ -703,6 +703,8 @@ class RtiOsqpSolver:
         libraries = [self.codegen.libraries.get(f.name()) for f in called]
         if not all(f.class_name() == "External" for f in called) or None in libraries:
             return fn
+        if not all(_same_signature(f, ca.external(f.name(), str(lib))) for f, lib in zip(called, libraries)):
+            return fn  # the report's library of that name is another function's (names are not unique across reports)
         return compiled(fn, self.codegen, link=tuple(libraries))
 
     @property
@@ -1129,3 +1131,11 @@ def same_values(a: np.ndarray, b: np.ndarray) -> bool:
     """``np.array_equal(a, b)`` for two numpy arrays (the same shape and every value equal; nan equals nothing),
     without its conversions: the references and weights a step compares with the preparation's."""
     return a.shape == b.shape and bool((a == b).all())
+
+
+def _same_signature(a: ca.Function, b: ca.Function) -> bool:
+    """True when ``a`` and ``b`` take and give arguments of the same sparsity (a linked call's sizes agree)."""
+    if (a.n_in(), a.n_out()) != (b.n_in(), b.n_out()):
+        return False
+    return (all(a.sparsity_in(i) == b.sparsity_in(i) for i in range(a.n_in()))
+            and all(a.sparsity_out(i) == b.sparsity_out(i) for i in range(a.n_out())))

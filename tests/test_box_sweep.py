@@ -31,7 +31,7 @@ def test_bad_arguments_are_named():
     with pytest.raises(ValueError, match="seed"):
         box_sweep.draw_boxes(-1, 3)
     assert box_sweep.main(["--only", "nope", "--list"]) == 2
-    with pytest.raises(ValueError, match="EkfSettings"):
+    with pytest.raises(ValueError, match=r"MpcSettings\.ekf: unknown field\(s\) \['nope'\]"):
         box_sweep.mpc_factory_with(ekf={"nope": 1})
 
 

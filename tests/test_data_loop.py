@@ -990,6 +990,28 @@ def test_mpc_runs_with_a_discovered_term_at_every_place():
     assert body_only._heater_inlet is None and body_only._heater_body_rate is not None
 
 
+def test_trapped_air_guard_reads_the_literal_cooler_fit_of_a_model_file():
+    """With the effect ``cooler_literal_fit`` the trapped-air guard's heater inlet is the thesis fit as written,
+    0.7564 T_w + 6.312 C (the thesis's cooler fit), whatever the air entering the core; without it, the
+    effectiveness form, which follows the inlet air."""
+    def inlet_c(ctrl, inlet_temp_c, water_temp_c=5.0):
+        m = ctrl.problem.model
+        x = m.states.vector({"motor_rise_c": 1.0, "water_temp_c": water_temp_c, "heater_temp_c": 30.0,
+                             "supply_sensor_c": 15.0})
+        u = m.inputs.vector({"blower_power_w": 60.0, "heater_cmd_w": 0.0, "valve_a_pct": 50.0, "valve_m_pct": 100.0,
+                             "valve_f_pct": 100.0, "valve_w_pct": 100.0})
+        d = m.disturbances.vector({"inlet_temp_c": inlet_temp_c, "chiller_setpoint_c": 5.0, "mix_offset_c": 0.0,
+                                   "flow_offset_m3s": 0.0})
+        if ctrl._heater_inlet is None:
+            return None
+        return float(ctrl._heater_inlet(x, u, d))
+    literal = MpcController(model=RefinedModel(effects=("cooler_literal_fit",)))
+    p = literal.problem.model.params
+    for t_in in (5.0, 20.0, 32.0):
+        assert inlet_c(literal, t_in) == pytest.approx(p.cooler_slope * 5.0 + p.cooler_offset_c, abs=1e-9)
+    assert inlet_c(MpcController(), 20.0) is None  # the nominal model: the cooler equation the guard reads itself
+
+
 @pytest.mark.slow
 def test_two_effects_outside_the_library_at_two_places_get_a_term_each(tmp_path):
     """The box draws 20 % cabin air behind the inlet sensor and its duct loses heat to the cabin (UA 3 W/K), both

@@ -262,3 +262,38 @@ def test_the_functions_with_common_subexpressions_computed_once_give_the_same_nu
             for f in variants:
                 got = [np.asarray(v) for v in f(*args)] if f.n_out() > 1 else [np.asarray(f(*args))]
                 assert all(np.array_equal(a, b) for a, b in zip(got, want)), (name, f.class_name())
+
+
+def test_one_build_of_the_fused_prediction_serves_other_weights_and_parameters(monkeypatch):
+    """The fused prediction takes the scaling and the constant parts of P and A as inputs: a controller with other
+    cost weights and other model parameters loads the library the first one built (the same file, 'cached'), and
+    its linked call still gives CasADi's evaluation of the same calls to the bit."""
+    if compiler() is None:
+        pytest.skip("no C compiler: nothing generated to share")
+    import dataclasses
+    from hvac_mpc.models.parameters import Parameters
+    monkeypatch.setenv(codegen.SWITCH_ENV, "1")
+    first = MpcController(settings=MpcSettings(codegen=True))
+    name = first.solver._predict_qp.fn.name()
+    spec = first.settings.ocp
+    weights = dataclasses.replace(spec.weights, move_valve_per_pct2=3 * spec.weights.move_valve_per_pct2,
+                                  volume_flow=1.5 * spec.weights.volume_flow)
+    other = MpcController(Parameters().replace(heater_kp=1.2 * Parameters().heater_kp),
+                          MpcSettings(codegen=True, ocp=dataclasses.replace(spec, weights=weights)))
+    assert other.solver._predict_qp.fn.class_name() == "External"
+    assert other.codegen.libraries[name] == first.codegen.libraries[name]
+    assert other.codegen.outcomes[name] == "cached"
+    # its numbers are the other controller's: the linked call against CasADi's evaluation of the same calls
+    linked = other.solver._predict_qp
+    monkeypatch.setattr(type(other.solver), "_compiled_calling", lambda self, fn, *called: fn)
+    predict, fixed = other.ekf.prediction_function()
+    plain = other.solver._fuse(other.ekf, predict, fixed).qp
+    solver = other.solver
+    loop = solve_time.Loop(other, seed=3)
+    for k in range(6):
+        loop.step(k)
+        ekf = other.ekf
+        args = (ekf.z, ekf.P, other.u_prev, 5.0 + k, float(ekf.learning), solver.X, solver.U, solver.U[0],
+                solver._weights(other.problem.w_y_full))
+        for x, y in zip(linked(*args), plain(*args)):
+            assert np.array_equal(x, y), k
