@@ -84,7 +84,7 @@ OWN_RANGES = {"bypass_flow_after_s": (0.0, 3600.0), "motor_sd_after_response_c":
               "r_supply_rest_c": (0.0, 100.0), "rest_window_s": (1.0, 3600.0), "rest_air_band_c": (0.0, 100.0),
               "rest_log_flow_band": (0.0, 10.0), "rest_offset_band_c": (0.0, 100.0),
               "response_wait_c": (0.0, 10.0), "response_wait_share": (0.01, 1.0), "response_wait_flat_c": (0.0, 10.0),
-              "response_wait_rearm_s": (0.0, 3600.0)}
+              "response_wait_rearm_s": (0.0, 3600.0), "q_mix_offset_per_air_change": (0.0, 1.0)}
 #: Settings that shape the learning of the bypass-flow exponent and do nothing without ``learn_bypass_flow``
 #: (field -> its value that leaves learning as it is).
 BYPASS_FLOW_LEARNING_GATES = {"bypass_flow_anchored": False, "bypass_flow_after_response": False,
@@ -149,6 +149,13 @@ class EkfSettings:
     raised variance took the MPC's own late answer: combo_delay_loss_cooler 1.10 -> 1.45 of the baseline's IAE
     with the flow out of reach; docs/robustness.md sec. 2.8). ``q_mix_offset_flow_deadband``: the part
     of that change (in ln, per sample) that adds nothing (the MPC's own small flow moves; 0: none).
+
+    ``q_mix_offset_per_air_change`` (share, in [0, 1]): more variance for the mixed-air offset where the model's
+    mixed air moves, (this times the change of the model's mixed air in the sample)^2 degC^2 (0: none, the
+    default): a box whose valve curves or gains differ from the model's answers a move by a share more or less than
+    the model predicts, so the offset has to step by that share of the move, which its random walk follows slowly.
+    Only once the dead-time estimate has seen a response, as the flow's. ASSUMPTION: the share is the model's gain
+    uncertainty (0.1: a tenth of a predicted change may be wrong). A setting, off (docs/robustness.md sec. 2.20).
 
     ``q_heater_outlet_offset_c``: random walk (degC per sample) of an offset of the heater outlet
     reading, its own integrating disturbance (0: none). Without it a persistent error of that reading
@@ -304,6 +311,7 @@ class EkfSettings:
     q_mix_offset_unseen_c: float = 0.0
     q_mix_offset_per_log_flow_c: float = 0.0
     q_mix_offset_flow_deadband: float = 0.0
+    q_mix_offset_per_air_change: float = 0.0
     q_flow_offset_m3s: float = 3e-5
     q_inlet_c: float = 0.01
     r_supply_c: float = 0.05
@@ -513,6 +521,7 @@ class DisturbanceEkf:
         self.dead_time.reset()
         self._log_flow_mean: float | None = None
         self._last_log_flow: float | None = None  # the model's flow at the last time update (ln m3/s)
+        self._last_air_c: float | None = None  # the model's mixed air at the last time update (degC)
         self.learning = False  # the bypass-flow exponent's gate: the flow moves
         self._motor_released = False  # the motor rise's variance raised once a response was seen
         self._honoured_lag: float | None = None  # the dead time (samples) honoured at the last re-anchor
@@ -762,7 +771,8 @@ class DisturbanceEkf:
         if self._relearning and self.settings.reanchor_hold_q_mix_c > 0.0:
             q_mix = self.settings.reanchor_hold_q_mix_c
         air_c, flow_m3s = float(air[0]), float(flow[0])
-        self.P[self.i_mix_offset, self.i_mix_offset] += q_mix * q_mix - self._q_mix_in_q + self._flow_step_var(flow_m3s)
+        self.P[self.i_mix_offset, self.i_mix_offset] += (q_mix * q_mix - self._q_mix_in_q + self._flow_step_var(flow_m3s)
+                                                          + self._air_step_var(air_c))
         if self.n_hist:
             self.dead_time.push_air(air_c)
         if self.rest_gate is not None:
@@ -787,6 +797,17 @@ class DisturbanceEkf:
         if per <= 0.0 or last is None or not self.response_seen:
             return 0.0
         return (per * max(0.0, abs(log_flow - last) - self.settings.q_mix_offset_flow_deadband)) ** 2
+
+    def _air_step_var(self, air_c: float) -> float:
+        """The mixed-air offset's added variance (degC^2) for the change of the model's mixed air since the last
+        time update (``EkfSettings.q_mix_offset_per_air_change``)."""
+        share = self.settings.q_mix_offset_per_air_change
+        if share <= 0.0:
+            return 0.0
+        last, self._last_air_c = self._last_air_c, air_c
+        if last is None or not self.response_seen:
+            return 0.0
+        return (share * (air_c - last)) ** 2
 
     def _gate(self, flow_m3s: float) -> None:
         """Open the bypass-flow exponent's gate while the model's flow is more than ``bypass_flow_gate``
