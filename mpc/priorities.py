@@ -243,16 +243,9 @@ class ReachableFlow:
         physical), valve a and the heater held: a shortfall the MPC chose itself, giving up flow for a supply
         temperature out of reach, keeps the full weight, so the flow is not let go further (the heater's
         minimum flow). ``flows``: :meth:`flows` at the same arguments, where the step has them already."""
-        if flows is not None:
-            excess = flow_m3s - flows.now_m3s
-            return excess if excess <= 0.0 else max(flow_m3s - flows.up_m3s, 0.0)
-        excess = flow_m3s - float(self.out(x, u, d)[0][0])
-        if excess <= 0.0:
-            return excess
-        moved = [self.i_blower, *self.i_outlets]
-        u_up = np.array(u, float)
-        u_up[moved] = np.minimum(u_up[moved] + step[moved], self.u_hi[moved])
-        return max(flow_m3s - float(self.out(x, u_up, d)[0][0]), 0.0)
+        flows = flows if flows is not None else self.flows(x, u, d, step)
+        excess = flow_m3s - flows.now_m3s
+        return excess if excess <= 0.0 else max(flow_m3s - flows.up_m3s, 0.0)
 
     def reset(self) -> None:
         self._drop_pending()
@@ -279,15 +272,9 @@ class ReachableFlow:
             return self._last
         # plainly within reach: the blower at full power with the outlets open gives the reference
         # with headroom without moving valve a or the heater (so without touching the temperature)
-        if flows is not None:
-            flow_now, flow_full = flows.now_m3s, flows.full_m3s
-        else:
-            flow_now = float(self.out(x, u, d)[0][0])
-            u_full = np.array(u, float)
-            u_full[self.i_blower] = self.u_hi[self.i_blower]
-            u_full[self.i_outlets] = self.u_hi[self.i_outlets]
-            flow_full = float(self.out(x, u_full, d)[0][0])
-        if flow_ref_m3s <= self.headroom * flow_full:
+        flows = flows if flows is not None else self.flows(x, u, d, np.zeros_like(self.u_hi))
+        flow_now = flows.now_m3s
+        if flow_ref_m3s <= self.headroom * flows.full_m3s:
             self.reset()
             return self._last
         key = (round(temp_ref_c, 6), round(flow_ref_m3s, 9))
