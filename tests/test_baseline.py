@@ -195,6 +195,7 @@ def test_bad_construction_is_named():
 
 
 # ---------------------------------------------------------------- the demo command
+@pytest.mark.slow  # above 7 s on a loaded machine; the whole suite runs it
 def test_demo_command_writes_its_results(tmp_path, capsys):
     try:
         import matplotlib  # noqa: F401

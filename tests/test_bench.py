@@ -296,6 +296,7 @@ def test_cli_unknown_scenario_fails_cleanly(tmp_path, capsys):
     assert not (tmp_path / "x").exists()
 
 
+@pytest.mark.slow  # above 7 s on a loaded machine; the whole suite runs it
 @pytest.mark.parametrize("name", ["summer_cooling_steps", "winter_heating_steps"])
 def test_mpc_settles_every_temperature_step_faster_than_the_baseline(name):
     # issue: temperature steps reach +-0.5 C faster than the baseline, on the perturbed plant with

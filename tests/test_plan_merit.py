@@ -105,6 +105,7 @@ def test_step_fractions_out_of_range_name_the_field(value):
         MpcSettings(rti_step_fractions=value)
 
 
+@pytest.mark.slow  # above 7 s on a loaded machine; the whole suite runs it
 def test_the_globalised_step_ends_valve_a_alternating_on_the_recirculating_box():
     """The independent box drawing 15 % of cabin air behind the inlet sensor (hvac_mpc.mismatch
     ``recirculation``), the MPC with the ``box_in`` term identification finds for it (-0.15 T_in + 3.6 C, the

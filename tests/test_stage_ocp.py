@@ -181,6 +181,7 @@ def _assert_same_qp(rti, qp, nlp, data, lm):
     assert covered == rti.m  # nothing else in the RTI's QP
 
 
+@pytest.mark.slow  # above 7 s on a loaded machine; the whole suite runs it
 def test_ipopt_and_fatrop_built_from_the_description_reach_the_same_optimum(pb):
     """Tight tolerances, no objective scaling (at the IPOPT reference's default 1e-3 scaling IPOPT stops
     on the redundant actuators' flat directions about 2e-4 above the optimum from this state)."""
@@ -214,6 +215,7 @@ SCENARIO_CHANGES = (
 )
 
 
+@pytest.mark.slow  # above 7 s on a loaded machine; the whole suite runs it
 def test_fatrop_solves_the_reference_changes_of_the_solve_time_scenario_to_ipopts_cost(pb):
     """From the steady state at the command held before each change (inlet 32 degC, water 4.6 degC) and a
     cold start, fatrop at its benchmark settings converges and reaches IPOPT's cost; unscaled (before

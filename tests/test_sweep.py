@@ -181,6 +181,7 @@ def test_cli_rejects_bad_options_and_changes_nothing(tmp_path, capsys):
 
 
 # ---------------------------------------------------------------------------- Dask
+@pytest.mark.slow  # above 7 s on a loaded machine; the whole suite runs it
 def test_tiny_sweep_on_a_local_cluster_and_replay_of_a_row(tmp_path, capsys):
     """Two worker processes; every run once in the Parquet; a row replays exactly from the CLI."""
     out = tmp_path / "res"
