@@ -45,8 +45,8 @@ import casadi as ca
 import numpy as np
 
 from hvac_mpc.mpc.codegen import CodegenReport, compiled_nlpsol
-from hvac_mpc.mpc.ipopt_reference import IpoptReferenceSolver, shifted_start
-from hvac_mpc.mpc.ocp import TrackingProblem, shift_maps
+from hvac_mpc.mpc.ipopt_reference import IpoptReferenceSolver, ShiftedPrimalStart
+from hvac_mpc.mpc.ocp import TrackingProblem
 from hvac_mpc.mpc.rti_osqp import SolveResult
 from hvac_mpc.mpc.stage_nlp import StageNlp
 from hvac_mpc.mpc.stage_ocp import StageOcp
@@ -57,7 +57,7 @@ from .suboptimality import FeedbackRecorder
 IPOPT_TOL_FACTOR = 0.1
 
 
-class FatropSolver:
+class FatropSolver(ShiftedPrimalStart):
     """Stage-wise tracking problem in fatrop, with the solver interface of the RTI solver."""
 
     name = "fatrop"
@@ -84,23 +84,7 @@ class FatropSolver:
                          "structure": "stage-wise, augmented state [x, u_prev, slack]",
                          "compiled": self.codegen.active,
                          "description": "StageOcp, stagewise transcription (mpc/stage_nlp.py)"}
-        self._i0, self._w1, self._j = shift_maps(pb.t_nodes, pb.dt_s)
-        self.fail_next = 0
-        self.reset()
-
-    def reset(self) -> None:
-        self.w = None
-
-    @property
-    def has_trajectory(self) -> bool:
-        return self.w is not None
-
-    def prepare(self, x_pred, u_prev, d, ref, w_y) -> float:
-        """Shift the previous solution one sample (the warm start)."""
-        t0 = time.perf_counter()
-        if self.w is not None:
-            self.w = shifted_start(self.transcription, self.w, (self._i0, self._w1, self._j), x_pred, u_prev)
-        return time.perf_counter() - t0
+        self._init_shift(pb)
 
     def feedback(self, x0, u_prev, d, ref, w_y, u_lo, u_hi, time_limit_s: float = 0.0) -> SolveResult:
         t0 = time.perf_counter()

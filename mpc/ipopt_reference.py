@@ -38,7 +38,33 @@ def shifted_start(transcription, w: np.ndarray, maps: tuple, x_pred: np.ndarray,
     Xs[0] = x_pred
     return transcription.pack(Xs, U[j], S[np.minimum(j, len(S) - 1)], u_prev)
 
-class IpoptReferenceSolver:
+
+class ShiftedPrimalStart:
+    """The warm start the converged references share: the last primal solution ``w`` of the
+    stage-wise transcription shifted one sample (:func:`shifted_start`); what a subclass keeps
+    besides (multipliers) it resets in its own ``reset``."""
+
+    def _init_shift(self, pb: TrackingProblem) -> None:
+        self._i0, self._w1, self._j = shift_maps(pb.t_nodes, pb.dt_s)
+        self.fail_next = 0
+        self.reset()
+
+    def reset(self) -> None:
+        self.w = None
+
+    @property
+    def has_trajectory(self) -> bool:
+        return self.w is not None
+
+    def prepare(self, x_pred, u_prev, d, ref, w_y) -> float:
+        """Shift the previous primal solution one sample (the warm start; multipliers kept)."""
+        t0 = time.perf_counter()
+        if self.w is not None:
+            self.w = shifted_start(self.transcription, self.w, (self._i0, self._w1, self._j), x_pred, u_prev)
+        return time.perf_counter() - t0
+
+
+class IpoptReferenceSolver(ShiftedPrimalStart):
     """Full-NLP reference with the solver interface of :class:`RtiOsqpSolver`."""
 
     name = "ipopt"
@@ -74,25 +100,12 @@ class IpoptReferenceSolver:
         self.lbg, self.ubg = tr.lbg, tr.ubg
         self.iu0 = int(tr.iu[0, 0])
         self.is0 = int(tr.i_slack[0])
-        self._i0, self._w1, self._j = shift_maps(pb.t_nodes, pb.dt_s)
-        self.fail_next = 0
-        self.reset()
+        self._init_shift(pb)
 
     def reset(self) -> None:
-        self.w = None
+        super().reset()
         self.lam_x = None
         self.lam_g = None
-
-    @property
-    def has_trajectory(self) -> bool:
-        return self.w is not None
-
-    def prepare(self, x_pred, u_prev, d, ref, w_y) -> float:
-        """Shift the previous primal solution one sample (the warm start; multipliers kept)."""
-        t0 = time.perf_counter()
-        if self.w is not None:
-            self.w = shifted_start(self.transcription, self.w, (self._i0, self._w1, self._j), x_pred, u_prev)
-        return time.perf_counter() - t0
 
     def feedback(self, x0, u_prev, d, ref, w_y, u_lo, u_hi, time_limit_s: float = 0.0) -> SolveResult:
         t0 = time.perf_counter()
