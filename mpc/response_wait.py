@@ -92,6 +92,11 @@ class ResponseWait:
         self.model_errors = 0  # waits ended as a model error since the reset
         self._quiet = 0  # samples left in which no wait begins (after a model error, ``rearm_samples``)
 
+    def stop(self) -> None:
+        """End a wait under way (the estimator no longer waits: ``EkfSettings.response_wait_unseen_only``); the
+        counts and the re-arm's quiet time are kept."""
+        self._start = None
+
     @property
     def waiting(self) -> bool:
         return self._start is not None
