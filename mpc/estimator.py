@@ -927,7 +927,8 @@ class DisturbanceEkf:
 
     def _response_due(self, supply_c: float, weights: np.ndarray) -> bool:
         """Whether the supply reading is still to show a response the model predicts at the dead time honoured now
-        (:mod:`~.response_wait`, ``EkfSettings.response_wait_c``; False without it)."""
+        (:mod:`~.response_wait`, ``EkfSettings.response_wait_c``; False without it, and with
+        ``response_wait_unseen_only`` once a response has been seen and a dead time is honoured)."""
         if self.response_wait is None:
             return False
         if self.settings.response_wait_unseen_only and self.response_seen and weights is not self.c_now:

@@ -96,3 +96,16 @@ def test_s0_8_proband_loses_less_without_the_waits_after_the_dead_time():
     gated, trace = proband_on_s0_8(True)
     assert gated < 0.97 * plain
     assert not any(trace.fallback)
+
+
+def test_stop_ends_a_wait_and_compares_nothing_from_before():
+    """A wait under way ends at ``stop``; the next sample starts none even where the prediction is far from the one
+    before the stop (nothing from before it is compared), and the count of waits is kept."""
+    from hvac_mpc.mpc.response_wait import ResponseWait
+    rule = ResponseWait(trigger_c=0.2, share=0.5, min_samples=2, max_samples=7)
+    assert not rule.observe(18.0, 18.0)
+    assert rule.observe(17.0, 18.0)  # the prediction fell 1 degC, the reading stayed: a wait
+    rule.stop()
+    assert not rule.waiting and rule.waits == 1
+    assert not rule.observe(15.0, 18.0)  # 2 degC from the last sample before the stop: not compared
+    assert rule.observe(14.0, 18.0)  # the next predicted move starts a wait again
