@@ -297,6 +297,13 @@ class EkfSettings:
     for a move of its own is a gain the next move shares, not a dead time. Default 60 s. ASSUMPTION: a valve or
     heater gain error lasts at least the dead-time estimate's window (``dead_time_window_s``, 60 s), over which that
     estimate ranks the same responses (docs/robustness.md sec. 2.19).
+    ``response_wait_unseen_only``: no wait once the dead-time estimate has seen a response and a dead time is honoured
+    (off by default: waits at every predicted move, as before). A wait is for a dead time the filter does not know;
+    once a response has shown it and the reading is compared at it, a reading that does not follow a move of the
+    model's is the model's error (a valve gain, a duct's loss that changes with the flow), which the offsets have to
+    take now: on boxes of the seeded sweep a wait at each reference step held the offset 7-10 samples while the
+    reading sat 0.6-1 degC off the reference. ASSUMPTION: the dead time found from a response is the box's (a longer
+    one would show as a model error until the estimate moves to it). A setting, off (docs/robustness.md sec. 2.21).
     """
 
     q_motor_c: float = 0.01
@@ -358,6 +365,7 @@ class EkfSettings:
     response_wait_share: float = 0.5
     response_wait_flat_c: float = 0.0
     response_wait_rearm_s: float = 60.0
+    response_wait_unseen_only: bool = False
 
     def validate(self, prefix: str = "ekf") -> None:
         for f in fields(self):
@@ -366,7 +374,7 @@ class EkfSettings:
                 check_state_names(f"{prefix}.{f.name}", value)
                 continue
             if f.name in ("use_heater_outlet", "learn_bypass_flow", "bypass_flow_anchored", "bound_motor_rise",
-                          "reanchor_before_response",
+                          "reanchor_before_response", "response_wait_unseen_only",
                           "bypass_flow_after_response", "bypass_flow_commit_at_rest", "bypass_flow_at_rest"):
                 check_flag(f"{prefix}.{f.name}", value)
                 continue
@@ -919,9 +927,13 @@ class DisturbanceEkf:
 
     def _response_due(self, supply_c: float, weights: np.ndarray) -> bool:
         """Whether the supply reading is still to show a response the model predicts at the dead time honoured now
-        (:mod:`~.response_wait`, ``EkfSettings.response_wait_c``; False without it)."""
+        (:mod:`~.response_wait`, ``EkfSettings.response_wait_c``; False without it, and with
+        ``response_wait_unseen_only`` once a response has been seen and a dead time is honoured)."""
         if self.response_wait is None:
             return False
+        if self.settings.response_wait_unseen_only and self.response_seen and weights is not self.c_now:
+            self.response_wait.stop()  # a dead time found from a response and honoured: a missing response is a
+            return False               # model error, which the offsets take at once
         steps = 0.0 if weights is self.c_now else self.dead_time.steps
         return self.response_wait.observe(self.dead_time.prediction_c(steps), supply_c, steps)
 

@@ -92,6 +92,14 @@ class ResponseWait:
         self.model_errors = 0  # waits ended as a model error since the reset
         self._quiet = 0  # samples left in which no wait begins (after a model error, ``rearm_samples``)
 
+    def stop(self) -> None:
+        """End a wait under way and forget the last sample (the estimator does not wait for now:
+        ``EkfSettings.response_wait_unseen_only``), so the next :meth:`observe` compares nothing from before; the
+        counts and the re-arm's quiet time are kept."""
+        self._start = None
+        self._last = None
+        self._last_dp = 0.0  # as after a reset
+
     @property
     def waiting(self) -> bool:
         return self._start is not None
