@@ -1,5 +1,5 @@
 """No wait for a predicted response once the dead time is found from a response and honoured
-(``EkfSettings.response_wait_unseen_only``, a setting, off; docs/robustness.md sec. 2.21).
+(``EkfSettings.response_wait_unseen_only``, a default; docs/robustness.md sec. 2.21).
 
 Truth is the independent box (``hvac_mpc.mismatch``): open loop a box with a 2.5 s dead time, a duct losing 5 W/K,
 valve curves shifted -8 % and a slower thermocouple (its valve gain and its air's flow dependence are not the
@@ -67,8 +67,8 @@ def test_once_the_dead_time_is_found_the_offset_takes_a_gain_error_at_once():
     assert lag(gated_off) < 0.85 * lag(plain_off)
 
 
-def test_off_by_default_and_checked():
-    assert EkfSettings().response_wait_unseen_only is False
+def test_on_by_default_and_checked():
+    assert EkfSettings().response_wait_unseen_only is True
     for bad in (1, "yes", None):
         with pytest.raises(InvalidSettings, match="ekf.response_wait_unseen_only"):
             MpcSettings(ekf=EkfSettings(response_wait_unseen_only=bad))
