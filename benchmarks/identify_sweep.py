@@ -94,7 +94,8 @@ STRESS = (
 )
 #: Logs at the edges of the procedure's own logic (``--set edges``): shifts of 3 to 5 samples (the timing check looked
 #: at most 3 samples either way), three effects together, the chiller's two-point cycling in the model (no water
-#: column), logs shorter than 2 h, noise x2 with bad rows and an effect. ASSUMPTION: as above, plausible for another box.
+#: column), logs shorter than 2 h, noise x2 with bad rows and an effect. ASSUMPTION: as above, plausible for another
+#: box.
 NO_WATER = ("water_temp_c",)
 EDGES = (
     SweepLog("delay_3s_shift3", Variant(transport_delay_s=3.0, log_shift_samples=3), (DELAY,)),
@@ -146,7 +147,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--log", action="append", choices=names, default=None, help="a log of the sweep (repeatable)")
     parser.add_argument("--set", choices=tuple(SETS), default="sweep", help="which logs (default: sweep)")
     parser.add_argument("--seed", type=int, default=211)
-    parser.add_argument("--duration", type=float, default=7200.0, help="log length, s (default 7200; a log of the sweep with its own length keeps it)")
+    parser.add_argument("--duration", type=float, default=7200.0,
+                        help="log length, s (default 7200; a log of the sweep with its own length keeps it)")
     parser.add_argument("--threads", type=int, default=2, choices=(1, 2))
     parser.add_argument("--json", type=Path, default=None, help="write the rows here")
     parser.add_argument("--best-place", action="store_true",

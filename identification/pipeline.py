@@ -36,8 +36,9 @@ Procedure (stated in the report):
    term yet (a further term on the first's gates; effects outside the library at two places).
    Then a backward pass re-tests every kept effect: dropped if taking it out costs less than ``FORWARD_MIN`` of its
    primary output's held-out structure (where the model holds a term, also with the terms' coefficients refit beside
-   it: a term fitted on a residual the effect had shaped leaves room for it), or if its own change of the held-out readings (the other parameters fixed)
-   is below ``CONTRIBUTION_MIN`` of the noise variance (a magnitude the procedure cannot tell from zero).
+   it: a term fitted on a residual the effect had shaped leaves room for it), or if its own change of the held-out
+   readings (the other parameters fixed) is below ``CONTRIBUTION_MIN`` of the noise variance (a magnitude the
+   procedure cannot tell from zero).
 9. Whatever structure remains is located (:mod:`.localise`) instead of being named.
 """
 
@@ -507,7 +508,8 @@ def _backward(fitter: Fitter, current: Fit, free: list[FreeParam], accepted: lis
         fit_wo = fitter.fit(effects, p, free_wo, post, max_nfev=SCREEN_NFEV, terms=current.terms)
         share = output_share(fitter, fit_wo, current, acc.primary_output or "supply_temp_c")
         if share >= FORWARD_MIN and current.terms:
-            fit_wo, share = _without_with_terms_refit(fitter, fit_wo, current, effects, post, free_wo, acc, quick)
+            fit_wo, share = _without_with_terms_refit(fitter, fit_wo, share, current, effects, post, free_wo, acc,
+                                                      quick)
         acc.backward_share = float(share)
         # the refit's start: the same parameters without the effect (a run the simulator keeps)
         acc.contribution = contribution(fitter, current, fitter.evaluate(effects, p, post, terms=current.terms))
@@ -531,14 +533,14 @@ def _backward(fitter: Fitter, current: Fit, free: list[FreeParam], accepted: lis
     return current, free
 
 
-def _without_with_terms_refit(fitter: Fitter, fit_wo: Fit, current: Fit, effects, post: OutputPost,
+def _without_with_terms_refit(fitter: Fitter, fit_wo: Fit, share_wo: float, current: Fit, effects, post: OutputPost,
                               free_wo: list[FreeParam], acc: CandidateResult, quick: bool) -> tuple[Fit, float]:
     """The backward pass's model without ``acc`` once more, the discovered terms' coefficients alternated with the
     refit (as when a term is added, :func:`_fit_term`): a term fitted on a residual that an effect kept before it had
     shaped stays at the coefficients that left room for the effect, and the refit without the effect, the terms
     fixed, does not show what the terms take up without it (``duct_ua10`` seed 211: a heater-power gain the box does
     not have, beside a duct term that holds half the box's conductance). Returns the model and the share taking
-    ``acc`` out costs; the quick refit's if that is lower."""
+    ``acc`` out costs; the quick refit's (``fit_wo``, ``share_wo``) if that is lower."""
     side = [fp for fp in free_wo if fp.name not in FLOW_PARAMS]
     fit, terms = fit_wo, current.terms
     try:
@@ -548,10 +550,9 @@ def _without_with_terms_refit(fitter: Fitter, fit_wo: Fit, current: Fit, effects
                 fit = fitter.evaluate(effects, fit.p, post, fit.free, terms=terms)
             fit = fitter.fit(effects, fit.p, side, post, max_nfev=4 if quick else 6, terms=terms)
     except FIT_ERRORS:
-        return fit_wo, output_share(fitter, fit_wo, current, acc.primary_output or "supply_temp_c")
+        return fit_wo, share_wo
     share = output_share(fitter, fit, current, acc.primary_output or "supply_temp_c")
-    quick_share = output_share(fitter, fit_wo, current, acc.primary_output or "supply_temp_c")
-    return (fit, share) if share < quick_share else (fit_wo, quick_share)
+    return (fit, share) if share < share_wo else (fit_wo, share_wo)
 
 
 def _records_of_refit_terms(discovered: dict | None, terms: tuple) -> None:

@@ -19,7 +19,8 @@ import numpy as np
 from .log_data import LogData
 
 #: Largest shift looked for, samples. It was 3: a log 4 samples late was reported and corrected as 3 late, and the
-#: sample left shifted went into the temperature's transport delay (docs/identification.md, "Logs at the edges").
+#: samples left went into transport delays (a clean log 5 samples late got three; docs/identification.md, "Fresh
+#: seeds 307 and 419").
 #: ASSUMPTION: a logger misaligns its columns by at most 30 samples (30 s at 1 Hz, the largest transport delay scanned);
 #: a shift at the edge of the scan is reported as possibly larger.
 MAX_SHIFT = 30

@@ -612,7 +612,8 @@ def test_a_large_duct_loss_keeps_its_term_and_no_heater_power_gain_the_box_does_
     """A 10 W/K duct loss (the sweep's ``duct_ua10``, seed 211, 2 h): the forward pass keeps a heater-power gain (the
     heater's share k_p bent to cover the loss in heating), then discovery adds the duct's term on that residual. The
     backward pass, the term's coefficients fixed, kept the gain (23 % of the heater power's held-out structure); with
-    them refit beside it the gain costs 6 % and goes (measured: supply 1.512 -> 0.367 C with the gain, 0.301 without)."""
+    them refit beside it the gain costs 6 % and goes (measured: supply 1.512 -> 0.367 C with the gain, 0.301
+    without)."""
     path = tmp_path / "duct_ua10.csv"
     simulate_log(path, Variant(duct_loss_ua_w_per_k=10.0), duration_s=7200.0, seed=211)
     res = identify(load(path), base_effects=DOCUMENTED_EFFECTS)
