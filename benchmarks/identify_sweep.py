@@ -3,6 +3,7 @@
     python -m hvac_mpc.benchmarks.identify_sweep                          # every log of SWEEP, seed 211
     python -m hvac_mpc.benchmarks.identify_sweep --log duct_ua1.5 --log clean_noise2_bad --json out.json
     python -m hvac_mpc.benchmarks.identify_sweep --set stress             # larger magnitudes, other pairs
+    python -m hvac_mpc.benchmarks.identify_sweep --set edges --seed 307   # shifts of 3-5, three effects, no water
 
 Issue 12's check, on logs of the independent box (:mod:`hvac_mpc.mismatch`, 2 h at 1 Hz): every effect the
 log carries is named (a library effect) or added as a term (an effect outside the library), the held-out
@@ -52,9 +53,13 @@ class SweepLog:
     excitation: str = "steps"
     bad_rows: bool = False
     base_effects: tuple[str, ...] = DOCUMENTED_EFFECTS
+    #: the log's length, s (None: the run's ``--duration``)
+    duration_s: float | None = None
+    #: optional sensor columns the log leaves out (``simulate_log``'s ``omit``)
+    omit: tuple[str, ...] = ()
 
     def case(self) -> LogCase:
-        return LogCase(self.variant, self.excitation, self.bad_rows, self.base_effects)
+        return LogCase(self.variant, self.excitation, self.bad_rows, self.base_effects, self.omit)
 
 
 #: The logs: a clean one (noisier, bad rows) and a clean one with another excitation, single effects at other
@@ -87,7 +92,25 @@ STRESS = (
     SweepLog("delay_8s_cooler_literal_short", Variant(transport_delay_s=8.0, cooler_literal_fit=True), (DELAY, TERM),
              excitation="short_holds"),
 )
-SETS = {"sweep": SWEEP, "stress": STRESS}
+#: Logs at the edges of the procedure's own logic (``--set edges``): shifts of 3 to 5 samples (the timing check looked
+#: at most 3 samples either way), three effects together, the chiller's two-point cycling in the model (no water
+#: column), logs shorter than 2 h, noise x2 with bad rows and an effect. ASSUMPTION: as above, plausible for another
+#: box.
+NO_WATER = ("water_temp_c",)
+EDGES = (
+    SweepLog("delay_3s_shift3", Variant(transport_delay_s=3.0, log_shift_samples=3), (DELAY,)),
+    SweepLog("tc_x1.5_shift-4", Variant(thermocouple_tau_scale=1.5, log_shift_samples=-4), (LAG,)),
+    SweepLog("clean_shift5", Variant(log_shift_samples=5)),
+    SweepLog("delay_2s_tc_x1.4_recirc_0.12",
+             Variant(transport_delay_s=2.0, thermocouple_tau_scale=1.4, recirculation_share=0.12), (DELAY, LAG, TERM)),
+    SweepLog("clean_nowater", Variant(), omit=NO_WATER),
+    SweepLog("delay_3s_nowater", Variant(transport_delay_s=3.0), (DELAY,), omit=NO_WATER),
+    SweepLog("clean_1h_noise2_bad", Variant(noise_scale=2.0), bad_rows=True, duration_s=3600.0),
+    SweepLog("duct_ua3_1h", Variant(duct_loss_ua_w_per_k=3.0), (TERM,), duration_s=3600.0),
+    SweepLog("delay_2s_40min", Variant(transport_delay_s=2.0), (DELAY,), duration_s=2400.0),
+    SweepLog("recirc_0.15_noise2_bad", Variant(recirculation_share=0.15, noise_scale=2.0), (TERM,), bad_rows=True),
+)
+SETS = {"sweep": SWEEP, "stress": STRESS, "edges": EDGES}
 
 
 def matched(expect: tuple[str, ...], added: list[str]) -> dict[str, bool]:
@@ -124,7 +147,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--log", action="append", choices=names, default=None, help="a log of the sweep (repeatable)")
     parser.add_argument("--set", choices=tuple(SETS), default="sweep", help="which logs (default: sweep)")
     parser.add_argument("--seed", type=int, default=211)
-    parser.add_argument("--duration", type=float, default=7200.0, help="log length, s (default 7200)")
+    parser.add_argument("--duration", type=float, default=7200.0,
+                        help="log length, s (default 7200; a log of the sweep with its own length keeps it)")
     parser.add_argument("--threads", type=int, default=2, choices=(1, 2))
     parser.add_argument("--json", type=Path, default=None, help="write the rows here")
     parser.add_argument("--best-place", action="store_true",
@@ -138,9 +162,10 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for log in picked:
-            row = time_case(log.name, log.case(), args.duration, args.seed, Path(tmp), best_place=args.best_place)
+            duration = args.duration if log.duration_s is None else log.duration_s
+            row = time_case(log.name, log.case(), duration, args.seed, Path(tmp), best_place=args.best_place)
             row.update(check=verdict(log, row), variant=log.variant.differences(), excitation=log.excitation,
-                       bad_rows=log.bad_rows, seed=args.seed)
+                       bad_rows=log.bad_rows, seed=args.seed, duration_s=duration, omit=list(log.omit))
             rows.append(row)
             print(_line(log, row, row["check"]), flush=True)
     passed = sum(r["check"]["passed"] for r in rows)

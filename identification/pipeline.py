@@ -35,8 +35,10 @@ Procedure (stated in the report):
    While the model holds a term and the supply stays structured, discovery runs again at the places that hold no
    term yet (a further term on the first's gates; effects outside the library at two places).
    Then a backward pass re-tests every kept effect: dropped if taking it out costs less than ``FORWARD_MIN`` of its
-   primary output's held-out structure, or if its own change of the held-out readings (the other parameters fixed)
-   is below ``CONTRIBUTION_MIN`` of the noise variance (a magnitude the procedure cannot tell from zero).
+   primary output's held-out structure (where the model holds a term, also with the terms' coefficients refit beside
+   it: a term fitted on a residual the effect had shaped leaves room for it), or if its own change of the held-out
+   readings (the other parameters fixed) is below ``CONTRIBUTION_MIN`` of the noise variance (a magnitude the
+   procedure cannot tell from zero).
 9. Whatever structure remains is located (:mod:`.localise`) instead of being named.
 """
 
@@ -505,6 +507,9 @@ def _backward(fitter: Fitter, current: Fit, free: list[FreeParam], accepted: lis
         say(f"backward pass: re-testing {acc.name}")
         fit_wo = fitter.fit(effects, p, free_wo, post, max_nfev=SCREEN_NFEV, terms=current.terms)
         share = output_share(fitter, fit_wo, current, acc.primary_output or "supply_temp_c")
+        if share >= FORWARD_MIN and current.terms:
+            fit_wo, share = _without_with_terms_refit(fitter, fit_wo, share, current, effects, post, free_wo, acc,
+                                                      quick)
         acc.backward_share = float(share)
         # the refit's start: the same parameters without the effect (a run the simulator keeps)
         acc.contribution = contribution(fitter, current, fitter.evaluate(effects, p, post, terms=current.terms))
@@ -526,6 +531,38 @@ def _backward(fitter: Fitter, current: Fit, free: list[FreeParam], accepted: lis
                          f"structure; its own change of the held-out readings {acc.contribution:.2f} times the noise "
                          "variance)")
     return current, free
+
+
+def _without_with_terms_refit(fitter: Fitter, fit_wo: Fit, share_wo: float, current: Fit, effects, post: OutputPost,
+                              free_wo: list[FreeParam], acc: CandidateResult, quick: bool) -> tuple[Fit, float]:
+    """The backward pass's model without ``acc`` once more, the discovered terms' coefficients alternated with the
+    refit (as when a term is added, :func:`_fit_term`): a term fitted on a residual that an effect kept before it had
+    shaped stays at the coefficients that left room for the effect, and the refit without the effect, the terms
+    fixed, does not show what the terms take up without it (``duct_ua10`` seed 211: a heater-power gain the box does
+    not have, beside a duct term that holds half the box's conductance). Returns the model and the share taking
+    ``acc`` out costs; the quick refit's (``fit_wo``, ``share_wo``) if that is lower."""
+    side = [fp for fp in free_wo if fp.name not in FLOW_PARAMS]
+    fit, terms = fit_wo, current.terms
+    try:
+        for _ in range(DISCOVERY_ALTERNATIONS):
+            for k in range(len(terms)):
+                terms = terms[:k] + (discovery.refit_coefficients(fitter, fit, terms[k]),) + terms[k + 1:]
+                fit = fitter.evaluate(effects, fit.p, post, fit.free, terms=terms)
+            fit = fitter.fit(effects, fit.p, side, post, max_nfev=4 if quick else 6, terms=terms)
+    except FIT_ERRORS:
+        return fit_wo, share_wo
+    share = output_share(fitter, fit, current, acc.primary_output or "supply_temp_c")
+    return (fit, share) if share < share_wo else (fit_wo, share_wo)
+
+
+def _records_of_refit_terms(discovered: dict | None, terms: tuple) -> None:
+    """The term records (the kept one and the further ones) with the coefficients of the final model's terms of the
+    same name: the backward pass refits them where it takes an effect out (:func:`_without_with_terms_refit`)."""
+    by_name = {t.name: t for t in terms}
+    for record in ([discovered] + list(discovered.get("further", ()))) if discovered else ():
+        term = by_name.get((record.get("term") or {}).get("name"))
+        if record.get("accepted") and term is not None and term.as_dict() != record["term"]:
+            record.update(term=term.as_dict(), formula=term.formula(), words=term.description)
 
 
 def _drop_removed_partners(accepted: list[CandidateResult], discovered: dict | None) -> None:
@@ -811,6 +848,7 @@ def _identify(log: LogData, base: Parameters | None, base_effects: Iterable[str]
     clock.lap("discovery")
     current, current_free = _backward(fitter, current, current_free, accepted, lib, base, quick, say, notes)
     _drop_removed_partners(accepted, discovered)
+    _records_of_refit_terms(discovered, current.terms)
     clock.lap("candidates")
     final = current
     for a in accepted:  # the final model's values (later steps refit them with the others)
