@@ -487,13 +487,13 @@ def _heater_body_rate_function(model: HvacModel) -> Callable | None:
     return ca.Function("heater_body_rate", [x, u, d, p], [rate])
 
 
-
 def _heater_reserve(problem: TrackingProblem, dt_s: float) -> HeaterReserve | None:
     """The heater reserve's gate where ``Weights.valve_a_reserve_per_pct2`` is above 0 (:mod:`.reserve`), else None."""
     w = problem.spec.weights
     if w.valve_a_reserve_per_pct2 <= 0:
         return None
     return HeaterReserve(w.valve_a_reserve_per_pct2, w.valve_a_heating_per_pct2, dt_s)
+
 
 class MpcController:
     """Receding-horizon controller of all six actuators (Controller protocol).
@@ -976,7 +976,8 @@ class MpcController:
         reading = finite_or(getattr(measurement, "supply_temp_c", None), float("nan"))
         body_c = float(self.ekf.x[pb.i_heater])
         w_y[STAGE_OUTPUTS.index("valve_a_pct")] = self.reserve.weight(
-            supply_ref_c=ref.supply_temp_c, flow_ref_m3s=ref.volume_flow_m3s, reading_c=reading,
+            supply_ref_c=finite_or(ref.supply_temp_c, float("nan")),
+            flow_ref_m3s=finite_or(ref.volume_flow_m3s, float("nan")), reading_c=reading,
             heating=pb.heating(self.u_prev), heater_cmd_w=float(self.u_prev[pb.i_heater_cmd]),
             available_w=float(available_power_w(body_c, pb.params)), flow_factor=self._flow_factor,
             heater_power_w=finite_or(getattr(measurement, "heater_power_w", None), float("nan")),

@@ -94,7 +94,7 @@ class HeaterReserve:
         changed = self._ref is None or abs(ref[0] - self._ref[0]) > REF_CHANGE_C or \
             abs(ref[1] - self._ref[1]) > REF_CHANGE_M3S
         self._ref = ref
-        error = abs(reading_c - ref[0]) if math.isfinite(reading_c) else math.inf
+        error = abs(reading_c - ref[0]) if math.isfinite(reading_c) and math.isfinite(ref[0]) else math.inf
         band = LEAVE_BAND_C if self._on else REST_BAND_C
         # the box's heater draws less than its command: its body is past the PTC knee, as hot as is of use
         ptc_binding = math.isfinite(heater_power_w) and heater_power_w < heater_cmd_w - PTC_SHORTFALL_W

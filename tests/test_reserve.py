@@ -42,6 +42,9 @@ def test_the_reserve_counts_after_the_hold_at_rest_and_ends_at_a_reference_chang
     assert _step(gate, ref_c=15.0, reading_c=12.0) == HEATING  # a step up is served with the default weight
     assert _step(gate, ref_c=15.0, reading_c=15.0) == HEATING  # and the hold starts again
     assert _step(gate, heating=False) == 0.0 and not gate.on
+    for _ in range(hold + 1):
+        _step(gate, ref_c=float("nan"))  # no supply reference: never at rest
+    assert not gate.on
 
 
 def test_the_reserve_starts_only_where_the_heater_has_room_and_the_flow_priority_is_untouched():
