@@ -46,6 +46,7 @@ from typing import Any, Callable, Mapping
 import numpy as np
 
 from hvac_mpc.models import air, chiller
+from hvac_mpc.models.heater import available_power_w
 from hvac_mpc.models.box import INPUTS, HvacModel
 from hvac_mpc.models.model_file import RefinedModel
 from hvac_mpc.models.parameters import Parameters
@@ -55,10 +56,11 @@ from hvac_mpc.contract import StepResult
 from .codegen import CodegenReport, compiled, shared, structure_key
 from .estimator import DisturbanceEkf, EkfSettings, finite_or
 from .priorities import ReachableFlow, flow_weight_factor
-from .ocp import HEATING_CMD_W, HeaterOffBound, InvalidSettings, OcpSpec, TrackingProblem, check_flag, check_number, trap_cap_pct
+from .ocp import HEATING_CMD_W, STAGE_OUTPUTS, HeaterOffBound, InvalidSettings, OcpSpec, TrackingProblem, check_flag, check_number, trap_cap_pct
 from hvac_mpc.contract import InvalidReference, Reference
 from .placement import PLACEMENTS, PlacementChoice
 from .readiness import HeaterReadiness
+from .reserve import HeaterReserve
 from .reversal_damping import damped_move
 from .ring_gate import RingGate
 from .rti_osqp import RHO_RESET_ON, RtiOsqpSolver, SolveResult
@@ -485,6 +487,14 @@ def _heater_body_rate_function(model: HvacModel) -> Callable | None:
     return ca.Function("heater_body_rate", [x, u, d, p], [rate])
 
 
+def _heater_reserve(problem: TrackingProblem, dt_s: float) -> HeaterReserve | None:
+    """The heater reserve's gate where ``Weights.valve_a_reserve_per_pct2`` is above 0 (:mod:`.reserve`), else None."""
+    w = problem.spec.weights
+    if w.valve_a_reserve_per_pct2 <= 0:
+        return None
+    return HeaterReserve(w.valve_a_reserve_per_pct2, w.valve_a_heating_per_pct2, dt_s)
+
+
 class MpcController:
     """Receding-horizon controller of all six actuators (Controller protocol).
 
@@ -545,6 +555,7 @@ class MpcController:
                                    ) if s.priorities else None
         self.heater_bound = HeaterOffBound(self.params, s.dt_s)
         self.readiness = HeaterReadiness(pb) if pb.spec.weights.heater_ready_per_c2 > 0 else None
+        self.reserve = _heater_reserve(pb, s.dt_s)
         self._heater_inlet = _heater_inlet_function(pb.model)
         self._heater_body_rate = _heater_body_rate_function(pb.model)
         self.temp_reach = SaturatedTemperature(pb.i_heater_cmd, pb.i_valve_a, s.dt_s)
@@ -622,6 +633,8 @@ class MpcController:
         if self.reach is not None:
             self.reach.reset()
         self.temp_reach.reset()
+        if self.reserve is not None:
+            self.reserve.reset()
         self.heater_bound.reset()
         if self.ring is not None:
             self.ring.reset()
@@ -741,6 +754,7 @@ class MpcController:
         w_y = pb.heating_weights(pb.output_weights(ref), heating=pb.heating(self.u_prev))
         self._flow_factor = self._flow_weight_factor(y_ref, d)
         w_y[1:5] *= self._flow_factor
+        self._set_reserve(w_y, ref, measurement)
         self._set_readiness(ref, d, cap, measurement)
         # --- feedback
         if not self._prepared_for_next:
@@ -952,6 +966,22 @@ class MpcController:
             lo[i] = min(max(lo[i], self.u_prev[i] - step), hi[i])
             hi[i] = max(min(hi[i], self.u_prev[i] + step), lo[i])
         return lo, hi
+
+    def _set_reserve(self, w_y: np.ndarray, ref: Reference, measurement: Measurement) -> None:
+        """Valve a's weight in ``w_y`` (in place) from the heater reserve's gate (:mod:`.reserve`; a setting, off by
+        default)."""
+        if self.reserve is None:
+            return
+        pb = self.problem
+        reading = finite_or(getattr(measurement, "supply_temp_c", None), float("nan"))
+        body_c = float(self.ekf.x[pb.i_heater])
+        w_y[STAGE_OUTPUTS.index("valve_a_pct")] = self.reserve.weight(
+            supply_ref_c=finite_or(ref.supply_temp_c, float("nan")),
+            flow_ref_m3s=finite_or(ref.volume_flow_m3s, float("nan")), reading_c=reading,
+            heating=pb.heating(self.u_prev), heater_cmd_w=float(self.u_prev[pb.i_heater_cmd]),
+            available_w=float(available_power_w(body_c, pb.params)), flow_factor=self._flow_factor,
+            heater_power_w=finite_or(getattr(measurement, "heater_power_w", None), float("nan")),
+            body_c=body_c, knee_c=float(pb.params.ptc_knee_c))
 
     def _set_readiness(self, ref: Reference, d: np.ndarray, cap: float, measurement: Measurement) -> None:
         """The heater readiness's floor for the QPs of this step (:mod:`.readiness`; a setting, off by default)."""

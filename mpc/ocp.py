@@ -164,6 +164,11 @@ class Weights:
     ``heater_ready_per_c2`` (per K^2 per s; 0: off): the heater readiness, a one-sided penalty on the predicted
     heater body below a floor while the reference is above the inlet air (:mod:`hvac_mpc.mpc.readiness`; the
     floor from ``OcpSpec.ready_step_c``). Off by default (measured, docs/identification.md 'Heater readiness').
+
+    ``valve_a_reserve_per_pct2`` (per %^2 per s; 0: off): the heater reserve, valve a's weight in place of
+    ``valve_a_heating_per_pct2`` while heating at rest on the reference with the heater not limiting and the flow
+    priority untouched (:mod:`hvac_mpc.mpc.reserve`): the free direction at rest leaned on harder, so the heater body
+    keeps heat for a step up. Off by default (measured, docs/identification.md 'A heater reserve at rest').
     """
 
     supply_temp: float = 5.0
@@ -179,6 +184,7 @@ class Weights:
     valve_a_heating_per_pct2: float = 3e-5
     body_heat_power_w: float = 0.0
     heater_ready_per_c2: float = 0.0
+    valve_a_reserve_per_pct2: float = 0.0
 
     def validate(self, prefix: str = "weights") -> None:
         for f in fields(self):

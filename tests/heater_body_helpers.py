@@ -7,16 +7,18 @@ import numpy as np
 from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
 
 
-def body_at_step_and_iae(scenario_name: str, variant: str, settings: MpcSettings, model=None) -> tuple[float, float]:
+def body_at_step_and_iae(scenario_name: str, variant: str, settings: MpcSettings, model=None, step_s: int | None = None,
+                         observe=None) -> tuple[float, float]:
     """The quick ``scenario_name`` on the box ``variant`` (noise seed 0) with an MPC of ``settings`` (its initial
     command and the deterministic deadline set here) and ``model`` (None: nominal): the box's heater body at the
-    first scored sample (C) and the thermocouple IAE over the scored part (C s)."""
+    first scored sample (C) and the thermocouple IAE over the scored part (C s). ``step_s``: that sample and the start
+    of the IAE instead (s); ``observe(controller)``: called after each of the controller's steps."""
     from hvac_mpc.benchmarks import scenarios
     from hvac_mpc.benchmarks.simulate import DETERMINISTIC_DEADLINE_S, plant_seed
     from hvac_mpc.mismatch import make_plant
 
     sc = scenarios.select([scenario_name], quick=True)[0]
-    step_s = int(sc.metrics_start_s)
+    step_s = int(sc.metrics_start_s) if step_s is None else int(step_s)
     settings = dataclasses.replace(settings, initial_command=sc.initial_command, deadline_s=DETERMINISTIC_DEADLINE_S)
     ctrl = MpcController(settings=settings, model=model)
     plant = make_plant(variant, seed=plant_seed(0, sc.seed), inlet_temp_c=sc.inlet_temp_c,
@@ -32,4 +34,6 @@ def body_at_step_and_iae(scenario_name: str, variant: str, settings: MpcSettings
             iae += abs(truth["supply_temp_c"] - r.supply_temp_c)
         plant.apply(np.asarray(ctrl.step(m, r).command.vector(), float))
         plant.advance()
+        if observe is not None:
+            observe(ctrl)
     return body_at_step, iae

@@ -1,0 +1,113 @@
+"""Heater reserve: at rest on a heating reference, valve a held low so the heater body keeps heat for a step up
+(a setting, off by default: ``Weights.valve_a_reserve_per_pct2``).
+
+At rest heating has a free direction: the air takes the heater's power whatever valve a's share, so valve a and
+the heater body's temperature trade without changing the supply temperature or the energy. The default weight on
+valve a while heating (``Weights.valve_a_heating_per_pct2``, 3e-5) leans on that direction lightly. A controller
+whose model is right then holds the reference with valve a well open and the body lean (the literal cooler's box:
+valve a 53-58 %, the body 33-36 C at 12 C), and a step up the horizon does not see finds the heater at its limit and
+no stored heat: the wrong model keeps a reserve by accident (docs/identification.md 'The full scenarios, and the
+literal cooler as a library effect').
+
+The reserve raises valve a's weight to ``Weights.valve_a_reserve_per_pct2`` only where the direction is free:
+
+- *at rest*: the heater commanded (the heating weight's own switch), the reference unchanged and the supply reading
+  within :data:`REST_BAND_C` of it for :data:`REST_HOLD_S` in a row; the reserve stays on while the reading stays
+  within :data:`LEAVE_BAND_C` (hysteresis: closing valve a moves the reading a little before the body follows);
+- *the heater not limiting* when the rest begins: the command in force at least :data:`HEADROOM_W` below the power
+  the heater can give at the body's estimate (the PTC line): where the heater is at its limit valve a is the last
+  lever on the supply temperature. Once on, the reserve itself runs the heater high while the body takes up heat;
+- *the body not past the PTC knee*: above the knee the heater's power falls, so a hotter body is of no use to a
+  step up and only heat a step down must wait out (on the literal-cooler box the reserve without this bound held
+  the body at 86 C at 15 C, and the step down to 11 C and the heater-off segment after it cost more than the step
+  up gained). The body's estimate past the knee ends the reserve (it starts again :data:`KNEE_MARGIN_C` below
+  it), and so does the box's heater drawing measurably less than its command (the measured heater power, where
+  the box has it), whatever the estimate: with valve a low the reading barely sees the body (the estimate 20-30 K
+  low on the built-in box at 15 C);
+- *the flow priority untouched*: not while the flow weights are lowered (a flow out of reach, or traded for
+  temperature, :func:`~.priorities.flow_weight_factor`).
+
+A reference change ends the rest at once, so every step is served with the default weight and the body's heat. That
+is what the same weight on valve a at all times (``valve_a_heating_per_pct2`` 3e-4) lacked: at the 12 -> 22 C step of
+the built-in bench's trapped_air_release the QP with the heavy valve-a weight reached OSQP's iteration cap for 28 s
+(the shifted plan applied, valve a at 2.5 %, the heater at 30 W, then the baseline's fallback), the step began late
+(trapped air 0.508 -> 0.68).
+
+ASSUMPTION: a heating reference held for :data:`REST_HOLD_S` may be followed by a step up the horizon does not see
+(the comfort algorithm's steps of 3-4 K, the bench's winter scenario), and keeping the heat for it in the body is
+worth the weight on valve a's opening.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+#: The rest begins once the supply reading has been within this of the reference (K) for :data:`REST_HOLD_S`: the
+#: bench's settling band.
+REST_BAND_C = 0.5
+#: Time (s) the reading must stay in :data:`REST_BAND_C` before the reserve counts. ASSUMPTION:
+#: long enough that a step's settling is over (the thermocouple's 5.73 s time constant, twice).
+REST_HOLD_S = 12.0
+#: Once at rest, the reserve counts while the reading is within this of the reference (K).
+LEAVE_BAND_C = 1.0
+#: The heater counts as limiting when its command in force is within this of the power available at the body's
+#: estimate (W). ASSUMPTION: a tenth of the heater's 240 W rating.
+HEADROOM_W = 24.0
+#: The box's heater is on its PTC line when its measured power falls this far below the command in force (W).
+#: ASSUMPTION: above the power reading's noise.
+PTC_SHORTFALL_W = 8.0
+#: The reserve starts only with the body's estimate this far below the PTC knee (K), and ends at the knee.
+KNEE_MARGIN_C = 5.0
+#: A reference change (supply temperature, K; volume flow, m3/s) larger than these ends the rest.
+REF_CHANGE_C = 0.05
+REF_CHANGE_M3S = 1e-5
+
+
+@dataclass
+class HeaterReserve:
+    """The reserve's gate: call :meth:`weight` once per controller step; it returns the valve-a weight of that
+    step (the reserve's or the default heating weight)."""
+
+    reserve_per_pct2: float
+    heating_per_pct2: float
+    dt_s: float
+    _rest_s: float = 0.0
+    _ref: tuple[float, float] | None = None
+    _on: bool = False
+
+    def reset(self) -> None:
+        self._rest_s, self._ref, self._on = 0.0, None, False
+
+    @property
+    def on(self) -> bool:
+        """Whether the last step had the reserve's weight."""
+        return self._on
+
+    def weight(self, *, supply_ref_c: float, flow_ref_m3s: float, reading_c: float, heating: bool,
+               heater_cmd_w: float, available_w: float, flow_factor: float, heater_power_w: float = math.nan,
+               body_c: float = -math.inf, knee_c: float = math.inf) -> float:
+        """Valve a's weight (per %^2 per s) for this step; 0 when not heating, as the default weight.
+        ``available_w``: the heater's power at the body's estimate ``body_c`` (C); ``heater_power_w``: the measured
+        heater power (NaN: not measured) for the command in force ``heater_cmd_w``; ``knee_c``: the PTC knee (C)."""
+        ref = (float(supply_ref_c), float(flow_ref_m3s))
+        changed = self._ref is None or abs(ref[0] - self._ref[0]) > REF_CHANGE_C or \
+            abs(ref[1] - self._ref[1]) > REF_CHANGE_M3S
+        self._ref = ref
+        error = abs(reading_c - ref[0]) if math.isfinite(reading_c) and math.isfinite(ref[0]) else math.inf
+        band = LEAVE_BAND_C if self._on else REST_BAND_C
+        # the box's heater draws less than its command: its body is past the PTC knee, as hot as is of use
+        ptc_binding = math.isfinite(heater_power_w) and heater_power_w < heater_cmd_w - PTC_SHORTFALL_W
+        # the body's estimate at the knee: as hot as is of use (hysteresis: the reserve starts KNEE_MARGIN_C below it)
+        ptc_binding = ptc_binding or body_c > knee_c - (0.0 if self._on else KNEE_MARGIN_C)
+        if changed or not heating or error > band or ptc_binding:
+            self._rest_s = 0.0
+        else:
+            self._rest_s += self.dt_s
+        # the heater's headroom is asked of the rest's start only: once on, the reserve itself runs the heater high
+        # while the body takes up heat, and the PTC row prices a body above the knee in the plan
+        room = self._on or heater_cmd_w <= available_w - HEADROOM_W
+        self._on = self._rest_s >= REST_HOLD_S and room and flow_factor >= 1.0
+        if not heating:
+            return 0.0
+        return self.reserve_per_pct2 if self._on else self.heating_per_pct2
