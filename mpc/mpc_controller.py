@@ -254,6 +254,19 @@ class MpcSettings:
             QP linearised again at the plan already shifted, not shifted a second time (off: the behaviour the
             bench was tuned with). Measured in docs/architecture.md, 'Slow steps' ('The weights changed after
             the preparation').
+        change_split_iter: a reference change's QPs split between the step and the second thread (``rti``/``sqp``;
+            0, the default: off, the change solved in its step): the step answers with the change's QPs capped at
+            this many OSQP iterations each (at most ``osqp_max_iter``), the rest of the change (those QPs to
+            convergence from the same state) and the next preparation run on the controller's worker thread
+            (:mod:`hvac_mpc.mpc.background`; the reachable-flow solve's where there is one) and the next step
+            collects them before anything else, waiting if need be (``stats["change_wait_s"]``,
+            ``stats["change_finish"]``): the commands do not depend on the thread. Not the default: the built-in
+            bench's winter_heating_steps worse by 0.017-0.054 (docs/architecture.md, 'A reference change finished
+            on the second core').
+        change_split_thread: with ``change_split_iter``, the rest on the second thread (True) or at once at the
+            step's end (False: inside the step, the same commands).
+        split_every_step: with ``change_split_iter``, every step's QPs capped so, the rest handed over where a QP
+            reached the cap (and at every change).
         valve_a_reversal_share: the share of a move of valve a that reverses its last applied move (both at least
             ``valve_a_reversal_min_pct`` (% of travel)) applied, in (0, 1], 1 off (:mod:`~.reversal_damping`: the
             Gauss-Newton iteration's two-cycle where valve a's pull depends on valve a, the plan alternating between

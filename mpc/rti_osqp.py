@@ -198,12 +198,15 @@ class RtiOsqpSolver:
             for the QPs of a reference change (their matrices written again with it: one refactorisation more in that
             step). Measured in docs/architecture.md, 'Slow steps'.
         change_split_iter: a reference change's QPs split between the step and :meth:`finish_change` (0: off, the
-            change solved in the step): the step solves the change's first QP with at most this many OSQP
-            iterations (its iterate at the cap taken, ``SolveResult.extra["inexact"]``) and answers with it
+            change solved in the step): the step solves the change's QPs with at most this many OSQP iterations each
+            (the iterate at the cap taken, ``SolveResult.extra["inexact"]``) and answers with them
             (``extra["change_split"]``); :meth:`finish_change`, which the controller runs on its second thread
             after the step, solves the change to convergence from the same state, and the next preparation
             starts from that plan. Measured in docs/architecture.md, 'A reference change finished on the second
             core'.
+        split_every_step: with ``change_split_iter``, every step's QPs capped so; a step whose QP reaches the cap
+            is finished by :meth:`finish_change` as a change is (its last QP to convergence, then
+            ``reference_change_qps`` - 1 further relinearised QPs), one whose QPs meet the tolerance is not.
         reweigh_in_place: where the output weights change after the preparation (the flow's weight factor), the
             QP linearised again at the plan the preparation already shifted (True) instead of :meth:`prepare`
             again, which shifts that plan once more, a sample ahead (False, the behaviour the bench was tuned
@@ -325,7 +328,7 @@ class RtiOsqpSolver:
                 "relinearise_every": self._ml.every if self._ml else 1,
                 "relinearise_move": self._ml.move if self._ml else None, "rho_reset": self.rho_reset,
                 "rho_reset_on": self.rho_reset_on, "reweigh_in_place": self.reweigh_in_place,
-                "change_split_iter": self.change_split_iter,
+                "change_split_iter": self.change_split_iter, "split_every_step": self.split_every_step,
                 "step_fractions": list(self._merit.fractions) if self._merit else []}
 
     # ------------------------------------------------------------------ structure
@@ -1033,15 +1036,15 @@ class RtiOsqpSolver:
 
     @property
     def change_pending(self) -> bool:
-        """True between a step that solved a reference change's first QP capped (``change_split_iter``) and
+        """True between a step that solved a reference change's QPs capped (``change_split_iter``) and
         :meth:`finish_change`."""
         return self._change_rest is not None
 
     def finish_change(self) -> SolveResult:
-        """The rest of a reference change split by ``change_split_iter``: the change's first QP continued from its
+        """The rest of a reference change split by ``change_split_iter``: the step's last QP continued from its
         iterate at the cap (the same data; OSQP's multipliers and step size as the capped solve left them) to
-        OSQP's tolerance, then the change's further QPs (``reference_change_qps``, relinearised at each answer)
-        from the same state, reference and bounds, as :meth:`feedback` solves a change without the split. Its plan
+        OSQP's tolerance, then up to ``reference_change_qps`` - 1 further QPs (Gauss-Newton, relinearised at each
+        answer, to ``sqp_tol``) from the same state, reference and bounds. Its plan
         becomes the solver's (the next preparation shifts it, OSQP's multipliers stay in its workspace). Meant to
         run after the step, before the next preparation (the controller's second thread). Returns the answer (a
         failure where there is no change to finish or a QP fails: the caller then resets the solver)."""
