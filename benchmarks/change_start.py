@@ -11,14 +11,18 @@ this loop's scenario every change does, so its figures are the "steady" ones but
 (``--variant one_qp``) the temperature-only start with one QP at a change instead of two; "rho_reset" (the shifted
 start with OSQP's step size set to 1e-3 at every preparation, ``MpcSettings.osqp_rho_reset``), "rho_reset_change" (so
 for the QPs of a change only) and "rho_reset_capped" (at every preparation, and each QP capped at 60 OSQP iterations,
-the iterate at the cap taken). Per seed the loops run in
+the iterate at the cap taken); "split_N" (``MpcSettings.change_split_iter``: a change's QPs capped at N OSQP
+iterations each in the step, finished to convergence on the second thread and collected by the next step) and
+"split_every_N" (so also any step whose QP reaches the cap, ``split_every_step``). Per seed the loops run in
 lockstep in one process, one step of each in turn (the order rotates from step to step), so that the load of other
 processes falls on all alike.
 
 Printed per seed and variant: the closed-loop cost (as ``solve-time`` computes it), OSQP's iterations (in all, on
 the change steps, on the five steps after each change), the change steps' iterations one by one, the CPU time
 of the thread that runs the step (``time.thread_time``: median, 99th percentile, largest; the change steps'
-median and largest), the steps of most iterations and the slowest steps. The cold first step is left out.
+median and largest), the steps of most iterations and the slowest steps, and for the split variants the longest
+wait of a step for the second thread and the rests' largest iterations and thread CPU time (not in the step's
+time). The cold first step is left out.
 """
 
 from __future__ import annotations
@@ -48,7 +52,9 @@ VARIANTS = {"shifted": {"steady_start": False},
             "rho_reset": {"steady_start": False, "osqp_rho_reset": 1e-3},
             "rho_reset_change": {"steady_start": False, "osqp_rho_reset": 1e-3, "osqp_rho_reset_on": "change"},
             "rho_reset_capped": {"steady_start": False, "osqp_rho_reset": 1e-3, "osqp_max_iter": 60,
-                                 "osqp_accept_max_iter": True}}
+                                 "osqp_accept_max_iter": True},
+            **{f"split_{n}": {"change_split_iter": n} for n in (20, 30, 40, 60)},
+            **{f"split_every_{n}": {"change_split_iter": n, "split_every_step": True} for n in (20, 30, 40, 60)}}
 #: The variants run unless ``--variant`` names others.
 DEFAULT_VARIANTS = ("shifted", "steady", "temperature")
 #: Steps after a change counted as its wake (the single QPs that follow it).
@@ -109,7 +115,9 @@ def run_seed(seed: int, steps: int, names: list[str] | None = None) -> dict[str,
         qps[v].append(res.stats["qp_solves"])
     changes = change_steps(steps)
     return {v: {"cost": float(sum(loop.cost.values())),
-                **summary(np.array(iterations[v]), np.array(loop.thread_s) * 1e3, changes, np.array(qps[v]))}
+                **summary(np.array(iterations[v]), np.array(loop.thread_s) * 1e3, changes, np.array(qps[v])),
+                "step_wait_max_ms": float(max(loop.step_wait_s[1:], default=0.0) * 1e3),
+                **solve_time.change_rests(loop.change_rests)}
             for v, loop in loops.items()}
 
 
@@ -118,7 +126,10 @@ def line(seed: int, variant: str, r: dict[str, Any]) -> str:
             f"{sum(r['change_iterations']):4d} {r['change_iterations']}, next {WAKE} steps {r['wake_iterations']:4d} | "
             f"thread CPU median {r['cpu_median_ms']:.3f} p99 {r['cpu_p99_ms']:.2f} max {r['cpu_max_ms']:.2f} ms, "
             f"changes median {r['change_cpu_median_ms']:.2f} max {r['change_cpu_max_ms']:.2f} ms | largest "
-            f"{r['largest_steps'][:4]} | slowest (step, ms, iterations, QPs, change) {r['slowest_steps'][:4]}")
+            f"{r['largest_steps'][:4]} | slowest (step, ms, iterations, QPs, change) {r['slowest_steps'][:4]}"
+            + (f" | rests on the second thread {r['change_rests']}, up to {r['change_rest_iterations_max']} "
+               f"iterations, {r['change_rest_thread_cpu_max_ms']:.2f} ms of its CPU; a step's wait at most "
+               f"{r['step_wait_max_ms']:.3f} ms" if r.get("change_rests") else ""))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -70,7 +70,7 @@ from hvac_mpc.models.plant import Environment, SimulatedPlant  # noqa: E402
 from hvac_mpc.contract import Command
 from hvac_mpc.mpc.ipopt_reference import IpoptReferenceSolver  # noqa: E402
 from hvac_mpc.models.model_file import load as load_model_file  # noqa: E402
-from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings  # noqa: E402
+from hvac_mpc.mpc.mpc_controller import InvalidSettings, MpcController, MpcSettings  # noqa: E402
 from hvac_mpc.mpc.ocp import TrackingProblem  # noqa: E402
 from hvac_mpc.mpc.rti_osqp import RtiOsqpSolver  # noqa: E402
 from hvac_mpc.mpc.stage_ocp import StageOcp  # noqa: E402
@@ -154,7 +154,9 @@ class Loop:
     second thread up to that long to finish (:meth:`MpcController.wait_background`), as the rest of the
     sample does on the box, instead of stepping on at once (0, back to back: the next step may then wait
     for it). The commands are the same either way; ``idle_wait_s`` holds the time given after each step,
-    ``step_wait_s`` the time each step itself waited for the solve (``stats["reach_wait_s"]``)."""
+    ``step_wait_s`` the time each step itself waited for the solve (``stats["reach_wait_s"]``) or for a split
+    reference change's rest (``stats["change_wait_s"]``, ``MpcSettings.change_split_iter``); ``change_rests`` the
+    rests collected (``stats["change_finish"]``: their iterations, wall and thread CPU time on the second thread)."""
 
     def __init__(self, ctrl: MpcController, seed: int, scenario=SCENARIO, inlet_c: float = INLET_C,
                  idle_s: float = 0.0):
@@ -170,6 +172,7 @@ class Loop:
         self.thread_s: list[float] = []
         self.idle_wait_s: list[float] = []
         self.step_wait_s: list[float] = []
+        self.change_rests: list[dict[str, Any]] = []
 
     def step(self, k: int):
         """Step ``k`` (sample k of the scenario); returns the controller's :class:`StepResult`."""
@@ -179,7 +182,9 @@ class Loop:
         res = self.ctrl.step(measurement, ref)
         self.thread_s.append(time.thread_time() - t0)
         self.cpu_s.append(time.process_time() - c0)
-        self.step_wait_s.append(float(res.stats.get("reach_wait_s", 0.0)))
+        self.step_wait_s.append(float(res.stats.get("reach_wait_s", 0.0)) + float(res.stats.get("change_wait_s", 0.0)))
+        if "change_finish" in res.stats:
+            self.change_rests.append(res.stats["change_finish"])
         command = self.plant.apply(res.command)
         self.plant.advance()
         for term, value in stage_cost(self.ctrl.problem, self.plant.truth(), ref, command, self.previous).items():
@@ -262,7 +267,20 @@ def background_waits(loop: Loop, idle_s: float) -> dict[str, Any]:
     return {"idle_between_steps_s": idle_s, "idle_steps": int((idle > 0).sum()),
             "idle_total_ms": float(idle.sum()), "idle_max_ms": float(idle.max(initial=0.0)),
             "steps_waiting": int(waited.size), "step_wait_total_ms": float(waited.sum()),
-            "step_wait_max_ms": float(waited.max(initial=0.0))}
+            "step_wait_max_ms": float(waited.max(initial=0.0)), **change_rests(loop.change_rests)}
+
+
+def change_rests(rests: list[dict[str, Any]]) -> dict[str, Any]:
+    """The split reference changes' rests run on the second thread (``MpcSettings.change_split_iter``): how many,
+    their OSQP iterations and their wall and thread CPU times (ms; the second thread's, not in the step times)."""
+    wall = np.array([r["wall_s"] for r in rests]) * 1e3
+    cpu = np.array([r["thread_cpu_s"] for r in rests]) * 1e3
+    return {"change_rests": len(rests), "change_rest_iterations_max": int(max((r["iterations"] for r in rests),
+                                                                              default=0)),
+            "change_rest_wall_median_ms": float(np.median(wall)) if rests else 0.0,
+            "change_rest_wall_max_ms": float(wall.max(initial=0.0)),
+            "change_rest_thread_cpu_max_ms": float(cpu.max(initial=0.0)),
+            "change_rests_failed": int(sum(not r["ok"] for r in rests))}
 
 
 def background_line(name: str, bg: dict[str, Any]) -> str:
@@ -273,9 +291,16 @@ def background_line(name: str, bg: dict[str, Any]) -> str:
                f"in all, at most {bg['idle_max_ms']:.2f} ms")
     else:
         how = "steps back to back (--back-to-back): no time between steps for the second thread"
-    return (f"{name} reachable-flow solves on the second thread: {how}; steps that waited for one inside the "
+    line = (f"{name} reachable-flow solves on the second thread: {how}; steps that waited for one inside the "
             f"timed step: {bg['steps_waiting']}, {bg['step_wait_total_ms']:.2f} ms in all, at most "
             f"{bg['step_wait_max_ms']:.2f} ms")
+    if bg.get("change_rests"):
+        line += (f"; split reference changes finished on the second thread: {bg['change_rests']} "
+                 f"({bg['change_rests_failed']} failed), up to {bg['change_rest_iterations_max']} OSQP iterations, "
+                 f"wall time median {bg['change_rest_wall_median_ms']:.2f} ms, at most "
+                 f"{bg['change_rest_wall_max_ms']:.2f} ms ({bg['change_rest_thread_cpu_max_ms']:.2f} ms of that "
+                 "thread's CPU), not in the step times")
+    return line
 
 
 def rti_suboptimality(make: Callable[[], MpcController], steps: int, seed: int, jit: bool) -> dict[str, Any]:
@@ -317,6 +342,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
                              "disk; the first build takes minutes and is reported apart)")
     parser.add_argument("--no-codegen", action="store_true",
                         help="run the RTI's QP data and estimator in CasADi's interpreter")
+    parser.add_argument("--rti-settings", metavar="JSON", default=None,
+                        help="fields of MpcSettings for the RTI contender, e.g. '{\"change_split_iter\": 30}' "
+                             "(default: the defaults)")
     parser.add_argument("--no-suboptimality", action="store_true",
                         help="skip the per-step suboptimality of the RTI against converged IPOPT")
     parser.add_argument("--acados", action="store_true",
@@ -335,6 +363,11 @@ def run(args: argparse.Namespace) -> int:
     cost_seeds = args.cost_seeds if args.cost_seeds is not None else (1 if args.quick else 5)
     if not 1 <= cost_seeds <= 20:
         print(f"--cost-seeds must be in [1, 20], got {cost_seeds}")
+        return 2
+    try:
+        rti_settings(args)
+    except (ValueError, TypeError, InvalidSettings) as exc:
+        print(f"--rti-settings: {exc}")
         return 2
     if getattr(args, "model", None):
         try:
@@ -374,11 +407,20 @@ class Contenders:
     fatrop_recorders: list = field(default_factory=list)
 
 
+def rti_settings(args: argparse.Namespace) -> MpcSettings:
+    """The RTI contender's settings: the defaults, ``--no-codegen``, and the fields of ``--rti-settings`` (a JSON
+    object; a field MpcSettings does not have raises TypeError, a value out of range InvalidSettings)."""
+    fields = json.loads(args.rti_settings) if getattr(args, "rti_settings", None) else {}
+    if not isinstance(fields, dict):
+        raise ValueError(f"expected a JSON object of MpcSettings fields, got {args.rti_settings!r}")
+    return MpcSettings(**{"codegen": not getattr(args, "no_codegen", False), **fields})
+
+
 def _contenders(args: argparse.Namespace) -> Contenders:
     """The run's controllers from the options: the RTI first, then acados, IPOPT, fatrop, do-mpc."""
-    rti_settings = MpcSettings(codegen=not getattr(args, "no_codegen", False))
+    rti = rti_settings(args)
     model = load_model_file(args.model) if getattr(args, "model", None) else None
-    make_rti = lambda: MpcController(settings=rti_settings, model=model)  # noqa: E731
+    make_rti = lambda: MpcController(settings=rti, model=model)  # noqa: E731
     # the reference must not be cut short by the real-time deadline
     ipopt_settings = MpcSettings(solver="ipopt", deadline_s=600.0)
     jit = bool(getattr(args, "jit", False))
@@ -386,7 +428,7 @@ def _contenders(args: argparse.Namespace) -> Contenders:
         settings=ipopt_settings, model=model, solver_factory=lambda pb: IpoptReferenceSolver(
             pb, tol=ipopt_settings.ipopt_tol, max_iter=ipopt_settings.ipopt_max_iter, jit=jit))
     c = Contenders(make_rti, make_ipopt, None, [("rti", make_rti)])
-    c.make_acados = _acados_contender(args, rti_settings, model, c.notes, c.phase_timers)
+    c.make_acados = _acados_contender(args, rti, model, c.notes, c.phase_timers)
     if c.make_acados is not None:
         c.order.append(("rti-acados", c.make_acados))
     if not args.no_ipopt:

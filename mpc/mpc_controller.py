@@ -31,7 +31,10 @@ flow weights of the step: 1, less out of reach or while a large flow error is cl
 (the thermocouple's dead time beyond the model's that the estimator has found and honours, :mod:`hvac_mpc.mpc.estimator`),
 ``bypass_flow_exponent`` (the exponent of the bypass split's flow dependence the prediction uses: the
 estimator's estimate where it learns it, :mod:`hvac_mpc.mpc.estimator`), ``reach_wait_s`` (wall time the
-step waited for the reachable-flow solve started on the second thread the step before, :mod:`hvac_mpc.mpc.priorities`).
+step waited for the reachable-flow solve started on the second thread the step before, :mod:`hvac_mpc.mpc.priorities`);
+with ``change_split_iter``: ``change_wait_s`` (wall time the step waited for the last reference change's rest,
+finished on the second thread) and ``change_finish`` (collected in the step after a split change: that rest's
+``iterations``, ``qp_solves``, ``ok``, its wall time ``wall_s`` and its thread's CPU time ``thread_cpu_s``).
 """
 
 from __future__ import annotations
@@ -62,6 +65,7 @@ from .placement import PLACEMENTS, PlacementChoice
 from .readiness import HeaterReadiness
 from .reserve import HeaterReserve
 from .reversal_damping import damped_move
+from .background import BackgroundCall, BackgroundWorker
 from .ring_gate import RingGate
 from .rti_osqp import RHO_RESET_ON, RtiOsqpSolver, SolveResult
 from .steady_target import check_steady_start_on
@@ -252,6 +256,19 @@ class MpcSettings:
             QP linearised again at the plan already shifted, not shifted a second time (off: the behaviour the
             bench was tuned with). Measured in docs/architecture.md, 'Slow steps' ('The weights changed after
             the preparation').
+        change_split_iter: a reference change's QPs split between the step and the second thread (``rti``/``sqp``;
+            0, the default: off, the change solved in its step): the step answers with the change's QPs capped at
+            this many OSQP iterations each (at most ``osqp_max_iter``), the rest of the change (those QPs to
+            convergence from the same state) and the next preparation run on the controller's worker thread
+            (:mod:`hvac_mpc.mpc.background`; the reachable-flow solve's where there is one) and the next step
+            collects them before anything else, waiting if need be (``stats["change_wait_s"]``,
+            ``stats["change_finish"]``): the commands do not depend on the thread. Not the default: the built-in
+            bench's winter_heating_steps worse by 0.017-0.054 (docs/architecture.md, 'A reference change finished
+            on the second core').
+        change_split_thread: with ``change_split_iter``, the rest on the second thread (True) or at once at the
+            step's end (False: inside the step, the same commands).
+        split_every_step: with ``change_split_iter``, every step's QPs capped so, the rest handed over where a QP
+            reached the cap (and at every change).
         valve_a_reversal_share: the share of a move of valve a that reverses its last applied move (both at least
             ``valve_a_reversal_min_pct`` (% of travel)) applied, in (0, 1], 1 off (:mod:`~.reversal_damping`: the
             Gauss-Newton iteration's two-cycle where valve a's pull depends on valve a, the plan alternating between
@@ -319,6 +336,9 @@ class MpcSettings:
     osqp_rho_reset: float | None = None
     osqp_rho_reset_on: str = "preparation"
     reweigh_in_place: bool = False
+    change_split_iter: int = 0
+    change_split_thread: bool = True
+    split_every_step: bool = False
     valve_a_reversal_share: float = 0.3
     valve_a_reversal_min_pct: float = 5.0
 
@@ -346,6 +366,9 @@ class MpcSettings:
         if self.osqp_rho_reset is not None:
             _check_or_off(f"{p}.osqp_rho_reset", self.osqp_rho_reset, 1e-6, 1e6, "None")
         check_flag(f"{p}.reweigh_in_place", self.reweigh_in_place)
+        check_number(f"{p}.change_split_iter", self.change_split_iter, 0, self.osqp_max_iter, integer=True)
+        check_flag(f"{p}.change_split_thread", self.change_split_thread)
+        check_flag(f"{p}.split_every_step", self.split_every_step)
         if self.osqp_rho_reset_on not in RHO_RESET_ON:
             raise InvalidSettings(f"{p}.osqp_rho_reset_on = {self.osqp_rho_reset_on!r} must be one of {list(RHO_RESET_ON)}")
         check_number(f"{p}.sqp_tol", self.sqp_tol, 1e-10, 1.0, lo_open=True)
@@ -569,6 +592,10 @@ class MpcController:
                 self.solver.build_prediction(f)
             self.solver.use_prediction(self.ekf)  # prediction and QP data in one call
         self._baseline = None
+        self._change_call: BackgroundCall | None = None  # the last split change's rest (finish_change), not collected
+        self._own_worker: BackgroundWorker | None = None  # its thread where the reachable-flow solve has none
+        if s.change_split_iter and s.change_split_thread:
+            self._worker(create=True).start()  # with the controller, not inside a step
         self.reset()
 
     def _compile_small_functions(self) -> None:
@@ -606,11 +633,13 @@ class MpcController:
                              scaling_interval=s.osqp_scaling_interval, steady_start=s.steady_start,
                              relinearise_every=s.rti_relinearise_every, relinearise_move=s.rti_relinearise_move,
                              steady_start_on=s.steady_start_on, rho_reset=s.osqp_rho_reset,
-                             rho_reset_on=s.osqp_rho_reset_on, reweigh_in_place=s.reweigh_in_place)
+                             rho_reset_on=s.osqp_rho_reset_on, reweigh_in_place=s.reweigh_in_place,
+                             change_split_iter=s.change_split_iter, split_every_step=s.split_every_step)
 
     # ------------------------------------------------------------------ protocol
     def reset(self, command: Command | None = None) -> None:
         """Forget estimates, plans and warm starts; ``command`` is the command now in force."""
+        self._settle_change()
         self.u_prev = (command or self.settings.initial_command).vector().copy()
         self._valve_a_move = 0.0  # the last applied move of valve a (%), for valve_a_reversal_share
         for f in self._filters:
@@ -640,10 +669,13 @@ class MpcController:
             self.ring.reset()
 
     def close(self) -> None:
-        """End the reachable-flow solve's second thread (after the solve running on it); a later step starts it
-        again. Dropping the controller ends it too."""
+        """End the reachable-flow solve's second thread (after the solve running on it; a split change's rest is
+        collected first); a later step starts it again. Dropping the controller ends it too."""
+        self._settle_change()
         if self.reach is not None:
             self.reach.close()
+        if self._own_worker is not None:
+            self._own_worker.close()
 
     def force_solver_failure(self, steps: int) -> None:
         """Make the next ``steps`` solves fail (tests of the fallback chain; this instance only)."""
@@ -652,13 +684,14 @@ class MpcController:
     def step(self, measurement: Measurement, reference: Reference | Mapping[str, Any]) -> StepResult:
         """One control step; never raises. See the module docstring for the fallback chain."""
         t0 = time.perf_counter()
-        self._updates_at_start = self.ekf.time_updates
-        # a reachable-flow solve handed to the second thread in this step starts when the step ends: its Python
-        # parts would take the interpreter lock from the step (docs/architecture.md 'Slow steps')
-        worker = self.reach.worker if self.reach is not None else None
-        if worker is not None:
-            worker.hold()
+        # a reachable-flow solve (or a split change's rest) handed to the second thread in this step starts when the
+        # step ends: its Python parts would take the interpreter lock from the step (docs/architecture.md 'Slow steps')
+        worker = self._worker(create=False)
         try:
+            self._collect_change()  # the last change's rest: its plan prepared and the filter's time update taken
+            if worker is not None:  # after the collection, whose wait lets the worker go
+                worker.hold()
+            self._updates_at_start = self.ekf.time_updates
             return self._step(measurement, reference, t0)
         except Exception as exc:  # noqa: BLE001 - a control step must always return a command
             return self._recover(measurement, t0, exc)
@@ -668,6 +701,7 @@ class MpcController:
 
     def _recover(self, measurement: Measurement, t0: float, exc: Exception) -> StepResult:
         """After an unexpected error: fallback command, projected, and a fresh start next step."""
+        self._settle_change()
         self.solver.reset()
         self._prepared_for_next = False
         self._pending = None
@@ -792,7 +826,9 @@ class MpcController:
         # --- prediction and preparation of the next step
         prep_time = sol.prep_time_s
         self._prepared_for_next = False
-        if sol.ok and getattr(self.solver, "fused_prediction", False):
+        if sol.ok and sol.extra.get("change_split"):
+            self._defer_change(u_cmd, setpoint, y_ref, w_y)
+        elif sol.ok and getattr(self.solver, "fused_prediction", False):
             prep_time += self.solver.prepare_predicted(u_cmd, setpoint, self._scaled_prev(), y_ref, w_y)
             self._prepared_for_next = True
         else:
@@ -812,7 +848,76 @@ class MpcController:
                             cap=cap, healthy=True)
         stats["cold_start"] = bool(sol.extra.get("cold_start", False))
         stats["reach_wait_s"] = self.reach.last_wait_s if self.reach is not None else 0.0
+        if self.settings.change_split_iter:
+            stats["change_wait_s"] = self._change_wait_s
+            if self._change_finish is not None:
+                stats["change_finish"] = self._change_finish
         return StepResult(Command.from_vector(u_cmd), stats)
+
+    # ------------------------------------------------------------------ a reference change split (change_split_iter)
+    def _worker(self, create: bool) -> BackgroundWorker | None:
+        """The controller's second thread: the reachable-flow solve's worker where it has one, else (with
+        ``change_split_iter`` and ``change_split_thread``) one of the controller's own, made when ``create``."""
+        if self.reach is not None and self.reach.worker is not None:
+            return self.reach.worker
+        if self._own_worker is None and create:
+            self._own_worker = BackgroundWorker()
+        return self._own_worker
+
+    def _defer_change(self, u_cmd: np.ndarray, setpoint: float, y_ref: np.ndarray, w_y: np.ndarray) -> None:
+        """Hand the rest of a split reference change (:meth:`RtiOsqpSolver.finish_change`) and the next step's
+        preparation from its plan to the second thread (at once, inside the step, without
+        ``change_split_thread``). The next step collects it before anything else, waiting for it if need be:
+        a budget of one step, not a wall-clock deadline, so the commands do not depend on the thread."""
+        thread = self.settings.change_split_thread
+        self._change_call = BackgroundCall(self._finish_change, (u_cmd.copy(), setpoint, self._scaled_prev(),
+                                                                 y_ref.copy(), w_y.copy()),
+                                           thread=thread, worker=self._worker(create=True) if thread else None)
+        self._prepared_for_next = True  # by the rest, collected at the start of the next step
+
+    def _finish_change(self, u_cmd, setpoint, u_prev_s, y_ref, w_y) -> dict[str, Any]:
+        """The second thread's part of a split change: the change's QPs to convergence, then the estimator's time
+        update with the command applied and the next QP prepared at the converged plan shifted (as a step ends).
+        Never raises: where it fails the solver is reset (the next step starts cold) and the time update taken."""
+        t0, c0 = time.perf_counter(), time.thread_time()
+        updates = self.ekf.time_updates
+        sol = SolveResult(False, "not run")
+        prepared = False
+        try:
+            sol = self.solver.finish_change()
+            if sol.ok and getattr(self.solver, "fused_prediction", False):
+                self.solver.prepare_predicted(u_cmd, setpoint, u_prev_s, y_ref, w_y)
+                prepared = True
+        except Exception:  # noqa: BLE001 - the next step starts cold instead
+            prepared = False
+        if not prepared:
+            self.solver.reset()
+            try:
+                if self.ekf.time_updates == updates:
+                    self.ekf.predict(u_cmd, setpoint)
+            except Exception:  # noqa: BLE001 - the next step re-initialises an unhealthy filter
+                self.ekf.reset()
+        return {"ok": bool(sol.ok), "prepared": prepared, "iterations": int(sol.iterations),
+                "qp_solves": int(sol.qp_solves), "wall_s": time.perf_counter() - t0,
+                "thread_cpu_s": time.thread_time() - c0}
+
+    def _collect_change(self) -> None:
+        """At the start of a step: take the last split change's rest (waiting for it; the wait in
+        ``stats["change_wait_s"]``)."""
+        self._change_wait_s = 0.0
+        self._change_finish = None
+        call, self._change_call = self._change_call, None
+        if call is None:
+            return
+        self._change_finish = call.result()
+        self._change_wait_s = call.waited_s
+        if not self._change_finish["prepared"]:
+            self._prepared_for_next = False
+
+    def _settle_change(self) -> None:
+        """Wait for a split change's rest still running (before the solver or the filter is touched otherwise)."""
+        if getattr(self, "_change_call", None) is not None:
+            self._collect_change()
 
     def _choose_filter(self) -> None:
         """With ``choose_offset_placement``: bring the other filter up to this sample (the last step's readings
@@ -888,14 +993,18 @@ class MpcController:
             self.reach.set_parameters(p)
 
     def wait_background(self, timeout_s: float) -> float:
-        """Between two steps: give the reachable-flow solve running on the second thread up to ``timeout_s``
-        (s) to finish, so that the next step need not wait for it (the rest of the sample on the box). The
+        """Between two steps: give the reachable-flow solve (and a split change's rest) running on the second thread
+        up to ``timeout_s`` (s) to finish, so that the next step need not wait for it (the rest of the sample on the box). The
         commands do not depend on it (the answer is applied by the next step either way). Returns the wall
         time waited (s)."""
         t0 = time.perf_counter()
-        if self.placement is not None:
+        # a split change's rest first: it takes the time update of the filter in use, beside which the other one
+        # is not run
+        waited = self._change_call.wait(timeout_s) if self._change_call is not None else 0.0
+        if self.placement is not None and (self._change_call is None or self._change_call.done):
             self._run_other_filter()
-        return self.reach.wait_background(max(0.0, timeout_s - (time.perf_counter() - t0))) if self.reach else 0.0
+        remaining = max(0.0, timeout_s - (time.perf_counter() - t0))
+        return waited + (self.reach.wait_background(remaining) if self.reach else 0.0)
 
     def _tracked_reference(self, ref: Reference, d: np.ndarray, cap: float) -> np.ndarray:
         """Reference vector of the stage outputs with the priorities applied: the total flow (and the

@@ -376,6 +376,18 @@ class TwoPassSolve:
             self._apply(self._first if mode == "first" else self._full)
             self._mode = mode
 
+    def solve_capped(self, max_iter: int) -> tuple[int, str, int, np.ndarray]:
+        """One pass of the full solve's settings with at most ``max_iter`` (>= 1) iterations (no first pass), as
+        :meth:`solve` returns; the settings in force before are back afterwards."""
+        if int(max_iter) < 1:
+            raise ValueError(f"{type(self).__name__}.solve_capped: max_iter = {max_iter!r}, allowed: an integer >= 1")
+        self._apply(dict(self._full, max_iter=int(max_iter)))
+        self._mode = "capped"
+        try:
+            return self._solve_once()
+        finally:
+            self._use("full")
+
     def solve(self) -> tuple[int, str, int, np.ndarray]:
         """Solve; returns OSQP's status value and text, the iterations (both passes) and the primal solution."""
         iterations = 0

@@ -197,6 +197,16 @@ class RtiOsqpSolver:
             kept, OSQP's warm-start behaviour). OSQP still adapts it within each QP. ``rho_reset_on="change"``: only
             for the QPs of a reference change (their matrices written again with it: one refactorisation more in that
             step). Measured in docs/architecture.md, 'Slow steps'.
+        change_split_iter: a reference change's QPs split between the step and :meth:`finish_change` (0: off, the
+            change solved in the step): the step solves the change's QPs with at most this many OSQP iterations each
+            (the iterate at the cap taken, ``SolveResult.extra["inexact"]``) and answers with them
+            (``extra["change_split"]``); :meth:`finish_change`, which the controller runs on its second thread
+            after the step, solves the change to convergence from the same state, and the next preparation
+            starts from that plan. Measured in docs/architecture.md, 'A reference change finished on the second
+            core'.
+        split_every_step: with ``change_split_iter``, every step's QPs capped so; a step whose QP reaches the cap
+            is finished by :meth:`finish_change` as a change is (its last QP to convergence, then
+            ``reference_change_qps`` - 1 further relinearised QPs), one whose QPs meet the tolerance is not.
         reweigh_in_place: where the output weights change after the preparation (the flow's weight factor), the
             QP linearised again at the plan the preparation already shifted (True) instead of :meth:`prepare`
             again, which shifts that plan once more, a sample ahead (False, the behaviour the bench was tuned
@@ -214,8 +224,16 @@ class RtiOsqpSolver:
                  restart_duals_on_change: bool = False, osqp_codegen: bool = False, scaling_interval: int = 1,
                  steady_start: bool = False, steady_start_on: str = "any", relinearise_every: int = 1,
                  relinearise_move: float = 0.3, rho_reset: float | None = None, rho_reset_on: str = "preparation",
-                 reweigh_in_place: bool = False):
+                 reweigh_in_place: bool = False, change_split_iter: int = 0,
+                 split_every_step: bool = False):
         self.pb = pb = problem
+        if isinstance(change_split_iter, bool) or int(change_split_iter) != change_split_iter \
+                or not (change_split_iter == 0 or 1 <= change_split_iter <= int(max_iter)):
+            raise ValueError(f"RtiOsqpSolver: change_split_iter = {change_split_iter!r}, allowed: 0 (off) or an "
+                             f"integer in [1, max_iter = {max_iter}]")
+        self.change_split_iter = int(change_split_iter)
+        self.split_every_step = bool(split_every_step)
+        self._change_rest: dict | None = None  # what finish_change needs of a split change (None: none pending)
         if not isinstance(reweigh_in_place, bool):
             raise ValueError(f"RtiOsqpSolver: reweigh_in_place = {reweigh_in_place!r}, allowed: True or False")
         self.reweigh_in_place = reweigh_in_place
@@ -240,6 +258,7 @@ class RtiOsqpSolver:
         self.restart_duals_on_change = bool(restart_duals_on_change)
         # OSQP status values taken as an answer: solved, solved inaccurate (and maximum iterations reached)
         self._accepted = (1, 2, 7) if accept_max_iter else (1, 2)
+        self._accepted_capped = (1, 2, 7)  # a capped QP (change_split_iter) takes its iterate at the cap
         self.name = "rti" if sqp_max_iter == 1 else "sqp"
         self.lm = np.broadcast_to(np.asarray(lm_inputs, float), (pb.nu,)).copy()
         self.sqp_max_iter = int(sqp_max_iter)
@@ -309,6 +328,7 @@ class RtiOsqpSolver:
                 "relinearise_every": self._ml.every if self._ml else 1,
                 "relinearise_move": self._ml.move if self._ml else None, "rho_reset": self.rho_reset,
                 "rho_reset_on": self.rho_reset_on, "reweigh_in_place": self.reweigh_in_place,
+                "change_split_iter": self.change_split_iter, "split_every_step": self.split_every_step,
                 "step_fractions": list(self._merit.fractions) if self._merit else []}
 
     # ------------------------------------------------------------------ structure
@@ -755,6 +775,7 @@ class RtiOsqpSolver:
         controller answers as a new one does."""
         self.X = self.U = self.S = None
         self._prepared = None
+        self._change_rest = None
         if self._ml is not None:
             self._ml.forget()
         if getattr(self, "_workspace_used", False):
@@ -923,18 +944,41 @@ class RtiOsqpSolver:
             self.fail_next -= 1
             return SolveResult(False, "forced failure", prep_time_s=prep,
                                feedback_time_s=time.perf_counter() - t0 - prep)
-        N, nx, nu = self.pb.N, self.pb.nx, self.pb.nu
+        nx = self.pb.nx
         if changed and self.rho_reset is not None and self.rho_reset_on == "change":
             prep += self._reset_rho()
         self.l[:nx] = self.u[:nx] = x0  # rows r_x0
         self.l[self._r_u_rows] = u_lo.ravel()
         self.u[self._r_u_rows] = u_hi.ravel()
+        # a change's QPs capped (with split_every_step any step's); finish_change goes on
+        split = (changed or self.split_every_step) and not cold and self.change_split_iter > 0
+        z, status, iterations, solves, qp_prep, inexact, fraction = self._solve_qps(
+            x0, u_prev, d, ref, w_y, u_lo, u_hi, max_qps, restart=changed and self.restart_duals_on_change,
+            t0=t0, time_limit_s=time_limit_s, cap=self.change_split_iter if split else 0)
+        prep += qp_prep
+        feedback = time.perf_counter() - t0 - prep
+        result = self._result(z, status, iterations, solves, prep, feedback, cold, inexact, fraction)
+        if split and result.ok and (changed or inexact):
+            self._change_rest = dict(x0=x0.copy(), u_prev=u_prev.copy(), d=d.copy(), ref=np.array(ref, float),
+                                     w_y=w_y.copy(), u_lo=u_lo.copy(), u_hi=u_hi.copy(), z=z.copy(),
+                                     qps=max(self.sqp_max_iter, self.reference_change_qps), solved=not inexact)
+            result.extra["change_split"] = True
+        return result
+
+    def _solve_qps(self, x0, u_prev, d, ref, w_y, u_lo, u_hi, max_qps: int, *, restart: bool = False, t0: float = 0.0,
+                   time_limit_s: float = 0.0, cap: int = 0, start: np.ndarray | None = None):
+        """Up to ``max_qps`` QPs (Gauss-Newton SQP to ``sqp_tol``) with the prepared data: the first warm-started from
+        ``start`` (default: the linearisation point; the multipliers OSQP's, zero with ``restart``); with ``cap`` > 0,
+        each QP at most ``cap`` OSQP iterations, its iterate at the cap taken. Returns the answer (None: failed), status,
+        iterations, QP solves, the relinearisations' time (s), whether the answer is an iterate at a cap, and the
+        smallest globalised step fraction."""
         iterations = 0
         solves = 0
         status = "unsolved"
         z = None
         inexact = False
         fraction = 1.0
+        prep = 0.0
         for it in range(max_qps):
             if it > 0:
                 prep += self._relinearise(z, x0, d, ref, w_y, u_prev)
@@ -946,19 +990,21 @@ class RtiOsqpSolver:
             # steps, against 7585 with the multipliers shifted like the plan and 7790 with zero
             # multipliers; 6225 with the model parameters as inputs of the generated code, whose
             # round-off moves the loop from step ~124 on)
-            self._core.warm_start(self._z_lin, self._zero_duals if (
-                it == 0 and changed and self.restart_duals_on_change) else None)
+            first = it == 0 and start is not None
+            self._core.warm_start(start if first else self._z_lin,
+                                  self._zero_duals if (it == 0 and restart) else None)
             if time_limit_s > 0:
                 remaining = time_limit_s - (time.perf_counter() - t0)
                 if remaining <= 0:
                     status = "deadline"
                     break
                 self._limit_time(remaining, time_limit_s)
-            status_val, status, n_iter, x = self._core.solve()
+            capped = cap > 0
+            status_val, status, n_iter, x = self._core.solve_capped(cap) if capped else self._core.solve()
             solves += 1
             iterations += n_iter
             status = str(status)
-            if status_val not in self._accepted:
+            if status_val not in (self._accepted_capped if capped else self._accepted):
                 z = None
                 break
             z = np.array(x)
@@ -972,7 +1018,11 @@ class RtiOsqpSolver:
                 fraction = min(fraction, taken)
             if it + 1 < max_qps and float(np.abs(z - self._z_lin).max()) < self.sqp_tol:
                 break
-        feedback = time.perf_counter() - t0 - prep
+        return z, status, iterations, solves, prep, inexact, fraction
+
+    def _result(self, z, status, iterations, solves, prep, feedback, cold, inexact, fraction) -> SolveResult:
+        """The answer ``z`` as the solver's plan and a :class:`SolveResult` (a failure where ``z`` is None)."""
+        N, nx, nu = self.pb.N, self.pb.nx, self.pb.nu
         if z is None:
             return SolveResult(False, status, iterations=iterations, qp_solves=solves, prep_time_s=prep,
                                feedback_time_s=feedback, extra={"cold_start": cold})
@@ -983,6 +1033,37 @@ class RtiOsqpSolver:
         return SolveResult(True, status, X=X.copy(), U=U.copy(), S=S.copy(), iterations=iterations,
                            qp_solves=solves, prep_time_s=prep, feedback_time_s=feedback,
                            extra={"cold_start": cold, "inexact": inexact, "step_fraction": fraction})
+
+    @property
+    def change_pending(self) -> bool:
+        """True between a step that solved a reference change's QPs capped (``change_split_iter``) and
+        :meth:`finish_change`."""
+        return self._change_rest is not None
+
+    def finish_change(self) -> SolveResult:
+        """The rest of a reference change split by ``change_split_iter``: the step's last QP continued from its
+        iterate at the cap (the same data; OSQP's multipliers and step size as the capped solve left them) to
+        OSQP's tolerance, then up to ``reference_change_qps`` - 1 further QPs (Gauss-Newton, relinearised at each
+        answer, to ``sqp_tol``) from the same state, reference and bounds. Its plan
+        becomes the solver's (the next preparation shifts it, OSQP's multipliers stay in its workspace). Meant to
+        run after the step, before the next preparation (the controller's second thread). Returns the answer (a
+        failure where there is no change to finish or a QP fails: the caller then resets the solver)."""
+        rest, self._change_rest = self._change_rest, None
+        t0 = time.perf_counter()
+        if rest is None:
+            return SolveResult(False, "no change to finish")
+        x0, u_prev, d, ref, w_y = (rest[k] for k in ("x0", "u_prev", "d", "ref", "w_y"))
+        args = (x0, u_prev, d, ref, w_y, rest["u_lo"], rest["u_hi"])
+        qps, z, prep = rest["qps"], rest["z"], 0.0
+        if rest["solved"]:  # the first QP met OSQP's tolerance within the cap: on from its answer
+            if qps == 1 or float(np.abs(z - self._z_lin).max()) < self.sqp_tol:
+                return self._result(z, "solved", 0, 0, 0.0, time.perf_counter() - t0, False, False, 1.0)
+            prep = self._relinearise(z, x0, d, ref, w_y, u_prev)
+            qps, z = qps - 1, None
+        z, status, iterations, solves, qp_prep, inexact, fraction = self._solve_qps(*args, qps, start=z)
+        prep += qp_prep
+        return self._result(z, status, iterations, solves, prep, time.perf_counter() - t0 - prep, False, inexact,
+                            fraction)
 
     def _reset_rho(self) -> float:
         """OSQP's step size set to ``rho_reset`` for the QPs of a reference change: the matrices in OSQP written again

@@ -134,6 +134,19 @@ def test_benchmark_rejects_too_few_steps(tmp_path):
     assert not (tmp_path / "x.json").exists()
 
 
+def test_benchmark_takes_the_rti_settings_and_refuses_bad_ones(tmp_path, capsys):
+    for bad, word in (('{"no_such_field": 1}', "no_such_field"), ('{"change_split_iter": -1}', "change_split_iter"),
+                      ("[1, 2]", "JSON object")):
+        assert main(["solve-time", "--steps", "5", "--no-ipopt", "--no-dompc", "--no-fatrop", "--rti-settings", bad,
+                     "--json", str(tmp_path / "x.json")]) == 2
+        assert word in capsys.readouterr().out
+    assert not (tmp_path / "x.json").exists()
+    import argparse
+    args = argparse.Namespace(rti_settings='{"change_split_iter": 30}', no_codegen=True)
+    settings = solve_time.rti_settings(args)
+    assert settings.change_split_iter == 30 and settings.codegen is False
+
+
 def test_stage_cost_is_zero_on_target_and_grows_with_error():
     ctrl = MpcController(settings=MpcSettings())
     ref = solve_time.reference_at(0.0)
