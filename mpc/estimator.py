@@ -304,7 +304,7 @@ class EkfSettings:
     model's is the model's error (a valve gain, a duct's loss that changes with the flow), which the offsets have to
     take now: on boxes of the seeded sweep a wait at each reference step held the offset 7-10 samples while the
     reading sat 0.6-1 degC off the reference. ASSUMPTION: the dead time found from a response is the box's (a longer
-    one would show as a model error until the estimate moves to it). A setting, off (docs/robustness.md sec. 2.21).
+    one would show as a model error until the estimate moves to it).
     """
 
     q_motor_c: float = 0.01

@@ -369,6 +369,12 @@ class MpcSettings:
         check_number(f"{p}.change_split_iter", self.change_split_iter, 0, self.osqp_max_iter, integer=True)
         check_flag(f"{p}.change_split_thread", self.change_split_thread)
         check_flag(f"{p}.split_every_step", self.split_every_step)
+        if self.change_split_iter and self.solver not in ("rti", "sqp"):
+            raise InvalidSettings(f"{p}.change_split_iter = {self.change_split_iter!r} needs solver 'rti' or 'sqp' "
+                                  f"(the OSQP solvers; solver is {self.solver!r}); 0 turns it off")
+        if self.split_every_step and not self.change_split_iter:
+            raise InvalidSettings(f"{p}.split_every_step needs change_split_iter in [1, {self.osqp_max_iter}] "
+                                  "(the cap it splits at)")
         if self.osqp_rho_reset_on not in RHO_RESET_ON:
             raise InvalidSettings(f"{p}.osqp_rho_reset_on = {self.osqp_rho_reset_on!r} must be one of {list(RHO_RESET_ON)}")
         check_number(f"{p}.sqp_tol", self.sqp_tol, 1e-10, 1.0, lo_open=True)
@@ -593,6 +599,7 @@ class MpcController:
             self.solver.use_prediction(self.ekf)  # prediction and QP data in one call
         self._baseline = None
         self._change_call: BackgroundCall | None = None  # the last split change's rest (finish_change), not collected
+        self._change_plan: np.ndarray | None = None  # the rest's converged plan (scaled inputs), set on its thread
         self._own_worker: BackgroundWorker | None = None  # its thread where the reachable-flow solve has none
         if s.change_split_iter and s.change_split_thread:
             self._worker(create=True).start()  # with the controller, not inside a step
@@ -883,8 +890,11 @@ class MpcController:
         updates = self.ekf.time_updates
         sol = SolveResult(False, "not run")
         prepared = False
+        self._change_plan = None
         try:
             sol = self.solver.finish_change()
+            if sol.ok:
+                self._change_plan = sol.U.copy()  # the fallback's plan from the next step on (read after the call)
             if sol.ok and getattr(self.solver, "fused_prediction", False):
                 self.solver.prepare_predicted(u_cmd, setpoint, u_prev_s, y_ref, w_y)
                 prepared = True
@@ -911,6 +921,8 @@ class MpcController:
             return
         self._change_finish = call.result()
         self._change_wait_s = call.waited_s
+        if self._change_plan is not None and self._plan is not None:
+            self._plan = (self._change_plan, self._plan[1])  # the converged plan, not the capped iterate's
         if not self._change_finish["prepared"]:
             self._prepared_for_next = False
 

@@ -378,7 +378,7 @@ class TwoPassSolve:
 
     def solve_capped(self, max_iter: int) -> tuple[int, str, int, np.ndarray]:
         """One pass of the full solve's settings with at most ``max_iter`` (>= 1) iterations (no first pass), as
-        :meth:`solve` returns; the settings in force before are back afterwards."""
+        :meth:`solve` returns; the full solve's settings are in force afterwards."""
         if int(max_iter) < 1:
             raise ValueError(f"{type(self).__name__}.solve_capped: max_iter = {max_iter!r}, allowed: an integer >= 1")
         self._apply(dict(self._full, max_iter=int(max_iter)))

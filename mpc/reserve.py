@@ -27,7 +27,8 @@ The reserve raises valve a's weight to ``Weights.valve_a_reserve_per_pct2`` only
 - *the flow priority untouched*: not while the flow weights are lowered (a flow out of reach, or traded for
   temperature, :func:`~.priorities.flow_weight_factor`).
 
-A reference change ends the rest at once, so every step is served with the default weight and the body's heat. That
+A change of the supply-temperature or total-flow reference ends the rest at once (an outlet-split change alone does
+not: it moves no heat), so every step is served with the default weight and the body's heat. That
 is what the same weight on valve a at all times (``valve_a_heating_per_pct2`` 3e-4) lacked: at the 12 -> 22 C step of
 the built-in bench's trapped_air_release the QP with the heavy valve-a weight reached OSQP's iteration cap for 28 s
 (the shifted plan applied, valve a at 2.5 %, the heater at 30 W, then the baseline's fallback), the step began late

@@ -63,6 +63,8 @@ FLOOR_TOLERANCE_LS = 0.01
 #: When ``RtiOsqpSolver(rho_reset=...)`` sets OSQP's step size: at every preparation's matrix update, or for the QPs of a
 #: reference change only.
 RHO_RESET_ON = ("preparation", "change")
+#: OSQP's time limit when none is wanted (s): OSQP's own default (its Python interface refuses 0).
+NO_TIME_LIMIT_S = 1e10
 
 
 @dataclass
@@ -1052,6 +1054,9 @@ class RtiOsqpSolver:
         t0 = time.perf_counter()
         if rest is None:
             return SolveResult(False, "no change to finish")
+        if self._time_limit is not None:  # the step's wall-clock limit must not bound the rest: a budget of one step
+            self._core.set_time_limit(NO_TIME_LIMIT_S)
+            self._time_limit = None
         x0, u_prev, d, ref, w_y = (rest[k] for k in ("x0", "u_prev", "d", "ref", "w_y"))
         args = (x0, u_prev, d, ref, w_y, rest["u_lo"], rest["u_hi"])
         qps, z, prep = rest["qps"], rest["z"], 0.0
