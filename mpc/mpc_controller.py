@@ -928,7 +928,7 @@ class MpcController:
 
     def _settle_change(self) -> None:
         """Wait for a split change's rest still running (before the solver or the filter is touched otherwise)."""
-        if getattr(self, "_change_call", None) is not None:
+        if self._change_call is not None:
             self._collect_change()
 
     def _choose_filter(self) -> None:
