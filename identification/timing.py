@@ -58,22 +58,37 @@ def detect_shift(measured_flow: np.ndarray, predicted_flow: np.ndarray) -> tuple
 
 
 def correct(log: LogData, s: int) -> None:
-    """Move the sensor columns of ``log`` back by ``s`` samples in place (outputs, water, inlet and cabin)."""
+    """Move the sensor columns of ``log`` back by ``s`` samples in place (outputs, water, inlet, cabin and their
+    signals), then drop the ``|s|`` rows at the end (s > 0) or the start (s < 0) whose sensor values ran out: no row
+    keeps a reading from before the correction, and none is NaN for it."""
     if s == 0:
         return
     for name in list(log.outputs):
         log.outputs[name] = shifted(log.outputs[name], s)
-    if log.water_temp_c is not None:
-        log.water_temp_c = np.nan_to_num(shifted(log.water_temp_c, s), nan=float(log.water_temp_c[-1 if s > 0 else 0]))
-    log.inlet_temp_c = np.nan_to_num(shifted(log.inlet_temp_c, s), nan=float(log.inlet_temp_c[-1 if s > 0 else 0]))
-    if log.cabin_temp_c is not None:
-        log.cabin_temp_c = np.nan_to_num(shifted(log.cabin_temp_c, s), nan=float(log.cabin_temp_c[-1 if s > 0 else 0]))
+    for attr in ("water_temp_c", "inlet_temp_c", "cabin_temp_c"):
+        if getattr(log, attr) is not None:
+            setattr(log, attr, shifted(getattr(log, attr), s))
     for name in list(log.signals):
-        if name in log.outputs or name in ("water_temp_c", "hvac_inlet_temp_c", "cabin_temp_c",
-                                           "heater_outlet_temp_c", "heater_power_w"):
-            col = shifted(log.signals[name], s)
-            log.signals[name] = np.where(np.isfinite(col), col, log.signals[name])
+        if name in log.outputs or name in SENSOR_SIGNALS:
+            log.signals[name] = shifted(log.signals[name], s)
+    _keep_rows(log, slice(0, -s) if s > 0 else slice(-s, None))
     log.timing_shift_samples = s
+
+
+#: Logged columns that are sensor readings besides the model's outputs: they move with the outputs.
+SENSOR_SIGNALS = ("water_temp_c", "hvac_inlet_temp_c", "cabin_temp_c", "heater_outlet_temp_c", "heater_power_w")
+
+
+def _keep_rows(log: LogData, rows: slice) -> None:
+    """Keep only ``rows`` of every per-row array of ``log`` (in place)."""
+    for attr in ("time_s", "u", "u_prev", "inlet_temp_c", "chiller_setpoint_c", "water_temp_c", "cabin_temp_c",
+                 "train", "holdout"):
+        value = getattr(log, attr)
+        if value is not None:
+            setattr(log, attr, value[rows])
+    for table in (log.outputs, log.signals):
+        for name in list(table):
+            table[name] = table[name][rows]
 
 
 def describe(s: int, dt_s: float, errors: dict[int, float]) -> str:

@@ -68,7 +68,23 @@ def test_log_timing_shift_is_detected_and_corrected(tmp_path, shift):
     assert found == shift
     text = timing.describe(found, 1.0, errors)
     assert ("late" in text if shift > 0 else "early" in text if shift < 0 else "in step" in text)
+    n0, raw_u, raw_signals = log.n, log.u.copy(), {k: v.copy() for k, v in log.signals.items()}
     timing.correct(log, found)
+    # the rows whose readings ran out are gone: every column as long as the log, the commands and the readings
+    # of each kept row those of the raw log's row and its row ``shift`` later, none from before the correction
+    assert log.n == n0 - abs(shift)
+    keep, later = (slice(0, n0 - shift), slice(shift, n0)) if shift >= 0 else (slice(-shift, n0), slice(0, n0 + shift))
+    assert np.array_equal(log.u, raw_u[keep])
+    sensors = [n for n in raw_signals if n in log.outputs or n in timing.SENSOR_SIGNALS]
+    assert "supply_temp_c" in sensors and "hvac_inlet_temp_c" in sensors
+    for name, raw in raw_signals.items():
+        assert len(log.signals[name]) == log.n
+        expected = raw[later] if name in sensors else raw[keep]
+        assert np.array_equal(log.signals[name], expected, equal_nan=True), name
+    assert len(log.train) == len(log.holdout) == len(log.inlet_temp_c) == log.n
+    assert np.isfinite(log.inlet_temp_c).all()
+    y, _ = Simulator(log, Parameters(), DOCUMENTED_EFFECTS, ("volume_flow_m3s",)).simulate(
+        np.array(Parameters().vector()))
     again, _ = timing.detect_shift(log.outputs["volume_flow_m3s"], y[:, 0])
     assert again == 0
 
