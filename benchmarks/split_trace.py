@@ -5,12 +5,13 @@
 
 Each variant (``NAME=JSON``: MpcSettings fields; default "defaults={}" and "split_30={"change_split_iter": 30}")
 runs the full scenario on the bench's plant (:func:`.bench.mpc_factory`, seed and deadline as ``hvac-mpc bench``)
-and records per step: OSQP's iterations and QPs, whether the step was a reference change, the split rest's
-iterations (collected by the step after it), OSQP's step size ``rho`` after the step and the command. Printed: the
-supply-temperature IAE (the bench's: noise-free thermocouple against the reference from the scored start) of each
-variant and its difference to the first variant per reference segment and per window of ``--window`` steps, with
-the largest command differences in the window; OSQP's iterations of the twelve steps from each change; the steps
-on which OSQP's step size changed. The MPC alone runs: ratios to the baseline come from ``hvac-mpc bench``.
+and records per step: OSQP's iterations and QPs, the split rest's iterations (collected by the step after it),
+OSQP's step size ``rho`` after the step (and its rest) and the command. Printed: the supply-temperature IAE (the
+bench's: noise-free thermocouple against the reference from the scored start) of each variant and its difference
+to the first variant per segment of the supply-temperature reference and per window of ``--window`` steps, with the
+largest command differences in the window; OSQP's iterations of the twelve steps from each change of that
+reference; the steps on which OSQP's step size changed. The MPC alone runs: ratios to the baseline come from
+``hvac-mpc bench``. Measured in docs/architecture.md, 'The rest of a split change, traced'.
 """
 
 from __future__ import annotations
@@ -30,6 +31,8 @@ from .simulate import simulate
 
 #: Steps from a change whose OSQP iterations are listed.
 AFTER_CHANGE = 12
+#: Longest wait for a split change's rest after its step (s): it takes milliseconds.
+REST_WAIT_S = 60.0
 
 
 class Recorder:
@@ -44,6 +47,9 @@ class Recorder:
 
     def step(self, measurement, reference):
         result = self.controller.step(measurement, reference)
+        rest = getattr(self.controller, "_change_call", None)
+        if rest is not None:  # a split change's rest done before the step size is read (the commands do not change)
+            rest.wait(REST_WAIT_S)
         stats = result.stats or {}
         rest = stats.get("change_finish") or {}
         core = getattr(getattr(self.controller, "solver", None), "_core", None)
