@@ -264,7 +264,7 @@ class MpcSettings:
             collects them before anything else, waiting if need be (``stats["change_wait_s"]``,
             ``stats["change_finish"]``): the commands do not depend on the thread. Not the default: the built-in
             bench's winter_heating_steps worse by 0.017-0.054 (docs/architecture.md, 'A reference change finished
-            on the second core').
+            on the second core'; traced in 'The rest of a split change, traced').
         change_split_thread: with ``change_split_iter``, the rest on the second thread (True) or at once at the
             step's end (False: inside the step, the same commands).
         split_every_step: with ``change_split_iter``, every step's QPs capped so, the rest handed over where a QP

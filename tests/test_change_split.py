@@ -194,13 +194,16 @@ def _step_sizes(settings: MpcSettings, steps: int) -> tuple[list[float], list[fl
 RHO_CHANGE_STEP = 60  # the loop's second change: there the rest's QPs move OSQP's step size (seed 1)
 
 
-def test_the_rest_leaves_osqp_step_size_as_the_change_step_found_it_with_split_keeps_rho():
+@pytest.mark.parametrize("generated", [True, False], ids=["generated OSQP", "OSQP's Python interface"])
+def test_the_rest_leaves_osqp_step_size_as_the_change_step_found_it_with_split_keeps_rho(generated):
     """``split_keeps_rho``: the rest's QPs may adapt OSQP's step size (the first continues from an iterate at the
     cap); with the setting the step after the change finds the value the change step found, without it the rest's.
-    The change's QPs in its step are capped alike either way."""
+    The change's QPs in its step are capped alike either way. The same through OSQP's Python interface
+    (``_OsqpCore.rho``, ``rho_next_update``)."""
     k = RHO_CHANGE_STEP
-    adapted, rest_adapted, stats_adapted = _step_sizes(SPLIT, k + 2)
-    kept, rest_kept, stats_kept = _step_sizes(dataclasses.replace(SPLIT, split_keeps_rho=True), k + 2)
+    split = dataclasses.replace(SPLIT, osqp_codegen=generated)
+    adapted, rest_adapted, stats_adapted = _step_sizes(split, k + 2)
+    kept, rest_kept, stats_kept = _step_sizes(dataclasses.replace(split, split_keeps_rho=True), k + 2)
     for stats in (stats_adapted, stats_kept):
         assert stats[k]["qp_solves"] == 2 and stats[k]["iterations"] <= 2 * CAP
         assert stats[k + 1]["change_finish"]["ok"]
