@@ -264,11 +264,14 @@ class MpcSettings:
             collects them before anything else, waiting if need be (``stats["change_wait_s"]``,
             ``stats["change_finish"]``): the commands do not depend on the thread. Not the default: the built-in
             bench's winter_heating_steps worse by 0.017-0.054 (docs/architecture.md, 'A reference change finished
-            on the second core').
+            on the second core'; traced in 'The rest of a split change, traced').
         change_split_thread: with ``change_split_iter``, the rest on the second thread (True) or at once at the
             step's end (False: inside the step, the same commands).
         split_every_step: with ``change_split_iter``, every step's QPs capped so, the rest handed over where a QP
             reached the cap (and at every change).
+        split_keeps_rho: with ``change_split_iter``, the rest leaves OSQP's step size as the change step found it
+            instead of as the rest's QPs adapted it (False, the default). Measured in docs/architecture.md, 'The
+            rest of a split change, traced'.
         valve_a_reversal_share: the share of a move of valve a that reverses its last applied move (both at least
             ``valve_a_reversal_min_pct`` (% of travel)) applied, in (0, 1], 1 off (:mod:`~.reversal_damping`: the
             Gauss-Newton iteration's two-cycle where valve a's pull depends on valve a, the plan alternating between
@@ -339,6 +342,7 @@ class MpcSettings:
     change_split_iter: int = 0
     change_split_thread: bool = True
     split_every_step: bool = False
+    split_keeps_rho: bool = False
     valve_a_reversal_share: float = 0.3
     valve_a_reversal_min_pct: float = 5.0
 
@@ -369,12 +373,14 @@ class MpcSettings:
         check_number(f"{p}.change_split_iter", self.change_split_iter, 0, self.osqp_max_iter, integer=True)
         check_flag(f"{p}.change_split_thread", self.change_split_thread)
         check_flag(f"{p}.split_every_step", self.split_every_step)
+        check_flag(f"{p}.split_keeps_rho", self.split_keeps_rho)
         if self.change_split_iter and self.solver not in ("rti", "sqp"):
             raise InvalidSettings(f"{p}.change_split_iter = {self.change_split_iter!r} needs solver 'rti' or 'sqp' "
                                   f"(the OSQP solvers; solver is {self.solver!r}); 0 turns it off")
-        if self.split_every_step and not self.change_split_iter:
-            raise InvalidSettings(f"{p}.split_every_step needs change_split_iter in [1, {self.osqp_max_iter}] "
-                                  "(the cap it splits at)")
+        for name in ("split_every_step", "split_keeps_rho"):
+            if getattr(self, name) and not self.change_split_iter:
+                raise InvalidSettings(f"{p}.{name} needs change_split_iter in [1, {self.osqp_max_iter}] "
+                                      "(the cap it splits at)")
         if self.osqp_rho_reset_on not in RHO_RESET_ON:
             raise InvalidSettings(f"{p}.osqp_rho_reset_on = {self.osqp_rho_reset_on!r} must be one of {list(RHO_RESET_ON)}")
         check_number(f"{p}.sqp_tol", self.sqp_tol, 1e-10, 1.0, lo_open=True)
@@ -641,7 +647,8 @@ class MpcController:
                              relinearise_every=s.rti_relinearise_every, relinearise_move=s.rti_relinearise_move,
                              steady_start_on=s.steady_start_on, rho_reset=s.osqp_rho_reset,
                              rho_reset_on=s.osqp_rho_reset_on, reweigh_in_place=s.reweigh_in_place,
-                             change_split_iter=s.change_split_iter, split_every_step=s.split_every_step)
+                             change_split_iter=s.change_split_iter, split_every_step=s.split_every_step,
+                             split_keeps_rho=s.split_keeps_rho)
 
     # ------------------------------------------------------------------ protocol
     def reset(self, command: Command | None = None) -> None:

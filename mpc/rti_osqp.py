@@ -209,6 +209,8 @@ class RtiOsqpSolver:
         split_every_step: with ``change_split_iter``, every step's QPs capped so; a step whose QP reaches the cap
             is finished by :meth:`finish_change` as a change is (its last QP to convergence, then
             ``reference_change_qps`` - 1 further relinearised QPs), one whose QPs meet the tolerance is not.
+        split_keeps_rho: with ``change_split_iter``, :meth:`finish_change` leaves OSQP's step size ``rho`` as the
+            step found it (off: as the rest's QPs adapted it).
         reweigh_in_place: where the output weights change after the preparation (the flow's weight factor), the
             QP linearised again at the plan the preparation already shifted (True) instead of :meth:`prepare`
             again, which shifts that plan once more, a sample ahead (False, the behaviour the bench was tuned
@@ -227,7 +229,7 @@ class RtiOsqpSolver:
                  steady_start: bool = False, steady_start_on: str = "any", relinearise_every: int = 1,
                  relinearise_move: float = 0.3, rho_reset: float | None = None, rho_reset_on: str = "preparation",
                  reweigh_in_place: bool = False, change_split_iter: int = 0,
-                 split_every_step: bool = False):
+                 split_every_step: bool = False, split_keeps_rho: bool = False):
         self.pb = pb = problem
         if isinstance(change_split_iter, bool) or int(change_split_iter) != change_split_iter \
                 or not (change_split_iter == 0 or 1 <= change_split_iter <= int(max_iter)):
@@ -235,6 +237,7 @@ class RtiOsqpSolver:
                              f"integer in [1, max_iter = {max_iter}]")
         self.change_split_iter = int(change_split_iter)
         self.split_every_step = bool(split_every_step)
+        self.split_keeps_rho = bool(split_keeps_rho)
         self._change_rest: dict | None = None  # what finish_change needs of a split change (None: none pending)
         if not isinstance(reweigh_in_place, bool):
             raise ValueError(f"RtiOsqpSolver: reweigh_in_place = {reweigh_in_place!r}, allowed: True or False")
@@ -331,6 +334,7 @@ class RtiOsqpSolver:
                 "relinearise_move": self._ml.move if self._ml else None, "rho_reset": self.rho_reset,
                 "rho_reset_on": self.rho_reset_on, "reweigh_in_place": self.reweigh_in_place,
                 "change_split_iter": self.change_split_iter, "split_every_step": self.split_every_step,
+                "split_keeps_rho": self.split_keeps_rho,
                 "step_fractions": list(self._merit.fractions) if self._merit else []}
 
     # ------------------------------------------------------------------ structure
@@ -954,6 +958,7 @@ class RtiOsqpSolver:
         self.u[self._r_u_rows] = u_hi.ravel()
         # a change's QPs capped (with split_every_step any step's); finish_change goes on
         split = (changed or self.split_every_step) and not cold and self.change_split_iter > 0
+        rho = self._core.rho if split else None  # OSQP's step size before the capped QPs, for finish_change
         z, status, iterations, solves, qp_prep, inexact, fraction = self._solve_qps(
             x0, u_prev, d, ref, w_y, u_lo, u_hi, max_qps, restart=changed and self.restart_duals_on_change,
             t0=t0, time_limit_s=time_limit_s, cap=self.change_split_iter if split else 0)
@@ -963,7 +968,8 @@ class RtiOsqpSolver:
         if split and result.ok and (changed or inexact):
             self._change_rest = dict(x0=x0.copy(), u_prev=u_prev.copy(), d=d.copy(), ref=np.array(ref, float),
                                      w_y=w_y.copy(), u_lo=u_lo.copy(), u_hi=u_hi.copy(), z=z.copy(),
-                                     qps=max(self.sqp_max_iter, self.reference_change_qps), solved=not inexact)
+                                     qps=max(self.sqp_max_iter, self.reference_change_qps), solved=not inexact,
+                                     rho=rho)
             result.extra["change_split"] = True
         return result
 
@@ -1048,12 +1054,23 @@ class RtiOsqpSolver:
         OSQP's tolerance, then up to ``reference_change_qps`` - 1 further QPs (Gauss-Newton, relinearised at each
         answer, to ``sqp_tol``) from the same state, reference and bounds. Its plan
         becomes the solver's (the next preparation shifts it, OSQP's multipliers stay in its workspace). Meant to
-        run after the step, before the next preparation (the controller's second thread). Returns the answer (a
-        failure where there is no change to finish or a QP fails: the caller then resets the solver)."""
+        run after the step, before the next preparation (the controller's second thread). With ``split_keeps_rho``
+        OSQP's step size ``rho`` is set back to the value it had before the step's capped QPs (the rest's first QP,
+        continued from a capped iterate, may adapt it, and OSQP holds a step size until a later QP moves it by its
+        factor of 5: docs/architecture.md, 'The rest of a split change, traced'). Returns the answer (a failure
+        where there is no change to finish or a QP fails: the caller then resets the solver)."""
         rest, self._change_rest = self._change_rest, None
         t0 = time.perf_counter()
         if rest is None:
             return SolveResult(False, "no change to finish")
+        try:
+            return self._finish(rest, t0)
+        finally:  # OSQP's step size as the step found it: the next matrix update (the preparation) takes it in
+            if self.split_keeps_rho:
+                self._core.rho_next_update(rest["rho"])
+
+    def _finish(self, rest: dict, t0: float) -> SolveResult:
+        """:meth:`finish_change`'s QPs (``rest``: what the step left for them; ``t0``: its start, perf_counter s)."""
         if self._time_limit is not None:  # the step's wall-clock limit must not bound the rest: a budget of one step
             self._core.set_time_limit(NO_TIME_LIMIT_S)
             self._time_limit = None
@@ -1179,6 +1196,11 @@ class _OsqpCore(osqp_embedded.TwoPassSolve):
     def set_time_limit(self, seconds: float) -> None:
         """OSQP's time limit of each solve from now on (s)."""
         self.wrapper.update_settings(time_limit=seconds)
+
+    @property
+    def rho(self) -> float:
+        """OSQP's step size now (it adapts during solves and is kept from one QP to the next)."""
+        return float((self.core or self.wrapper._solver).get_settings().rho)
 
     def rho_next_update(self, rho: float) -> None:
         """OSQP's step size set to ``rho`` (OSQP's ``update_rho``: a factorisation of its own here, where the

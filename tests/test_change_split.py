@@ -165,3 +165,62 @@ def test_the_settings_refuse_a_cap_out_of_range_naming_the_field():
     with pytest.raises(InvalidSettings, match="split_every_step needs change_split_iter"):
         MpcSettings(split_every_step=True)
     assert MpcSettings().change_split_iter == 0  # off by default
+
+
+def _step_sizes(settings: MpcSettings, steps: int) -> tuple[list[float], list[float], list]:
+    """OSQP's step size as each feedback finds it, and as each rest's QPs leave it (before ``split_keeps_rho``
+    sets it back); the stats of the loop's steps."""
+    ctrl = MpcController(settings=settings)
+    solver = ctrl.solver
+    feedback, finish = solver.feedback, solver._finish
+    at_feedback, after_rest = [], []
+
+    def recorded_feedback(*args, **kwargs):
+        at_feedback.append(solver._core.rho)
+        return feedback(*args, **kwargs)
+
+    def recorded_finish(*args, **kwargs):
+        sol = finish(*args, **kwargs)
+        after_rest.append(solver._core.rho)
+        return sol
+
+    solver.feedback, solver._finish = recorded_feedback, recorded_finish
+    loop = solve_time.Loop(ctrl, seed=1)
+    stats = [loop.step(k).stats for k in range(steps)]
+    ctrl.close()
+    return at_feedback, after_rest, stats
+
+
+RHO_CHANGE_STEP = 60  # the loop's second change: there the rest's QPs move OSQP's step size (seed 1)
+
+
+@pytest.mark.parametrize("generated", [True, False], ids=["generated OSQP", "OSQP's Python interface"])
+def test_the_rest_leaves_osqp_step_size_as_the_change_step_found_it_with_split_keeps_rho(generated):
+    """``split_keeps_rho``: the rest's QPs may adapt OSQP's step size (the first continues from an iterate at the
+    cap); with the setting the step after the change finds the value the change step found, without it the rest's.
+    The change's QPs in its step are capped alike either way. The same through OSQP's Python interface
+    (``_OsqpCore.rho``, ``rho_next_update``)."""
+    k = RHO_CHANGE_STEP
+    split = dataclasses.replace(SPLIT, osqp_codegen=generated)
+    adapted, rest_adapted, stats_adapted = _step_sizes(split, k + 2)
+    kept, rest_kept, stats_kept = _step_sizes(dataclasses.replace(split, split_keeps_rho=True), k + 2)
+    for stats in (stats_adapted, stats_kept):
+        assert stats[k]["qp_solves"] == 2 and stats[k]["iterations"] <= 2 * CAP
+        assert stats[k + 1]["change_finish"]["ok"]
+    assert len(rest_adapted) == len(rest_kept) == 2  # the changes at CHANGE_STEP and k
+    # the same run up to the second rest (the first leaves the step size where it was); there the rest moves it by
+    # more than OSQP's factor of 5
+    assert rest_adapted[0] == adapted[CHANGE_STEP]
+    assert adapted[:k + 1] == kept[:k + 1] and rest_adapted == rest_kept
+    before = kept[k]
+    assert max(rest_kept[1] / before, before / rest_kept[1]) > 5.0
+    assert adapted[k + 1] == rest_adapted[1]
+    assert kept[k + 1] == before
+
+
+def test_split_keeps_rho_is_refused_without_the_split_naming_the_field():
+    with pytest.raises(InvalidSettings, match="split_keeps_rho needs change_split_iter"):
+        MpcSettings(split_keeps_rho=True)
+    with pytest.raises(InvalidSettings, match="split_keeps_rho"):
+        MpcSettings(change_split_iter=30, split_keeps_rho="yes")
+    assert MpcSettings().split_keeps_rho is False
