@@ -199,8 +199,9 @@ class MpcSettings:
             their rates until the filter in use has seen a response of the supply air (its dead-time estimate
             informed, :attr:`~.estimator.DisturbanceEkf.response_seen`) or ``start_caution_s`` (s) has passed: a
             stroke made before anything has shown a dead time becomes a ramp the filter and the dead-time estimate
-            can follow. 1.0 (the default): off. Measured with 0.4 and 10 s (sec. 2.23): the quick flow-out-of-reach
-            cells of the boxes whose start-up rang lower, heating cells higher; so not the default.
+            can follow. 1.0 (the default): off. Measured with 0.4 and 10 s (sec. 2.23): the quick box sweep's worst
+            cells (flow out of reach, 2.84 / 2.56 / 1.88) 0.60-0.63, its heating cells higher, the full built-in
+            bench's winter heating steps 0.675 -> 0.704; so not the default.
         steady_start: the QPs of a reference change (``rti``/``sqp``) start from the plan toward the new
             reference's steady-state target on the model with the estimator's disturbances (the inputs that hold
             it at rest, ramped to at the rate limits; :mod:`hvac_mpc.mpc.steady_target`) instead of the plan
