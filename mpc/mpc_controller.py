@@ -67,6 +67,7 @@ from .reserve import HeaterReserve
 from .reversal_damping import damped_move
 from .background import BackgroundCall, BackgroundWorker
 from .ring_gate import RingGate
+from .start_caution import StartCaution
 from .rti_osqp import RHO_RESET_ON, RtiOsqpSolver, SolveResult
 from .steady_target import check_steady_start_on
 from .temperature_reach import SaturatedTemperature
@@ -193,6 +194,14 @@ class MpcSettings:
             swing for ``ring_relax_s`` (s) the factor doubles every ``ring_relax_s`` back to 1. 1.0 (the
             default): off. Measured with 0.5 (sec. 2.12): the ringing boxes' heating cells lower, three cells
             of the quick suite higher; so not the default.
+        start_rate_share: the start-up's caution (:class:`~.start_caution.StartCaution`, docs/robustness.md sec.
+            2.23): from the controller's start (a reset) valve a's and the heater's moves are limited to this share of
+            their rates until the filter in use has seen a response of the supply air (its dead-time estimate
+            informed, :attr:`~.estimator.DisturbanceEkf.response_seen`) or ``start_caution_s`` (s) has passed: a
+            stroke made before anything has shown a dead time becomes a ramp the filter and the dead-time estimate
+            can follow. 1.0 (the default): off. Measured with 0.4 and 10 s (sec. 2.23): the quick box sweep's worst
+            cells (flow out of reach, 2.84 / 2.56 / 1.88) 0.60-0.63, its heating cells higher, the full built-in
+            bench's winter heating steps 0.675 -> 0.704; so not the default.
         steady_start: the QPs of a reference change (``rti``/``sqp``) start from the plan toward the new
             reference's steady-state target on the model with the estimator's disturbances (the inputs that hold
             it at rest, ramped to at the rate limits; :mod:`hvac_mpc.mpc.steady_target`) instead of the plan
@@ -322,6 +331,8 @@ class MpcSettings:
     ring_crossings: int = 3
     ring_floor: float = 0.05
     ring_relax_s: float = 30.0
+    start_rate_share: float = 1.0
+    start_caution_s: float = 10.0
     steady_start: bool = False
     choose_offset_placement: bool = True
     placement_q_heater_air_c: float = 0.01
@@ -428,6 +439,8 @@ class MpcSettings:
         check_number(f"{p}.ring_crossings", self.ring_crossings, 1, 100, integer=True)
         check_number(f"{p}.ring_floor", self.ring_floor, 0.0, 1.0, lo_open=True)
         check_number(f"{p}.ring_relax_s", self.ring_relax_s, self.dt_s, 3600.0)
+        check_number(f"{p}.start_rate_share", self.start_rate_share, 0.0, 1.0, lo_open=True)
+        check_number(f"{p}.start_caution_s", self.start_caution_s, 0.0, 600.0)
         check_number(f"{p}.valve_a_reversal_share", self.valve_a_reversal_share, 0.0, 1.0, lo_open=True)
         check_number(f"{p}.valve_a_reversal_min_pct", self.valve_a_reversal_min_pct, 0.0, 100.0)
         check_flag(f"{p}.choose_offset_placement", self.choose_offset_placement)
@@ -596,6 +609,7 @@ class MpcController:
         self.temp_reach = SaturatedTemperature(pb.i_heater_cmd, pb.i_valve_a, s.dt_s)
         self.ring = RingGate(s.ring_amplitude_c, s.ring_window_s, s.ring_crossings, s.ring_detune, s.ring_floor,
                              s.ring_relax_s, s.dt_s) if s.ring_detune < 1.0 else None
+        self.start_caution = StartCaution(s.start_rate_share, s.start_caution_s, s.dt_s)
         self.codegen = getattr(self.solver, "codegen", None) or CodegenReport()
         if s.codegen:
             self._compile_small_functions()
@@ -681,6 +695,7 @@ class MpcController:
         self.heater_bound.reset()
         if self.ring is not None:
             self.ring.reset()
+        self.start_caution.reset()
 
     def close(self) -> None:
         """End the reachable-flow solve's second thread (after the solve running on it; a split change's rest is
@@ -793,7 +808,7 @@ class MpcController:
         d = self._disturbance(setpoint)
         u_prev_s = self._scaled_prev()
         heater_c = float(self.ekf.x[pb.i_heater])
-        ring = self._ring_factor(measurement, ref)
+        ring = min(self._ring_factor(measurement, ref), self.start_caution.factor(self.ekf.response_seen))
         bounds = pb.command_bounds(self.u_prev, cap, heater_c)  # of the command, and folded into the QP's
         if ring < 1.0:
             bounds = self._ring_slowed(bounds, ring)
