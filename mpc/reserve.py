@@ -28,8 +28,12 @@ The reserve raises valve a's weight to ``Weights.valve_a_reserve_per_pct2`` only
   temperature, :func:`~.priorities.flow_weight_factor`).
 
 A change of the supply-temperature or total-flow reference ends the rest at once (an outlet-split change alone does
-not: it moves no heat), so every step is served with the default weight and the body's heat. That
-is what the same weight on valve a at all times (``valve_a_heating_per_pct2`` 3e-4) lacked: at the 12 -> 22 C step of
+not: it moves no heat), so every step up is served with the default weight and the body's heat. A step *down* while
+heating takes the reserve's weight (:func:`descending`) until the reading is within :data:`REST_BAND_C` of the new
+reference: the air must lose heat, and valve a closing is both the fast way and the way that keeps the body's heat, so
+the weight pulls the way tracking does (where the change's QPs, linearised at the plan for the old reference, leave
+valve a partly open, it closes it sooner). The default weight at every step up is what the same weight on valve a at
+all times (``valve_a_heating_per_pct2`` 3e-4) lacked: at the 12 -> 22 C step of
 the built-in bench's trapped_air_release the QP with the heavy valve-a weight reached OSQP's iteration cap for 28 s
 (the shifted plan applied, valve a at 2.5 %, the heater at 30 W, then the baseline's fallback), the step began late
 (trapped air 0.508 -> 0.68).
