@@ -28,8 +28,12 @@ The reserve raises valve a's weight to ``Weights.valve_a_reserve_per_pct2`` only
   temperature, :func:`~.priorities.flow_weight_factor`).
 
 A change of the supply-temperature or total-flow reference ends the rest at once (an outlet-split change alone does
-not: it moves no heat), so every step is served with the default weight and the body's heat. That
-is what the same weight on valve a at all times (``valve_a_heating_per_pct2`` 3e-4) lacked: at the 12 -> 22 C step of
+not: it moves no heat), so every step up is served with the default weight and the body's heat. A step *down* while
+heating takes the reserve's weight (:func:`descending`) until the reading is within :data:`REST_BAND_C` of the new
+reference: the air must lose heat, and valve a closing is both the fast way and the way that keeps the body's heat, so
+the weight pulls the way tracking does (where the change's QPs, linearised at the plan for the old reference, leave
+valve a partly open, it closes it sooner). The default weight at every step up is what the same weight on valve a at
+all times (``valve_a_heating_per_pct2`` 3e-4) lacked: at the 12 -> 22 C step of
 the built-in bench's trapped_air_release the QP with the heavy valve-a weight reached OSQP's iteration cap for 28 s
 (the shifted plan applied, valve a at 2.5 %, the heater at 30 W, then the baseline's fallback), the step began late
 (trapped air 0.508 -> 0.68).
@@ -65,6 +69,18 @@ REF_CHANGE_C = 0.05
 REF_CHANGE_M3S = 1e-5
 
 
+def descending(heating: bool, lowered: bool, was_descending: bool, excess_c: float) -> bool:
+    """Whether valve a takes the reserve's weight on a step down: the heater commanded, the supply-temperature
+    reference lowered (``lowered``: at this step; ``was_descending``: at an earlier one, no other change since) and
+    the reading still more than :data:`REST_BAND_C` above it (``excess_c``, K; NaN: no reading, not descending).
+
+    On a step down the air must lose heat, and closing valve a is both the fast way (the air bypasses the heater
+    body) and the way that keeps the body's heat: tracking and the reserve pull the same way, so the weight costs
+    the step nothing. It decides the first command of the step where the change's QPs have two plans of near-equal
+    cost (docs/identification.md 'The reserve on a step down')."""
+    return bool(heating and (lowered or was_descending) and excess_c > REST_BAND_C)
+
+
 @dataclass
 class HeaterReserve:
     """The reserve's gate: call :meth:`weight` once per controller step; it returns the valve-a weight of that
@@ -76,14 +92,20 @@ class HeaterReserve:
     _rest_s: float = 0.0
     _ref: tuple[float, float] | None = None
     _on: bool = False
+    _descent: bool = False
 
     def reset(self) -> None:
-        self._rest_s, self._ref, self._on = 0.0, None, False
+        self._rest_s, self._ref, self._on, self._descent = 0.0, None, False, False
 
     @property
     def on(self) -> bool:
-        """Whether the last step had the reserve's weight."""
+        """Whether the last step was at rest with the reserve's weight."""
         return self._on
+
+    @property
+    def descent(self) -> bool:
+        """Whether the last step had the reserve's weight on a step down (:func:`descending`)."""
+        return self._descent
 
     def weight(self, *, supply_ref_c: float, flow_ref_m3s: float, reading_c: float, heating: bool,
                heater_cmd_w: float, available_w: float, flow_factor: float, heater_power_w: float = math.nan,
@@ -94,8 +116,10 @@ class HeaterReserve:
         ref = (float(supply_ref_c), float(flow_ref_m3s))
         changed = self._ref is None or abs(ref[0] - self._ref[0]) > REF_CHANGE_C or \
             abs(ref[1] - self._ref[1]) > REF_CHANGE_M3S
+        lowered = self._ref is not None and ref[0] < self._ref[0] - REF_CHANGE_C
         self._ref = ref
         error = abs(reading_c - ref[0]) if math.isfinite(reading_c) and math.isfinite(ref[0]) else math.inf
+        self._descent = descending(heating, lowered, self._descent and not changed, reading_c - ref[0])
         band = LEAVE_BAND_C if self._on else REST_BAND_C
         # the box's heater draws less than its command: its body is past the PTC knee, as hot as is of use
         ptc_binding = math.isfinite(heater_power_w) and heater_power_w < heater_cmd_w - PTC_SHORTFALL_W
@@ -111,4 +135,4 @@ class HeaterReserve:
         self._on = self._rest_s >= REST_HOLD_S and room and flow_factor >= 1.0
         if not heating:
             return 0.0
-        return self.reserve_per_pct2 if self._on else self.heating_per_pct2
+        return self.reserve_per_pct2 if self._on or self._descent else self.heating_per_pct2

@@ -128,3 +128,26 @@ def test_on_the_literal_cooler_box_the_reserve_keeps_the_body_warm_for_the_step_
     assert not on_on[STEP_UP_S]  # the step up itself with the default weight
     assert body_on > body_off + 8.0, (body_on, body_off)
     assert iae_on < 0.6 * iae_off, (iae_on, iae_off)
+
+
+def test_a_step_down_while_heating_takes_the_reserve_weight_until_the_reading_is_near_the_reference():
+    """On a step down valve a closing is the fast way and keeps the body's heat: the reserve's weight, not the rest."""
+    gate = _gate()
+    for _ in range(int(REST_HOLD_S) + 1):
+        _step(gate, ref_c=15.0, reading_c=15.0)
+    assert gate.on
+    assert _step(gate, ref_c=11.0, reading_c=15.0) == RESERVE and gate.descent and not gate.on
+    assert _step(gate, ref_c=11.0, reading_c=12.0) == RESERVE  # still more than REST_BAND_C above
+    assert _step(gate, ref_c=11.0, reading_c=11.4) == HEATING and not gate.descent  # near it: the hold begins
+    assert _step(gate, ref_c=11.0, reading_c=12.0) == HEATING  # no new step down: it does not come back
+    assert _step(gate, ref_c=14.0, reading_c=12.0) == HEATING  # a step up never
+    _step(gate, ref_c=10.0, reading_c=12.0)
+    assert gate.descent
+    assert _step(gate, ref_c=10.0, reading_c=12.0, heating=False) == 0.0 and not gate.descent  # the heater off
+    assert _step(gate, ref_c=9.0, reading_c=9.3) == HEATING  # lowered with the reading already near it
+    assert _step(gate, ref_c=8.0, reading_c=float("nan")) == HEATING  # no reading
+    _step(gate, ref_c=7.0, reading_c=9.0)
+    assert _step(gate, ref_c=7.0, reading_c=9.0, cmd_w=100.0, flow_factor=1.0) == RESERVE
+    gate.weight(supply_ref_c=7.0, flow_ref_m3s=50.0 / 3600.0, reading_c=9.0, heating=True, heater_cmd_w=100.0,
+                available_w=240.0, flow_factor=1.0)
+    assert not gate.descent  # a flow change during the step down ends it
