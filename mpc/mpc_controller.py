@@ -224,8 +224,9 @@ class MpcSettings:
             2.15): where the sum of the filter in use (itself inconsistent, as above) exceeds the other's by more
             than this (normalised squares; twice the log-likelihood ratio of the two filters' innovations over the
             window), whatever their ratio. A start-up both filters are surprised by alike (each sample capped)
-            inflates both sums and so delays the ratio's switch, not the difference's. 100 (the default, with
-            ``placement_dead_time_hold_s`` 6, measured in docs/robustness.md sec. 2.16 and 2.18); inf: off.
+            inflates both sums and so delays the ratio's switch, not the difference's. 50 (the default since
+            docs/robustness.md sec. 2.24; 100 before, with ``placement_dead_time_hold_s`` 6, measured in sec. 2.16
+            and 2.18); inf: off.
         placement_from_response: forget both sums once, when the filter in use first sees a response of the
             supply air (its dead-time estimate informed, :attr:`~.estimator.DisturbanceEkf.response_seen`): what
             came before is a dead time not yet found, which surprises both filters alike and tells nothing of
@@ -340,7 +341,7 @@ class MpcSettings:
     placement_ratio: float = 0.6
     placement_evidence: float = 1.5
     placement_cap: float = 50.0
-    placement_margin: float = 100.0
+    placement_margin: float = 50.0
     placement_from_response: bool = True
     placement_warm_switch: bool = True
     placement_dead_time_hold_s: float = 6.0
