@@ -487,7 +487,8 @@ class DisturbanceEkf:
         self._own_idx = (np.array(self.i_own_p, int), np.array(self.i_own, int))  # model_parameters' copy, once
         self.i_outlet_offset = self.nc - 1 - len(own) if self.has_outlet_offset else None
         # the heat flow into the mixed air (EkfSettings.q_supply_heat_w), among the own states
-        self.i_heat = self.i_own[self.own_offsets.index("supply_heat_w")] if "supply_heat_w" in self.own_offsets else None
+        self.i_heat = (self.i_own[self.own_offsets.index("supply_heat_w")] if "supply_heat_w" in self.own_offsets
+                       else None)
         self.n_hist = int(round(s.dead_time_max_s / self.dt_s))
         self.nz = self.nc + self.n_hist  # ... and the history of the undelayed thermocouple state
         names = model.states.names
@@ -932,7 +933,7 @@ class DisturbanceEkf:
         direction that leaves the air at the flow in force as it is: the heat up by w, the mixed-air offset down by
         w / (m_dot c_p), so the heat's walk shapes only how the air changes with the flow and the level at a steady
         flow walks at the offset's rate, as in the plain filter. Without it the heat's walk adds to the level's (at 90
-        m3/h 1 W per sample is 0.037 degC, the offset's 0.015)."""
+        m3/h 1 W per sample is 0.033 degC, the offset's 0.015)."""
         i, j = self.i_heat, self.i_mix_offset
         g = self._heat_gain if self.settings.supply_heat_level_neutral else 0.0
         self.P[i, i] += var_w2
@@ -1179,8 +1180,8 @@ class DisturbanceEkf:
         return "cooler_outlet_offset_c" in self.own_offsets
 
     def own_offset_c(self, param: str) -> float:
-        """The estimate of model parameter ``param`` (one of :data:`OWN_OFFSETS`; degC, W for the heat flow), the parameter's own value
-        where the filter does not estimate it."""
+        """The estimate of model parameter ``param`` (one of :data:`OWN_OFFSETS`; degC, W for the heat flow), the
+        parameter's own value where the filter does not estimate it."""
         if param in self.own_offsets and self.z is not None:
             return float(self.z[self.i_own[self.own_offsets.index(param)]])
         return float(self.p[self.model.param_names.index(param)])
