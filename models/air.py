@@ -18,3 +18,10 @@ def flow_from_pressure_m3s(dp_pa, temp_c, p):
 def pressure_from_flow_pa(flow_m3s, temp_c, p):
     """Inverse of :func:`flow_from_pressure_m3s`: differential pressure in Pa."""
     return (flow_m3s / p.flow_sensor_c_m3s) ** 2 * density_kgm3(temp_c, p) / 1.2
+
+
+def heat_gain_c(heat_w, mass_flow_kgs, floor_kgs, p):
+    """Temperature rise (degC) of air of ``mass_flow_kgs`` (kg/s) taking ``heat_w`` (W): Q / (max(m_dot, floor) c_p).
+    ``floor_kgs`` (kg/s) guards the division where the flow is below what the blower can give
+    (:func:`~.blower.least_mass_flow_kgs`)."""
+    return heat_w / (ca.fmax(mass_flow_kgs, floor_kgs) * p.cp_air_j_per_kgk)

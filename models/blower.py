@@ -4,10 +4,20 @@ from __future__ import annotations
 
 import casadi as ca
 
+from . import air
+
 
 def open_flow_m3s(blower_power_w, p):
     """Volume flow with all valves open and full bypass, V = k P_b (ASSUMPTION, fig. 20 stand-in)."""
     return p.flow_per_watt_m3s_per_w * blower_power_w
+
+
+def least_mass_flow_kgs(inlet_temp_c, p):
+    """The least mass flow the blower gives (kg/s): its least power, all air across the core (the core's flow loss in
+    full), at the inlet air's density. ASSUMPTION: the valves open (a closed outlet lowers it further; the model's
+    flow offset can too), so it is a floor for a division by the flow, not a bound on the model's flow."""
+    return (air.density_kgm3(inlet_temp_c, p) * open_flow_m3s(p.blower_power_min_w, p)
+            * (1.0 - p.core_flow_loss))
 
 
 def core_flow_factor(bypass, p):

@@ -191,7 +191,9 @@ class HvacModel:
         t_mix = bypass.mix_c(b, t_blower, t_heater_air)
         if "trapped_air" in e:
             t_mix = t_mix + bypass.trap_release_c(sx[TRAP_STATE], t_mix, a, mass_flow, prm)
-        t_supply = t_mix + sd["mix_offset_c"]
+        # a heat flow into the mixed air (0 in the thesis model; the estimator's own, docs/robustness.md sec. 2.22)
+        t_supply = t_mix + sd["mix_offset_c"] + air.heat_gain_c(
+            prm.supply_heat_w, mass_flow, blower.least_mass_flow_kgs(t_in, prm), prm)
         if self.terms:
             t_supply = t_supply + terms_at(self.terms, "supply_air", dict(
                 t_mix=t_mix, t_in=t_in, t_blower=t_blower, t_water=sx["water_temp_c"], mass_flow=mass_flow,

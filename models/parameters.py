@@ -127,6 +127,10 @@ class Parameters:
     heater_air_offset_c: float = _p(
         0.0, "ASSUMPTION none: an offset of the air leaving the heater as it mixes and is read (not as the heater body "
         "sees it), the estimator's own (docs/robustness.md sec. 2.13)", -30, 30)
+    supply_heat_w: float = _p(
+        0.0, "ASSUMPTION none: a heat flow (W) into the mixed air on its way to the thermocouple (a duct's gain from "
+        "the cabin, negative for a loss), its effect on the air that over the mass flow times c_p; the estimator's "
+        "own (docs/robustness.md sec. 2.22)", -2000, 2000)
 
     # --- measured tables (thesis tables 3-5): angle %, resistance kg/m^7 -------------
     valve_m_table: tuple = field(default=(

@@ -47,6 +47,11 @@ makes of it; the prediction uses the estimates (docs/robustness.md sec. 2.13). W
 own offset and the heater air's the prediction uses is chosen online by the controller, a filter of each compared by
 their supply innovations (:attr:`DisturbanceEkf.supply_nis`, :mod:`~.placement`, sec. 2.14).
 
+Heat into the supply air (``EkfSettings.q_supply_heat_w``): a heat flow (W) into the mixed air, a state of the filter
+in place of the model's parameter ``supply_heat_w``, whose effect on the air the model divides by its mass flow: a
+duct's gain from the cabin steps the needed offset at every flow change, which the heat flow does by itself
+(docs/robustness.md sec. 2.22).
+
 Chiller water (``water_prediction``): ``"hold"`` treats the water temperature as a random walk
 (the chiller's two-point switching is unknown to the model, thesis sec. 2.2); ``"setpoint"``
 lets it ramp towards the chiller set point as in the model (thesis sec. 4.2).
@@ -60,6 +65,7 @@ from dataclasses import dataclass, fields
 import casadi as ca
 import numpy as np
 
+from hvac_mpc.models import air as air_props, blower
 from hvac_mpc.models.box import HvacModel, rk4
 from hvac_mpc.contract import Measurement
 
@@ -84,7 +90,8 @@ OWN_RANGES = {"bypass_flow_after_s": (0.0, 3600.0), "motor_sd_after_response_c":
               "r_supply_rest_c": (0.0, 100.0), "rest_window_s": (1.0, 3600.0), "rest_air_band_c": (0.0, 100.0),
               "rest_log_flow_band": (0.0, 10.0), "rest_offset_band_c": (0.0, 100.0),
               "response_wait_c": (0.0, 10.0), "response_wait_share": (0.01, 1.0), "response_wait_flat_c": (0.0, 10.0),
-              "response_wait_rearm_s": (0.0, 3600.0), "q_mix_offset_per_air_change": (0.0, 1.0)}
+              "response_wait_rearm_s": (0.0, 3600.0), "q_mix_offset_per_air_change": (0.0, 1.0),
+              "q_supply_heat_w": (0.0, 100.0), "supply_heat_sd0_w": (1.0, 1000.0)}
 #: Settings that shape the learning of the bypass-flow exponent and do nothing without ``learn_bypass_flow``
 #: (field -> its value that leaves learning as it is).
 BYPASS_FLOW_LEARNING_GATES = {"bypass_flow_anchored": False, "bypass_flow_after_response": False,
@@ -95,8 +102,9 @@ BYPASS_FLOW_LEARNING_GATES = {"bypass_flow_anchored": False, "bypass_flow_after_
 #: 5-7 percentage points of valve a (about 0.25 degC per point), the valve's bound in the measured setting.
 REST_HEATER_TOL_W = 50.0
 #: Offsets of the model's air the filter may estimate in place of its parameters: setting (the random walk, 0: not
-#: estimated) -> parameter (docs/robustness.md sec. 2.13).
-OWN_OFFSETS = (("q_cooler_offset_c", "cooler_outlet_offset_c"), ("q_heater_air_offset_c", "heater_air_offset_c"))
+#: estimated) -> parameter (docs/robustness.md sec. 2.13); the last a heat flow into the mixed air (W, sec. 2.22).
+OWN_OFFSETS = (("q_cooler_offset_c", "cooler_outlet_offset_c"), ("q_heater_air_offset_c", "heater_air_offset_c"),
+               ("q_supply_heat_w", "supply_heat_w"))
 #: Standard deviation (degC) of those offsets at the start. ASSUMPTION: as the heater outlet reading's offset's.
 OWN_OFFSET_SD0_C = 1.0
 #: No wait for a predicted response (``EkfSettings.response_wait_c``) within this long after the filter starts (s):
@@ -156,6 +164,23 @@ class EkfSettings:
     the model predicts, so the offset has to step by that share of the move, which its random walk follows slowly.
     Only once the dead-time estimate has seen a response, as the flow's. ASSUMPTION: the share is the model's gain
     uncertainty (0.1: a tenth of a predicted change may be wrong). A setting, off (docs/robustness.md sec. 2.20).
+
+    ``q_supply_heat_w``: random walk (W per sample) of a heat flow into the mixed air on its way to the thermocouple,
+    the filter's own value of ``Parameters.supply_heat_w`` (0: none, the default; in [0, 100]), beside the mixed-air
+    offset: its effect on the air is the heat over the model's mass flow times c_p (the flow held at least at the
+    blower's least, :func:`~hvac_mpc.models.blower.least_mass_flow_kgs`), so a constant heat gain (a duct's from the
+    cabin, a loss on the heater's side) gives the right offset at every flow without the estimate moving, where an
+    offset in degC has to step at each flow change. At a steady flow the two are one to the readings; a flow change
+    tells them apart. The prediction takes the estimate (:meth:`DisturbanceEkf.model_parameters`), so the MPC
+    predicts a planned flow change with it. The heat is held at the parameter's value (no variance, no walk) until
+    the dead-time estimate has seen a response and a dead time is honoured, or ``dead_time_window_s`` after the first
+    response where none is (:meth:`DisturbanceEkf._release_heat`: before, a late response looks like a heat).
+    ``supply_heat_sd0_w``: its standard deviation when released (W, in [1, 1000]). ``supply_heat_level_neutral``:
+    its variance (release and walk) along the direction that leaves the air at the flow in force as it is, the
+    offset taking minus the heat's effect, so at a steady flow the filter's level walks as the plain one's (off: the
+    heat's walk adds to the level's). ASSUMPTIONS: the heat does not depend on the air's temperature (a duct's gain
+    UA (T_cabin - T_air) does; the mixed-air offset takes that part); 5 W at the release (0.2 degC at 90 m3/h).
+    A setting, off: measured with 2 W per sample in docs/robustness.md sec. 2.22.
 
     ``q_heater_outlet_offset_c``: random walk (degC per sample) of an offset of the heater outlet
     reading, its own integrating disturbance (0: none). Without it a persistent error of that reading
@@ -320,6 +345,9 @@ class EkfSettings:
     q_mix_offset_per_log_flow_c: float = 0.0
     q_mix_offset_flow_deadband: float = 0.0
     q_mix_offset_per_air_change: float = 0.0
+    q_supply_heat_w: float = 0.0
+    supply_heat_sd0_w: float = 5.0
+    supply_heat_level_neutral: bool = False
     q_flow_offset_m3s: float = 3e-5
     q_inlet_c: float = 0.01
     r_supply_c: float = 0.05
@@ -375,7 +403,7 @@ class EkfSettings:
                 check_state_names(f"{prefix}.{f.name}", value)
                 continue
             if f.name in ("use_heater_outlet", "learn_bypass_flow", "bypass_flow_anchored", "bound_motor_rise",
-                          "reanchor_before_response", "response_wait_unseen_only",
+                          "reanchor_before_response", "response_wait_unseen_only", "supply_heat_level_neutral",
                           "bypass_flow_after_response", "bypass_flow_commit_at_rest", "bypass_flow_at_rest"):
                 check_flag(f"{prefix}.{f.name}", value)
                 continue
@@ -458,6 +486,9 @@ class DisturbanceEkf:
         self.i_own = list(range(self.nc - len(own), self.nc))
         self._own_idx = (np.array(self.i_own_p, int), np.array(self.i_own, int))  # model_parameters' copy, once
         self.i_outlet_offset = self.nc - 1 - len(own) if self.has_outlet_offset else None
+        # the heat flow into the mixed air (EkfSettings.q_supply_heat_w), among the own states
+        self.i_heat = (self.i_own[self.own_offsets.index("supply_heat_w")] if "supply_heat_w" in self.own_offsets
+                       else None)
         self.n_hist = int(round(s.dead_time_max_s / self.dt_s))
         self.nz = self.nc + self.n_hist  # ... and the history of the undelayed thermocouple state
         names = model.states.names
@@ -472,7 +503,8 @@ class DisturbanceEkf:
         q = [q_state[n] for n in names] + [min(self._q_mix), s.q_flow_offset_m3s, s.q_inlet_c]
         q += [s.q_bypass_flow_exponent] * int(self.learns_bypass_flow) + [0.0] * int(self.anchors_bypass_flow)
         q += [s.q_heater_outlet_offset_c] * int(self.has_outlet_offset)
-        q += [q_own for _, q_own in own] + [HIST_Q_C] * self.n_hist
+        # the heat flow's walk is added once released (accept_prediction, _release_heat), not held in Q
+        q += [0.0 if param == "supply_heat_w" else q_own for param, q_own in own] + [HIST_Q_C] * self.n_hist
         self.Q = np.diag(np.square(q))
         # the prior stands for a dead time the parameters do not name: none where they name one
         self.dead_time_prior_s = s.dead_time_prior_s if model.params.transport_delay_s <= 0.0 else 0.0
@@ -533,6 +565,9 @@ class DisturbanceEkf:
         self._last_air_c: float | None = None  # the model's mixed air at the last time update (degC)
         self.learning = False  # the bypass-flow exponent's gate: the flow moves
         self._motor_released = False  # the motor rise's variance raised once a response was seen
+        self._heat_released = False  # the heat flow into the mixed air estimated (_release_heat)
+        self._heat_seen_at_s: float | None = None  # when the heat's release first saw a response
+        self._heat_gain = 0.0  # the heat's effect on the air at the last time update's flow (degC per W)
         self._honoured_lag: float | None = None  # the dead time (samples) honoured at the last re-anchor
         self._hold_until_s = 0.0  # the shadowed states are re-anchored every sample until then (reanchor_hold_s)
         self._seen_at_s: float | None = None  # when the dead-time estimate first saw a response
@@ -727,18 +762,31 @@ class DisturbanceEkf:
         mass_flow = y["mass_flow_kgs"] * flow / max(y["volume_flow_m3s"], 1e-6)  # the measured flow's
         anchor = [math.log(max(mass_flow, 1e-5))] * int(self.anchors_bypass_flow)
         outlet = [0.0] * int(self.has_outlet_offset)
-        own = [float(self.p[i]) for i in self.i_own_p]  # the offsets of OWN_OFFSETS start at the parameters' values
+        own = [float(self.p[i]) for i in self.i_own_p]  # the states of OWN_OFFSETS start at the parameters' values
         self.z = np.concatenate([self.z[:self.i_inlet + 1], exponent, anchor, outlet, own,
                                  self.z[self.i_inlet + 1:]])
         sd = [p0[n] for n in m.states.names] + [0.5, 2e-3, 0.1]
         sd += [s.bypass_flow_exponent_sd] * len(exponent)
         sd += [0.0] * len(anchor)
-        sd += [1.0] * len(outlet) + [OWN_OFFSET_SD0_C] * len(own) + [0.1] * self.n_hist
+        sd += [1.0] * len(outlet) + [self._own_sd0(param) for param in self.own_offsets] + [0.1] * self.n_hist
         self.P = np.diag(np.square(sd))
         self._restart()
         if self.shadow is not None:
             self.shadow.start(x)
             self._sd0 = np.array(sd)[self.shadow.idx]
+
+    @staticmethod
+    def _own_sd0(param: str) -> float:
+        """Standard deviation at the start of the filter's own value of model parameter ``param`` (:data:`OWN_OFFSETS`):
+        :data:`OWN_OFFSET_SD0_C` (degC) for an offset; 0 for the heat flow into the mixed air, held at the parameter's
+        value until a response is seen (:meth:`_release_heat`)."""
+        return 0.0 if param == "supply_heat_w" else OWN_OFFSET_SD0_C
+
+    @property
+    def supply_heat_w(self) -> float:
+        """The heat flow into the mixed air the filter's model uses (W; ``EkfSettings.q_supply_heat_w``): the estimate,
+        or the parameter's value where it is not estimated."""
+        return self.own_offset_c("supply_heat_w")
 
     def use_functions(self, predict_fn, update_fn) -> None:
         """Evaluate the time and measurement updates with these functions (the same signatures as
@@ -782,6 +830,10 @@ class DisturbanceEkf:
         air_c, flow_m3s = float(air[0]), float(flow[0])
         self.P[self.i_mix_offset, self.i_mix_offset] += (q_mix * q_mix - self._q_mix_in_q + self._flow_step_var(flow_m3s)
                                                           + self._air_step_var(air_c))
+        if self.i_heat is not None:
+            self._heat_gain = self._heat_effect_c_per_w(flow_m3s)
+            if self._heat_released:  # the heat flow's walk (EkfSettings.q_supply_heat_w)
+                self._add_heat_variance(self.settings.q_supply_heat_w ** 2)
         if self.n_hist:
             self.dead_time.push_air(air_c)
         if self.rest_gate is not None:
@@ -850,6 +902,45 @@ class DisturbanceEkf:
         self.P[i, i] = max(self.P[i, i], sd * sd)
         self._motor_released = True
 
+    def _release_heat(self, weights: np.ndarray) -> None:
+        """Once the dead-time estimate has seen a response and the reading is compared at a dead time honoured
+        (``weights`` off the reading now), or ``dead_time_window_s`` after the first response where none is honoured
+        (a box without a dead time beyond the model's; at once without the dead-time handling), give the heat flow
+        into the mixed air (``EkfSettings.q_supply_heat_w``) its standard deviation ``supply_heat_sd0_w`` and its
+        walk. Before, a late response looks like a heat: at the start-up's moves it wound up (a box with a 3.5 s dead
+        time: -120 then +350 W in 35 s, -175 W released at the first response, against the box's +18 W), and what it
+        took came back as an error at the next flow change."""
+        if self._heat_released or self.i_heat is None or not self.response_seen:
+            return
+        if self._heat_seen_at_s is None:
+            self._heat_seen_at_s = self._age_s
+        waited = self._age_s - self._heat_seen_at_s >= self.settings.dead_time_window_s
+        if self.n_hist and weights is self.c_now and not waited:
+            return
+        self._add_heat_variance(self.settings.supply_heat_sd0_w ** 2)
+        self._heat_released = True
+
+    def _heat_effect_c_per_w(self, flow_m3s: float) -> float:
+        """The heat flow's effect on the model's air per W (degC/W), 1 / (m_dot c_p) at the model's volume flow
+        ``flow_m3s`` and the inlet air's density, the mass flow held at the blower's least (as the model's,
+        :func:`~hvac_mpc.models.air.heat_gain_c`)."""
+        prm, t_in = self.model.params, float(self.z[self.i_inlet])
+        mass_flow = float(air_props.density_kgm3(t_in, prm)) * flow_m3s
+        return float(air_props.heat_gain_c(1.0, mass_flow, blower.least_mass_flow_kgs(t_in, prm), prm))
+
+    def _add_heat_variance(self, var_w2: float) -> None:
+        """Variance ``var_w2`` (W^2) for the heat flow; with ``EkfSettings.supply_heat_level_neutral`` along the
+        direction that leaves the air at the flow in force as it is: the heat up by w, the mixed-air offset down by
+        w / (m_dot c_p), so the heat's walk shapes only how the air changes with the flow and the level at a steady
+        flow walks at the offset's rate, as in the plain filter. Without it the heat's walk adds to the level's (at 90
+        m3/h 1 W per sample is 0.033 degC, the offset's 0.015)."""
+        i, j = self.i_heat, self.i_mix_offset
+        g = self._heat_gain if self.settings.supply_heat_level_neutral else 0.0
+        self.P[i, i] += var_w2
+        self.P[j, j] += var_w2 * g * g
+        self.P[i, j] -= var_w2 * g
+        self.P[j, i] -= var_w2 * g
+
     def _decorrelate(self, i: int) -> None:
         """Drop the correlations of filter state ``i`` with the others (its variance kept)."""
         keep = self.P[i, i]
@@ -903,6 +994,7 @@ class DisturbanceEkf:
             self._move_anchor(u, setpoint_c)
         self._release_motor()
         weights = self._supply_weights(values[0], ok[0])
+        self._release_heat(weights)
         if ok[0] and self._response_due(values[0], weights):
             ok[0] = False  # the reading left out while the response the model made is still to show
         if self.shadow is not None:
@@ -1088,8 +1180,8 @@ class DisturbanceEkf:
         return "cooler_outlet_offset_c" in self.own_offsets
 
     def own_offset_c(self, param: str) -> float:
-        """The estimate of model parameter ``param`` (one of :data:`OWN_OFFSETS`; degC), the parameter's own value
-        where the filter does not estimate it."""
+        """The estimate of model parameter ``param`` (one of :data:`OWN_OFFSETS`; degC, W for the heat flow), the
+        parameter's own value where the filter does not estimate it."""
         if param in self.own_offsets and self.z is not None:
             return float(self.z[self.i_own[self.own_offsets.index(param)]])
         return float(self.p[self.model.param_names.index(param)])

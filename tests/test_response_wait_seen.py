@@ -12,15 +12,12 @@ sequence, the baseline's IAE not needed) about 5 s.
 import numpy as np
 import pytest
 
-from ekf_helpers import feed_open_loop
-from hvac_mpc.benchmarks import bench, mismatch_suite, scenarios, simulate
-from hvac_mpc.benchmarks.box_sweep import draw_boxes
-from hvac_mpc.benchmarks.plant_seam import build_plant
+from ekf_helpers import feed_open_loop, quick_proband_on_sweep_box
 from hvac_mpc.contract import Command
 from hvac_mpc.mismatch import Variant, make_plant
 from hvac_mpc.models import HvacModel, Parameters
 from hvac_mpc.mpc.estimator import DisturbanceEkf, EkfSettings
-from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
+from hvac_mpc.mpc.mpc_controller import MpcSettings
 from hvac_mpc.mpc.ocp import InvalidSettings
 
 HOLD_S = 40
@@ -76,18 +73,7 @@ def test_on_by_default_and_checked():
 
 def proband_on_s0_8(unseen_only: bool):
     """The quick proband sequence on box S0-8 of the seeded sweep, the MPC with or without the setting."""
-    label, variant = draw_boxes(0, 9)[8]
-    assert label == "S0-8"
-    sc = scenarios.proband_sequence().quick()
-    settings = MpcSettings(initial_command=sc.initial_command, deadline_s=bench.DETERMINISTIC_DEADLINE_S,
-                           ekf=EkfSettings(response_wait_unseen_only=unseen_only))
-    plant = build_plant(mismatch_suite.variant_factory(variant), simulate.plant_seed(0, sc.seed), bench.DT_S,
-                        name=label)
-    trace = simulate.simulate(sc, MpcController(Parameters(), settings), Parameters(), 0, dt_s=bench.DT_S,
-                              plant=plant)
-    sl = trace.time_s >= sc.metrics_start_s
-    iae = float(np.abs(trace.truth["supply_temp_c"][sl] - trace.reference["supply_temp_c"][sl]).sum() * trace.dt_s)
-    return iae, trace
+    return quick_proband_on_sweep_box("S0-8", EkfSettings(response_wait_unseen_only=unseen_only))
 
 
 def test_s0_8_proband_loses_less_without_the_waits_after_the_dead_time():
