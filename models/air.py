@@ -20,8 +20,13 @@ def pressure_from_flow_pa(flow_m3s, temp_c, p):
     return (flow_m3s / p.flow_sensor_c_m3s) ** 2 * density_kgm3(temp_c, p) / 1.2
 
 
+#: The least mass flow (kg/s) any division by the flow is held at, whatever the parameters (a blower's least power
+#: of 0 W gives a floor of 0). ASSUMPTION: a guard only, 0.3 m3/h, far below any flow the box gives.
+MIN_MASS_FLOW_KGS = 1e-4
+
+
 def heat_gain_c(heat_w, mass_flow_kgs, floor_kgs, p):
     """Temperature rise (degC) of air of ``mass_flow_kgs`` (kg/s) taking ``heat_w`` (W): Q / (max(m_dot, floor) c_p).
     ``floor_kgs`` (kg/s) guards the division where the flow is below what the blower can give
-    (:func:`~.blower.least_mass_flow_kgs`)."""
-    return heat_w / (ca.fmax(mass_flow_kgs, floor_kgs) * p.cp_air_j_per_kgk)
+    (:func:`~.blower.least_mass_flow_kgs`), itself held at :data:`MIN_MASS_FLOW_KGS` at least."""
+    return heat_w / (ca.fmax(mass_flow_kgs, ca.fmax(floor_kgs, MIN_MASS_FLOW_KGS)) * p.cp_air_j_per_kgk)

@@ -424,6 +424,17 @@ class EkfSettings:
             check_number(f"{prefix}.{f.name}", value, 0.0, 100.0 if f.name != "dead_time_window_s" else 3600.0,
                          lo_open=True)
         self._validate_bypass_flow(prefix)
+        self._validate_supply_heat(prefix)
+
+    def _validate_supply_heat(self, prefix: str) -> None:
+        """The heat flow's shape settings only with the heat flow on (``q_supply_heat_w`` > 0)."""
+        if self.q_supply_heat_w > 0.0:
+            return
+        for name, inert in (("supply_heat_sd0_w", 5.0), ("supply_heat_level_neutral", False)):
+            value = getattr(self, name)
+            if value != inert:
+                raise InvalidSettings(f"{prefix}.{name} = {value!r} shapes the heat flow into the mixed air and needs "
+                                      f"{prefix}.q_supply_heat_w > 0 (else leave it at {inert!r})")
 
     def _validate_bypass_flow(self, prefix: str) -> None:
         """The exponent's range before the prior within it; the learning's gates only with the learning."""

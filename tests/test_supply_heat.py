@@ -77,9 +77,10 @@ def test_a_heat_flow_follows_a_duct_gain_across_flow_steps():
 
 
 def test_the_heat_s_effect_is_over_the_mass_flow_held_at_the_blower_s_least():
-    """The model's supply air takes Q / (m_dot c_p); at the blower's least power the model's flow is never below the
-    floor (valve a anywhere), which it reaches with all air across the core, so the guard changes nothing within the
-    blower's range; below it (a flow offset) the floor holds the effect finite."""
+    """The model's supply air takes Q / (m_dot c_p); at the blower's least power with the outlets open the model's flow
+    is never below the floor (valve a anywhere), which it reaches with all air across the core, so the guard changes
+    nothing there; below it (a flow offset; nearly closed outlets with ``fan_curve``, docs/model.md) the floor holds
+    the effect finite. A least power of 0 W (a floor of 0) keeps the model finite at zero flow."""
     p = Parameters()
     with_heat = p.replace(supply_heat_w=50.0)
     model, heated = HvacModel(p), HvacModel(with_heat)
@@ -98,6 +99,12 @@ def test_the_heat_s_effect_is_over_the_mass_flow_held_at_the_blower_s_least():
     d = model.d_vector(20.0, 5.0, flow_offset_m3s=-0.1)  # a flow offset beyond the blower's flow: no division by 0
     y = heated.outputs.dict(heated.y(x, u, d))
     assert np.isfinite(y["supply_air_temp_c"])
+    zero = HvacModel(p.replace(blower_power_min_w=0.0))
+    u0 = Command(0.0, 200.0, 50.0, 100.0, 100.0, 100.0).vector()
+    d0 = zero.d_vector(20.0, 5.0)
+    x0 = zero.steady_state(Command(30.0, 200.0, 50.0, 100.0, 100.0, 100.0).vector(), d0)
+    assert np.all(np.isfinite(zero.y(x0, u0, d0)))
+    assert np.all(np.isfinite(np.asarray(zero.step(x0, u0, d0, zero.p_vector()))))
 
 
 def test_off_by_default_and_checked():
@@ -106,6 +113,10 @@ def test_off_by_default_and_checked():
                        ("supply_heat_sd0_w", 0.5), ("supply_heat_sd0_w", 2000.0)):
         with pytest.raises(InvalidSettings, match=f"ekf.{field}"):
             MpcSettings(ekf=EkfSettings(**{field: bad}))
+    for field, value in (("supply_heat_sd0_w", 10.0), ("supply_heat_level_neutral", True)):  # inert without the heat
+        with pytest.raises(InvalidSettings, match=f"ekf.{field} = .* needs MpcSettings.ekf.q_supply_heat_w > 0"):
+            MpcSettings(ekf=EkfSettings(**{field: value}))
+        MpcSettings(ekf=EkfSettings(q_supply_heat_w=1.0, **{field: value}))
 
 
 def test_the_state_only_with_the_setting():
