@@ -60,7 +60,9 @@ lets it ramp towards the chiller set point as in the model (thesis sec. 4.2).
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, fields
+from typing import Any
 
 import casadi as ca
 import numpy as np
@@ -97,6 +99,9 @@ OWN_RANGES = {"bypass_flow_after_s": (0.0, 3600.0), "motor_sd_after_response_c":
 BYPASS_FLOW_LEARNING_GATES = {"bypass_flow_anchored": False, "bypass_flow_after_response": False,
                               "bypass_flow_after_s": 0.0, "bypass_flow_commit_at_rest": False,
                               "bypass_flow_at_rest": False}
+#: Settings that shape the heat flow into the mixed air and do nothing without ``q_supply_heat_w`` (field -> its value
+#: that leaves the heat flow as it is).
+SUPPLY_HEAT_SHAPES = {"supply_heat_sd0_w": 5.0, "supply_heat_level_neutral": False}
 #: Largest change of the heater command (W) across a flow step that still counts for the exponent fitted at rest
 #: (``EkfSettings.bypass_flow_at_rest``). ASSUMPTION: 50 W move the supply air about 1.7 degC at 90 m3/h, as much as
 #: 5-7 percentage points of valve a (about 0.25 degC per point), the valve's bound in the measured setting.
@@ -428,13 +433,18 @@ class EkfSettings:
 
     def _validate_supply_heat(self, prefix: str) -> None:
         """The heat flow's shape settings only with the heat flow on (``q_supply_heat_w`` > 0)."""
-        if self.q_supply_heat_w > 0.0:
-            return
-        for name, inert in (("supply_heat_sd0_w", 5.0), ("supply_heat_level_neutral", False)):
+        if self.q_supply_heat_w <= 0.0:
+            self._refuse_inert(prefix, SUPPLY_HEAT_SHAPES, "the heat flow into the mixed air",
+                               f"{prefix}.q_supply_heat_w > 0")
+
+    def _refuse_inert(self, prefix: str, gates: Mapping[str, Any], what: str, needs: str) -> None:
+        """Refuse a setting of ``gates`` (field -> its inert value) moved off its inert value while the setting it
+        shapes (``what``) is off (``needs``: what turns it on), naming the field."""
+        for name, inert in gates.items():
             value = getattr(self, name)
             if value != inert:
-                raise InvalidSettings(f"{prefix}.{name} = {value!r} shapes the heat flow into the mixed air and needs "
-                                      f"{prefix}.q_supply_heat_w > 0 (else leave it at {inert!r})")
+                raise InvalidSettings(f"{prefix}.{name} = {value!r} shapes {what} and needs {needs} (else leave it "
+                                      f"at {inert!r})")
 
     def _validate_bypass_flow(self, prefix: str) -> None:
         """The exponent's range before the prior within it; the learning's gates only with the learning."""
@@ -449,13 +459,9 @@ class EkfSettings:
         if self.learn_bypass_flow and self.bypass_flow_at_rest and not self.bypass_flow_anchored:
             raise InvalidSettings(f"{prefix}.bypass_flow_at_rest = True needs {prefix}.bypass_flow_anchored = True "
                                   "(the offset takes a flow step's whole change only with the split anchored)")
-        if self.learn_bypass_flow:
-            return
-        for name, inert in BYPASS_FLOW_LEARNING_GATES.items():
-            value = getattr(self, name)
-            if value != inert:
-                raise InvalidSettings(f"{prefix}.{name} = {value!r} shapes the learning of the bypass-flow exponent "
-                                      f"and needs {prefix}.learn_bypass_flow = True (else leave it at {inert!r})")
+        if not self.learn_bypass_flow:
+            self._refuse_inert(prefix, BYPASS_FLOW_LEARNING_GATES, "the learning of the bypass-flow exponent",
+                               f"{prefix}.learn_bypass_flow = True")
 
 
 class DisturbanceEkf:
