@@ -958,7 +958,8 @@ class RtiOsqpSolver:
         self.u[self._r_u_rows] = u_hi.ravel()
         # a change's QPs capped (with split_every_step any step's); finish_change goes on
         split = (changed or self.split_every_step) and not cold and self.change_split_iter > 0
-        rho = self._core.rho if split else None  # OSQP's step size before the capped QPs, for finish_change
+        # OSQP's step size before the capped QPs, for finish_change to restore (split_keeps_rho only)
+        rho = self._core.rho if split and self.split_keeps_rho else None
         z, status, iterations, solves, qp_prep, inexact, fraction = self._solve_qps(
             x0, u_prev, d, ref, w_y, u_lo, u_hi, max_qps, restart=changed and self.restart_duals_on_change,
             t0=t0, time_limit_s=time_limit_s, cap=self.change_split_iter if split else 0)
