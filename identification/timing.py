@@ -57,6 +57,10 @@ def detect_shift(measured_flow: np.ndarray, predicted_flow: np.ndarray) -> tuple
     return 0, errors
 
 
+#: Logged columns that are sensor readings besides the model's outputs: they move with the outputs.
+SENSOR_SIGNALS = ("water_temp_c", "hvac_inlet_temp_c", "cabin_temp_c", "heater_outlet_temp_c", "heater_power_w")
+
+
 def correct(log: LogData, s: int) -> None:
     """Move the sensor columns of ``log`` back by ``s`` samples in place (outputs, water, inlet, cabin and their
     signals), then drop the ``|s|`` rows at the end (s > 0) or the start (s < 0) whose sensor values ran out: no row
@@ -73,10 +77,6 @@ def correct(log: LogData, s: int) -> None:
             log.signals[name] = shifted(log.signals[name], s)
     _keep_rows(log, slice(0, -s) if s > 0 else slice(-s, None))
     log.timing_shift_samples = s
-
-
-#: Logged columns that are sensor readings besides the model's outputs: they move with the outputs.
-SENSOR_SIGNALS = ("water_temp_c", "hvac_inlet_temp_c", "cabin_temp_c", "heater_outlet_temp_c", "heater_power_w")
 
 
 def _keep_rows(log: LogData, rows: slice) -> None:
