@@ -238,6 +238,7 @@ def test_progress_bar_in_a_terminal_redraws_one_line():
 
 
 # ---------------------------------------------------------------------------- end to end
+@pytest.mark.slow
 def test_cli_quick_scenario_end_to_end(tmp_path, capsys):
     pytest.importorskip("matplotlib", reason="the plots need the 'plot' extra; the rest is tested without it")
     out = tmp_path / "bench"

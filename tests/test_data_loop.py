@@ -460,6 +460,7 @@ def test_mpc_with_the_duct_loss_term_tracks_the_box_with_the_loss_better():
     assert better["flow_iae_m3"] < 1.3 * nominal["flow_iae_m3"], (better, nominal)
 
 
+@pytest.mark.slow
 def test_mpc_with_a_heater_body_term_tracks_the_box_with_the_wall_loss_better():
     """A term at a place the library has no parameter for: the independent box's heater body loses 0.3 W/K to the box
     walls (hvac_mpc.mismatch ``heater_wall_loss``), and the MPC with the ``heater_body`` term identification adds for

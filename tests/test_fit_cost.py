@@ -173,6 +173,7 @@ def test_the_training_likelihood_and_a_terms_coefficients_from_training_rows_are
     assert short.coefficients != term.coefficients
 
 
+@pytest.mark.slow
 def test_identify_runs_the_linear_algebra_on_one_thread_and_gives_the_threads_back(tmp_path):
     threadpoolctl = pytest.importorskip("threadpoolctl", reason="threadpoolctl comes with scikit-learn "
                                                                 "(pip install 'hvac-mpc[discovery]')")

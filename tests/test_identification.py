@@ -47,6 +47,7 @@ def identified(tmp_path_factory, variant: str, discover: bool = True):
     return _CACHE[key]
 
 
+@pytest.mark.slow
 def test_slow_thermocouple_is_found_named_and_halves_the_held_out_error(tmp_path_factory):
     res = identified(tmp_path_factory, "tc_slow")
     assert [a.name for a in res.accepted] == ["sensor_lag"] and res.terms == ()
@@ -59,6 +60,7 @@ def test_slow_thermocouple_is_found_named_and_halves_the_held_out_error(tmp_path
     assert res.params.tau_tc_s == pytest.approx(TC_SLOW_TAU_S, rel=0.15)
 
 
+@pytest.mark.slow
 def test_effect_outside_the_library_is_located_not_misattributed(tmp_path_factory):
     # the box's cooler core gives 0.7564 T_w + 6.312 whatever the inlet air: no library candidate describes
     # it; without term discovery the loop must add nothing and point at the cooler core
@@ -71,6 +73,7 @@ def test_effect_outside_the_library_is_located_not_misattributed(tmp_path_factor
     assert res.diag_before["structure_holdout"]["heater_outlet_temp_c"] > 1.5
 
 
+@pytest.mark.slow
 def test_refined_model_fed_back_finds_nothing_more(tmp_path_factory, tmp_path):
     res = identified(tmp_path_factory, "tc_slow")
     path = write_model_file(tmp_path / "model.toml", res.params, res.effects, res.extras)

@@ -302,6 +302,7 @@ def test_converged_sqp_matches_ipopt_on_the_same_problem():
     assert np.max(np.abs(pb.unscale_u(rs.U[0]) - pb.unscale_u(ri.U[0]))) < 0.5  # W and %
 
 
+@pytest.mark.slow
 def test_jit_and_virtual_machine_linearise_identically():
     pb = TrackingProblem(PARAMS, OcpSpec())
     rng = np.random.default_rng(0)

@@ -6,6 +6,7 @@ import pytest
 from hvac_mpc.benchmarks import placement_time
 
 
+@pytest.mark.slow
 def test_both_settings_run_the_same_commands_on_the_built_in_plant():
     """On the solve-time loop the heater air's filter is never chosen, so the closed-loop cost is the same with the
     choice on and off, whichever way the filter not in use gets its time."""

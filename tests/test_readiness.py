@@ -99,6 +99,7 @@ def test_the_qp_carries_the_penalty_only_where_the_plan_is_below_the_floor(contr
         solver.readiness_target = None
 
 
+@pytest.mark.slow
 def test_the_readiness_keeps_the_body_warm_through_the_warm_up_on_the_recirculating_box():
     """The independent box drawing 15 % of cabin air behind the inlet sensor, the MPC with the ``box_in`` term
     identification finds (-0.15 T_in + 3.6 C, thesis parameters otherwise), the quick winter_heating_steps: the
@@ -122,6 +123,7 @@ def test_the_readiness_keeps_the_body_warm_through_the_warm_up_on_the_recirculat
     assert iae_on < 0.6 * iae_off, (iae_on, iae_off)
 
 
+@pytest.mark.slow
 def test_the_bounded_floor_tracks_the_wall_loss_box_better_than_the_unbounded_one():
     """The independent box whose heater body loses heat to the box walls (hvac_mpc.mismatch ``heater_wall_loss``,
     0.3 W/K), the MPC with the ``heater_body`` term identification finds (-0.28 W/K (T_body - T_in), the thesis

@@ -96,6 +96,7 @@ def scored_iae(sc, trace) -> float:
     return float(np.abs(trace.truth["supply_temp_c"][sl] - trace.reference["supply_temp_c"][sl]).sum() * trace.dt_s)
 
 
+@pytest.mark.slow
 def test_a_valve_gain_error_is_taken_by_the_offset_instead_of_waited_for():
     """S0-12's proband sequence: without the re-arm the waits chain (each move the MPC makes to answer the offset
     starts another 7-sample wait) and the reading sits 1.1-1.5 degC off the 18.3 degC step for 40 s; the MPC's IAE

@@ -76,6 +76,7 @@ def proband_on_s0_8(unseen_only: bool):
     return quick_proband_on_sweep_box("S0-8", EkfSettings(response_wait_unseen_only=unseen_only))
 
 
+@pytest.mark.slow
 def test_s0_8_proband_loses_less_without_the_waits_after_the_dead_time():
     """Measured: the MPC's IAE 127.8 -> 121.3 C s (the baseline's 120.9: 1.057 -> 1.004 of it)."""
     plain, _ = proband_on_s0_8(False)

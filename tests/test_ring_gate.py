@@ -88,6 +88,7 @@ def heating_run(ring_detune: float):
     return iae, tr.applied[:, 2], least[0]
 
 
+@pytest.mark.slow
 def test_the_gate_damps_the_ringing_on_a_box_whose_valve_gain_is_not_the_model():
     """Without the gate valve a swings between its ends all through the scored part and the MPC's IAE is 2.33 of
     the baseline's; with ``ring_detune`` 0.5 the gate reaches its floor, valve a's moves after the first minute

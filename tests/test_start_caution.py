@@ -79,6 +79,7 @@ def flow_out_of_reach_on_s0_10(share: float):
     return sc, trace, np.array(honoured)
 
 
+@pytest.mark.slow
 def test_a_start_slowed_until_the_reading_answers_does_not_ring_on_an_unknown_dead_time():
     """S0-10's quick flow out of reach (docs/robustness.md sec. 2.19, 2.23). Without the caution valve a strokes
     55 -> 100 % in the first sample, the filter takes the 4 s without a response for an offset, the reading dips

@@ -159,6 +159,7 @@ def proband_on_s0_1(q_heat_w: float):
     return quick_proband_on_sweep_box("S0-1", EkfSettings(q_supply_heat_w=q_heat_w))
 
 
+@pytest.mark.slow
 def test_s0_1_proband_loses_less_with_the_heat_flow():
     """Measured: the MPC's IAE 149.1 -> 114.6 C s with 2 W per sample (1.044 -> 0.802 of the baseline's); part of it
     is the faster walk of the level the heat's walk adds (docs/robustness.md sec. 2.22: the plain filter with the
