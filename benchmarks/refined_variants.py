@@ -26,6 +26,7 @@ from pathlib import Path
 from hvac_mpc.identification import log_data, write_model_file
 from hvac_mpc.identification.pipeline import DOCUMENTED_EFFECTS, identify
 from hvac_mpc.mismatch import simulate_log
+from hvac_mpc.mismatch.logs import EXCITATIONS
 from hvac_mpc.models.parameters import Parameters
 
 from . import scenarios
@@ -43,15 +44,18 @@ CASES = {"ptc_fall": ("nominal", ("fan_curve", "valve_leakage"))}
 
 def run_one(name: str, folder: Path, seed: int, duration_s: float, scenario_names: list[str] | None,
             quick: bool = True, deadline_s: float | None = None, attribution: bool = True,
-            overrides: dict | None = None, weights: dict | None = None, candidates: tuple[str, ...] = ()) -> dict:
+            overrides: dict | None = None, weights: dict | None = None, candidates: tuple[str, ...] = (),
+            excitation: str = "steps") -> dict:
     """Log, identification, model file and closed-loop comparison of one variant (``quick``: the scenarios'
     quick versions, their first segments only; ``deadline_s``: the MPCs' feedback deadline, None the default;
     ``attribution``: both MPCs once more without the effects the file lists as absent; ``overrides``, ``weights``:
     both MPCs' settings and cost weights changed alike, :func:`.refined_model.with_overrides`; ``candidates``: optional
-    library candidates identification also scores, ``identify(optional_candidates=...)``)."""
+    library candidates identification also scores, ``identify(optional_candidates=...)``; ``excitation``: the log's
+    open-loop excitation, :data:`hvac_mpc.mismatch.logs.EXCITATIONS`, e.g. ``hot_heater``, whose heating phases drive
+    the heater body past the PTC's knee)."""
     variant, effects = CASES.get(name, (name, DOCUMENTED_EFFECTS))
     path = folder / f"{name}.csv"
-    simulate_log(path, variant, duration_s=duration_s, seed=seed)
+    simulate_log(path, variant, duration_s=duration_s, seed=seed, excitation=excitation)
     res = identify(log_data.load(path), Parameters(), effects, optional_candidates=candidates)
     model = write_model_file(folder / f"{name}.toml", res.params, res.effects, res.extras, res.terms, res.absent)
     cmp = compare(model, variant, scenarios.select(scenario_names, quick=quick), seed=0, attribution=attribution,
@@ -60,6 +64,7 @@ def run_one(name: str, folder: Path, seed: int, duration_s: float, scenario_name
     return {"case": name, "variant": variant, "added": [a.name for a in res.accepted], "absent": list(res.absent),
             "terms": [t.formula() for t in res.terms], "term_words": [t.description for t in res.terms],
             "supply_rms_before": e["rms_before"], "supply_rms_after": e["rms_after"],
+            "supply_rms_written": (res.written or {}).get("supply_temp_c", {}).get("rms_after", e["rms_after"]),
             "model_file": model.read_text(), "comparison": cmp}
 
 
@@ -105,17 +110,22 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--candidate", action="append", default=[],
                         help="optional library candidate identification also scores (repeatable; e.g. "
                              "cooler_literal_fit, docs/identification.md)")
+    parser.add_argument("--excitation", default="steps", choices=EXCITATIONS,
+                        help="the identification log's open-loop excitation (default steps; hot_heater: heating phases "
+                             "near full heater power at low flow, the heater body past the PTC's knee)")
     args = parser.parse_args(argv)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.variant or DEFAULT_VARIANTS:
             r = run_one(name, Path(tmp), args.seed, args.duration, args.scenario, quick=not args.full,
                         deadline_s=args.deadline, attribution=not args.no_attribution, overrides=args.settings,
-                        weights=args.weights, candidates=tuple(args.candidate))
+                        weights=args.weights, candidates=tuple(args.candidate), excitation=args.excitation)
             rows.append(r)
             t = r["comparison"]["total"]
             print(f"{name:26s} added {r['added'] + r['terms'] or ['nothing']}", flush=True)
-            print(f"{'':26s} held-out supply RMS {r['supply_rms_before']:.3f} -> {r['supply_rms_after']:.3f} C; "
+            written = (f" (the file's model {r['supply_rms_written']:.3f})"
+                       if r["supply_rms_written"] != r["supply_rms_after"] else "")
+            print(f"{'':26s} held-out supply RMS {r['supply_rms_before']:.3f} -> {r['supply_rms_after']:.3f} C{written}; "
                   f"thermocouple IAE nominal {t['nominal']['temp_iae_cs']:.1f}, refined {t['refined']['temp_iae_cs']:.1f} "
                   f"C s (ratio {t['ratio']:.3f}); flow IAE {t['nominal']['flow_iae_m3']:.2f} / "
                   f"{t['refined']['flow_iae_m3']:.2f} m3; whole runs (warm-up included) "

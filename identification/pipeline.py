@@ -40,6 +40,10 @@ Procedure (stated in the report):
    readings (the other parameters fixed) is below ``CONTRIBUTION_MIN`` of the noise variance (a magnitude the
    procedure cannot tell from zero).
 9. Whatever structure remains is located (:mod:`.localise`) instead of being named.
+10. When nothing was added (no effect, term, delay, offset or gain), the model file holds the thesis value of every
+   refit nominal parameter the log does not move (Wald test at the procedure's level), the others refit with them
+   there, unless the reverted parameters together pass the effects' gates against that model
+   (:func:`_thesis_unless_moved`).
 """
 
 from __future__ import annotations
@@ -61,7 +65,7 @@ from . import statistics as st
 from .candidates import MIN_ABS_VALUE, MODEL_CANDIDATES, OPTIONAL_CANDIDATES, Candidate, library
 from .discovery import CABIN_CANDIDATES
 from .diagnostics import diagnose, training_nll
-from .fitting import FLOW_PARAMS, IDENTIFIED_REL_SE, NOMINAL_FREE, Fit, Fitter, FreeParam, parameter_confidence
+from .fitting import FLOW_PARAMS, IDENTIFIED_REL_SE, MOVED_Z, NOMINAL_FREE, Fit, Fitter, FreeParam, parameter_confidence
 from .log_data import LogData
 from .joint_step import joint_step
 from .pair_step import pair_step
@@ -117,6 +121,10 @@ class IdentificationResult:
     parameter_confidence: list = field(default_factory=list)  # fitting.parameter_confidence of the final fit
     pairs: list = field(default_factory=list)  # the pair step's refit pairs (pair_step), empty if it did not run
     joint: dict | None = None  # the joint refit's record (joint_step), None if it did not run
+    #: Where the file's model is not ``final`` (nothing added, refit parameters the log does not move written at their
+    #: thesis values, ``_thesis_unless_moved``): held-out RMS and max |error| per output, ``*_before`` the final fit's,
+    #: ``*_after`` the written model's; else None.
+    written: dict | None = None
 
     @property
     def sigma(self) -> dict[str, float]:
@@ -266,13 +274,22 @@ def _nominal(fitter: Fitter, base_effects, p_base, quick: bool, notes: list[str]
     dropped = [fp.name for fp in NOMINAL_FREE if fp not in free]
     if dropped:
         notes.append(f"nominal parameters not excited by this log, kept fixed: {dropped}")
+    nominal = _two_stage_fit(fitter, base_effects, p_base, free, post0, quick)
+    return nominal, list(free)
+
+
+def _two_stage_fit(fitter: Fitter, effects, p_start: np.ndarray, free: list[FreeParam], post: OutputPost,
+                   quick: bool) -> Fit:
+    """``free`` fitted from ``p_start``: the flow equation's parameters on the measured flow alone, then the others on
+    all outputs (a stage with no parameter of its own is skipped)."""
     flow_free = [fp for fp in free if fp.name in FLOW_PARAMS]
     rest = [fp for fp in free if fp.name not in FLOW_PARAMS]
-    stage1 = fitter.fit(base_effects, p_base, flow_free, post0, max_nfev=8 if quick else 12,
-                        only_outputs=("volume_flow_m3s",))
-    nominal = fitter.fit(base_effects, stage1.p, rest, post0, max_nfev=10 if quick else 15)
-    nominal.free = tuple(fp.name for fp in free)
-    return nominal, list(free)
+    p = p_start
+    if flow_free:
+        p = fitter.fit(effects, p, flow_free, post, max_nfev=8 if quick else 12, only_outputs=("volume_flow_m3s",)).p
+    fit = fitter.fit(effects, p, rest, post, max_nfev=10 if quick else 15) if rest else fitter.evaluate(effects, p, post)
+    fit.free = tuple(fp.name for fp in free)
+    return fit
 
 
 def check_timing(fitter_log: LogData, base: Parameters, base_effects, notes: list[str]) -> int:
@@ -868,6 +885,10 @@ def _identify(log: LogData, base: Parameters | None, base_effects: Iterable[str]
     params, effects, extras = model_outputs(fitter, final, base, diag_after)
     confidence = parameter_confidence(fitter, final, [fp for fp in NOMINAL_FREE if fp.name in final.free], p_base)
     params = _keep_unidentified(params, base, confidence, notes)
+    written = None
+    if _nothing_added(final, accepted):
+        written = _thesis_unless_moved(fitter, final, confidence, base, quick, notes)
+        params = model_outputs(fitter, written, base, diag_after)[0] if written is not final else params
     clock.lap("final_diagnostics")
     timings = dict(clock.totals(), further_discovery_cpu_s=further_cpu_s)
     res = IdentificationResult(log, fitter, base, base_effects, nominal, final, accepted, rounds, diag_before,
@@ -879,6 +900,7 @@ def _identify(log: LogData, base: Parameters | None, base_effects: Iterable[str]
     res.parameter_confidence = confidence
     res.pairs = pair_records
     res.joint = joint_record
+    res.written = None if written is None or written is final else _errors(fitter, final, written.y)
     return res
 
 
@@ -905,6 +927,52 @@ def _keep_unidentified(params: Parameters, base: Parameters, confidence: list[di
             notes.append(f"the log moved {c['name']} from {c['start']:.4g} to {c['value']:.4g} ({c['change']:+.1%}, "
                          f"{abs(c['z']):.0f} standard errors): {what}")
     return params.replace(**keep) if keep else params
+
+
+def _nothing_added(final: Fit, accepted: list[CandidateResult]) -> bool:
+    """No effect, term, delay, offset or gain kept: the final model is the nominal structure refit."""
+    post = final.post
+    return not accepted and not final.terms and not (post.delays or post.bias or post.gain)
+
+
+def _thesis_unless_moved(fitter: Fitter, final: Fit, confidence: list[dict], base: Parameters, quick: bool,
+                         notes: list[str]) -> Fit:
+    """The model the file holds when nothing was added (docs/identification.md, "A log that adds nothing"): each
+    refit nominal parameter is a hypothesis "the thesis value is wrong", kept only where the log rejects the thesis
+    value at the procedure's level (Wald test, abs(z) above :data:`~.fitting.MOVED_Z`, two-sided 1 %); the others
+    go back to their thesis values and the kept ones are refit with them there. ``final`` itself where every refit
+    parameter passes; the thesis model where none does or where the restricted refit does not lower the thesis
+    model's held-out error."""
+    moved = {c["name"] for c in confidence if c["identified"] and abs(c["z"]) > MOVED_Z}
+    reverted = sorted(set(final.free) - moved)
+    if not reverted:
+        return final
+    p_thesis, p_base = final.p.copy(), np.array(base.vector())
+    for name in final.free:
+        i = fitter.names.index(name)
+        p_thesis[i] = p_base[i]
+    thesis = fitter.evaluate(final.effects, p_thesis, final.post)
+    free = [fp for fp in NOMINAL_FREE if fp.name in moved and fp.name in final.free]
+    fit = _two_stage_fit(fitter, final.effects, p_thesis, free, final.post, quick) if free else thesis
+    if fit.cost_holdout >= thesis.cost_holdout:
+        fit = thesis
+    bic = bic_change(fitter, final, fit, len(reverted))
+    share = output_share(fitter, fit, final, "supply_temp_c")
+    if final.cost_holdout < fit.cost_holdout and share >= FORWARD_MIN and bic < 0:
+        notes.append(f"nothing added: the refit nominal parameters {reverted}, within {MOVED_Z} standard errors of "
+                     f"their thesis values each, pass the effects' gates together (information criterion {bic:+.1f}): "
+                     "the refit is written")
+        return final
+    kept = [fp.name for fp in free] if fit is not thesis else []
+    rms = _errors(fitter, final, fit.y)
+    notes.append(f"nothing added: the refit nominal parameters the log does not move from their thesis values "
+                 f"(|z| <= {MOVED_Z}, two-sided 1 %) written at the thesis values: {reverted}"
+                 + (f"; refit with them there: {kept}" if kept else "; no parameter refit")
+                 + f"; together they do not pass the effects' gates against it (they remove {100 * share:.0f} % of its "
+                   f"held-out supply structure, information criterion {bic:+.1f}; need {100 * FORWARD_MIN:.0f} % and < 0)"
+                 + "".join(f"; held-out {o} RMS of the written model {e['rms_after']:.4g} (the full refit's "
+                           f"{e['rms_before']:.4g})" for o, e in rms.items() if o == "supply_temp_c"))
+    return fit
 
 
 def model_outputs(fitter: Fitter, final: Fit, base: Parameters, diag: dict) -> tuple[Parameters, tuple, dict]:

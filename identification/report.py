@@ -205,6 +205,7 @@ def summary(res: IdentificationResult) -> dict:
                              for c in res.parameter_confidence if c["moved"] and c["words"]],
         "effects_absent": list(res.absent),
         "holdout_errors": res.holdout_errors(),
+        "written_model_holdout_errors": res.written,
         "steps": res.steps,
         "discovered_terms": [dict(t.as_dict(), formula=t.formula()) for t in res.terms],
         "discovery": res.discovery,
