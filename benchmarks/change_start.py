@@ -14,7 +14,10 @@ for the QPs of a change only) and "rho_reset_capped" (at every preparation, and 
 the iterate at the cap taken); "split_N" (``MpcSettings.change_split_iter``: a change's QPs capped at N OSQP
 iterations each in the step, finished to convergence on the second thread and collected by the next step) and
 "split_every_N" (so also any step whose QP reaches the cap, ``split_every_step``) and "split_keep_rho_N" (the rest
-leaving OSQP's step size as the change step found it, ``split_keeps_rho``). Per seed the loops run in
+leaving OSQP's step size as the change step found it, ``split_keeps_rho``) and "split_replay_N" (the rest solving the
+change again from OSQP's workspace as the change step found it, ``split_replays_change``) and "split_every_replay_N"
+(every step's QPs capped so, each capped step's QPs solved again on the second thread from the saved workspace). Per
+seed the loops run in
 lockstep in one process, one step of each in turn (the order rotates from step to step), so that the load of other
 processes falls on all alike.
 
@@ -56,7 +59,10 @@ VARIANTS = {"shifted": {"steady_start": False},
                                  "osqp_accept_max_iter": True},
             **{f"split_{n}": {"change_split_iter": n} for n in (20, 30, 40, 60)},
             **{f"split_every_{n}": {"change_split_iter": n, "split_every_step": True} for n in (20, 30, 40, 60)},
-            **{f"split_keep_rho_{n}": {"change_split_iter": n, "split_keeps_rho": True} for n in (30, 60)}}
+            **{f"split_keep_rho_{n}": {"change_split_iter": n, "split_keeps_rho": True} for n in (30, 60)},
+            **{f"split_replay_{n}": {"change_split_iter": n, "split_replays_change": True} for n in (20, 30, 40)},
+            **{f"split_every_replay_{n}": {"change_split_iter": n, "split_every_step": True, "split_replays_change": True}
+               for n in (30, 40, 60)}}
 #: The variants run unless ``--variant`` names others.
 DEFAULT_VARIANTS = ("shifted", "steady", "temperature")
 #: Steps after a change counted as its wake (the single QPs that follow it).

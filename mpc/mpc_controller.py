@@ -282,6 +282,11 @@ class MpcSettings:
         split_keeps_rho: with ``change_split_iter``, the rest leaves OSQP's step size as the change step found it
             instead of as the rest's QPs adapted it (False, the default). Measured in docs/architecture.md, 'The
             rest of a split change, traced'.
+        split_replays_change: with ``change_split_iter``, the rest solves the change's QPs again as the unsplit step
+            would have, from OSQP's workspace as the step found it (saved before the capped QPs, restored on the
+            second thread), so the next step starts from the unsplit change's plan and workspace; only the change
+            step's command is the capped one (False, the default). Measured in docs/architecture.md, 'The change
+            replayed from the saved workspace'.
         valve_a_reversal_share: the share of a move of valve a that reverses its last applied move (both at least
             ``valve_a_reversal_min_pct`` (% of travel)) applied, in (0, 1], 1 off (:mod:`~.reversal_damping`: the
             Gauss-Newton iteration's two-cycle where valve a's pull depends on valve a, the plan alternating between
@@ -355,6 +360,7 @@ class MpcSettings:
     change_split_thread: bool = True
     split_every_step: bool = False
     split_keeps_rho: bool = False
+    split_replays_change: bool = False
     valve_a_reversal_share: float = 0.3
     valve_a_reversal_min_pct: float = 5.0
 
@@ -386,10 +392,14 @@ class MpcSettings:
         check_flag(f"{p}.change_split_thread", self.change_split_thread)
         check_flag(f"{p}.split_every_step", self.split_every_step)
         check_flag(f"{p}.split_keeps_rho", self.split_keeps_rho)
+        check_flag(f"{p}.split_replays_change", self.split_replays_change)
+        if self.split_replays_change and self.split_keeps_rho:
+            raise InvalidSettings(f"{p}.split_replays_change and {p}.split_keeps_rho are both True; allowed: one of "
+                                  "them (the replay restores the step size with OSQP's whole workspace)")
         if self.change_split_iter and self.solver not in ("rti", "sqp"):
             raise InvalidSettings(f"{p}.change_split_iter = {self.change_split_iter!r} needs solver 'rti' or 'sqp' "
                                   f"(the OSQP solvers; solver is {self.solver!r}); 0 turns it off")
-        for name in ("split_every_step", "split_keeps_rho"):
+        for name in ("split_every_step", "split_keeps_rho", "split_replays_change"):
             if getattr(self, name) and not self.change_split_iter:
                 raise InvalidSettings(f"{p}.{name} needs change_split_iter in [1, {self.osqp_max_iter}] "
                                       "(the cap it splits at)")
@@ -663,7 +673,7 @@ class MpcController:
                              steady_start_on=s.steady_start_on, rho_reset=s.osqp_rho_reset,
                              rho_reset_on=s.osqp_rho_reset_on, reweigh_in_place=s.reweigh_in_place,
                              change_split_iter=s.change_split_iter, split_every_step=s.split_every_step,
-                             split_keeps_rho=s.split_keeps_rho)
+                             split_keeps_rho=s.split_keeps_rho, split_replays_change=s.split_replays_change)
 
     # ------------------------------------------------------------------ protocol
     def reset(self, command: Command | None = None) -> None:

@@ -255,6 +255,56 @@ API int hq_settings(double alpha, int max_iter, int check_termination, double ep
 }
 API void hq_time_limit(double seconds) { limit_s = seconds; }
 API double hq_rho(void) { return (double)S->settings->rho; }
+/* OSQP's workspace as the next solve finds it, saved into buf and restored from it (split_replays_change): the
+   multipliers y (scaled), the scaled P and A, the equilibration, the constraint types, the step size rho (its
+   reciprocal, the last KKT error of its adaptation); the primal iterate and q, l, u are what the warm start and
+   the vector update write anew. hq_state_size: the doubles of buf. */
+static OSQPInt state_parts(OSQPFloat** part, OSQPInt* len) {
+  OSQPWorkspace* w = S->work;
+  OSQPInt n = w->data->n, m = w->data->m, k = 0;
+  part[k] = w->y->values; len[k++] = m;
+  part[k] = w->data->P->csc->x; len[k++] = OSQPMatrix_get_nz(w->data->P);
+  part[k] = w->data->A->csc->x; len[k++] = OSQPMatrix_get_nz(w->data->A);
+  if (S->settings->scaling) {
+    part[k] = w->scaling->D->values; len[k++] = n;
+    part[k] = w->scaling->Dinv->values; len[k++] = n;
+    part[k] = w->scaling->E->values; len[k++] = m;
+    part[k] = w->scaling->Einv->values; len[k++] = m;
+  }
+  return k;
+}
+#define STATE_SCALARS 5
+API int hq_state_size(void) {
+  OSQPFloat* part[8]; OSQPInt len[8], k, size = STATE_SCALARS + S->work->data->m, np = state_parts(part, len);
+  for (k = 0; k < np; k++) size += len[k];
+  return (int)size;
+}
+API void hq_save_state(double* buf) {
+  OSQPWorkspace* w = S->work;
+  OSQPFloat* part[8]; OSQPInt len[8], k, i, np = state_parts(part, len), m = w->data->m;
+  for (k = 0; k < np; k++) { memcpy(buf, part[k], sizeof(OSQPFloat) * (size_t)len[k]); buf += len[k]; }
+  for (i = 0; i < m; i++) buf[i] = (double)w->constr_type->values[i];
+  buf += m;
+  buf[0] = S->settings->scaling ? w->scaling->c : 1.0;
+  buf[1] = S->settings->scaling ? w->scaling->cinv : 1.0;
+  buf[2] = S->settings->rho; buf[3] = w->rho_inv; buf[4] = w->last_rel_kkt;
+}
+/* the saved values back, the step size's vectors and the KKT matrix's entries from them (hq_rho_next_update) and
+   the numeric refactorisation of that KKT matrix: the factors of the same values, so the same to the bit */
+API int hq_restore_state(const double* buf) {
+  OSQPWorkspace* w = S->work;
+  OSQPFloat* part[8]; OSQPInt len[8], k, i, np = state_parts(part, len), m = w->data->m;
+  for (k = 0; k < np; k++) { memcpy(part[k], buf, sizeof(OSQPFloat) * (size_t)len[k]); buf += len[k]; }
+  for (i = 0; i < m; i++) w->constr_type->values[i] = (OSQPInt)buf[i];
+  buf += m;
+  if (S->settings->scaling) { w->scaling->c = buf[0]; w->scaling->cinv = buf[1]; }
+  hq_rho_next_update(buf[2]);
+  w->rho_inv = buf[3]; w->last_rel_kkt = buf[4];
+  k = w->linsys_solver->update_matrices(w->linsys_solver, w->data->P, OSQP_NULL, len[1],
+                                        w->data->A, OSQP_NULL, len[2]);
+  reset_info(S->info);
+  return (int)k;
+}
 /* solve; the primal solution into x, [status value, iterations] into info; OSQP's exit flag returned */
 API int hq_solve(double* x, long long* info) {
   int flag = (int)osqp_solve(S);
@@ -428,12 +478,15 @@ class EmbeddedOsqp(TwoPassSolve):
                                 ("hq_time_limit", [ctypes.c_double], None), ("hq_rho", [], ctypes.c_double),
                                 ("hq_rho_next_update", [ctypes.c_double], None),
                                 ("hq_solve", [_DOUBLE, _DOUBLE], ctypes.c_int),
+                                ("hq_state_size", [], ctypes.c_int), ("hq_save_state", [_DOUBLE], None),
+                                ("hq_restore_state", [_DOUBLE], ctypes.c_int),
                                 ("hq_n", [], ctypes.c_int), ("hq_m", [], ctypes.c_int),
                                 ("hq_nnz_p", [], ctypes.c_int), ("hq_nnz_a", [], ctypes.c_int)):
             getattr(f, name).argtypes = args
             getattr(f, name).restype = res
         self.n, self.m = int(f.hq_n()), int(f.hq_m())
         self._nnz_p, self._nnz_a = int(f.hq_nnz_p()), int(f.hq_nnz_a())
+        self._state_size = int(f.hq_state_size())
         self._info = np.zeros(2, np.int64)
         self._info_p = self._info.ctypes.data
         self._bounds: tuple | None = None  # the bound arrays last handed over and their addresses (update_vectors)
@@ -494,6 +547,23 @@ class EmbeddedOsqp(TwoPassSolve):
         refactorisation takes it in: no factorisation of its own; OSQP's ``update_rho`` and then the update give the
         same workspace)."""
         self._lib.hq_rho_next_update(float(rho))
+
+    def save_state(self) -> dict:
+        """OSQP's workspace as the next solve finds it (the multipliers, the scaled matrices and their equilibration,
+        the constraint types, the step size; the matrix updates counted for ``scaling_interval``), for
+        :meth:`restore_state`. The primal iterate and the vectors are not in it: the warm start and the vector update
+        that precede every solve write them anew."""
+        buf = np.empty(self._state_size)
+        self._lib.hq_save_state(buf.ctypes.data)
+        return {"buf": buf, "updates": self._updates}
+
+    def restore_state(self, state: dict) -> None:
+        """The workspace of :meth:`save_state` back, its KKT matrix factorised again (one numeric factorisation):
+        a solve after the same vector update and warm start gives the same iterates, to the bit, as it would have
+        given right after the save."""
+        buf = state["buf"]
+        self._check(self._lib.hq_restore_state(self._p(buf, self._state_size)), "state restore")
+        self._updates = state["updates"]
 
     def _apply(self, values: dict) -> None:
         self._check(self._lib.hq_settings(values["alpha"], values["max_iter"], values["check_termination"],

@@ -26,6 +26,7 @@ and renew only the vectors at the shifted plan (:mod:`.multilevel`, multi-level 
 
 from __future__ import annotations
 
+import copy
 import time
 from dataclasses import dataclass, field
 
@@ -211,6 +212,12 @@ class RtiOsqpSolver:
             ``reference_change_qps`` - 1 further relinearised QPs), one whose QPs meet the tolerance is not.
         split_keeps_rho: with ``change_split_iter``, :meth:`finish_change` leaves OSQP's step size ``rho`` as the
             step found it (off: as the rest's QPs adapted it).
+        split_replays_change: with ``change_split_iter``, :meth:`finish_change` solves the step's QPs again as the
+            unsplit step would have, from OSQP's workspace and the prepared QP as the step found them (saved before
+            the capped QPs, restored after them: the multipliers, the step size, the scaled matrices and their
+            factorisation), instead of continuing the capped iterate: the plan and the workspace the next step
+            starts from are those of the unsplit step (to the bit with the generated solver; with OSQP's Python
+            interface the multipliers' scaling differs). Only the command of the change's own step is the capped one.
         reweigh_in_place: where the output weights change after the preparation (the flow's weight factor), the
             QP linearised again at the plan the preparation already shifted (True) instead of :meth:`prepare`
             again, which shifts that plan once more, a sample ahead (False, the behaviour the bench was tuned
@@ -229,7 +236,7 @@ class RtiOsqpSolver:
                  steady_start: bool = False, steady_start_on: str = "any", relinearise_every: int = 1,
                  relinearise_move: float = 0.3, rho_reset: float | None = None, rho_reset_on: str = "preparation",
                  reweigh_in_place: bool = False, change_split_iter: int = 0,
-                 split_every_step: bool = False, split_keeps_rho: bool = False):
+                 split_every_step: bool = False, split_keeps_rho: bool = False, split_replays_change: bool = False):
         self.pb = pb = problem
         if isinstance(change_split_iter, bool) or int(change_split_iter) != change_split_iter \
                 or not (change_split_iter == 0 or 1 <= change_split_iter <= int(max_iter)):
@@ -238,6 +245,12 @@ class RtiOsqpSolver:
         self.change_split_iter = int(change_split_iter)
         self.split_every_step = bool(split_every_step)
         self.split_keeps_rho = bool(split_keeps_rho)
+        if not isinstance(split_replays_change, bool):
+            raise ValueError(f"RtiOsqpSolver: split_replays_change = {split_replays_change!r}, allowed: True or False")
+        if split_replays_change and self.split_keeps_rho:
+            raise ValueError("RtiOsqpSolver: split_replays_change and split_keeps_rho both True; allowed: one of them "
+                             "(the replay restores the step size with the whole workspace)")
+        self.split_replays_change = split_replays_change
         self._change_rest: dict | None = None  # what finish_change needs of a split change (None: none pending)
         if not isinstance(reweigh_in_place, bool):
             raise ValueError(f"RtiOsqpSolver: reweigh_in_place = {reweigh_in_place!r}, allowed: True or False")
@@ -334,7 +347,7 @@ class RtiOsqpSolver:
                 "relinearise_move": self._ml.move if self._ml else None, "rho_reset": self.rho_reset,
                 "rho_reset_on": self.rho_reset_on, "reweigh_in_place": self.reweigh_in_place,
                 "change_split_iter": self.change_split_iter, "split_every_step": self.split_every_step,
-                "split_keeps_rho": self.split_keeps_rho,
+                "split_keeps_rho": self.split_keeps_rho, "split_replays_change": self.split_replays_change,
                 "step_fractions": list(self._merit.fractions) if self._merit else []}
 
     # ------------------------------------------------------------------ structure
@@ -960,6 +973,8 @@ class RtiOsqpSolver:
         split = (changed or self.split_every_step) and not cold and self.change_split_iter > 0
         # OSQP's step size before the capped QPs, for finish_change to restore (split_keeps_rho only)
         rho = self._core.rho if split and self.split_keeps_rho else None
+        # the step's state before the capped QPs, for finish_change to solve them again (split_replays_change only)
+        saved = self._save_step() if split and self.split_replays_change else None
         z, status, iterations, solves, qp_prep, inexact, fraction = self._solve_qps(
             x0, u_prev, d, ref, w_y, u_lo, u_hi, max_qps, restart=changed and self.restart_duals_on_change,
             t0=t0, time_limit_s=time_limit_s, cap=self.change_split_iter if split else 0)
@@ -970,7 +985,8 @@ class RtiOsqpSolver:
             self._change_rest = dict(x0=x0.copy(), u_prev=u_prev.copy(), d=d.copy(), ref=np.array(ref, float),
                                      w_y=w_y.copy(), u_lo=u_lo.copy(), u_hi=u_hi.copy(), z=z.copy(),
                                      qps=max(self.sqp_max_iter, self.reference_change_qps), solved=not inexact,
-                                     rho=rho)
+                                     rho=rho, saved=saved, max_qps=max_qps,
+                                     restart=changed and self.restart_duals_on_change)
             result.extra["change_split"] = True
         return result
 
@@ -1077,6 +1093,8 @@ class RtiOsqpSolver:
             self._time_limit = None
         x0, u_prev, d, ref, w_y = (rest[k] for k in ("x0", "u_prev", "d", "ref", "w_y"))
         args = (x0, u_prev, d, ref, w_y, rest["u_lo"], rest["u_hi"])
+        if rest["saved"] is not None:
+            return self._replay(rest, args, t0)
         qps, z, prep = rest["qps"], rest["z"], 0.0
         if rest["solved"]:  # the first QP met OSQP's tolerance within the cap: on from its answer
             if qps == 1 or float(np.abs(z - self._z_lin).max()) < self.sqp_tol:
@@ -1085,6 +1103,30 @@ class RtiOsqpSolver:
             qps, z = qps - 1, None
         z, status, iterations, solves, qp_prep, inexact, fraction = self._solve_qps(*args, qps, start=z)
         prep += qp_prep
+        return self._result(z, status, iterations, solves, prep, time.perf_counter() - t0 - prep, False, inexact,
+                            fraction)
+
+    def _save_step(self) -> dict:
+        """What :meth:`_replay` restores: OSQP's workspace (``save_state``) and the prepared QP as the feedback found
+        it before its QPs (the linearisation and its bounds; the relinearisations of the QPs replace, not change,
+        these objects, so references are kept and the two bound arrays copied)."""
+        return {"core": self._core.save_state(), "l": self.l.copy(), "u": self.u.copy(),
+                "prepared": self._prepared, "z_lin": self._z_lin, "floor_a0": self._floor_a0,
+                "written": self._written, "ready_q": self._ready_q, "vector_prepared": self._vector_prepared,
+                "ml": copy.deepcopy(self._ml)}
+
+    def _replay(self, rest: dict, args: tuple, t0: float) -> SolveResult:
+        """:meth:`finish_change` with ``split_replays_change``: the step's state before its capped QPs restored, then
+        its QPs solved as the unsplit feedback solves them (the same calls, no cap, no time limit)."""
+        saved = rest["saved"]
+        self._core.restore_state(saved["core"])
+        self.l[...] = saved["l"]
+        self.u[...] = saved["u"]
+        self._prepared, self._z_lin, self._floor_a0 = saved["prepared"], saved["z_lin"], saved["floor_a0"]
+        self._written, self._ready_q = saved["written"], saved["ready_q"]
+        self._vector_prepared, self._ml = saved["vector_prepared"], saved["ml"]
+        z, status, iterations, solves, prep, inexact, fraction = self._solve_qps(
+            *args, rest["max_qps"], restart=rest["restart"])
         return self._result(z, status, iterations, solves, prep, time.perf_counter() - t0 - prep, False, inexact,
                             fraction)
 
@@ -1175,6 +1217,8 @@ class _OsqpCore(osqp_embedded.TwoPassSolve):
     def __init__(self, wrapper: osqp.OSQP, first_pass_iter: int = 0):
         self.wrapper = wrapper
         self.core = getattr(wrapper, "_solver", None)
+        self._matrices: tuple | None = None  # the matrices last written (save_state)
+        self._last_y: np.ndarray | None = None  # the last solve's multipliers, unscaled (save_state)
         self._passes(wrapper.settings, first_pass_iter)
 
     def update_matrices(self, Px: np.ndarray, Ax: np.ndarray) -> None:
@@ -1182,6 +1226,23 @@ class _OsqpCore(osqp_embedded.TwoPassSolve):
             self.wrapper.update(Px=Px, Ax=Ax)
         else:
             self.core.update_data_mat(P_x=Px, P_i=None, A_x=Ax, A_i=None)
+        self._matrices = (Px, Ax)  # for save_state (the caller's arrays, not changed after they are handed over)
+
+    def save_state(self) -> dict:
+        """What :meth:`restore_state` needs to bring OSQP back to now: the step size, the matrices last written and
+        the last solve's multipliers. The Python interface hands out the multipliers unscaled only, so the restored
+        workspace holds them scaled with the equilibration of the restored matrices, not with the one they were found
+        with: the next solve's iterates close to, not the same as, those it would have taken now (the generated
+        solver's :meth:`~.osqp_embedded.EmbeddedOsqp.save_state` keeps the workspace itself)."""
+        return {"rho": self.rho, "matrices": self._matrices, "y": self._last_y}
+
+    def restore_state(self, state: dict) -> None:
+        """OSQP set back to :meth:`save_state`'s step size, matrices (equilibrated and factorised again) and
+        multipliers."""
+        self.rho_next_update(state["rho"])
+        self.update_matrices(*state["matrices"])
+        if state["y"] is not None:
+            self.wrapper.warm_start(y=state["y"])
 
     def update_vectors(self, q: np.ndarray, l: np.ndarray, u: np.ndarray) -> None:
         """``l``, ``u`` already within OSQP's infinity."""
@@ -1226,6 +1287,8 @@ class _OsqpCore(osqp_embedded.TwoPassSolve):
         else:
             self.core.solve()
             info, x = self.core.info, self.core.solution.x
+            res = self.core
+        self._last_y = np.array(res.solution.y if self.core is not None else res.y, float)
         return info.status_val, info.status, int(info.iter), x
 
 
