@@ -10,14 +10,14 @@ offset (+3.6 degC in four samples), the MPC holds the stroke against that offset
 the reading overshoots by 1.7 degC and rings for 25 s, a dead time late each swing (docs/robustness.md sec. 2.19,
 2.23).
 
-:class:`StartCaution` limits valve a's opening (the scope ``valve_a_opening``, the default since docs/robustness.md
-sec. 2.25) or valve a's and the heater's moves (``valve_a_and_heater``, sec. 2.23) to ``share`` of their rates from
-the controller's start until the filter in use has seen a response (its dead-time estimate informed,
-:attr:`~.estimator.DisturbanceEkf.response_seen`) or ``duration_s`` has passed, whichever comes first. The stroke
-becomes a ramp over a few samples. What that changed on the traced box (S0-10, share 0.4): the reading dips as deep
-(16.0 against 16.3 degC), but the dead-time estimate honours 3.5 s at 8 s (4.0 s from 14 s) instead of first at 31
-s, the sample after the flow's jump, so the moves after the dip are answered with the dead time honoured and the
-reading comes back to its reference without the second swing (18.1 degC at most against 19.75). Why the ramp's
+:class:`StartCaution` limits valve a's opening (the scope ``valve_a_opening``, the default scope since
+docs/robustness.md sec. 2.25) or valve a's and the heater's moves (``valve_a_and_heater``, sec. 2.23) to ``share``
+of their rates from the controller's start until the filter in use has seen a response (its dead-time estimate
+informed, :attr:`~.estimator.DisturbanceEkf.response_seen`) or ``duration_s`` has passed, whichever comes first. The
+stroke becomes a ramp over a few samples. What that changed on the traced box (S0-10, share 0.4): the reading dips
+as deep (16.0 against 16.3 degC), but the dead-time estimate honours 3.5 s at 8 s (4.0 s from 14 s) instead of first
+at 31 s, the sample after the flow's jump, so the moves after the dip are answered with the dead time honoured and
+the reading comes back to its reference without the second swing (18.1 degC at most against 19.75). Why the ramp's
 response ranks the candidates where the stroke's did not (the filter's own corrections in the first samples also
 move the model's air the estimate compares) was not analysed. On the built-in plant (no dead time) the estimate has
 seen a response 8-9 s into the winter heating steps, so the caution lasts about as long there; it cost that

@@ -59,8 +59,8 @@ def test_the_opening_bound_limits_the_rise_only():
     assert opening_bound(5.0, 100.0, 55.0, 0.0) == 55.0
 
 
-def test_settings_are_checked_and_the_opening_caution_is_the_default():
-    assert MpcSettings().start_rate_share == 0.4  # on since docs/robustness.md sec. 2.25
+def test_settings_are_checked_and_off_by_default_with_the_opening_scope():
+    assert MpcSettings().start_rate_share == 1.0  # off (docs/robustness.md sec. 2.25)
     assert MpcSettings().start_caution_scope == VALVE_A_OPENING
     assert MpcSettings(start_caution_scope=VALVE_A_AND_HEATER).start_caution_scope == VALVE_A_AND_HEATER
     for bad in ("heater", "", None):
@@ -124,12 +124,12 @@ def test_a_start_slowed_until_the_reading_answers_does_not_ring_on_an_unknown_de
 
 
 def test_a_start_that_closes_valve_a_is_left_alone():
-    """S0-10's quick heating (docs/robustness.md sec. 2.25): the reading starts 4.3 degC above its reference of 9 C
-    and the MPC closes valve a toward the bypass (60 -> 10 -> 0 %) and switches the heater off (80 -> 20 -> 0 W). The default scope
-    leaves that start as it is: the same commands every sample as without the caution. The scope of sec. 2.23
-    slows the closing (first move at most 20 %/s) and the heater's fall, and the run takes another way (the dead
-    time honoured from 9 s, where the plain run honours none before the step at 30 s); it cost this cell 0.871 ->
-    0.990 of the baseline's IAE, which the default scope does not pay."""
+    """S0-10's quick heating (docs/robustness.md sec. 2.25): the reading starts 4.3 degC above its reference of 9 C and
+    the MPC closes valve a toward the bypass (60 -> 10 -> 0 %) and switches the heater off (80 -> 20 -> 0 W).
+    The opening scope (the default scope) leaves that start as it is: the same commands every sample as without
+    the caution. The scope of sec. 2.23 slows the closing (first move at most 20 %/s) and the heater's fall, and
+    the run takes another way (the dead time honoured from 9 s, where the plain run honours none before the step
+    at 30 s); it cost this cell 0.871 -> 0.990 of the baseline's IAE, which the default scope does not pay."""
     sc = scenarios.winter_heating_steps().quick()
     plain, plain_dead = on_s0_10(sc, start_rate_share=1.0)
     opening, _ = on_s0_10(sc, start_rate_share=0.4, start_caution_scope=VALVE_A_OPENING)
