@@ -1,12 +1,13 @@
-"""The start-up's caution: valve a's and the heater's moves slowed until the supply reading has answered one
-(``MpcSettings.start_rate_share``, ``start_caution_s``; :class:`hvac_mpc.mpc.start_caution.StartCaution`;
-docs/robustness.md sec. 2.23).
+"""The start-up's caution: valve a's opening (or, with the scope ``valve_a_and_heater``, valve a's and the heater's
+moves) slowed until the supply reading has answered one (``MpcSettings.start_rate_share``, ``start_caution_s``,
+``start_caution_scope``; :class:`hvac_mpc.mpc.start_caution.StartCaution`; docs/robustness.md sec. 2.23, 2.25).
 
 Truth for the closed loop is the independent box (``hvac_mpc.mismatch``) of the seeded box sweep
 (``python -m hvac_mpc.benchmarks.box_sweep --seed 0``, box S0-10): a 4.0 s dead time nothing has shown at the start, a
 thermocouple 1.31 times the model's lag, valve curves shifted +4.7 %, a duct losing 4 W/K.
 Budget: the rule's tests take milliseconds; the closed loop (two MPC runs of the quick flow-out-of-reach scenario,
-180 samples each, the baseline not run) about 10 s.
+180 samples each, the baseline not run) about 10 s; the heating start (three MPC runs of the quick heating
+scenario, 150 samples each) about 15 s.
 """
 
 import math
@@ -21,7 +22,9 @@ from hvac_mpc.models import Parameters
 from hvac_mpc.models.box import INPUTS
 from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
 from hvac_mpc.mpc.ocp import InvalidSettings, OcpSpec
-from hvac_mpc.mpc.start_caution import StartCaution
+from hvac_mpc.mpc.start_caution import VALVE_A_AND_HEATER, VALVE_A_OPENING, StartCaution, opening_bound
+
+VALVE_A = INPUTS.index("valve_a_pct")
 
 
 def test_the_caution_lasts_until_a_response_or_its_duration():
@@ -40,14 +43,29 @@ def test_the_caution_lasts_until_a_response_or_its_duration():
                                            ({"share": 1.5, "duration_s": 10.0}, "share"),
                                            ({"share": 0.4, "duration_s": -1.0}, "duration_s"),
                                            ({"share": 0.4, "duration_s": math.inf}, "duration_s"),
-                                           ({"share": 0.4, "duration_s": 10.0, "dt_s": 0.0}, "dt_s")])
+                                           ({"share": 0.4, "duration_s": 10.0, "dt_s": 0.0}, "dt_s"),
+                                           ({"share": 0.4, "duration_s": 10.0, "scope": "heater"}, "scope")])
 def test_the_rule_refuses_bad_values_naming_them(kwargs, field):
     with pytest.raises(ValueError, match=field):
         StartCaution(**kwargs)
 
 
-def test_settings_are_checked_and_off_by_default():
-    assert MpcSettings().start_rate_share == 1.0  # off
+def test_the_opening_bound_limits_the_rise_only():
+    """Valve a at 55 %, its rate share 20 %/s: an upper bound of 100 % becomes 75 %; one already lower stays; the
+    bound never falls below the lower one (a closing the other limits ask for stays possible)."""
+    assert opening_bound(5.0, 100.0, 55.0, 20.0) == 75.0
+    assert opening_bound(5.0, 60.0, 55.0, 20.0) == 60.0
+    assert opening_bound(80.0, 100.0, 55.0, 20.0) == 80.0
+    assert opening_bound(5.0, 100.0, 55.0, 0.0) == 55.0
+
+
+def test_settings_are_checked_and_off_by_default_with_the_opening_scope():
+    assert MpcSettings().start_rate_share == 1.0  # off (docs/robustness.md sec. 2.25)
+    assert MpcSettings().start_caution_scope == VALVE_A_OPENING
+    assert MpcSettings(start_caution_scope=VALVE_A_AND_HEATER).start_caution_scope == VALVE_A_AND_HEATER
+    for bad in ("heater", "", None):
+        with pytest.raises(InvalidSettings, match=r"start_caution_scope.*valve_a_opening.*valve_a_and_heater"):
+            MpcSettings(start_caution_scope=bad)
     for bad in (0.0, -0.1, 1.5, math.nan):
         with pytest.raises(InvalidSettings, match=r"start_rate_share.*\(0\.0, 1\.0\]"):
             MpcSettings(start_rate_share=bad)
@@ -56,14 +74,13 @@ def test_settings_are_checked_and_off_by_default():
             MpcSettings(start_caution_s=bad)
 
 
-def flow_out_of_reach_on_s0_10(share: float):
-    """The quick flow-out-of-reach scenario on box S0-10 of the seeded sweep, the MPC with ``start_rate_share``;
-    the scenario, the trace, and per sample the dead time the filter in use honours (s)."""
+def on_s0_10(sc, **settings):
+    """Scenario ``sc`` on box S0-10 of the seeded sweep, the MPC with ``settings`` (``MpcSettings`` fields); the
+    trace, and per sample the dead time the filter in use honours (s)."""
     label, variant = draw_boxes(0, 11)[10]
     assert label == "S0-10"
-    sc = scenarios.flow_out_of_reach().quick()
-    ctrl = MpcController(Parameters(), MpcSettings(initial_command=sc.initial_command, start_rate_share=share,
-                                                   deadline_s=bench.DETERMINISTIC_DEADLINE_S))
+    ctrl = MpcController(Parameters(), MpcSettings(initial_command=sc.initial_command,
+                                                   deadline_s=bench.DETERMINISTIC_DEADLINE_S, **settings))
     honoured = []
     step = ctrl.step
 
@@ -76,24 +93,25 @@ def flow_out_of_reach_on_s0_10(share: float):
     plant = build_plant(mismatch_suite.variant_factory(variant), simulate.plant_seed(0, sc.seed), bench.DT_S,
                         name=label)
     trace = simulate.simulate(sc, ctrl, Parameters(), 0, dt_s=bench.DT_S, plant=plant)
-    return sc, trace, np.array(honoured)
+    return trace, np.array(honoured)
 
 
 @pytest.mark.slow
 def test_a_start_slowed_until_the_reading_answers_does_not_ring_on_an_unknown_dead_time():
-    """S0-10's quick flow out of reach (docs/robustness.md sec. 2.19, 2.23). Without the caution valve a strokes
+    """S0-10's quick flow out of reach (docs/robustness.md sec. 2.19, 2.23, 2.25). Without the caution valve a strokes
     55 -> 100 % in the first sample, the filter takes the 4 s without a response for an offset, the reading dips
     1.7 degC below its reference and comes back 1.75 degC above it, and the dead time is honoured first after the
     flow's jump at 30 s (scored IAE 15.6 C s, 2.84 of the baseline's). With the share 0.4 the stroke is a ramp of
     20 %/s, the dead time is honoured within the first 15 s, the dip is as deep but the reading comes back without
-    the second swing, and the scored IAE is 3.3 C s (0.60)."""
-    sc, plain, plain_dead = flow_out_of_reach_on_s0_10(1.0)
-    _, slowed, slowed_dead = flow_out_of_reach_on_s0_10(0.4)
-    valve_a = INPUTS.index("valve_a_pct")
-    start = sc.initial_command.vector()[valve_a]
-    moves = lambda tr: np.abs(np.diff(np.r_[start, tr.applied[:5, valve_a]]))  # noqa: E731  the first 5 samples
-    assert moves(slowed).max() <= 0.4 * OcpSpec().rate_valve_pct_per_s + 1e-6  # the valve rate times the share
-    assert moves(plain).max() > 30.0  # ... where the plain start strokes
+    the second swing, and the scored IAE is 3.3 C s (0.60). The stroke opens valve a: the default scope
+    (``valve_a_opening``) slows it as the scope of sec. 2.23 did."""
+    sc = scenarios.flow_out_of_reach().quick()
+    plain, plain_dead = on_s0_10(sc, start_rate_share=1.0)
+    slowed, slowed_dead = on_s0_10(sc, start_rate_share=0.4, start_caution_scope=VALVE_A_OPENING)
+    start = sc.initial_command.vector()[VALVE_A]
+    openings = lambda tr: np.diff(np.r_[start, tr.applied[:5, VALVE_A]])  # noqa: E731  the first 5 samples
+    assert openings(slowed).max() <= 0.4 * OcpSpec().rate_valve_pct_per_s + 1e-6  # the valve rate times the share
+    assert openings(plain).max() > 30.0  # ... where the plain start strokes
     warm = slowed.time_s < sc.metrics_start_s
     assert slowed_dead[slowed.time_s <= 15.0].max() >= 1.5  # honoured in the start-up ...
     assert plain_dead[warm].max() < 1.5  # ... where the plain start-up honours none before the jump
@@ -104,3 +122,23 @@ def test_a_start_slowed_until_the_reading_answers_does_not_ring_on_an_unknown_de
                               [tr.time_s >= sc.metrics_start_s].sum() * tr.dt_s)
     assert scored(slowed) < 0.5 * scored(plain)
     assert not any(slowed.fallback)
+
+
+def test_a_start_that_closes_valve_a_is_left_alone():
+    """S0-10's quick heating (docs/robustness.md sec. 2.25): the reading starts 4.3 degC above its reference of 9 C and
+    the MPC closes valve a toward the bypass (60 -> 10 -> 0 %) and switches the heater off (80 -> 20 -> 0 W).
+    The opening scope (the default scope) leaves that start as it is: the same commands every sample as without
+    the caution. The scope of sec. 2.23 slows the closing (first move at most 20 %/s) and the heater's fall, and
+    the run takes another way (the dead time honoured from 9 s, where the plain run honours none before the step
+    at 30 s); it cost this cell 0.871 -> 0.990 of the baseline's IAE, which the default scope does not pay."""
+    sc = scenarios.winter_heating_steps().quick()
+    plain, plain_dead = on_s0_10(sc, start_rate_share=1.0)
+    opening, _ = on_s0_10(sc, start_rate_share=0.4, start_caution_scope=VALVE_A_OPENING)
+    both, both_dead = on_s0_10(sc, start_rate_share=0.4, start_caution_scope=VALVE_A_AND_HEATER)
+    start = sc.initial_command.vector()[VALVE_A]
+    first = lambda tr: float(tr.applied[0, VALVE_A] - start)  # noqa: E731
+    assert first(plain) < -30.0  # the plain start closes valve a in strides
+    assert np.array_equal(opening.applied, plain.applied)  # ... which the default scope does not touch
+    assert -0.4 * OcpSpec().rate_valve_pct_per_s - 1e-6 <= first(both) < 0.0  # the other scope slows the closing
+    warm = plain.time_s < sc.metrics_start_s
+    assert both_dead[warm].max() >= 1.5 and plain_dead[warm].max() < 1.5  # ... and its run goes another way
