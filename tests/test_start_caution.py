@@ -124,6 +124,7 @@ def test_a_start_slowed_until_the_reading_answers_does_not_ring_on_an_unknown_de
     assert not any(slowed.fallback)
 
 
+@pytest.mark.slow
 def test_a_start_that_closes_valve_a_is_left_alone():
     """S0-10's quick heating (docs/robustness.md sec. 2.25): the reading starts 4.3 degC above its reference of 9 C and
     the MPC closes valve a toward the bypass (60 -> 10 -> 0 %) and switches the heater off (80 -> 20 -> 0 W).
