@@ -18,7 +18,6 @@ def test_bad_arguments_are_named():
     assert box_trace.main(["--box", S1_0, "--scenario", "nope", "--quick"]) == 2
 
 
-@pytest.mark.slow
 def test_the_segments_add_up_to_the_bench_s_iae_and_every_step_is_recorded():
     run = box_trace.run_trace(S1_0, "winter_heating_steps", quick=True)
     segments = box_trace.segment_iae(run)
