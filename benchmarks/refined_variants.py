@@ -45,18 +45,19 @@ CASES = {"ptc_fall": ("nominal", ("fan_curve", "valve_leakage"))}
 def run_one(name: str, folder: Path, seed: int, duration_s: float, scenario_names: list[str] | None,
             quick: bool = True, deadline_s: float | None = None, attribution: bool = True,
             overrides: dict | None = None, weights: dict | None = None, candidates: tuple[str, ...] = (),
-            excitation: str = "steps") -> dict:
+            excitation: str = "steps", thesis_unless_moved: bool = False) -> dict:
     """Log, identification, model file and closed-loop comparison of one variant (``quick``: the scenarios'
     quick versions, their first segments only; ``deadline_s``: the MPCs' feedback deadline, None the default;
     ``attribution``: both MPCs once more without the effects the file lists as absent; ``overrides``, ``weights``:
     both MPCs' settings and cost weights changed alike, :func:`.refined_model.with_overrides`; ``candidates``: optional
     library candidates identification also scores, ``identify(optional_candidates=...)``; ``excitation``: the log's
     open-loop excitation, :data:`hvac_mpc.mismatch.logs.EXCITATIONS`, e.g. ``hot_heater``, whose heating phases drive
-    the heater body past the PTC's knee)."""
+    the heater body past the PTC's knee; ``thesis_unless_moved``: ``identify(thesis_unless_moved=...)``)."""
     variant, effects = CASES.get(name, (name, DOCUMENTED_EFFECTS))
     path = folder / f"{name}.csv"
     simulate_log(path, variant, duration_s=duration_s, seed=seed, excitation=excitation)
-    res = identify(log_data.load(path), Parameters(), effects, optional_candidates=candidates)
+    res = identify(log_data.load(path), Parameters(), effects, optional_candidates=candidates,
+                   thesis_unless_moved=thesis_unless_moved)
     model = write_model_file(folder / f"{name}.toml", res.params, res.effects, res.extras, res.terms, res.absent)
     cmp = compare(model, variant, scenarios.select(scenario_names, quick=quick), seed=0, attribution=attribution,
                   deadline_s=deadline_s, overrides=overrides, weights=weights)
@@ -113,13 +114,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--excitation", default="steps", choices=EXCITATIONS,
                         help="the identification log's open-loop excitation (default steps; hot_heater: heating phases "
                              "near full heater power at low flow, the heater body past the PTC's knee)")
+    parser.add_argument("--thesis-unless-moved", action="store_true",
+                        help="where nothing is added, the file holds the thesis value of every refit parameter the "
+                             "log does not move (off by default; docs/identification.md)")
     args = parser.parse_args(argv)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.variant or DEFAULT_VARIANTS:
             r = run_one(name, Path(tmp), args.seed, args.duration, args.scenario, quick=not args.full,
                         deadline_s=args.deadline, attribution=not args.no_attribution, overrides=args.settings,
-                        weights=args.weights, candidates=tuple(args.candidate), excitation=args.excitation)
+                        weights=args.weights, candidates=tuple(args.candidate), excitation=args.excitation,
+                        thesis_unless_moved=args.thesis_unless_moved)
             rows.append(r)
             t = r["comparison"]["total"]
             print(f"{name:26s} added {r['added'] + r['terms'] or ['nothing']}", flush=True)

@@ -39,6 +39,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--best-place", action="store_true",
                         help="a discovered term's place: the best after the refit among those that pass (held-out "
                              "error), not the first that passes (off by default)")
+    parser.add_argument("--thesis-unless-moved", action="store_true",
+                        help="where nothing is added, write the thesis value of every refit nominal parameter the log "
+                             "does not move (Wald test at 1 %%, each alone; off by default: docs/identification.md, "
+                             "'A log that adds nothing')")
     parser.add_argument("--thesis-tables", action="store_true",
                         help="run the loop on the thesis's valve measurements (tables 3-6) instead of a log")
     parser.add_argument("--candidate", action="append", default=[], choices=OPTIONAL_CANDIDATE_NAMES,
@@ -88,7 +92,8 @@ def _run_log(args, say) -> int:
     log = log_data.load(path, _mapping(args.map), args.holdout_fraction)
     say(f"{log.n} rows, outputs {', '.join(log.output_names())}")
     res = identify(log, base, effects, quick=args.quick, max_effects=args.max_effects, progress=say,
-                   pairs=not args.no_pairs, best_place=args.best_place, optional_candidates=args.candidate)
+                   pairs=not args.no_pairs, best_place=args.best_place, optional_candidates=args.candidate,
+                   thesis_unless_moved=args.thesis_unless_moved)
     out = Path(args.out or "out/identify")
     files = write_report(res, out, plots=not args.no_plots)
     added = [a.name for a in res.accepted] or ["none"]

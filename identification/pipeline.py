@@ -794,22 +794,27 @@ def one_blas_thread():
 def identify(log: LogData, base: Parameters | None = None, base_effects: Iterable[str] = (),
              quick: bool = False, max_effects: int = 4, progress: Callable[[str], None] | None = None,
              discover: bool = True, pairs: bool = True, joint: bool = True,
-             best_place: bool = False, optional_candidates: Iterable[str] = ()) -> IdentificationResult:
+             best_place: bool = False, optional_candidates: Iterable[str] = (),
+             thesis_unless_moved: bool = False) -> IdentificationResult:
     """Run the whole procedure of the module docstring on a prepared log (``pairs``: its step 7, the pairs of
     effects that only help together; ``joint``: its step 8, the joint refit; ``best_place``: a discovered term's
     place the one whose term leaves the lowest held-out error after the whole-model refit among those that pass,
     instead of the first that passes; ``optional_candidates``: names from :data:`~.candidates.OPTIONAL_CANDIDATES`
-    scored with the library). The linear algebra runs on one thread (:func:`one_blas_thread`)."""
-    if not isinstance(best_place, bool):
-        raise TypeError(f"best_place must be True or False, not {best_place!r}")
+    scored with the library; ``thesis_unless_moved``: where nothing is added, the file holds the thesis value of
+    every refit parameter the log does not move, :func:`_thesis_unless_moved`, off by default). The linear algebra
+    runs on one thread (:func:`one_blas_thread`)."""
+    for name, flag in (("best_place", best_place), ("thesis_unless_moved", thesis_unless_moved)):
+        if not isinstance(flag, bool):
+            raise TypeError(f"{name} must be True or False, not {flag!r}")
     with one_blas_thread():
         return _identify(log, base, base_effects, quick, max_effects, progress, discover, pairs, joint, best_place,
-                         optional_candidates)
+                         optional_candidates, thesis_unless_moved)
 
 
 def _identify(log: LogData, base: Parameters | None, base_effects: Iterable[str], quick: bool, max_effects: int,
               progress: Callable[[str], None] | None, discover: bool, pairs: bool, joint: bool,
-              best_place: bool, optional_candidates: Iterable[str] = ()) -> IdentificationResult:
+              best_place: bool, optional_candidates: Iterable[str] = (),
+              thesis_unless_moved: bool = False) -> IdentificationResult:
     """:func:`identify` on the library's threads as they are set."""
     say = progress or (lambda _msg: None)
     clock = _Clock()
@@ -886,7 +891,7 @@ def _identify(log: LogData, base: Parameters | None, base_effects: Iterable[str]
     confidence = parameter_confidence(fitter, final, [fp for fp in NOMINAL_FREE if fp.name in final.free], p_base)
     params = _keep_unidentified(params, base, confidence, notes)
     written = None
-    if _nothing_added(final, accepted):
+    if thesis_unless_moved and _nothing_added(final, accepted):
         written = _thesis_unless_moved(fitter, final, confidence, base, quick, notes)
         params = model_outputs(fitter, written, base, diag_after)[0] if written is not final else params
     clock.lap("final_diagnostics")

@@ -53,7 +53,9 @@ def opening_bound(lo: float, hi: float, previous: float, rise: float) -> float:
 
 
 class StartCaution:
-    """The factor on the start-up's rate limits, and what it slows (``scope``, one of :data:`SCOPES`).
+    """The factor on the start-up's rate limits, and what it slows (``scope``, one of :data:`SCOPES`; the class's
+    default is the first rule, valve a and the heater, while ``MpcSettings.start_caution_scope`` defaults to valve a's
+    opening alone: the controller always passes its setting).
 
     ``share`` in (0, 1] (1: off); ``duration_s`` (s, >= 0) the longest the caution lasts; ``dt_s`` the sample
     time (s). Per control step :meth:`factor` with whether the filter in use has seen a response; :meth:`reset`
