@@ -35,15 +35,23 @@ def identified(log_path):
     return identify(load(log_path), Parameters(), WITHOUT_PTC, thesis_unless_moved=True)
 
 
-@pytest.mark.slow
-def test_without_the_rule_the_file_holds_the_full_refit(log_path, identified):
-    """The default: the same log's file holds the refit values of the parameters the rule would revert."""
-    res = identify(load(log_path), Parameters(), WITHOUT_PTC)
-    assert res.written is None
-    for name in NOT_MOVED + ("core_flow_loss",):
-        refit = res.final.p[res.fitter.names.index(name)]
-        assert getattr(res.params, name) == pytest.approx(refit, rel=1e-12), name
-        assert getattr(res.params, name) != getattr(identified.params, name), name
+def test_the_rule_is_reached_only_when_asked(tmp_path, monkeypatch):
+    """Off by default: on a short log of the nominal box that adds nothing, ``identify`` writes the refit without
+    reaching the rule, and with ``thesis_unless_moved=True`` reaches it once (a 20-minute log, quick fits)."""
+    path = tmp_path / "nominal_short.csv"
+    simulate_log(path, "nominal", duration_s=1200, seed=5)
+    calls = []
+
+    def spy(fitter, final, *args):
+        calls.append(final)
+        return final
+
+    monkeypatch.setattr(pipeline, "_thesis_unless_moved", spy)
+    res = identify(load(path), Parameters(), WITHOUT_PTC, quick=True, discover=False)
+    assert res.accepted == [] and res.terms == ()  # nothing added: the case the rule is for
+    assert calls == [] and res.written is None
+    identify(load(path), Parameters(), WITHOUT_PTC, quick=True, discover=False, thesis_unless_moved=True)
+    assert len(calls) == 1
 
 
 @pytest.mark.slow
