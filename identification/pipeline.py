@@ -40,11 +40,11 @@ Procedure (stated in the report):
    readings (the other parameters fixed) is below ``CONTRIBUTION_MIN`` of the noise variance (a magnitude the
    procedure cannot tell from zero).
 9. Whatever structure remains is located (:mod:`.localise`) instead of being named.
-10. Only with ``thesis_unless_moved`` (off by default: the reverted block is not tested jointly, docs/identification.md
-   "A log that adds nothing"): when nothing was added (no effect, term, delay, offset or gain), the model file holds the thesis value of every
-   refit nominal parameter the log does not move (Wald test at the procedure's level), the others refit with them
-   there, unless the reverted parameters together pass the effects' gates against that model
-   (:func:`_thesis_unless_moved`).
+10. Only with ``thesis_unless_moved`` (off by default: the reverted block is not tested jointly,
+   docs/identification.md "A log that adds nothing"): when nothing was added (no effect, term, delay, offset or
+   gain), the model file holds the thesis value of every refit nominal parameter the log does not move (Wald test at
+   the procedure's level), the others refit with them there, unless the reverted parameters together pass the
+   effects' gates against that model (:func:`_thesis_unless_moved`).
 """
 
 from __future__ import annotations
