@@ -86,6 +86,17 @@ def _changed_params(res: IdentificationResult, fit) -> dict[str, tuple[float, fl
     return {n: (base[i], float(fit.p[i])) for i, n in enumerate(res.fitter.names) if fit.p[i] != base[i]}
 
 
+def _written_params(res: IdentificationResult) -> dict[str, dict[str, float]]:
+    """Every parameter the model file holds at another value than the base file's (the refit, or the thesis value
+    where the file keeps it: :func:`~.pipeline._keep_unidentified`, ``thesis_unless_moved``)."""
+    out = {}
+    for name in type(res.params).__dataclass_fields__:
+        a, b = getattr(res.base_params, name), getattr(res.params, name)
+        if isinstance(b, (int, float)) and not isinstance(b, bool) and a != b:
+            out[name] = {"base": float(a), "written": float(b)}
+    return out
+
+
 # ---------------------------------------------------------------------------------------------- plots
 def _plot_residuals(plt, res: IdentificationResult, out: Path) -> list[str]:
     files = []
@@ -206,6 +217,7 @@ def summary(res: IdentificationResult) -> dict:
         "effects_absent": list(res.absent),
         "holdout_errors": res.holdout_errors(),
         "written_model_holdout_errors": res.written,
+        "parameters_written": _written_params(res),
         "steps": res.steps,
         "discovered_terms": [dict(t.as_dict(), formula=t.formula()) for t in res.terms],
         "discovery": res.discovery,

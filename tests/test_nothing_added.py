@@ -14,6 +14,7 @@ from hvac_mpc.identification import pipeline
 from hvac_mpc.identification.fitting import MOVED_Z
 from hvac_mpc.identification.log_data import load
 from hvac_mpc.identification.pipeline import DOCUMENTED_EFFECTS, identify
+from hvac_mpc.identification.report import summary
 from hvac_mpc.mismatch import simulate_log
 from hvac_mpc.models import Parameters
 
@@ -50,6 +51,8 @@ def test_the_rule_is_reached_only_when_asked(tmp_path, monkeypatch):
     res = identify(load(path), Parameters(), WITHOUT_PTC, quick=True, discover=False)
     assert res.accepted == [] and res.terms == ()  # nothing added: the case the rule is for
     assert calls == [] and res.written is None
+    written = summary(res)["parameters_written"]  # what the file holds: the refit, where it differs from the base
+    assert written and all(v["written"] == getattr(res.params, k) != v["base"] for k, v in written.items())
     identify(load(path), Parameters(), WITHOUT_PTC, quick=True, discover=False, thesis_unless_moved=True)
     assert len(calls) == 1
 
@@ -76,6 +79,8 @@ def test_a_log_that_adds_nothing_writes_the_thesis_values_it_does_not_move(ident
     # the written model predicts the held-out rows at the noise level: reverting costs nothing the log can show
     w = res.written["supply_temp_c"]
     assert w["rms_after"] <= 1.15 * res.sigma["supply_temp_c"], w
+    written = summary(res)["parameters_written"]
+    assert written["core_flow_loss"]["written"] == res.params.core_flow_loss and not set(NOT_MOVED) & set(written)
     note = next(n for n in res.notes if n.startswith("nothing added: the refit nominal parameters"))
     assert "do not pass the effects' gates" in note
 
