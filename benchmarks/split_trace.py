@@ -25,7 +25,7 @@ import numpy as np
 
 from hvac_mpc.models.parameters import Parameters
 
-from . import bench, scenarios as scenario_defs
+from . import bench, box_trace, scenarios as scenario_defs
 from .perturbation import perturb_parameters
 from .simulate import simulate
 
@@ -66,8 +66,7 @@ def run_variant(scenario: scenario_defs.Scenario, seed: int, settings: Mapping[s
     tr = simulate(scenario, ctrl, plant_params, seed, name="mpc")
     ctrl.close()
     k0 = int(np.searchsorted(tr.time_s, scenario.metrics_start_s - 1e-9))
-    err = np.abs(tr.truth["supply_temp_c"] - tr.reference["supply_temp_c"]) * tr.dt_s
-    err[:k0] = 0.0
+    err = box_trace.abs_error(tr, scenario.metrics_start_s) * tr.dt_s
     ref = tr.reference["supply_temp_c"]
     return {"error": err, "reference": ref, "commands": tr.requested, "steps": ctrl.steps, "k0": k0,
             "changes": [k for k in range(1, ref.size) if ref[k] != ref[k - 1]], "iae": float(err.sum())}

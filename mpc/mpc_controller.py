@@ -1134,7 +1134,7 @@ class MpcController:
         for i in (pb.i_valve_a, pb.i_heater_cmd):
             step = pb.rate_phys[i] * pb.dt_s * ring
             lo[i] = min(max(lo[i], self.u_prev[i] - step), hi[i])
-            hi[i] = max(min(hi[i], self.u_prev[i] + step), lo[i])
+            hi[i] = opening_bound(lo[i], hi[i], self.u_prev[i], step)
         return lo, hi
 
     def _start_opening_slowed(self, bounds: tuple[np.ndarray, np.ndarray], share: float

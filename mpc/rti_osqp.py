@@ -1218,7 +1218,7 @@ class _OsqpCore(osqp_embedded.TwoPassSolve):
         self.wrapper = wrapper
         self.core = getattr(wrapper, "_solver", None)
         self._matrices: tuple | None = None  # the matrices last written (save_state)
-        self._last_y: np.ndarray | None = None  # the last solve's multipliers, unscaled (save_state)
+        self._last = None  # the last solve's result (save_state reads its multipliers, unscaled)
         self._passes(wrapper.settings, first_pass_iter)
 
     def update_matrices(self, Px: np.ndarray, Ax: np.ndarray) -> None:
@@ -1234,7 +1234,10 @@ class _OsqpCore(osqp_embedded.TwoPassSolve):
         workspace holds them scaled with the equilibration of the restored matrices, not with the one they were found
         with: the next solve's iterates close to, not the same as, those it would have taken now (the generated
         solver's :meth:`~.osqp_embedded.EmbeddedOsqp.save_state` keeps the workspace itself)."""
-        return {"rho": self.rho, "matrices": self._matrices, "y": self._last_y}
+        y = None
+        if self._last is not None:  # no solve since it: its multipliers are still the last solve's
+            y = np.array(self._last.solution.y if self.core is not None else self._last.y, float)
+        return {"rho": self.rho, "matrices": self._matrices, "y": y}
 
     def restore_state(self, state: dict) -> None:
         """OSQP set back to :meth:`save_state`'s step size, matrices (equilibrated and factorised again) and
@@ -1288,7 +1291,7 @@ class _OsqpCore(osqp_embedded.TwoPassSolve):
             self.core.solve()
             info, x = self.core.info, self.core.solution.x
             res = self.core
-        self._last_y = np.array(res.solution.y if self.core is not None else res.y, float)
+        self._last = res
         return info.status_val, info.status, int(info.iter), x
 
 
