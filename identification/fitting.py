@@ -433,20 +433,7 @@ def parameter_confidence(fitter: Fitter, fit: Fit, free: Sequence[FreeParam], st
     free = list(free)
     if not free:
         return []
-    dy = fitter.raw_sensitivity(fit.effects, fit.p, free, fit.terms)
-    dy = fit.post.apply(np.zeros(dy.shape[:2]), dy)[1]
-    ok = np.isfinite(fitter.y_meas) & fitter.log.train[:, None]
-    resid = fitter.scaled(fit.y)
-    info = np.zeros((len(free), len(free)))
-    for j in range(resid.shape[1]):
-        rows = ok[:, j]
-        if rows.sum() <= len(free):
-            continue
-        jm = dy[rows, j, :] / fitter.sigma[j]
-        s2 = float(np.mean(resid[rows, j] ** 2))
-        w = min(st.effective_n(resid[rows, j]) / rows.sum(), 1.0)
-        info += w * (jm.T @ jm) / max(s2, 1e-12)
-    cov = np.linalg.pinv(info)
+    cov = parameter_covariance(fitter, fit, free)
     out = []
     for k, fp in enumerate(free):
         i = fitter.names.index(fp.name)
@@ -460,3 +447,47 @@ def parameter_confidence(fitter: Fitter, fit: Fit, free: Sequence[FreeParam], st
                     "change": (value - begin) / begin if begin else float("nan"),
                     "identified": bool(identified), "moved": bool(moved), "words": PARAMETER_WORDS.get(fp.name, "")})
     return out
+
+
+def parameter_covariance(fitter: Fitter, fit: Fit, free: Sequence[FreeParam]) -> np.ndarray:
+    """Gauss-Newton covariance of the refit parameters ``free`` at ``fit``, in the fit's own coordinates (theta:
+    log(p / p0) for a ``log`` parameter, (p - p0) / scale for a ``lin`` one), weighted as
+    :func:`parameter_confidence` says."""
+    free = list(free)
+    dy = fitter.raw_sensitivity(fit.effects, fit.p, free, fit.terms)
+    dy = fit.post.apply(np.zeros(dy.shape[:2]), dy)[1]
+    ok = np.isfinite(fitter.y_meas) & fitter.log.train[:, None]
+    resid = fitter.scaled(fit.y)
+    info = np.zeros((len(free), len(free)))
+    for j in range(resid.shape[1]):
+        rows = ok[:, j]
+        if rows.sum() <= len(free):
+            continue
+        jm = dy[rows, j, :] / fitter.sigma[j]
+        s2 = float(np.mean(resid[rows, j] ** 2))
+        w = min(st.effective_n(resid[rows, j]) / rows.sum(), 1.0)
+        info += w * (jm.T @ jm) / max(s2, 1e-12)
+    return np.linalg.pinv(info)
+
+
+def joint_wald(cov: np.ndarray, free: Sequence[FreeParam], value: np.ndarray, start: np.ndarray,
+               names: Sequence[str], subset: Sequence[str]) -> float:
+    """Wald statistic of the hypothesis "every parameter of ``subset`` is at its ``start`` value" from the refit
+    ``value`` and the covariance ``cov`` of ``free`` (:func:`parameter_covariance`); chi-square with len(subset)
+    degrees of freedom under the hypothesis. It counts the estimates' correlation, which per-parameter z values do
+    not: six parameters each within 2.6 standard errors can lie jointly far outside."""
+    free = list(free)
+    ks = [k for k, fp in enumerate(free) if fp.name in set(subset)]
+    if not ks:
+        return 0.0
+    d = np.array([_theta(free[k], float(value[names.index(free[k].name)]), float(start[names.index(free[k].name)]))
+                  for k in ks])
+    block = cov[np.ix_(ks, ks)]
+    return float(d @ np.linalg.pinv(block) @ d)
+
+
+def _theta(fp: FreeParam, value: float, begin: float) -> float:
+    """The fit's coordinate of ``value`` measured from ``begin`` (see :class:`FreeParam`)."""
+    if fp.transform == "log":
+        return math.log(value / begin) if value > 0 and begin > 0 else float("inf")
+    return (value - begin) / fp.scale

@@ -40,11 +40,11 @@ Procedure (stated in the report):
    readings (the other parameters fixed) is below ``CONTRIBUTION_MIN`` of the noise variance (a magnitude the
    procedure cannot tell from zero).
 9. Whatever structure remains is located (:mod:`.localise`) instead of being named.
-10. Only with ``thesis_unless_moved`` (off by default: the reverted block is not tested jointly,
-   docs/identification.md "A log that adds nothing"): when nothing was added (no effect, term, delay, offset or
-   gain), the model file holds the thesis value of every refit nominal parameter the log does not move (Wald test at
-   the procedure's level), the others refit with them there, unless the reverted parameters together pass the
-   effects' gates against that model (:func:`_thesis_unless_moved`).
+10. Only with ``thesis_unless_moved`` (off by default, docs/identification.md "A log that adds nothing"): when
+   nothing was added (no effect, term, delay, offset or gain), the model file holds the thesis value of every refit
+   nominal parameter the log does not move (Wald test at the procedure's level, alone and jointly), the others refit
+   with them there, unless the reverted parameters together pass the effects' gates against that model on some
+   output (:func:`_thesis_unless_moved`).
 """
 
 from __future__ import annotations
@@ -66,7 +66,8 @@ from . import statistics as st
 from .candidates import MIN_ABS_VALUE, MODEL_CANDIDATES, OPTIONAL_CANDIDATES, Candidate, library
 from .discovery import CABIN_CANDIDATES
 from .diagnostics import diagnose, training_nll
-from .fitting import FLOW_PARAMS, IDENTIFIED_REL_SE, MOVED_Z, NOMINAL_FREE, Fit, Fitter, FreeParam, parameter_confidence
+from .fitting import (FLOW_PARAMS, IDENTIFIED_REL_SE, MOVED_Z, NOMINAL_FREE, Fit, Fitter, FreeParam, joint_wald,
+                      parameter_confidence, parameter_covariance)
 from .log_data import LogData
 from .joint_step import joint_step
 from .pair_step import pair_step
@@ -946,11 +947,13 @@ def _thesis_unless_moved(fitter: Fitter, final: Fit, confidence: list[dict], bas
     """The model the file holds when nothing was added (docs/identification.md, "A log that adds nothing"): each
     refit nominal parameter is a hypothesis "the thesis value is wrong", kept only where the log rejects the thesis
     value at the procedure's level (Wald test, abs(z) above :data:`~.fitting.MOVED_Z`, two-sided 1 %); the others
-    go back to their thesis values and the kept ones are refit with them there. ``final`` itself where every refit
-    parameter passes; the thesis model where none does or where the restricted refit does not lower the thesis
-    model's held-out error."""
+    go back to their thesis values, as far as their joint Wald test lets them (:func:`_jointly_unmoved`), and the
+    kept ones are refit with them there. ``final`` itself where every refit parameter passes or where the reverted
+    block passes the effects' gates on any output; the thesis model where none passes or where the restricted
+    refit does not lower the thesis model's held-out error."""
     moved = {c["name"] for c in confidence if c["identified"] and abs(c["z"]) > MOVED_Z}
-    reverted = sorted(set(final.free) - moved)
+    reverted, wald = _jointly_unmoved(fitter, final, base, sorted(set(final.free) - moved), notes)
+    moved = set(final.free) - set(reverted)
     if not reverted:
         return final
     p_thesis, p_base = final.p.copy(), np.array(base.vector())
@@ -962,23 +965,54 @@ def _thesis_unless_moved(fitter: Fitter, final: Fit, confidence: list[dict], bas
     fit = _two_stage_fit(fitter, final.effects, p_thesis, free, final.post, quick) if free else thesis
     if fit.cost_holdout >= thesis.cost_holdout:
         fit = thesis
-    bic = bic_change(fitter, final, fit, len(reverted))
-    share = output_share(fitter, fit, final, "supply_temp_c")
-    if final.cost_holdout < fit.cost_holdout and share >= FORWARD_MIN and bic < 0:
+    gates = {o: (output_share(fitter, fit, final, o), bic_change(fitter, final, fit, len(reverted), o))
+             for o in fitter.outputs}
+    share, bic = gates["supply_temp_c"] if "supply_temp_c" in gates else (0.0, 0.0)
+    passed = [o for o, (sh, b) in gates.items() if sh >= FORWARD_MIN and b < 0]
+    if final.cost_holdout < fit.cost_holdout and passed:
         notes.append(f"nothing added: the refit nominal parameters {reverted}, within {MOVED_Z} standard errors of "
-                     f"their thesis values each, pass the effects' gates together (information criterion {bic:+.1f}): "
-                     "the refit is written")
+                     f"their thesis values each, pass the effects' gates together on {passed} (information "
+                     f"criterion {', '.join(f'{gates[o][1]:+.1f}' for o in passed)}): the refit is written")
         return final
     kept = [fp.name for fp in free] if fit is not thesis else []
     rms = _errors(fitter, final, fit.y)
     notes.append(f"nothing added: the refit nominal parameters the log does not move from their thesis values "
                  f"(|z| <= {MOVED_Z}, two-sided 1 %) written at the thesis values: {reverted}"
                  + (f"; refit with them there: {kept}" if kept else "; no parameter refit")
-                 + f"; together they do not pass the effects' gates against it (they remove {100 * share:.0f} % of its "
-                   f"held-out supply structure, information criterion {bic:+.1f}; need {100 * FORWARD_MIN:.0f} % and < 0)"
+                 + f"; jointly within the test too (Wald {wald:.1f} on {len(reverted)} degrees of freedom, "
+                   f"{100 * (1 - ALPHA):.0f} % bound {stats.chi2.ppf(1 - ALPHA, len(reverted)):.1f})"
+                 + f"; together they do not pass the effects' gates against it on any output (they remove "
+                   f"{100 * share:.0f} % of its held-out supply structure, information criterion {bic:+.1f}; need "
+                   f"{100 * FORWARD_MIN:.0f} % and < 0)"
                  + "".join(f"; held-out {o} RMS of the written model {e['rms_after']:.4g} (the full refit's "
                            f"{e['rms_before']:.4g})" for o, e in rms.items() if o == "supply_temp_c"))
     return fit
+
+
+def _jointly_unmoved(fitter: Fitter, final: Fit, base: Parameters, reverted: list[str],
+                     notes: list[str]) -> tuple[list[str], float]:
+    """The largest part of ``reverted`` (each within :data:`~.fitting.MOVED_Z` of its thesis value alone) that the
+    log does not move jointly either: while the block's Wald statistic exceeds the chi-square bound at the
+    procedure's level (:data:`~.selection.ALPHA`), the parameter whose leaving lowers it most is kept at its refit
+    value. Correlated estimates can each lie near their thesis values and together far from them (a joint move the
+    per-parameter test does not see). Returns the block and its statistic."""
+    free = [fp for fp in NOMINAL_FREE if fp.name in final.free]
+    cov = parameter_covariance(fitter, final, free)
+    start = np.array(base.vector())
+
+    def wald(block: list[str]) -> float:
+        return joint_wald(cov, free, final.p, start, fitter.names, block)
+
+    block, kept = list(reverted), []
+    while block and wald(block) > stats.chi2.ppf(1 - ALPHA, len(block)):
+        out = min(block, key=lambda n: wald([b for b in block if b != n]))
+        block.remove(out)
+        kept.append(out)
+    if kept:
+        notes.append(f"nothing added: {kept} each within {MOVED_Z} standard errors of the thesis value but jointly "
+                     f"moved by the log (Wald {wald(list(reverted)):.1f} on {len(reverted)} degrees of freedom): "
+                     "kept at their refit values")
+    return block, wald(block)
 
 
 def model_outputs(fitter: Fitter, final: Fit, base: Parameters, diag: dict) -> tuple[Parameters, tuple, dict]:

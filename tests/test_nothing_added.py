@@ -103,9 +103,76 @@ def test_the_reverted_block_is_kept_where_it_passes_the_effects_gates(identified
     base = Parameters().replace(heater_kp=0.8 * Parameters().heater_kp)
     unmoved = [dict(c, z=0.0) for c in res.parameter_confidence]
     notes: list[str] = []
-    out = pipeline._thesis_unless_moved(res.fitter, res.final, unmoved, base, False, notes)
+    # the joint test alone already keeps k_p (it lies 20 % from the base value): take it out to reach the gates
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(pipeline, "_jointly_unmoved", lambda fitter, final, base, reverted, notes: (reverted, 0.0))
+        out = pipeline._thesis_unless_moved(res.fitter, res.final, unmoved, base, False, notes)
     assert out is res.final
     assert any("pass the effects' gates together" in n for n in notes), notes
+    # with the joint test k_p (its z made 0 here) is kept first at the refit's value, the core loss (its z too) next
+    notes = []
+    out = pipeline._thesis_unless_moved(res.fitter, res.final, unmoved, base, False, notes)
+    assert any(n.startswith("nothing added: ['heater_kp'") and "jointly moved" in n for n in notes), notes
+    assert out.p[res.fitter.names.index("heater_kp")] > 1.1 * base.heater_kp
+
+
+def test_the_joint_wald_statistic_counts_the_estimates_correlation():
+    """Two estimates correlated +0.98, each 2 standard errors from its start (within MOVED_Z alone): moved the same
+    way they are jointly plausible (statistic 4.04 on 2 degrees of freedom), moved apart they are not (400); a
+    log-transformed parameter is measured in log(p / p0)."""
+    import math
+
+    import numpy as np
+
+    from hvac_mpc.identification.fitting import FreeParam, joint_wald
+
+    free = [FreeParam("core_flow_loss", "lin", 0.05), FreeParam("cooler_slope", "lin", 0.05),
+            FreeParam("heater_kp", "log")]
+    cov = np.array([[1.0, 0.98, 0.0], [0.98, 1.0, 0.0], [0.0, 0.0, 0.01]])
+    names = ["core_flow_loss", "cooler_slope", "heater_kp"]
+    start = np.array([0.10, 0.75, 0.669])
+    together = start + np.array([2 * 0.05, 2 * 0.05, 0.0])
+    apart = start + np.array([2 * 0.05, -2 * 0.05, 0.0])
+    pair = ["core_flow_loss", "cooler_slope"]
+    assert joint_wald(cov, free, together, start, names, pair) == pytest.approx(0.16 / 0.0396, rel=1e-9)
+    assert joint_wald(cov, free, apart, start, names, pair) == pytest.approx(15.84 / 0.0396, rel=1e-9)
+    kp = start.copy()
+    kp[2] = 0.669 * math.exp(0.1)
+    assert joint_wald(cov, free, kp, start, names, ["heater_kp"]) == pytest.approx(1.0, rel=1e-9)
+    assert joint_wald(cov, free, kp, start, names, []) == 0.0
+
+
+def test_a_block_each_unmoved_alone_but_jointly_moved_keeps_the_parameter_that_moves_it(monkeypatch):
+    """The reverted block shrinks until its joint test passes: three parameters each 2 standard errors from the
+    thesis, two of them correlated +0.98 and moved apart (jointly far outside), keep the one whose leaving lowers
+    the statistic most, say so, and revert the rest (their statistic within the chi-square bound)."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    thesis = Parameters()
+    base_vec = np.array(thesis.vector())
+    all_names = list(Parameters.scalar_names())
+    p = base_vec.copy()
+    p[all_names.index("core_flow_loss")] += 2 * 0.05
+    p[all_names.index("cooler_slope")] -= 2 * 0.05
+    p[all_names.index("heater_kp")] *= np.exp(2 * 0.1)
+    free = ["core_flow_loss", "cooler_slope", "heater_kp"]
+    cov = np.diag([1.0, 1.0, 0.01])
+    cov[0, 1] = cov[1, 0] = 0.98
+    monkeypatch.setattr(pipeline, "parameter_covariance", lambda fitter, final, fps: cov)
+    fitter = SimpleNamespace(names=all_names)
+    final = SimpleNamespace(p=p, free=free)
+    notes: list[str] = []
+    block, wald = pipeline._jointly_unmoved(fitter, final, thesis, sorted(free), notes)
+    assert len(block) == 2 and "heater_kp" in block
+    assert wald == pytest.approx(8.0, rel=1e-6)  # two uncorrelated 2-sigma moves: 4 + 4, within the bound 9.2
+    assert len(notes) == 1 and "jointly moved by the log" in notes[0]
+    # moved together, the block holds as it is
+    p[all_names.index("cooler_slope")] += 4 * 0.05
+    notes = []
+    block, wald = pipeline._jointly_unmoved(fitter, final, thesis, sorted(free), notes)
+    assert sorted(block) == sorted(free) and notes == []
 
 
 def test_the_rule_is_off_by_default_and_refuses_a_non_boolean():
