@@ -62,7 +62,13 @@ VARIANTS = {"shifted": {"steady_start": False},
             **{f"split_keep_rho_{n}": {"change_split_iter": n, "split_keeps_rho": True} for n in (30, 60)},
             **{f"split_replay_{n}": {"change_split_iter": n, "split_replays_change": True} for n in (20, 30, 40)},
             **{f"split_every_replay_{n}": {"change_split_iter": n, "split_every_step": True, "split_replays_change": True}
-               for n in (30, 40, 60)}}
+               for n in (30, 40, 60)},
+            **{f"rho_max_{r}": {"osqp_rho_max": float(r)} for r in ("2e-3", "5e-3", "1e-2")},
+            **{f"plain_cap_{n}": {"osqp_plain_qp_cap": n} for n in (40, 60, 80, 100)},
+            **{f"split_replay_30_rho_max_{r}": {"change_split_iter": 30, "split_replays_change": True,
+                                                "osqp_rho_max": float(r)} for r in ("2e-3", "5e-3")},
+            **{f"split_replay_30_plain_cap_{n}": {"change_split_iter": 30, "split_replays_change": True,
+                                                  "osqp_plain_qp_cap": n} for n in (40, 60, 100)}}
 #: The variants run unless ``--variant`` names others.
 DEFAULT_VARIANTS = ("shifted", "steady", "temperature")
 #: Steps after a change counted as its wake (the single QPs that follow it).
