@@ -234,7 +234,8 @@ def print_trace(t: dict[str, Any]) -> None:
         print("  activity [start, end, changed]: " + ", ".join(f"{k} {v}" for k, v in r["activity"].items() if v[2]))
         res = r["residuals"]
         pick = res[:4] + res[4:-2:max(1, (len(res) - 6) // 6)] + res[-2:] if len(res) > 10 else res
-        print("  residuals [it, prim, dual, rho]: " + " ".join(f"[{a}, {b:.2g}, {c:.2g}, {d:.2g}]" for a, b, c, d in pick))
+        print("  residuals [it, prim, dual, rho]: "
+              + " ".join(f"[{a}, {b:.2g}, {c:.2g}, {d:.2g}]" for a, b, c, d in pick))
         print("  starts: " + ", ".join(f"{k} {v}" for k, v in r["starts"].items()))
         print("  settings: " + ", ".join(f"{k} {v}" for k, v in r["settings"].items()))
 

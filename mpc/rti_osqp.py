@@ -248,13 +248,9 @@ class RtiOsqpSolver:
                  split_every_step: bool = False, split_keeps_rho: bool = False, split_replays_change: bool = False,
                  rho_max: float | None = None, plain_qp_cap: int = 0):
         self.pb = pb = problem
-        self.rho_max = _checked_rho_max(rho_max)
-        self.plain_qp_cap = _checked_plain_cap(plain_qp_cap, max_iter)
-        if isinstance(change_split_iter, bool) or int(change_split_iter) != change_split_iter \
-                or not (change_split_iter == 0 or 1 <= change_split_iter <= int(max_iter)):
-            raise ValueError(f"RtiOsqpSolver: change_split_iter = {change_split_iter!r}, allowed: 0 (off) or an "
-                             f"integer in [1, max_iter = {max_iter}]")
-        self.change_split_iter = int(change_split_iter)
+        self.rho_max = _checked_step_size("rho_max", rho_max)
+        self.plain_qp_cap = _checked_cap("plain_qp_cap", plain_qp_cap, max_iter)
+        self.change_split_iter = _checked_cap("change_split_iter", change_split_iter, max_iter)
         self.split_every_step = bool(split_every_step)
         self.split_keeps_rho = bool(split_keeps_rho)
         if not isinstance(split_replays_change, bool):
@@ -267,10 +263,7 @@ class RtiOsqpSolver:
         if not isinstance(reweigh_in_place, bool):
             raise ValueError(f"RtiOsqpSolver: reweigh_in_place = {reweigh_in_place!r}, allowed: True or False")
         self.reweigh_in_place = reweigh_in_place
-        if rho_reset is not None and (isinstance(rho_reset, bool) or not isinstance(rho_reset, (int, float))
-                                      or not 1e-6 <= rho_reset <= 1e6):
-            raise ValueError(f"RtiOsqpSolver: rho_reset = {rho_reset!r}, allowed: None or a number in [1e-6, 1e6]")
-        self.rho_reset = None if rho_reset is None else float(rho_reset)
+        self.rho_reset = _checked_step_size("rho_reset", rho_reset)
         if rho_reset_on not in RHO_RESET_ON:
             raise ValueError(f"RtiOsqpSolver: rho_reset_on = {rho_reset_on!r}, allowed: one of {list(RHO_RESET_ON)}")
         self.rho_reset_on = rho_reset_on
@@ -1323,18 +1316,19 @@ class _OsqpCore(osqp_embedded.TwoPassSolve):
         return info.status_val, info.status, int(info.iter), x
 
 
-def _checked_rho_max(rho_max: float | None) -> float | None:
-    """``RtiOsqpSolver``'s ``rho_max``: None or a number in OSQP's range of step sizes [1e-6, 1e6]."""
-    if rho_max is not None and (isinstance(rho_max, bool) or not isinstance(rho_max, (int, float))
-                                or not 1e-6 <= rho_max <= 1e6):
-        raise ValueError(f"RtiOsqpSolver: rho_max = {rho_max!r}, allowed: None or a number in [1e-6, 1e6]")
-    return None if rho_max is None else float(rho_max)
+def _checked_step_size(name: str, rho: float | None) -> float | None:
+    """A step-size argument of ``RtiOsqpSolver`` (``name``): None or a number in OSQP's range of step sizes
+    [1e-6, 1e6]."""
+    if rho is not None and (isinstance(rho, bool) or not isinstance(rho, (int, float)) or not 1e-6 <= rho <= 1e6):
+        raise ValueError(f"RtiOsqpSolver: {name} = {rho!r}, allowed: None or a number in [1e-6, 1e6]")
+    return None if rho is None else float(rho)
 
 
-def _checked_plain_cap(cap: int, max_iter: int) -> int:
-    """``RtiOsqpSolver``'s ``plain_qp_cap``: 0 (off) or an integer in [1, max_iter]."""
-    if isinstance(cap, bool) or int(cap) != cap or not (cap == 0 or 1 <= cap <= int(max_iter)):
-        raise ValueError(f"RtiOsqpSolver: plain_qp_cap = {cap!r}, allowed: 0 (off) or an integer in "
+def _checked_cap(name: str, cap: int, max_iter: int) -> int:
+    """An iteration-cap argument of ``RtiOsqpSolver`` (``name``): 0 (off) or an integer in [1, max_iter]."""
+    if isinstance(cap, bool) or not isinstance(cap, (int, float, np.integer)) or int(cap) != cap \
+            or not (cap == 0 or 1 <= cap <= int(max_iter)):
+        raise ValueError(f"RtiOsqpSolver: {name} = {cap!r}, allowed: 0 (off) or an integer in "
                          f"[1, max_iter = {max_iter}]")
     return int(cap)
 
