@@ -16,7 +16,10 @@ iterations each in the step, finished to convergence on the second thread and co
 "split_every_N" (so also any step whose QP reaches the cap, ``split_every_step``) and "split_keep_rho_N" (the rest
 leaving OSQP's step size as the change step found it, ``split_keeps_rho``) and "split_replay_N" (the rest solving the
 change again from OSQP's workspace as the change step found it, ``split_replays_change``) and "split_every_replay_N"
-(every step's QPs capped so, each capped step's QPs solved again on the second thread from the saved workspace). Per
+(every step's QPs capped so, each capped step's QPs solved again on the second thread from the saved workspace);
+"rho_max_R" (``MpcSettings.osqp_rho_max``: OSQP's step size at most R at each preparation) and "plain_cap_N"
+(``osqp_plain_qp_cap``: each QP of a step that is not a change at most N OSQP iterations, the iterate taken), and
+"split_replay_30_rho_max_R" / "split_replay_30_plain_cap_N" (each with the change split at 30 and replayed). Per
 seed the loops run in
 lockstep in one process, one step of each in turn (the order rotates from step to step), so that the load of other
 processes falls on all alike.
@@ -62,7 +65,13 @@ VARIANTS = {"shifted": {"steady_start": False},
             **{f"split_keep_rho_{n}": {"change_split_iter": n, "split_keeps_rho": True} for n in (30, 60)},
             **{f"split_replay_{n}": {"change_split_iter": n, "split_replays_change": True} for n in (20, 30, 40)},
             **{f"split_every_replay_{n}": {"change_split_iter": n, "split_every_step": True, "split_replays_change": True}
-               for n in (30, 40, 60)}}
+               for n in (30, 40, 60)},
+            **{f"rho_max_{r}": {"osqp_rho_max": float(r)} for r in ("2e-3", "5e-3", "1e-2")},
+            **{f"plain_cap_{n}": {"osqp_plain_qp_cap": n} for n in (40, 60, 80, 100)},
+            **{f"split_replay_30_rho_max_{r}": {"change_split_iter": 30, "split_replays_change": True,
+                                                "osqp_rho_max": float(r)} for r in ("2e-3", "5e-3")},
+            **{f"split_replay_30_plain_cap_{n}": {"change_split_iter": 30, "split_replays_change": True,
+                                                  "osqp_plain_qp_cap": n} for n in (40, 60, 100)}}
 #: The variants run unless ``--variant`` names others.
 DEFAULT_VARIANTS = ("shifted", "steady", "temperature")
 #: Steps after a change counted as its wake (the single QPs that follow it).

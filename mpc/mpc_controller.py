@@ -295,6 +295,13 @@ class MpcSettings:
             second thread), so the next step starts from the unsplit change's plan and workspace; only the change
             step's command is the capped one (False, the default). Measured in docs/architecture.md, 'The change
             replayed from the saved workspace'.
+        osqp_rho_max: a ceiling on OSQP's step size ``rho`` at each preparation's matrix update (in its
+            refactorisation): where the last QP's adaptation left it above, the next QPs start from this value (None,
+            the default: kept). OSQP still adapts it within each QP. Measured in docs/architecture.md, 'The wake of a
+            reference change'.
+        osqp_plain_qp_cap: OSQP iterations at most in each QP of a step that is neither a reference change nor a
+            cold start, the iterate at the cap taken and carried into the next step (``rti``/``sqp``; 0, the default:
+            off, ``osqp_max_iter`` only). Measured in docs/architecture.md, 'The wake of a reference change'.
         valve_a_reversal_share: the share of a move of valve a that reverses its last applied move (both at least
             ``valve_a_reversal_min_pct`` (% of travel)) applied, in (0, 1], 1 off (:mod:`~.reversal_damping`: the
             Gauss-Newton iteration's two-cycle where valve a's pull depends on valve a, the plan alternating between
@@ -370,6 +377,8 @@ class MpcSettings:
     split_every_step: bool = False
     split_keeps_rho: bool = False
     split_replays_change: bool = False
+    osqp_rho_max: float | None = None
+    osqp_plain_qp_cap: int = 0
     valve_a_reversal_share: float = 0.3
     valve_a_reversal_min_pct: float = 5.0
 
@@ -412,6 +421,9 @@ class MpcSettings:
             if getattr(self, name) and not self.change_split_iter:
                 raise InvalidSettings(f"{p}.{name} needs change_split_iter in [1, {self.osqp_max_iter}] "
                                       "(the cap it splits at)")
+        if self.osqp_rho_max is not None:
+            _check_or_off(f"{p}.osqp_rho_max", self.osqp_rho_max, 1e-6, 1e6, "None")
+        check_number(f"{p}.osqp_plain_qp_cap", self.osqp_plain_qp_cap, 0, self.osqp_max_iter, integer=True)
         if self.osqp_rho_reset_on not in RHO_RESET_ON:
             raise InvalidSettings(f"{p}.osqp_rho_reset_on = {self.osqp_rho_reset_on!r} must be one of {list(RHO_RESET_ON)}")
         check_number(f"{p}.sqp_tol", self.sqp_tol, 1e-10, 1.0, lo_open=True)
@@ -685,7 +697,8 @@ class MpcController:
                              steady_start_on=s.steady_start_on, rho_reset=s.osqp_rho_reset,
                              rho_reset_on=s.osqp_rho_reset_on, reweigh_in_place=s.reweigh_in_place,
                              change_split_iter=s.change_split_iter, split_every_step=s.split_every_step,
-                             split_keeps_rho=s.split_keeps_rho, split_replays_change=s.split_replays_change)
+                             split_keeps_rho=s.split_keeps_rho, split_replays_change=s.split_replays_change,
+                             rho_max=s.osqp_rho_max, plain_qp_cap=s.osqp_plain_qp_cap)
 
     # ------------------------------------------------------------------ protocol
     def reset(self, command: Command | None = None) -> None:

@@ -225,6 +225,15 @@ class RtiOsqpSolver:
         steady_start_on: with ``steady_start``, which changes start there (:data:`.steady_target.STEADY_START_ON`):
             "any" change of the reference, or only those of the supply "temperature" reference (a flow or
             split change alone then starts from the shifted plan).
+        rho_max: a ceiling on OSQP's step size ``rho`` that each matrix update (every full linearisation) starts
+            the next QPs from: where the last QP's adaptation left ``rho`` above it, it is set to ``rho_max`` in the
+            refactorisation the update makes anyway (generated solver; OSQP's Python interface factorises once more),
+            else kept (None: always kept, OSQP's warm-start behaviour). OSQP still adapts it within each QP.
+            Measured in docs/architecture.md, 'The wake of a reference change'.
+        plain_qp_cap: OSQP iterations at most in each QP of a step that is neither a reference change nor a cold
+            start (0: off, ``max_iter`` only): the iterate at the cap is taken (``SolveResult.extra["inexact"]``) and
+            the next step's QP starts from it (the plan shifted, OSQP's multipliers and step size kept), so a QP's
+            remaining convergence is carried into the next step as the real-time iteration carries the NLP's.
     """
 
     def __init__(self, problem: TrackingProblem, *, eps: float = 1e-4, max_iter: int = 400,
@@ -236,13 +245,12 @@ class RtiOsqpSolver:
                  steady_start: bool = False, steady_start_on: str = "any", relinearise_every: int = 1,
                  relinearise_move: float = 0.3, rho_reset: float | None = None, rho_reset_on: str = "preparation",
                  reweigh_in_place: bool = False, change_split_iter: int = 0,
-                 split_every_step: bool = False, split_keeps_rho: bool = False, split_replays_change: bool = False):
+                 split_every_step: bool = False, split_keeps_rho: bool = False, split_replays_change: bool = False,
+                 rho_max: float | None = None, plain_qp_cap: int = 0):
         self.pb = pb = problem
-        if isinstance(change_split_iter, bool) or int(change_split_iter) != change_split_iter \
-                or not (change_split_iter == 0 or 1 <= change_split_iter <= int(max_iter)):
-            raise ValueError(f"RtiOsqpSolver: change_split_iter = {change_split_iter!r}, allowed: 0 (off) or an "
-                             f"integer in [1, max_iter = {max_iter}]")
-        self.change_split_iter = int(change_split_iter)
+        self.rho_max = _checked_step_size("rho_max", rho_max)
+        self.plain_qp_cap = _checked_cap("plain_qp_cap", plain_qp_cap, max_iter)
+        self.change_split_iter = _checked_cap("change_split_iter", change_split_iter, max_iter)
         self.split_every_step = bool(split_every_step)
         self.split_keeps_rho = bool(split_keeps_rho)
         if not isinstance(split_replays_change, bool):
@@ -255,10 +263,7 @@ class RtiOsqpSolver:
         if not isinstance(reweigh_in_place, bool):
             raise ValueError(f"RtiOsqpSolver: reweigh_in_place = {reweigh_in_place!r}, allowed: True or False")
         self.reweigh_in_place = reweigh_in_place
-        if rho_reset is not None and (isinstance(rho_reset, bool) or not isinstance(rho_reset, (int, float))
-                                      or not 1e-6 <= rho_reset <= 1e6):
-            raise ValueError(f"RtiOsqpSolver: rho_reset = {rho_reset!r}, allowed: None or a number in [1e-6, 1e6]")
-        self.rho_reset = None if rho_reset is None else float(rho_reset)
+        self.rho_reset = _checked_step_size("rho_reset", rho_reset)
         if rho_reset_on not in RHO_RESET_ON:
             raise ValueError(f"RtiOsqpSolver: rho_reset_on = {rho_reset_on!r}, allowed: one of {list(RHO_RESET_ON)}")
         self.rho_reset_on = rho_reset_on
@@ -348,6 +353,7 @@ class RtiOsqpSolver:
                 "rho_reset_on": self.rho_reset_on, "reweigh_in_place": self.reweigh_in_place,
                 "change_split_iter": self.change_split_iter, "split_every_step": self.split_every_step,
                 "split_keeps_rho": self.split_keeps_rho, "split_replays_change": self.split_replays_change,
+                "rho_max": self.rho_max, "plain_qp_cap": self.plain_qp_cap,
                 "step_fractions": list(self._merit.fractions) if self._merit else []}
 
     # ------------------------------------------------------------------ structure
@@ -848,6 +854,8 @@ class RtiOsqpSolver:
         Px = self._with_readiness(X, Px)
         if self.rho_reset is not None and self.rho_reset_on == "preparation":
             self._core.rho_next_update(self.rho_reset)
+        elif self.rho_max is not None:
+            self._cap_rho()
         self._core.update_matrices(Px, Ax)
         self._written = (Px, Ax)
         self._workspace_used = True
@@ -977,7 +985,7 @@ class RtiOsqpSolver:
         saved = self._save_step() if split and self.split_replays_change else None
         z, status, iterations, solves, qp_prep, inexact, fraction = self._solve_qps(
             x0, u_prev, d, ref, w_y, u_lo, u_hi, max_qps, restart=changed and self.restart_duals_on_change,
-            t0=t0, time_limit_s=time_limit_s, cap=self.change_split_iter if split else 0)
+            t0=t0, time_limit_s=time_limit_s, cap=self._qp_cap(split, changed, cold))
         prep += qp_prep
         feedback = time.perf_counter() - t0 - prep
         result = self._result(z, status, iterations, solves, prep, feedback, cold, inexact, fraction)
@@ -1129,6 +1137,19 @@ class RtiOsqpSolver:
             *args, rest["max_qps"], restart=rest["restart"])
         return self._result(z, status, iterations, solves, prep, time.perf_counter() - t0 - prep, False, inexact,
                             fraction)
+
+    def _cap_rho(self) -> None:
+        """OSQP's step size down to ``rho_max`` where the last QP's adaptation left it above, taken in by the matrix
+        update that follows (:meth:`_write`)."""
+        if self._core.rho > self.rho_max:
+            self._core.rho_next_update(self.rho_max)
+
+    def _qp_cap(self, split: bool, changed: bool, cold: bool) -> int:
+        """OSQP's iteration cap of this step's QPs, the iterate at it taken (0: none, ``max_iter`` only): a split
+        change's (``change_split_iter``), else a plain step's (``plain_qp_cap``; not a change, not a cold start)."""
+        if split:
+            return self.change_split_iter
+        return self.plain_qp_cap if not (changed or cold) else 0
 
     def _reset_rho(self) -> float:
         """OSQP's step size set to ``rho_reset`` for the QPs of a reference change: the matrices in OSQP written again
@@ -1293,6 +1314,23 @@ class _OsqpCore(osqp_embedded.TwoPassSolve):
             res = self.core
         self._last = res
         return info.status_val, info.status, int(info.iter), x
+
+
+def _checked_step_size(name: str, rho: float | None) -> float | None:
+    """A step-size argument of ``RtiOsqpSolver`` (``name``): None or a number in OSQP's range of step sizes
+    [1e-6, 1e6]."""
+    if rho is not None and (isinstance(rho, bool) or not isinstance(rho, (int, float)) or not 1e-6 <= rho <= 1e6):
+        raise ValueError(f"RtiOsqpSolver: {name} = {rho!r}, allowed: None or a number in [1e-6, 1e6]")
+    return None if rho is None else float(rho)
+
+
+def _checked_cap(name: str, cap: int, max_iter: int) -> int:
+    """An iteration-cap argument of ``RtiOsqpSolver`` (``name``): 0 (off) or an integer in [1, max_iter]."""
+    if isinstance(cap, bool) or not isinstance(cap, (int, float, np.integer)) or int(cap) != cap \
+            or not (cap == 0 or 1 <= cap <= int(max_iter)):
+        raise ValueError(f"RtiOsqpSolver: {name} = {cap!r}, allowed: 0 (off) or an integer in "
+                         f"[1, max_iter = {max_iter}]")
+    return int(cap)
 
 
 def _selection(slots: np.ndarray, size: int) -> ca.DM:
