@@ -17,6 +17,10 @@ Procedure (stated in the report):
    the information criterion on the training rows and passes the EKF likelihood-ratio test
    (alpha = 0.01, Bonferroni over the round). Candidates whose held-out corrections correlate with
    the kept one above ``SAME_RESIDUAL_CORR`` are reported as explaining the same residual.
+   A library effect whose parameters the training rows do not excite but which, at its documented values, changes
+   the held-out rows (:mod:`.documented`: the PTC fall of a log whose heater runs hot only after the training rows)
+   is scored with those values fixed: it needs the training rows no worse (information criterion with q = 0) and its
+   likelihood-ratio test is taken on the held-out rows, nothing of it having been fitted.
 6. Term discovery (:mod:`.discovery`) when the supply temperature stays structured; one more
    forward pass when a term was added.
 7. Pairs (:mod:`.pairs`): when the last forward round kept nothing and structure remains, the best candidates of
@@ -66,6 +70,7 @@ from . import statistics as st
 from .candidates import MIN_ABS_VALUE, MODEL_CANDIDATES, OPTIONAL_CANDIDATES, Candidate, library
 from .discovery import CABIN_CANDIDATES
 from .diagnostics import diagnose, training_nll
+from .documented import holdout_lr, is_documented, score_documented
 from .fitting import (FLOW_PARAMS, IDENTIFIED_REL_SE, MOVED_Z, NOMINAL_FREE, Fit, Fitter, FreeParam, joint_wald,
                       parameter_confidence, parameter_covariance)
 from .log_data import LogData
@@ -206,8 +211,9 @@ def _score_model(fitter: Fitter, current: Fit, free: list[FreeParam], cand: Cand
 def _score_from(fitter: Fitter, current: Fit, free: list[FreeParam], cand: Candidate, effects,
                 p0: np.ndarray) -> tuple[Fit | None, str]:
     visible = fitter.identifiable(effects, p0, current.post, cand.params, current.terms)
-    if not visible:
-        return None, "its parameters do not change the logged outputs here (not observable)"
+    if not visible:  # the training rows do not excite it: the held-out rows may still test its documented values
+        return score_documented(fitter, current, cand, effects, lambda p: _screen_and_fit(
+            fitter, current, free, effects, p, [], current.post, flow_side="volume_flow_m3s" in cand.signature))
     if cand.screen_each:  # the free parameters' sensitivities at the grid point, not at the current model
         current = dataclasses.replace(current, effects=effects, p=p0, extra={})
     return _screen_and_fit(fitter, current, free, effects, p0, list(visible), current.post,
@@ -351,7 +357,8 @@ def _score_round(fitter: Fitter, current: Fit, current_free, lib, rnd: int, say,
         c_new, _ = fitter.output_costs(fit.y)
         excess = c_o[jp] - n_o[jp]
         res.explained_primary = ((c_o[jp] - c_new[jp]) / excess) if excess > 0.1 * n_o[jp] else float("nan")
-        res.dof = {"delay": 1, "bias": 2, "gain": 1}.get(cand.kind, len(res.params) or len(cand.params))
+        res.dof = 0 if is_documented(fit) else {"delay": 1, "bias": 2, "gain": 1}.get(
+            cand.kind, len(res.params) or len(cand.params))
         res.bic_change = bic_change(fitter, fit, current, res.dof, res.primary_output)
     return results
 
@@ -390,7 +397,8 @@ def _polish(fitter: Fitter, current: Fit, free, pairs: list, quick: bool) -> lis
     """Full joint refit of the best screened candidates and their EKF training likelihood, side by side."""
     def task(i):
         r, cand = pairs[i]
-        fit = fitter.fit(r.fit.effects, r.fit.p, list(free) + [fp for fp in cand.params], r.fit.post,
+        own = list(cand.params) if r.dof else []  # a documented hypothesis keeps its values
+        fit = fitter.fit(r.fit.effects, r.fit.p, list(free) + own, r.fit.post,
                          max_nfev=6 if quick else 8, terms=current.terms,
                          bias_outputs=[cand.output] if cand.kind == "bias" else (),
                          gain_outputs=gains(r.fit.post, [cand.output] if cand.kind == "gain" else ()))
@@ -410,7 +418,7 @@ def _gate(r: CandidateResult) -> str:
                 if not np.isfinite(r.explained_primary) else
                 f"removes {100 * r.explained_primary:.0f} % of the held-out structure of its primary output "
                 f"{r.primary_output} (needs {100 * need:.0f} %)")
-    if not r.bic_change < 0:
+    if not (r.bic_change < 0 or (r.dof == 0 and r.bic_change <= 0)):  # q = 0: the training rows no worse
         return f"information criterion on the training rows does not fall (change {r.bic_change:+.1f})"
     least = MIN_ABS_VALUE.get(r.name)
     if least is not None and r.params and max(abs(v) for v in r.params.values()) < least:
@@ -474,9 +482,13 @@ def _forward(fitter: Fitter, nominal: Fit, free: list[FreeParam], lib, max_effec
             r.bic_change = bic_change(fitter, r.fit, current, r.dof, r.primary_output)
             r.lr = nll_current - nll
             r.p_value = float(stats.chi2.sf(r.lr, r.dof)) if r.lr > 0 else 1.0
+            rows = "training"
+            if not r.dof:  # a documented hypothesis: nothing of it fitted, its test on the held-out rows
+                r.lr, r.p_value = holdout_lr(fitter, current, r.fit, len(cand.params))
+                rows = "held-out"
             r.p_threshold = ALPHA / m
             if r.p_value >= r.p_threshold:
-                r.reason = f"not significant on the training rows (p = {r.p_value:.2g} >= {r.p_threshold:.2g})"
+                r.reason = f"not significant on the {rows} rows (p = {r.p_value:.2g} >= {r.p_threshold:.2g})"
                 continue
             r.reason = _gate(r)
             if not r.reason and (best is None or r.cost_holdout < best.cost_holdout):
@@ -486,7 +498,9 @@ def _forward(fitter: Fitter, nominal: Fit, free: list[FreeParam], lib, max_effec
             break
         best.status = "accepted"
         best.reason = (f"removes {100 * best.explained_holdout:.0f} % of the held-out structure, information "
-                       f"criterion {best.bic_change:+.1f}, p = {best.p_value:.2g}")
+                       f"criterion {best.bic_change:+.1f}, p = {best.p_value:.2g}" + (
+                           "" if best.dof else " on the held-out rows, at its documented values (the training "
+                           "rows do not excite it)"))
         for r in eligible:
             if r is best or r.reason:
                 continue
