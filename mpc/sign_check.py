@@ -12,19 +12,26 @@ wrong sign, and the MPC keeps valve a open (sec. 2.24, 2.26: S0-7, S2-7). The in
 placement choice (:mod:`~.placement`) compares, sees that late; the sign sees it within a dead time and a
 thermocouple lag.
 
-The check (:class:`ValveSignCheck`): from rest (valve a and the reading both still over ``rest_s``), a departure of
-valve a by at least ``move_pct`` whose predicted change of the supply air (the filter's model, summed over the
-commands of the departure: :func:`predicted_air_change_c`) is at least ``change_c``, answered within ``window_s``
-by a change of the reading of at least ``change_c`` with the other sign, is a verdict: the filter in use has valve
-a's gain of the wrong sign. The verdict says too whether the other filter's model predicted the sign the reading
-showed. The controller then switches to the other filter where it did (``MpcSettings.placement_sign_move_pct``).
+The check (:class:`ValveSignCheck`): from rest (valve a within a quarter of ``move_pct`` and the reading within
+half of ``change_c`` over ``rest_s``), a departure of valve a by at least ``move_pct``, answered within
+``window_s`` by a change of the reading of at least ``change_c``, is a verdict where the filter in use's predicted
+change has the other sign or explains less than a quarter of the answer (:data:`EXPLAINED_SHARE`): that model has
+valve a's gain of the wrong sign, or about none where the answer shows a gain. The predicted change is the filter's
+model air with each command of the departure held over a third of the window against the command before it,
+summed (:func:`predicted_air_change_c`): on S2-7 the filter in use predicts -0.03 C for valve a 0 -> 90 %, the
+heater air's filter +3.6 C, the reading rises 2 C. The verdict says whether the other filter predicted the sign the
+reading showed; the controller then switches to it (``MpcSettings.placement_sign_move_pct``). Unlike the sums of
+:mod:`~.placement` the check compares the reading's change over the window, not each sample's innovation: a
+filter that has the right sign but no dead time yet predicts the answer a few samples early and loses the sums on
+those samples (S2-7, sec. 2.28), not the sign.
 
-ASSUMPTION: a reading at rest before the move, and a change at least ``change_c`` (0.5 C: ten times the
-thermocouple noise's standard deviation of the boxes in ``hvac_mpc.mismatch``) of the other sign within the window,
-is the move's own answer: what else moves the supply air that fast (a flow step, the heater's body) moves the
-predicted change too, being in the same commands (the heater's body lags, so a heater step's share in the window
-is small). ASSUMPTION: the model's air is algebraic in the commands (no transport-delay chain in the model's
-parameters); with such a chain the predicted change at the move is 0 and the check never gives a verdict.
+ASSUMPTION: a reading at rest before the move, and a change of at least ``change_c`` (0.5 C: ten times the
+thermocouple noise's standard deviation of the boxes in ``hvac_mpc.mismatch``) within the window that the filter in
+use's model does not explain in sign, is the move's own answer: the other commands of the same samples (the
+blower, the heater, valve m) are in the predicted change, the heater body's and the core's lags with them. Other
+causes (a change of the inlet air, a disturbance) within the window are not; the rest before the move and the size
+of ``change_c`` make them unlikely, not impossible. ASSUMPTION: the model's air answers within a third of the
+window (no transport-delay chain of the model's own longer than that).
 """
 
 from __future__ import annotations
