@@ -253,16 +253,17 @@ class MpcSettings:
             thermocouple time constant, 5.7 s, rounded up) is what sec. 2.16 and 2.18 measure.
         placement_sign_move_pct: with a finite value (%, 1-100) the sign of the supply reading's answer to a
             departure of valve a from rest by at least this much is checked against the filter in use's model
-            (:mod:`~.sign_check`, docs/robustness.md sec. 2.28): answered within ``placement_sign_window_s`` by a
-            change of at least ``placement_sign_change_c`` (degC) of the other sign than that model predicted (its
-            prediction at least as large), where the other filter predicted the sign shown, the prediction moves to
-            the other filter at once (both sums forgotten). "At rest": over ``placement_sign_rest_s`` (s) before the
-            move valve a within a quarter of the move and the reading within half the change. inf (the default):
-            off. Needs ``choose_offset_placement`` (no other filter: nothing to switch to, the check is not run).
-        placement_sign_change_c: the smallest change (degC, 0.1-5) of the reading and of the prediction the check
-            counts; 0.5 (ASSUMPTION: ten times the thermocouple noise's standard deviation of the boxes).
+            (:mod:`~.sign_check`, docs/robustness.md sec. 2.28): where the reading moves by at least
+            ``placement_sign_change_c`` (degC) within ``placement_sign_window_s`` and that model's predicted change
+            has the other sign or less than a quarter of the answer along its sign, while the other filter's
+            prediction has the answer's sign, the prediction moves to the other filter at the next step (both sums
+            forgotten). "At rest": over ``placement_sign_rest_s`` (s) before the move valve a within a quarter of
+            the move and the reading within half the change. inf (the default): off (it costs the built-in winter
+            heating 0.017, sec. 2.28). Needs ``choose_offset_placement`` (no other filter: the check is not run).
+        placement_sign_change_c: the smallest change of the reading (degC, 0.1-5) the check counts as an answer; 0.5
+            (ASSUMPTION: ten times the thermocouple noise's standard deviation of the boxes).
         placement_sign_window_s: how long after the departure began its answer is looked for (s, 2-120); 15
-            (ASSUMPTION: the boxes' dead time, at most 5 s, and three of the model's thermocouple time constants).
+            (ASSUMPTION: the boxes' dead time, at most 5 s, and about two of the model's thermocouple time constants).
         placement_sign_rest_s: the rest required before the departure (s, 2-600); 10.
         rti_relinearise_every: multi-level steps (``rti``, :mod:`hvac_mpc.mpc.multilevel`): a full linearisation
             of the QP (new Jacobians and Hessian, OSQP's equilibration and refactorisation) at least on every this
