@@ -62,6 +62,7 @@ from .priorities import ReachableFlow, flow_weight_factor
 from .ocp import HEATING_CMD_W, STAGE_OUTPUTS, HeaterOffBound, InvalidSettings, OcpSpec, TrackingProblem, check_flag, check_number, trap_cap_pct
 from hvac_mpc.contract import InvalidReference, Reference
 from .placement import PLACEMENTS, PlacementChoice
+from .sign_check import ValveSignCheck, predicted_air_change_c
 from .readiness import HeaterReadiness
 from .reserve import HeaterReserve
 from .reversal_damping import damped_move
@@ -250,6 +251,20 @@ class MpcSettings:
             surprised by that move, not by where the heater outlet's error sits (docs/robustness.md sec. 2.16).
             0: off, each filter's innovations count as they come; 6 (the default; ASSUMPTION: the model's
             thermocouple time constant, 5.7 s, rounded up) is what sec. 2.16 and 2.18 measure.
+        placement_sign_move_pct: with a finite value (%, 1-100) the sign of the supply reading's answer to a
+            departure of valve a from rest by at least this much is checked against the filter in use's model
+            (:mod:`~.sign_check`, docs/robustness.md sec. 2.28): where the reading moves by at least
+            ``placement_sign_change_c`` (degC) within ``placement_sign_window_s`` and that model's predicted change
+            has the other sign or less than a quarter of the answer along its sign, while the other filter's
+            prediction has the answer's sign, the prediction moves to the other filter at the next step (both sums
+            forgotten). "At rest": over ``placement_sign_rest_s`` (s) before the move valve a within a quarter of
+            the move and the reading within half the change. inf (the default): off (it costs the built-in winter
+            heating 0.017, sec. 2.28). Needs ``choose_offset_placement`` (no other filter: the check is not run).
+        placement_sign_change_c: the smallest change of the reading (degC, 0.1-5) the check counts as an answer; 0.5
+            (ASSUMPTION: ten times the thermocouple noise's standard deviation of the boxes).
+        placement_sign_window_s: how long after the departure began its answer is looked for (s, 2-120); 15
+            (ASSUMPTION: the boxes' dead time, at most 5 s, and about two of the model's thermocouple time constants).
+        placement_sign_rest_s: the rest required before the departure (s, 2-600); 10.
         rti_relinearise_every: multi-level steps (``rti``, :mod:`hvac_mpc.mpc.multilevel`): a full linearisation
             of the QP (new Jacobians and Hessian, OSQP's equilibration and refactorisation) at least on every this
             many preparations; the ones between keep the QP's matrices of the last full one and renew only its
@@ -366,6 +381,10 @@ class MpcSettings:
     placement_from_response: bool = True
     placement_warm_switch: bool = True
     placement_dead_time_hold_s: float = 6.0
+    placement_sign_move_pct: float = math.inf
+    placement_sign_change_c: float = 0.5
+    placement_sign_window_s: float = 15.0
+    placement_sign_rest_s: float = 10.0
     rti_relinearise_every: int = 1
     rti_relinearise_move: float = 0.3
     steady_start_on: str = "any"
@@ -489,6 +508,15 @@ class MpcSettings:
         check_flag(f"{p}.placement_from_response", self.placement_from_response)
         check_flag(f"{p}.placement_warm_switch", self.placement_warm_switch)
         check_number(f"{p}.placement_dead_time_hold_s", self.placement_dead_time_hold_s, 0.0, 600.0)
+        self._validate_sign_check(p)
+
+    def _validate_sign_check(self, p: str) -> None:
+        """The fields of the valve a sign check (:mod:`~.sign_check`)."""
+        if self.placement_sign_move_pct != math.inf:
+            _check_or_off(f"{p}.placement_sign_move_pct", self.placement_sign_move_pct, 1.0, 100.0, "inf")
+        check_number(f"{p}.placement_sign_change_c", self.placement_sign_change_c, 0.1, 5.0)
+        check_number(f"{p}.placement_sign_window_s", self.placement_sign_window_s, 2.0, 120.0)
+        check_number(f"{p}.placement_sign_rest_s", self.placement_sign_rest_s, 2.0, 600.0)
 
 
 def _check_or_off(name: str, value, lo: float, hi: float, off: str, lo_open: bool = False) -> None:
@@ -629,6 +657,11 @@ class MpcController:
             self.placement = PlacementChoice(s.placement_window_s, s.placement_ratio, s.placement_evidence, s.dt_s,
                                              s.placement_cap, s.placement_margin,
                                              hold=int(round(s.placement_dead_time_hold_s / s.dt_s)))
+        self.sign_check = None  # with placement_sign_move_pct: the sign of valve a's answer (mpc/sign_check.py)
+        if self.placement is not None and s.placement_sign_move_pct != math.inf:
+            self.sign_check = ValveSignCheck(s.placement_sign_move_pct, s.placement_sign_change_c,
+                                             s.placement_sign_window_s, s.placement_sign_rest_s, s.dt_s)
+        self._sign_switch = False  # a verdict of the sign check: the next step predicts with the other filter
         self._pending = None  # the other filter's update and time update of the last step, not yet run
         pb = self.problem
         self.reach = ReachableFlow(pb.model, pb.u_lo_phys, pb.u_hi_phys, pb.heater_max_phys, self.params,
@@ -714,6 +747,9 @@ class MpcController:
         if self.placement is not None:
             self.placement.reset()
             self._use_filter(self._filters[0])
+        if self.sign_check is not None:
+            self.sign_check.reset()
+        self._sign_switch = False
         self.solver.reset()
         self._plan: tuple[np.ndarray, float] | None = None  # (U scaled (N, nu), age s), unscaled when used
         self._reference: Reference | None = None
@@ -892,6 +928,7 @@ class MpcController:
         self._valve_a_move = float(u_cmd[pb.i_valve_a] - self.u_prev[pb.i_valve_a])
         self.u_prev = u_cmd
         self._note_temperature_reach(measurement, ref, u_cmd, bounds[1])
+        self._check_valve_sign(measurement, u_in, u_cmd, setpoint)
         # --- prediction and preparation of the next step
         prep_time = sol.prep_time_s
         self._prepared_for_next = False
@@ -917,6 +954,8 @@ class MpcController:
                             cap=cap, healthy=True)
         stats["cold_start"] = bool(sol.extra.get("cold_start", False))
         stats["reach_wait_s"] = self.reach.last_wait_s if self.reach is not None else 0.0
+        if self.sign_check is not None:
+            stats["sign_verdicts"] = self.sign_check.verdicts
         if self.settings.change_split_iter:
             stats["change_wait_s"] = self._change_wait_s
             if self._change_finish is not None:
@@ -1001,12 +1040,43 @@ class MpcController:
         self._run_other_filter()
         if not self._filters[1 - self.placement.active].healthy():
             return  # never to a filter that has not run
+        if self._sign_switch:
+            self._switch_on_sign()
+            return
         if self.placement.decide():
-            try:
-                self._use_filter(self._filters[self.placement.active])
-            except Exception:
-                self.placement.active = 1 - self.placement.active  # the filter in use stays
-                raise
+            self._use_active_filter()
+
+    def _use_active_filter(self) -> None:
+        """Predict with the filter the choice has just made active; where that fails the filter in use stays."""
+        try:
+            self._use_filter(self._filters[self.placement.active])
+        except Exception:
+            self.placement.active = 1 - self.placement.active  # the filter in use stays
+            raise
+
+    def _check_valve_sign(self, measurement: Measurement, u_in: np.ndarray, u_cmd: np.ndarray,
+                          setpoint: float) -> None:
+        """With ``placement_sign_move_pct``: this step's reading and valve a command to the sign check, with the
+        change of the model air the command makes in each filter; a verdict whose other filter predicted the sign
+        shown switches the prediction to that filter at the next step (:mod:`~.sign_check`)."""
+        if self.sign_check is None:
+            return
+        a = float(u_cmd[self.problem.i_valve_a])
+        mine = theirs = math.nan
+        if self.sign_check.wants_prediction(a):
+            other, steps = self._filters[1 - self.placement.active], self.sign_check.horizon
+            mine = predicted_air_change_c(self.ekf, u_in, u_cmd, setpoint, steps)
+            if other.healthy():
+                theirs = predicted_air_change_c(other, u_in, u_cmd, setpoint, steps)
+        verdict = self.sign_check.observe(finite_or(measurement.supply_temp_c, math.nan), a, mine, theirs)
+        if verdict is not None and verdict.other_right:
+            self._sign_switch = True
+
+    def _switch_on_sign(self) -> None:
+        """A sign check's verdict: the prediction moves to the other filter, both sums forgotten."""
+        self._sign_switch = False
+        self.placement.force()
+        self._use_active_filter()
 
     def _placement_from_response(self) -> None:
         """With ``placement_from_response``: forget both sums once, when the filter in use first sees a response

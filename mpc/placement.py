@@ -89,6 +89,12 @@ class PlacementChoice:
             self._add(self.active, mine)
             self._add(1 - self.active, other)
 
+    def force(self) -> None:
+        """Switch to the other filter whatever the sums say, and forget both (the evidence that decided it is of
+        another kind: the sign of valve a's answer, :mod:`~.sign_check`)."""
+        self.active = 1 - self.active
+        self.restart()
+
     def decide(self) -> bool:
         """Switch to the other filter where the rule says so; True where it switched."""
         mine, other = self.sums[self.active], self.sums[1 - self.active]

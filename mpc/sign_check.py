@@ -1,0 +1,180 @@
+"""The sign of the supply air's answer to a valve a move, checked against the filter in use (docs/robustness.md
+sec. 2.28).
+
+Valve a sets the share of the air that goes through the core and the heater; the rest takes the bypass. Where the
+air leaving the heater path is colder than the bypass's, opening valve a cools the supply air; where it is warmer,
+opening it warms the supply air. So the sign of d(supply)/d(valve a) is the sign of the difference of the two
+paths' air, which the filter's model holds through its states and offsets. With the thesis's cooler fit taken
+literally (the core's air about 10 C whatever the inlet) and a 5 C inlet, the core path is the warmer one; a filter
+whose model lets the core's air follow the inlet believes the opposite, and after a large opening the reading rises
+where its model expects a fall. Its offsets then take the rise in (a larger mixed-air offset), which keeps its
+wrong sign, and the MPC keeps valve a open (sec. 2.24, 2.26: S0-7, S2-7). The innovations' size, which the
+placement choice (:mod:`~.placement`) compares, sees that late; the sign sees it within a dead time and a
+thermocouple lag.
+
+The check (:class:`ValveSignCheck`): from rest (valve a within a quarter of ``move_pct`` and the reading within
+half of ``change_c`` over ``rest_s``), a departure of valve a by at least ``move_pct``, answered within
+``window_s`` by a change of the reading of at least ``change_c``, is a verdict where the filter in use's predicted
+change has the other sign or explains less than a quarter of the answer (:data:`EXPLAINED_SHARE`): that model has
+valve a's gain of the wrong sign, or about none where the answer shows a gain. The predicted change is the filter's
+model air with each command of the departure held over a third of the window against the command before it,
+summed (:func:`predicted_air_change_c`): on S2-7 the filter in use predicts -0.03 C for valve a 0 -> 90 %, the
+heater air's filter +3.6 C, the reading rises 2 C. The verdict says whether the other filter predicted the sign the
+reading showed; the controller then switches to it (``MpcSettings.placement_sign_move_pct``). Unlike the sums of
+:mod:`~.placement` the check compares the reading's change over the window, not each sample's innovation: a
+filter that has the right sign but no dead time yet predicts the answer a few samples early and loses the sums on
+those samples (S2-7, sec. 2.28), not the sign.
+
+ASSUMPTION: a reading at rest before the move, and a change of at least ``change_c`` (0.5 C: ten times the
+thermocouple noise's standard deviation of the boxes in ``hvac_mpc.mismatch``) within the window that the filter in
+use's model does not explain in sign, is the move's own answer: the other commands of the same samples (the
+blower, the heater, valve m) are in the predicted change, the heater body's and the core's lags with them. Other
+causes (a change of the inlet air, a disturbance) within the window are not; the rest before the move and the size
+of ``change_c`` make them unlikely, not impossible. ASSUMPTION: the model's air answers within a third of the
+window (no transport-delay chain of the model's own longer than that).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections import deque
+
+import numpy as np
+
+#: The share of the reading's answer the filter in use must have predicted (along the answer's sign) not to be
+#: judged wrong. ASSUMPTION: a quarter; a model whose valve a gain has the right sign but a quarter of the size
+#: is wrong enough that the other filter, where it predicted the answer's sign, is the better bet.
+EXPLAINED_SHARE = 0.25
+#: Valve a "at rest": within this share of ``move_pct`` over the rest window.
+REST_SHARE_OF_MOVE = 0.25
+#: The reading "at rest": its range over the rest window below this share of ``change_c``.
+REST_SHARE_OF_CHANGE = 0.5
+#: Index of the model's air (duct air without the mixed-air offset) in the filter's time-update outputs
+#: (``DisturbanceEkf.f_p``: next state, its Jacobian, air, flow).
+AIR_OUTPUT = 2
+
+
+def predicted_air_change_c(ekf, u_before: np.ndarray, u_after: np.ndarray, setpoint_c: float,
+                           steps: int = 0) -> float:
+    """The change of the filter's model air (degC) that ``u_after`` makes against ``u_before``, each held over
+    ``steps`` samples from the filter's state now (0: the mixing's algebraic answer alone): what its model expects
+    the move to do to the supply air within that time, the heater body's and the core's lags included."""
+    if not ekf.initialised:
+        return math.nan
+    return _held_air_c(ekf, u_after, setpoint_c, steps) - _held_air_c(ekf, u_before, setpoint_c, steps)
+
+
+def _held_air_c(ekf, u: np.ndarray, setpoint_c: float, steps: int) -> float:
+    """The filter's model air (degC) after ``steps`` samples with ``u`` held, from its state now."""
+    z = ekf.z
+    for _ in range(steps):
+        z = ekf.f_p(z, u, setpoint_c, ekf.p)[0]
+    return float(ekf.f_p(z, u, setpoint_c, ekf.p)[AIR_OUTPUT])
+
+
+@dataclasses.dataclass
+class SignVerdict:
+    """A valve a move answered with the other sign than the filter in use predicted."""
+    measured_c: float  # the reading's change since the rest before the move (degC)
+    predicted_c: float  # the filter in use's predicted change (degC)
+    other_predicted_c: float  # the other filter's (degC; nan without one)
+
+    @property
+    def other_right(self) -> bool:
+        """Whether the other filter predicted the sign the reading showed."""
+        return self.other_predicted_c * self.measured_c > 0.0
+
+
+@dataclasses.dataclass
+class _Departure:
+    reading_c: float  # the reading at rest before it (mean over the rest window)
+    valve_a_pct: float  # valve a at rest before it (mean over the rest window)
+    predicted_c: float = 0.0
+    other_predicted_c: float = 0.0
+    samples: int = 0
+
+
+class ValveSignCheck:
+    """The sign of the reading's answer to a valve a departure from rest (module docstring)."""
+
+    def __init__(self, move_pct: float, change_c: float, window_s: float, rest_s: float, dt_s: float):
+        self.move_pct = float(move_pct)
+        self.change_c = float(change_c)
+        self.window = max(1, int(round(window_s / dt_s)))
+        #: samples the predicted change holds each command for (:func:`predicted_air_change_c`)
+        self.horizon = max(1, int(round(window_s / (3.0 * dt_s))))
+        self.rest_tol_pct = REST_SHARE_OF_MOVE * self.move_pct  # valve a "still": within this of its rest
+        self.rest_tol_c = REST_SHARE_OF_CHANGE * self.change_c  # the reading "still": its range below this
+        self.rest = max(2, int(round(rest_s / dt_s)))
+        self.verdicts = 0
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the rest and any departure."""
+        self._history: deque = deque(maxlen=self.rest)  # (valve a %, reading degC) before this sample
+        self._departure: _Departure | None = None
+
+    def _rest(self) -> tuple[float, float] | None:
+        """(valve a %, reading degC) at rest over the last ``rest`` samples (their means), or None."""
+        if len(self._history) < self.rest:
+            return None
+        valve, reading = np.array(self._history).T
+        if np.ptp(valve) > self.rest_tol_pct or np.ptp(reading) > self.rest_tol_c:
+            return None
+        return float(np.mean(valve)), float(np.mean(reading))
+
+    def wants_prediction(self, valve_a_after_pct: float) -> bool:
+        """Whether :meth:`observe` will use this sample's predicted changes: a departure is under way, or this
+        command begins one (valve a leaves its rest)."""
+        if self._departure is not None:
+            return True
+        rest = self._rest()
+        return rest is not None and abs(valve_a_after_pct - rest[0]) > self.rest_tol_pct
+
+    def observe(self, reading_c: float, valve_a_after_pct: float, predicted_c: float = math.nan,
+                other_predicted_c: float = math.nan) -> SignVerdict | None:
+        """One sample: the supply reading (degC), valve a after this sample's command (%), and the change of the
+        model air that command makes in the filter in use and in the other (degC; :func:`predicted_air_change_c`,
+        needed where :meth:`wants_prediction`). A verdict where the departure under way is answered with the
+        other sign (module docstring), else None."""
+        if not math.isfinite(reading_c):
+            return None
+        verdict = self._follow(reading_c, valve_a_after_pct, predicted_c, other_predicted_c)
+        if self._departure is None and verdict is None and self.wants_prediction(valve_a_after_pct):
+            valve0, reading0 = self._rest()
+            self._departure = _Departure(reading0, valve0, _finite(predicted_c), _finite(other_predicted_c))
+        self._history.append((valve_a_after_pct, reading_c))
+        return verdict
+
+    def _follow(self, reading_c: float, valve_a_pct: float, predicted_c: float,
+                other_predicted_c: float) -> SignVerdict | None:
+        """The departure under way, if any, one sample on; a verdict where its answer has the other sign."""
+        dep = self._departure
+        if dep is None:
+            return None
+        dep.samples += 1
+        verdict = None
+        if abs(valve_a_pct - dep.valve_a_pct) >= self.move_pct:
+            verdict = self._judge(reading_c - dep.reading_c, dep.predicted_c, dep.other_predicted_c)
+        dep.predicted_c += _finite(predicted_c)  # this sample's command counts from the next sample on
+        dep.other_predicted_c += _finite(other_predicted_c)
+        if verdict is not None or dep.samples >= self.window:
+            self._departure = None
+        if verdict is not None:
+            self.verdicts += 1
+        return verdict
+
+    def _judge(self, measured_c: float, predicted_c: float, other_predicted_c: float) -> SignVerdict | None:
+        """A verdict where the reading moved by at least ``change_c`` and the filter in use's predicted change
+        has the other sign or explains less than :data:`EXPLAINED_SHARE` of it."""
+        if abs(measured_c) < self.change_c:
+            return None
+        along = predicted_c * math.copysign(1.0, measured_c)  # the prediction's part along the answer
+        if along >= EXPLAINED_SHARE * abs(measured_c):
+            return None
+        return SignVerdict(measured_c, predicted_c, other_predicted_c)
+
+
+def _finite(value: float) -> float:
+    return value if math.isfinite(value) else 0.0

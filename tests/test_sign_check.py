@@ -1,0 +1,159 @@
+"""The sign of the supply reading's answer to a valve a departure from rest (``MpcSettings.placement_sign_move_pct``,
+:mod:`hvac_mpc.mpc.sign_check`; docs/robustness.md sec. 2.28).
+
+The rule's own tests feed :class:`ValveSignCheck` a first-order answer behind a dead time with the mismatch boxes'
+thermocouple noise (0.05 C, seeded): milliseconds. The closed loop runs box S2-7 of ``box_sweep --seed 2`` (the
+independent simulator, ``hvac_mpc.mismatch``: the literal cooler fit, a 6.1 W/K duct, 3.4 s dead time, valve a -6 %)
+on the winter heating's first 300 s, with and without the check, and the nominal independent box's quick heating
+and cooling with it (slow: about 30-60 s on the shared machine).
+"""
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from hvac_mpc.benchmarks import bench, scenarios
+from hvac_mpc.mismatch import make_plant
+from hvac_mpc.mismatch.constants import NOISE_SUPPLY_C
+from hvac_mpc.mismatch.variants import Variant
+from hvac_mpc.mpc.mpc_controller import MpcSettings
+from hvac_mpc.mpc.ocp import InvalidSettings
+from hvac_mpc.mpc.sign_check import ValveSignCheck
+
+ON = {"placement_sign_move_pct": 20.0}
+S2_7 = Variant(transport_delay_s=3.37, duct_loss_ua_w_per_k=6.13, cooler_literal_fit=True, thermocouple_tau_scale=0.78,
+               blower_gain_scale=0.9, valve_shift_pct=-6.38, heater_power_scale=0.94, chiller_rate_scale=0.56)
+
+
+def check() -> ValveSignCheck:
+    return ValveSignCheck(move_pct=20.0, change_c=0.5, window_s=15.0, rest_s=10.0, dt_s=1.0)
+
+
+def answer(rise_c: float, dead_s: int = 3, tau_s: float = 4.0, n: int = 40, seed: int = 0) -> np.ndarray:
+    """13 C at rest, then (from sample 20, where valve a moves) ``rise_c`` behind a dead time and a lag, noisy."""
+    t = np.arange(n) - 20.0 - dead_s
+    clean = 13.0 + np.where(t > 0, rise_c * (1.0 - np.exp(-np.maximum(t, 0.0) / tau_s)), 0.0)
+    return clean + np.random.default_rng(seed).normal(0.0, NOISE_SUPPLY_C, n)
+
+
+def feed(c: ValveSignCheck, readings, valve, predicted, other):
+    """Each sample as the controller gives it; the predictions only where the check asks for them."""
+    verdicts = []
+    for k, (r, a) in enumerate(zip(readings, valve)):
+        wants = c.wants_prediction(a)
+        v = c.observe(r, a, predicted[k] if wants else math.nan, other[k] if wants else math.nan)
+        if v is not None:
+            verdicts.append((k, v))
+    return verdicts
+
+
+def opening(n: int = 40) -> np.ndarray:
+    """Valve a at 0 %, opened over 0 -> 6 -> 37 -> 90 % from sample 20."""
+    return np.array([0.0] * 20 + [6.0, 37.0] + [90.0] * (n - 22))
+
+
+def per_move(total_c: float, valve: np.ndarray) -> np.ndarray:
+    """A predicted change of ``total_c`` over the whole opening, shared out by each sample's move."""
+    moves = np.diff(valve, prepend=valve[0])
+    return total_c * moves / (valve[-1] - valve[0])
+
+
+def test_an_answer_of_the_other_sign_gives_a_verdict_within_a_dead_time_and_a_lag():
+    valve = opening()
+    verdicts = feed(check(), answer(+2.0), valve, per_move(-0.1, valve), per_move(+3.0, valve))
+    assert len(verdicts) == 1
+    k, v = verdicts[0]
+    assert 20 < k <= 30  # the answer's first 0.5 C: dead time 3 s and about a lag
+    assert v.measured_c >= 0.5 and v.predicted_c == pytest.approx(-0.1) and v.other_right
+
+
+def test_the_other_filter_predicting_the_same_wrong_sign_is_named():
+    valve = opening()
+    (_, v), = feed(check(), answer(+2.0), valve, per_move(-1.0, valve), per_move(-0.5, valve))
+    assert not v.other_right  # the controller has nowhere better to go: it keeps its filter
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_no_verdict_where_the_answer_has_the_predicted_sign_whatever_the_noise(seed):
+    valve = opening()
+    assert feed(check(), answer(+2.0, seed=seed), valve, per_move(+1.5, valve), per_move(+3.0, valve)) == []
+    assert feed(check(), answer(-2.0, seed=seed), valve, per_move(-0.8, valve), per_move(+3.0, valve)) == []
+
+
+def test_no_verdict_for_a_move_below_the_threshold_nor_without_rest():
+    small = np.array([0.0] * 20 + [15.0] * 20)
+    assert feed(check(), answer(+2.0), small, per_move(-1.0, small), per_move(2.0, small)) == []
+    drifting = answer(+2.0) + np.where(np.arange(40) < 20, 0.05 * np.arange(40), 1.0)  # 1 C in the 10 s before
+    valve = opening()
+    assert feed(check(), drifting, valve, per_move(-1.0, valve), per_move(2.0, valve)) == []
+
+
+def test_a_reading_at_rest_with_noise_alone_never_gives_a_verdict():
+    rng = np.random.default_rng(1)
+    readings = 13.0 + rng.normal(0.0, NOISE_SUPPLY_C, 2000)
+    valve = 40.0 + rng.uniform(-4.0, 4.0, 2000)  # valve a's jitter at rest, within a quarter of the 20 % move
+    c = check()
+    assert feed(c, readings, valve, np.full(2000, -1.0), np.full(2000, 1.0)) == [] and c.verdicts == 0
+
+
+@pytest.mark.parametrize("field, value", [("placement_sign_move_pct", 0.5), ("placement_sign_move_pct", 101.0),
+                                          ("placement_sign_change_c", 0.0), ("placement_sign_window_s", 1.0),
+                                          ("placement_sign_rest_s", 1000.0)])
+def test_bad_values_are_refused_naming_the_field(field, value):
+    with pytest.raises(InvalidSettings, match=field):
+        MpcSettings(**{field: value})
+
+
+def test_off_by_default_and_a_value_is_accepted():
+    assert MpcSettings().placement_sign_move_pct == math.inf
+    assert MpcSettings(**ON).placement_sign_move_pct == 20.0
+
+
+def _run(variant, scenario, settings):
+    verdicts, placements = [], []
+    make_mpc = bench.mpc_factory(settings=settings)
+
+    def mpc(command):
+        controller = make_mpc(command)
+        step = controller.step
+
+        def recorded(measurement, reference):
+            result = step(measurement, reference)
+            verdicts.append(result.stats.get("sign_verdicts", 0))
+            placements.append(result.stats.get("offset_placement"))
+            return result
+        controller.step = recorded
+        return controller
+
+    res, traces = bench.run_benchmark([scenario], {"baseline": bench.baseline_factory(), "mpc": mpc}, 0,
+                                      plant_factory=lambda **kw: make_plant(variant, **kw))
+    sc = res["scenarios"][scenario.name]
+    return (sc["mpc"]["figures"]["temp_iae_cs"], sc["baseline"]["figures"]["temp_iae_cs"], verdicts, placements,
+            traces[scenario.name]["mpc"].applied[:, 2])
+
+
+@pytest.mark.slow
+def test_s2_7_valve_a_answered_the_other_way_round_switches_the_filter_and_closes_valve_a():
+    full = scenarios.mismatch_scenarios()["winter_heating_steps"]
+    cut = dataclasses.replace(full, segments=full.segments[:1])  # the 120 s warm-up at 9 C, then 180 s at 12 C
+    iae, base, verdicts, placements, valve_a = _run(S2_7, cut, ON)
+    assert verdicts[-1] == 1
+    first = verdicts.index(1)
+    assert 155 <= first <= 175  # valve a opens at 156-160 s; the reading rises from about 162 s
+    assert placements[first + 1] == "heater_air"
+    assert valve_a[-60:].max() < 30.0  # back towards the bypass, the box's coldest path
+    assert iae < base
+    off_iae, off_base, _, off_placements, off_valve_a = _run(S2_7, cut, None)
+    assert off_base == pytest.approx(base)  # the same baseline run
+    assert "heater_air" not in off_placements[:first + 10] and off_valve_a[-60:].min() > 80.0
+    assert off_iae > 1.5 * base > 1.5 * iae
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["winter_heating_steps", "summer_cooling_steps"])
+def test_no_verdict_on_the_nominal_box(name):
+    quick = scenarios.mismatch_scenarios()[name].quick()
+    _, _, verdicts, _, _ = _run("nominal", quick, ON)
+    assert max(verdicts) == 0
