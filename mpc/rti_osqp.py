@@ -1055,7 +1055,8 @@ class RtiOsqpSolver:
                 z = None
                 break
             if self._trust_merit is not None:
-                z = self._trusted(z, x0, d, ref, w_y, u_prev, u_lo, u_hi)
+                z, again = self._trusted(z, x0, d, ref, w_y, u_prev, u_lo, u_hi)
+                solves += again
             if self._merit is not None:
                 z, taken = self._globalised(z, x0, d, ref, w_y, u_prev)
                 fraction = min(fraction, taken)
@@ -1182,11 +1183,11 @@ class RtiOsqpSolver:
         z[:self.pb.nx] = x0
         return z, fraction
 
-    def _trusted(self, z, x0, d, ref, w_y, u_prev, u_lo, u_hi) -> np.ndarray:
+    def _trusted(self, z, x0, d, ref, w_y, u_prev, u_lo, u_hi) -> tuple[np.ndarray, int]:
         """The QP's answer ``z``, or, where its plan's nonlinear cost exceeds the linearisation point's by more
         than :data:`.plan_merit.MERIT_TOLERANCE`, the same QP's answer within the first trust radius whose plan
-        does not (else the least cost of those solved; :mod:`.trust_region`). The QP's vectors are left as the
-        problem's bounds make them."""
+        does not (else the least cost of those solved; :mod:`.trust_region`), and the number of QPs solved again.
+        The QP's vectors are left as the problem's bounds make them."""
         N, nu = self.pb.N, self.pb.nu
         merit, sw = self._trust_merit, self._weights(w_y)
         U_lin = self._z_lin[self.iu0:self.is0].reshape(N, nu)
@@ -1194,14 +1195,15 @@ class RtiOsqpSolver:
         c_lin, c_best = merit.pair(U_lin, z[self.iu0:self.is0].reshape(N, nu), *args)
         self.trust_taken = 1.0
         if c_best <= c_lin * (1.0 + MERIT_TOLERANCE):
-            return z
-        best = z
+            return z, 0
+        best, solved = z, 0
         for radius in self.trust_radii:
             lo, hi = region_bounds(U_lin, u_lo, u_hi, self._trust_span, radius)
             self.l[self._r_u_rows], self.u[self._r_u_rows] = lo.ravel(), hi.ravel()
             self._core.update_vectors(self._q(ref, d, u_prev), self.l, self.u)
             self._core.warm_start(self._z_lin, None)
             status_val, _, _, x = self._core.solve()
+            solved += 1
             if status_val not in self._accepted or not np.isfinite(x).all():
                 continue
             cand = np.array(x)
@@ -1212,7 +1214,7 @@ class RtiOsqpSolver:
                 break
         self.l[self._r_u_rows], self.u[self._r_u_rows] = u_lo.ravel(), u_hi.ravel()
         self._core.update_vectors(self._q(ref, d, u_prev), self.l, self.u)
-        return best
+        return best, solved
 
     def _limit_time(self, remaining_s: float, budget_s: float) -> None:
         """OSQP's time limit: what remains of the feedback budget, set again only when it has shrunk

@@ -59,14 +59,16 @@ def _run(radii: tuple[float, ...]) -> dict:
 
     sc, mpc, plant = on_recirculating_box(rti_trust_radii=radii)
     i_a = mpc.problem.i_valve_a
-    a_prev, last_move, reversals, trusted, iae = None, 0.0, 0, 0, 0.0
+    a_prev, last_move, reversals, trusted, qps, iae = None, 0.0, 0, 0, 0, 0.0
     for k in range(int(WINDOW_S[1])):
         ref = sc.reference_at(float(k))
         inside = k >= WINDOW_S[0]
         if inside:
             iae += abs(plant.truth()["supply_temp_c"] - ref.supply_temp_c)
-        u = np.asarray(mpc.step(plant.read(), ref).command.vector(), float)
-        trusted += int(inside and getattr(mpc.solver, "trust_taken", 1.0) < 1.0)
+        result = mpc.step(plant.read(), ref)
+        u = np.asarray(result.command.vector(), float)
+        trusted += int(inside and mpc.solver.trust_taken < 1.0)
+        qps += int(inside) * result.stats["qp_solves"]
         plant.apply(u)
         plant.advance()
         if a_prev is not None and abs(u[i_a] - a_prev) >= MOVE_PCT:
@@ -74,7 +76,7 @@ def _run(radii: tuple[float, ...]) -> dict:
             reversals += int(inside and move * last_move < 0.0)
             last_move = move
         a_prev = u[i_a]
-    return {"reversals": reversals, "trusted": trusted, "iae": iae}
+    return {"reversals": reversals, "trusted": trusted, "qps": qps, "iae": iae}
 
 
 def test_trust_region_ends_most_of_valve_a_alternation_on_the_recirculating_box():
@@ -86,6 +88,7 @@ def test_trust_region_ends_most_of_valve_a_alternation_on_the_recirculating_box(
     off, on = _run(()), _run((0.25, 0.1, 0.03))
     assert off["trusted"] == 0
     assert on["trusted"] >= 10, on
+    assert on["qps"] >= off["qps"] + on["trusted"], (on, off)  # each plan from the region took a QP more at least
     assert off["reversals"] >= 20, off
     assert on["reversals"] <= 0.65 * off["reversals"], (on, off)
     assert on["iae"] < 0.95 * off["iae"], (on, off)
