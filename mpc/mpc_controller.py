@@ -71,6 +71,7 @@ from .ring_gate import RingGate
 from .start_caution import SCOPES as START_CAUTION_SCOPES, VALVE_A_AND_HEATER, StartCaution, opening_bound
 from .rti_osqp import RHO_RESET_ON, RtiOsqpSolver, SolveResult
 from .steady_target import check_steady_start_on
+from .trust_region import check_radii
 from .temperature_reach import SaturatedTemperature
 
 SOLVERS = ("rti", "sqp", "ipopt")
@@ -140,6 +141,10 @@ class MpcSettings:
             the nonlinear cost of its plan (the model's rollout) is compared with the linearisation point's;
             where it is higher, the damped steps of these fractions (each in (0, 1)) are tried and the least
             cost taken. Empty: the QP's plan whole (the plain real-time iteration).
+        rti_trust_radii: a trust region for ``rti``/``sqp`` (:mod:`hvac_mpc.mpc.trust_region`): where the QP's plan
+            raises the nonlinear cost above the linearisation point's, the QP is solved again with each stage's
+            inputs within radius x their range of the linearisation point's plan, for these radii in turn
+            (each in (0, 1), decreasing, at most four), and the first plan no worse is taken. Empty: off.
         ipopt_tol, ipopt_max_iter: IPOPT tolerance and iteration cap.
         deadline_s: longest feedback time (measurement to command); beyond it the solution is
             discarded and the fallback chain used.
@@ -341,6 +346,7 @@ class MpcSettings:
     reference_change_qps: int = 2
     sqp_tol: float = 2e-2
     rti_step_fractions: tuple[float, ...] = ()
+    rti_trust_radii: tuple[float, ...] = ()
     ipopt_tol: float = 1e-6
     ipopt_max_iter: int = 300
     deadline_s: float = 0.5
@@ -449,6 +455,12 @@ class MpcSettings:
         check_number(f"{p}.levenberg_marquardt", self.levenberg_marquardt, 0.0, 1e4)
         check_number(f"{p}.cold_start_qps", self.cold_start_qps, 1, 100, integer=True)
         check_number(f"{p}.reference_change_qps", self.reference_change_qps, 1, 100, integer=True)
+        if not isinstance(self.rti_trust_radii, tuple):
+            raise InvalidSettings(f"{p}.rti_trust_radii must be a tuple of decreasing radii in (0, 1)")
+        try:
+            check_radii(self.rti_trust_radii)
+        except ValueError as exc:
+            raise InvalidSettings(f"{p}.rti_trust_radii: {exc}") from None
         if not isinstance(self.rti_step_fractions, tuple) or len(self.rti_step_fractions) > 8:
             raise InvalidSettings(f"{p}.rti_step_fractions must be a tuple of at most 8 fractions in (0, 1)")
         for i, a in enumerate(self.rti_step_fractions):
@@ -731,7 +743,8 @@ class MpcController:
                              rho_reset_on=s.osqp_rho_reset_on, reweigh_in_place=s.reweigh_in_place,
                              change_split_iter=s.change_split_iter, split_every_step=s.split_every_step,
                              split_keeps_rho=s.split_keeps_rho, split_replays_change=s.split_replays_change,
-                             rho_max=s.osqp_rho_max, plain_qp_cap=s.osqp_plain_qp_cap)
+                             rho_max=s.osqp_rho_max, plain_qp_cap=s.osqp_plain_qp_cap,
+                             trust_radii=s.rti_trust_radii)
 
     # ------------------------------------------------------------------ protocol
     def reset(self, command: Command | None = None) -> None:

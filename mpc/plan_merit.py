@@ -116,6 +116,14 @@ class PlanMerit:
         s = ca.fmax(0.0, excess)
         return pb.dt[k - 1] * (pb.slack_l1 * s + pb.slack_l2 * s * s)
 
+    def pair(self, U_lin: np.ndarray, U_qp: np.ndarray, x0: np.ndarray, d: np.ndarray, sw: np.ndarray,
+             ref: np.ndarray, u_prev: np.ndarray, p: np.ndarray,
+             ready: tuple[float, np.ndarray] | None = None) -> tuple[float, float]:
+        """The merits of two plans (N x nu, scaled), the arguments as :meth:`choose`'s."""
+        r_floor, r_w = (0.0, np.zeros(self.pb.N)) if ready is None else ready
+        costs = self._pair(x0, np.concatenate([U_lin, U_qp]), d, sw, ref, u_prev, p, r_floor, r_w)[0].ravel()
+        return float(costs[0]), float(costs[1])
+
     def choose(self, U_lin: np.ndarray, U_qp: np.ndarray, x0: np.ndarray, d: np.ndarray, sw: np.ndarray,
                ref: np.ndarray, u_prev: np.ndarray, p: np.ndarray,
                ready: tuple[float, np.ndarray] | None = None) -> float:

@@ -43,8 +43,9 @@ from .codegen import CodegenReport, compiled
 from .multilevel import MultiLevel, vector_function
 from .ocp import STAGE_OUTPUTS, TRACKED, TrackingProblem, shift_maps, shift_nodes
 from .osqp_embedded import FIRST_PASS_EPS_RATIO  # noqa: F401 - the first pass's tolerance, named here too
-from .plan_merit import PlanMerit
+from .plan_merit import MERIT_TOLERANCE, PlanMerit
 from .steady_target import SteadyStart, check_steady_start_on, starts_at_target
+from .trust_region import check_radii, region_bounds
 
 #: Rows of the stage outputs (``STAGE_OUTPUTS``) by signal: the tracked temperature, the total
 #: flow, the outlet flows and the electric heater power (the energy residual's heater part).
@@ -64,6 +65,9 @@ FLOOR_TOLERANCE_LS = 0.01
 #: When ``RtiOsqpSolver(rho_reset=...)`` sets OSQP's step size: at every preparation's matrix update, or for the QPs of a
 #: reference change only.
 RHO_RESET_ON = ("preparation", "change")
+#: The damped steps of the merit function a trust region builds when no globalised step is configured (its
+#: ``choose`` is not called then; :class:`.plan_merit.PlanMerit` needs one).
+TRUST_MERIT_FRACTIONS = (0.5,)
 #: OSQP's time limit when none is wanted (s): OSQP's own default (its Python interface refuses 0).
 NO_TIME_LIMIT_S = 1e10
 
@@ -173,6 +177,12 @@ class RtiOsqpSolver:
             its plan is compared with the linearisation point's, and where it is higher the damped steps of
             these fractions are tried and the least cost taken (``SolveResult.extra["step_fraction"]``).
             Empty (the default): the QP's plan is taken whole, the plain real-time iteration.
+        trust_radii: a trust region (:mod:`.trust_region`): where a QP's plan costs more on the nonlinear cost
+            than the linearisation point's (beyond :data:`.plan_merit.MERIT_TOLERANCE`), the same QP is solved
+            again with each stage's inputs within radius x their range of the linearisation point's plan, for
+            these radii in turn, and the first plan no worse is taken (else the cheapest of those solved;
+            ``trust_taken`` says which radius the last one came from, 1 the QP's own). Before the damped step
+            where both are set. Empty (the default): off.
         codegen: evaluate the QP data as generated C (:func:`.codegen.compiled`, cached on disk);
             otherwise (or without a compiler) CasADi's interpreter runs the same functions.
             ``self.codegen`` reports what happened.
@@ -246,7 +256,7 @@ class RtiOsqpSolver:
                  relinearise_move: float = 0.3, rho_reset: float | None = None, rho_reset_on: str = "preparation",
                  reweigh_in_place: bool = False, change_split_iter: int = 0,
                  split_every_step: bool = False, split_keeps_rho: bool = False, split_replays_change: bool = False,
-                 rho_max: float | None = None, plain_qp_cap: int = 0):
+                 rho_max: float | None = None, plain_qp_cap: int = 0, trust_radii: tuple[float, ...] = ()):
         self.pb = pb = problem
         self.rho_max = _checked_step_size("rho_max", rho_max)
         self.plain_qp_cap = _checked_cap("plain_qp_cap", plain_qp_cap, max_iter)
@@ -308,6 +318,10 @@ class RtiOsqpSolver:
                                              fixed={7: self._q_const, 8: self._lm_all, 9: pb.w_du})
         self._sw_key = None
         self._merit = PlanMerit(pb, tuple(step_fractions), wrap) if step_fractions else None
+        self.trust_radii = check_radii(trust_radii)
+        self._trust_merit = (self._merit or PlanMerit(pb, TRUST_MERIT_FRACTIONS, wrap)) if self.trust_radii else None
+        self._trust_span = np.tile(pb.u_hi - pb.u_lo, (N, 1))  # each input's scaled range
+        self.trust_taken: float = 1.0  # the radius of the last step's plan (1: the QP's own)
         self._steady = SteadyStart(pb, wrap) if steady_start else None
         if self._ml is not None:
             self._qp_vectors = BufferedFunction(wrap(vector_function(pb, pb.ny + 1, Y_POWER, Y_FLOW, U_BLOWER)),
@@ -354,7 +368,8 @@ class RtiOsqpSolver:
                 "change_split_iter": self.change_split_iter, "split_every_step": self.split_every_step,
                 "split_keeps_rho": self.split_keeps_rho, "split_replays_change": self.split_replays_change,
                 "rho_max": self.rho_max, "plain_qp_cap": self.plain_qp_cap,
-                "step_fractions": list(self._merit.fractions) if self._merit else []}
+                "step_fractions": list(self._merit.fractions) if self._merit else [],
+                "trust_radii": list(self.trust_radii)}
 
     # ------------------------------------------------------------------ structure
     def _build_pattern(self) -> None:
@@ -1046,6 +1061,9 @@ class RtiOsqpSolver:
                 status = "non-finite solution"
                 z = None
                 break
+            if self._trust_merit is not None:
+                z, again = self._trusted(z, x0, d, ref, w_y, u_prev, u_lo, u_hi)
+                solves += again
             if self._merit is not None:
                 z, taken = self._globalised(z, x0, d, ref, w_y, u_prev)
                 fraction = min(fraction, taken)
@@ -1184,6 +1202,39 @@ class RtiOsqpSolver:
         z = self._z_lin + fraction * (z - self._z_lin)
         z[:self.pb.nx] = x0
         return z, fraction
+
+    def _trusted(self, z, x0, d, ref, w_y, u_prev, u_lo, u_hi) -> tuple[np.ndarray, int]:
+        """The QP's answer ``z``, or, where its plan's nonlinear cost exceeds the linearisation point's by more
+        than :data:`.plan_merit.MERIT_TOLERANCE`, the same QP's answer within the first trust radius whose plan
+        does not (else the least cost of those solved; :mod:`.trust_region`), and the number of QPs solved again.
+        The QP's vectors are left as the problem's bounds make them."""
+        N, nu = self.pb.N, self.pb.nu
+        merit, sw = self._trust_merit, self._weights(w_y)
+        U_lin = self._z_lin[self.iu0:self.is0].reshape(N, nu)
+        args = (x0, d, sw, ref, u_prev, self._p, self.readiness_target)
+        c_lin, c_best = merit.pair(U_lin, z[self.iu0:self.is0].reshape(N, nu), *args)
+        self.trust_taken = 1.0
+        if c_best <= c_lin * (1.0 + MERIT_TOLERANCE):
+            return z, 0
+        best, solved = z, 0
+        for radius in self.trust_radii:
+            lo, hi = region_bounds(U_lin, u_lo, u_hi, self._trust_span, radius)
+            self.l[self._r_u_rows], self.u[self._r_u_rows] = lo.ravel(), hi.ravel()
+            self._core.update_vectors(self._q(ref, d, u_prev), self.l, self.u)
+            self._core.warm_start(self._z_lin, None)
+            status_val, _, _, x = self._core.solve()
+            solved += 1
+            if status_val not in self._accepted or not np.isfinite(x).all():
+                continue
+            cand = np.array(x)
+            _, c = merit.pair(U_lin, cand[self.iu0:self.is0].reshape(N, nu), *args)
+            if c < c_best:
+                best, c_best, self.trust_taken = cand, c, radius
+            if c <= c_lin * (1.0 + MERIT_TOLERANCE):
+                break
+        self.l[self._r_u_rows], self.u[self._r_u_rows] = u_lo.ravel(), u_hi.ravel()
+        self._core.update_vectors(self._q(ref, d, u_prev), self.l, self.u)
+        return best, solved
 
     def _limit_time(self, remaining_s: float, budget_s: float) -> None:
         """OSQP's time limit: what remains of the feedback budget, set again only when it has shrunk

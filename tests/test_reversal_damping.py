@@ -38,22 +38,28 @@ MOVE_PCT = 5.0
 WINDOW_S = (30.0, 50.0)
 
 
-def _valve_a_reversals(share: float | None) -> tuple[int, float]:
-    """Valve a's reversals (a move of at least MOVE_PCT against the last such move) within WINDOW_S, and the
-    thermocouple IAE (C s) up to its end, of the MPC with the recirculation term on the recirculating box
-    (``share``: ``valve_a_reversal_share``, None the default)."""
+def on_recirculating_box(**fields):
+    """The quick trapped_air_release, the MPC with the recirculation term (thesis parameters otherwise; ``fields``:
+    MpcSettings fields, the deterministic deadline) and the recirculating box of the benchmark's seed 0."""
     from hvac_mpc.benchmarks import scenarios
     from hvac_mpc.benchmarks.simulate import DETERMINISTIC_DEADLINE_S, plant_seed
     from hvac_mpc.mismatch import make_plant
 
     sc = scenarios.select(["trapped_air_release"], quick=True)[0]
-    settings = MpcSettings(initial_command=sc.initial_command, deadline_s=DETERMINISTIC_DEADLINE_S,
-                           **({} if share is None else {"valve_a_reversal_share": share}))
+    settings = MpcSettings(initial_command=sc.initial_command, deadline_s=DETERMINISTIC_DEADLINE_S, **fields)
     refined = RefinedModel(Parameters(), ("ptc_power_fall", "fan_curve", "valve_leakage"), (RECIRCULATION_TERM,),
                            absent=("bypass_flow",))
     mpc = MpcController(settings=settings, model=refined)
     plant = make_plant("recirculation", seed=plant_seed(0, sc.seed), dt_s=1.0, inlet_temp_c=sc.inlet_temp_c,
                        chiller_setpoint_c=sc.chiller_setpoint_c, initial_command=sc.initial_command)
+    return sc, mpc, plant
+
+
+def _valve_a_reversals(share: float | None) -> tuple[int, float]:
+    """Valve a's reversals (a move of at least MOVE_PCT against the last such move) within WINDOW_S, and the
+    thermocouple IAE (C s) up to its end, of the MPC with the recirculation term on the recirculating box
+    (``share``: ``valve_a_reversal_share``, None the default)."""
+    sc, mpc, plant = on_recirculating_box(**({} if share is None else {"valve_a_reversal_share": share}))
     i_a = mpc.problem.i_valve_a
     a_prev, last_move, reversals, iae = None, 0.0, 0, 0.0
     for k in range(int(WINDOW_S[1])):
