@@ -185,7 +185,10 @@ class EkfSettings:
     offset taking minus the heat's effect, so at a steady flow the filter's level walks as the plain one's (off: the
     heat's walk adds to the level's). ASSUMPTIONS: the heat does not depend on the air's temperature (a duct's gain
     UA (T_cabin - T_air) does; the mixed-air offset takes that part); 5 W at the release (0.2 degC at 90 m3/h).
-    A setting, off: measured with 2 W per sample in docs/robustness.md sec. 2.22.
+    A setting, off: measured with 2 W per sample in docs/robustness.md sec. 2.22; at a steady flow the heat's walk
+    adds to the level's, and 2 W (0.055 degC per sample at 120 m3/h, nearly four times the offset's walk) passes the
+    reading's noise on (the built-in plant's cool-down 0.457 -> 0.474 of the baseline's IAE); 0.5 W, the offset's
+    walk at 90 m3/h, keeps the gain at the flow steps without that cost (sec. 2.29).
 
     ``q_heater_outlet_offset_c``: random walk (degC per sample) of an offset of the heater outlet
     reading, its own integrating disturbance (0: none). Without it a persistent error of that reading
