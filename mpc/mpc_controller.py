@@ -199,7 +199,7 @@ class MpcSettings:
             this share of their rates until the filter in use has seen a response of the supply air (its dead-time
             estimate informed, :attr:`~.estimator.DisturbanceEkf.response_seen`) or ``start_caution_s`` (s) has
             passed: a stroke made before anything has shown a dead time becomes a ramp the filter and the dead-time
-            estimate can follow. 0.4 (the default since sec. 2.27; 1.0: off). Measured with 0.4 and the scope
+            estimate can follow. 1.0 (the default): off; 0.4 the candidate of sec. 2.27, kept off there. Measured with 0.4 and the scope
             ``valve_a_opening`` (sec. 2.25, 2.27): the quick box sweep's worst cells (flow out of reach, 2.88 / 2.56 /
             1.67) 0.55-0.62, the full built-in bench the same to the fourth decimal. Where its bound does not bind it
             still moves the first QPs' answers slightly, and a run whose later QP sits at the solver's iteration limit
@@ -345,7 +345,7 @@ class MpcSettings:
     ring_crossings: int = 3
     ring_floor: float = 0.05
     ring_relax_s: float = 30.0
-    start_rate_share: float = 0.4
+    start_rate_share: float = 1.0
     start_caution_s: float = 10.0
     start_caution_scope: str = "valve_a_opening"
     steady_start: bool = False

@@ -113,16 +113,16 @@ def fallback_after_a_reversal(**settings):
 def test_a_fallback_command_is_applied_as_its_layer_made_it():
     """The damping takes in part only a QP's answer: a fallback's valve a, reversing the last move, is applied
     whole (within the bounds). Without the start-up's caution (``start_rate_share`` 1): in the fourth sample from the
-    reset the caution, on by default, still bounds valve a's opening (docs/robustness.md sec. 2.27), and this
+    reset the caution, when on, still bounds valve a's opening (docs/robustness.md sec. 2.27), and this
     fallback opens it (the MPC has closed valve a in the first samples)."""
     ctrl, a, target = fallback_after_a_reversal(start_rate_share=1.0)
     assert ctrl.u_prev[ctrl.problem.i_valve_a] == pytest.approx(target)
 
 
 def test_a_fallback_opening_valve_a_at_the_start_is_held_to_the_cautions_bound_not_damped():
-    """With the defaults the same fallback meets the start-up's caution, a bound of the command: it opens valve a by
+    """With the caution on (share 0.4) the same fallback meets the start-up's caution, a bound of the command: it opens valve a by
     the share of its rate (0.4 x 50 %/s), the bound's whole way, and not by the reversal damping's part of that."""
-    ctrl, a, target = fallback_after_a_reversal()
+    ctrl, a, target = fallback_after_a_reversal(start_rate_share=0.4)
     settings = ctrl.settings
     assert ctrl.start_caution.active and target > a + settings.start_rate_share * settings.ocp.rate_valve_pct_per_s
     assert ctrl.u_prev[ctrl.problem.i_valve_a] == pytest.approx(
