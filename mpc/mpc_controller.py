@@ -205,11 +205,11 @@ class MpcSettings:
             this share of their rates until the filter in use has seen a response of the supply air (its dead-time
             estimate informed, :attr:`~.estimator.DisturbanceEkf.response_seen`) or ``start_caution_s`` (s) has
             passed: a stroke made before anything has shown a dead time becomes a ramp the filter and the dead-time
-            estimate can follow. 1.0 (the default): off. Measured with 0.4 and the scope ``valve_a_opening``
-            (sec. 2.25): the quick box sweep's worst cells (flow out of reach, 2.88 / 2.56 / 1.67) 0.55-0.62, the full
-            built-in bench the same to the fourth decimal, the quick suite's seed 0 as before, but a refined model's
-            quick trapped-air run on the heater wall-loss box worse (346 -> 394 C s); a setting, off, until that and
-            the full test suite with it are settled (sec. 2.25). With the scope
+            estimate can follow. 1.0 (the default): off; 0.4 the candidate of sec. 2.27, kept off there. Measured with 0.4 and the scope
+            ``valve_a_opening`` (sec. 2.25, 2.27): the quick box sweep's worst cells (flow out of reach, 2.88 / 2.56 /
+            1.67) 0.55-0.62, the full built-in bench the same to the fourth decimal. Where its bound does not bind it
+            still moves the first QPs' answers slightly, and a run whose later QP sits at the solver's iteration limit
+            or whose loop rings can take another way from there (sec. 2.27). With the scope
             ``valve_a_and_heater`` (sec. 2.23) the sweep's heating cells higher and the full built-in bench's winter
             heating steps 0.675 -> 0.704.
         start_caution_scope: what ``start_rate_share`` slows (:data:`~.start_caution.SCOPES`):

@@ -26,6 +26,11 @@ starts close valve a. Slowing valve a's opening only (sec. 2.25) leaves a start 
 bypass, the inlet's air) as it was: the winter heating steps' (60 -> 10 %) and S0-10 heating's; the full built-in
 bench's ratios are the same to the fourth decimal with it, and the flow-jump cells keep their gain.
 
+Off by default (``MpcSettings.start_rate_share`` 1.0); 0.4 measured as a default in docs/robustness.md sec. 2.27. Where its bound does not
+bind (a start that closes valve a, or opens it by less than the share) the commands are the same to the solver's
+tolerance, not to the bit: the bound is in the first QPs all the same, and a run whose later QP ends at the solver's
+iteration limit, or whose loop rings, can take another way from there (traced in sec. 2.27).
+
 ASSUMPTION: the start is the one moment a dead time is certainly unknown; the stroke worth slowing is an opening one
 (toward the core path); a closing one goes toward the bypass, whose air is the inlet's, and slowing it only costs
 (measured, sec. 2.25, not derived). After the first response (or ``duration_s``, the longest dead time the filter

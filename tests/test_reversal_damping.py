@@ -91,9 +91,9 @@ def test_reversal_share_damps_valve_a_two_cycle_on_the_recirculating_box():
     assert iae_on < 0.95 * iae_off, (iae_on, iae_off)
 
 
-def test_a_fallback_command_is_applied_as_its_layer_made_it():
-    """The damping takes in part only a QP's answer: a fallback's valve a, reversing the last move, is applied
-    whole (within the bounds)."""
+def fallback_after_a_reversal(**settings):
+    """Three warm steps of the built-in plant, then a fallback whose valve a moves 30 % against the last applied move:
+    the controller, valve a before the fallback and the fallback's target (%)."""
     from test_mpc import PARAMS, REF_WARM, START
     from test_mpc import closed_loop as run
 
@@ -101,7 +101,7 @@ def test_a_fallback_command_is_applied_as_its_layer_made_it():
 
     plant = SimulatedPlant(PARAMS, seed=6)
     plant.settle(START)
-    ctrl = MpcController(PARAMS, MpcSettings(initial_command=START))
+    ctrl = MpcController(PARAMS, MpcSettings(initial_command=START, **settings))
     run(ctrl, plant, [REF_WARM] * 3)
     i = ctrl.problem.i_valve_a
     a = float(ctrl.u_prev[i])
@@ -113,4 +113,23 @@ def test_a_fallback_command_is_applied_as_its_layer_made_it():
     ctrl.force_solver_failure(1)
     out = run(ctrl, plant, [REF_WARM])[0]
     assert out["stats"]["fallback"] == "test"
-    assert ctrl.u_prev[i] == pytest.approx(target)
+    return ctrl, a, target
+
+
+def test_a_fallback_command_is_applied_as_its_layer_made_it():
+    """The damping takes in part only a QP's answer: a fallback's valve a, reversing the last move, is applied
+    whole (within the bounds). Without the start-up's caution (``start_rate_share`` 1): in the fourth sample from the
+    reset the caution, when on, still bounds valve a's opening (docs/robustness.md sec. 2.27), and this
+    fallback opens it (the MPC has closed valve a in the first samples)."""
+    ctrl, a, target = fallback_after_a_reversal(start_rate_share=1.0)
+    assert ctrl.u_prev[ctrl.problem.i_valve_a] == pytest.approx(target)
+
+
+def test_a_fallback_opening_valve_a_at_the_start_is_held_to_the_cautions_bound_not_damped():
+    """With the caution on (share 0.4) the same fallback meets the start-up's caution, a bound of the command: it opens valve a by
+    the share of its rate (0.4 x 50 %/s), the bound's whole way, and not by the reversal damping's part of that."""
+    ctrl, a, target = fallback_after_a_reversal(start_rate_share=0.4)
+    settings = ctrl.settings
+    assert ctrl.start_caution.active and target > a + settings.start_rate_share * settings.ocp.rate_valve_pct_per_s
+    assert ctrl.u_prev[ctrl.problem.i_valve_a] == pytest.approx(
+        a + settings.start_rate_share * settings.ocp.rate_valve_pct_per_s * settings.dt_s)
