@@ -201,16 +201,26 @@ def _score_model(fitter: Fitter, current: Fit, free: list[FreeParam], cand: Cand
         # absorbed part of the effect), the best screened fit kept
         starts = (current.p, np.array(fitter.base.vector()))
         fits = [_score_from(fitter, current, free, cand, effects, _grid_start(fitter, effects, p, current.post,
-                                                                            dataclasses.replace(cand, grid=(g,))))
+                                                                            dataclasses.replace(cand, grid=(g,))),
+                            documented=False)
                 for g in cand.grid for p in starts]
         good = [f for f in fits if f[0] is not None]
-        return min(good, key=lambda f: f[0].cost_train) if good else fits[0]
+        if good:
+            return min(good, key=lambda f: f[0].cost_train)
+        # no grid point the training rows excite: the documented values' test on the held-out rows
+        return _score_from(fitter, current, free, cand, effects, _grid_start(fitter, effects, current.p, current.post,
+                                                                           cand))
     return _score_from(fitter, current, free, cand, effects, _grid_start(fitter, effects, current.p, current.post, cand))
 
 
 def _score_from(fitter: Fitter, current: Fit, free: list[FreeParam], cand: Candidate, effects,
-                p0: np.ndarray) -> tuple[Fit | None, str]:
+                p0: np.ndarray, documented: bool = True) -> tuple[Fit | None, str]:
+    """The candidate screened and fitted from ``p0``; where the training rows do not excite its parameters, its
+    documented values tested on the held-out rows (:mod:`.documented`), unless ``documented`` is False (a grid
+    point of a candidate screened at each point: the documented test only when no point is excited)."""
     visible = fitter.identifiable(effects, p0, current.post, cand.params, current.terms)
+    if not visible and not documented:
+        return None, "its parameters do not change the logged outputs here (not observable)"
     if not visible:  # the training rows do not excite it: the held-out rows may still test its documented values
         return score_documented(fitter, current, cand, effects, lambda p: _screen_and_fit(
             fitter, current, free, effects, p, [], current.post, flow_side="volume_flow_m3s" in cand.signature))
@@ -500,7 +510,9 @@ def _forward(fitter: Fitter, nominal: Fit, free: list[FreeParam], lib, max_effec
         best.reason = (f"removes {100 * best.explained_holdout:.0f} % of the held-out structure, information "
                        f"criterion {best.bic_change:+.1f}, p = {best.p_value:.2g}" + (
                            "" if best.dof else " on the held-out rows, at its documented values (the training "
-                           "rows do not excite it)"))
+                           "rows do not excite it; the held-out errors before and after are this choice's own "
+                           "evidence, not an independent check of it: nothing of it is fitted, so only the one "
+                           "choice is optimistic)"))
         for r in eligible:
             if r is best or r.reason:
                 continue
@@ -963,7 +975,8 @@ def _thesis_unless_moved(fitter: Fitter, final: Fit, confidence: list[dict], bas
     value at the procedure's level (Wald test, abs(z) above :data:`~.fitting.MOVED_Z`, two-sided 1 %); the others
     go back to their thesis values, as far as their joint Wald test lets them (:func:`_jointly_unmoved`), and the
     kept ones are refit with them there. ``final`` itself where every refit parameter passes or where the reverted
-    block passes the effects' gates on any output; the thesis model where none passes or where the restricted
+    block passes the effects' gates on any output (no correction for the several outputs: it errs toward writing
+    the refit, the default's file); the thesis model where none passes or where the restricted
     refit does not lower the thesis model's held-out error."""
     moved = {c["name"] for c in confidence if c["identified"] and abs(c["z"]) > MOVED_Z}
     reverted, wald = _jointly_unmoved(fitter, final, base, sorted(set(final.free) - moved), notes)
@@ -1005,7 +1018,7 @@ def _thesis_unless_moved(fitter: Fitter, final: Fit, confidence: list[dict], bas
 
 def _jointly_unmoved(fitter: Fitter, final: Fit, base: Parameters, reverted: list[str],
                      notes: list[str]) -> tuple[list[str], float]:
-    """The largest part of ``reverted`` (each within :data:`~.fitting.MOVED_Z` of its thesis value alone) that the
+    """A part of ``reverted``, found greedily (backward, not the largest such part in general), (each within :data:`~.fitting.MOVED_Z` of its thesis value alone) that the
     log does not move jointly either: while the block's Wald statistic exceeds the chi-square bound at the
     procedure's level (:data:`~.selection.ALPHA`), the parameter whose leaving lowers it most is kept at its refit
     value. Correlated estimates can each lie near their thesis values and together far from them (a joint move the
@@ -1025,7 +1038,8 @@ def _jointly_unmoved(fitter: Fitter, final: Fit, base: Parameters, reverted: lis
     if kept:
         notes.append(f"nothing added: {kept} each within {MOVED_Z} standard errors of the thesis value but jointly "
                      f"moved by the log (Wald {wald(list(reverted)):.1f} on {len(reverted)} degrees of freedom): "
-                     "kept at their refit values")
+                     "not reverted with the others (refit with those at their thesis values, or written at the thesis "
+                     "values too where that refit does not lower the thesis model's held-out error: the next note)")
     return block, wald(block)
 
 

@@ -526,6 +526,10 @@ class MpcSettings:
         """The fields of the valve a sign check (:mod:`~.sign_check`)."""
         if self.placement_sign_move_pct != math.inf:
             _check_or_off(f"{p}.placement_sign_move_pct", self.placement_sign_move_pct, 1.0, 100.0, "inf")
+            if not self.choose_offset_placement:
+                raise InvalidSettings(f"{p}.placement_sign_move_pct = {self.placement_sign_move_pct!r} checks the "
+                                      f"filter the placement chooses and needs {p}.choose_offset_placement = True "
+                                      "(else leave it at inf)")
         check_number(f"{p}.placement_sign_change_c", self.placement_sign_change_c, 0.1, 5.0)
         check_number(f"{p}.placement_sign_window_s", self.placement_sign_window_s, 2.0, 120.0)
         check_number(f"{p}.placement_sign_rest_s", self.placement_sign_rest_s, 2.0, 600.0)

@@ -106,6 +106,13 @@ def test_bad_values_are_refused_naming_the_field(field, value):
         MpcSettings(**{field: value})
 
 
+def test_the_check_without_the_placement_is_refused_naming_both_fields():
+    """The check compares the placement's filters: without the placement it would do nothing, so it is refused."""
+    with pytest.raises(InvalidSettings, match="placement_sign_move_pct.*choose_offset_placement"):
+        MpcSettings(placement_sign_move_pct=20.0, choose_offset_placement=False)
+    assert MpcSettings(choose_offset_placement=False).placement_sign_move_pct == math.inf
+
+
 def test_off_by_default_and_a_value_is_accepted():
     assert MpcSettings().placement_sign_move_pct == math.inf
     assert MpcSettings(**ON).placement_sign_move_pct == 20.0
