@@ -15,6 +15,7 @@ import pytest
 from hvac_mpc.benchmarks import bench, scenarios
 from hvac_mpc.mismatch import make_plant
 from hvac_mpc.mismatch.variants import Variant
+from recording_helpers import recording_mpc_factory
 
 S0_7 = Variant(transport_delay_s=2.8, duct_loss_ua_w_per_k=6.37, cooler_literal_fit=True, thermocouple_tau_scale=0.65,
                blower_gain_scale=0.97, valve_shift_pct=-6.03, heater_power_scale=0.86, chiller_rate_scale=0.79)
@@ -23,19 +24,8 @@ S0_7 = Variant(transport_delay_s=2.8, duct_loss_ua_w_per_k=6.37, cooler_literal_
 def _run(settings):
     full = scenarios.mismatch_scenarios()["winter_heating_steps"]
     cut = dataclasses.replace(full, segments=full.segments[:1])  # the 120 s warm-up at 9 C, then 180 s at 12 C
-    placements = []
-    make_mpc = bench.mpc_factory(settings=settings)
-
-    def mpc(command):
-        controller = make_mpc(command)
-        step = controller.step
-
-        def recorded(measurement, reference):
-            result = step(measurement, reference)
-            placements.append(result.stats.get("offset_placement"))
-            return result
-        controller.step = recorded
-        return controller
+    mpc, records = recording_mpc_factory(settings, offset_placement=None)
+    placements = records["offset_placement"]
 
     res, traces = bench.run_benchmark([cut], {"baseline": bench.baseline_factory(), "mpc": mpc}, 0,
                                       plant_factory=lambda **kw: make_plant(S0_7, **kw))

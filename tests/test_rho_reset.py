@@ -16,6 +16,7 @@ from hvac_mpc.mpc import codegen
 from hvac_mpc.mpc.mpc_controller import InvalidSettings, MpcController, MpcSettings
 from hvac_mpc.mpc.ocp import shift_nodes
 from hvac_mpc.mpc.rti_osqp import RtiOsqpSolver
+from recording_helpers import StartingRho
 
 RHO = 1e-3
 #: The solve-time loop's change to 20 C at 60 s (the heater comes on): the change whose QPs took the most OSQP
@@ -33,27 +34,13 @@ def cache():
     mp.undo()
 
 
-class _StartingRho:
-    """Stands in for the generated solver and keeps, per QP, the step size in force when its solve starts."""
-
-    def __init__(self, core):
-        self.core, self.step, self.starts = core, 0, []
-
-    def solve(self):
-        self.starts.append((self.step, self.core.rho))
-        return self.core.solve()
-
-    def __getattr__(self, name):
-        return getattr(self.core, name)
-
-
 def _loop(steps: int, **fields):
     # the deadline lifted: a missed wall-clock deadline on a loaded machine is the load's, not the solver's
     ctrl = MpcController(settings=MpcSettings(deadline_s=DETERMINISTIC_DEADLINE_S, **fields))
     loop = solve_time.Loop(ctrl, seed=1)
     rec = None
     if ctrl.solver.settings["osqp_generated"]:
-        ctrl.solver._core = rec = _StartingRho(ctrl.solver._core)
+        ctrl.solver._core = rec = StartingRho(ctrl.solver._core)
     rows = []
     for k in range(steps):
         if rec is not None:

@@ -21,6 +21,7 @@ from hvac_mpc.mismatch.variants import Variant
 from hvac_mpc.mpc.mpc_controller import MpcSettings
 from hvac_mpc.mpc.ocp import InvalidSettings
 from hvac_mpc.mpc.sign_check import ValveSignCheck
+from recording_helpers import recording_mpc_factory
 
 ON = {"placement_sign_move_pct": 20.0}
 S2_7 = Variant(transport_delay_s=3.37, duct_loss_ua_w_per_k=6.13, cooler_literal_fit=True, thermocouple_tau_scale=0.78,
@@ -119,20 +120,8 @@ def test_off_by_default_and_a_value_is_accepted():
 
 
 def _run(variant, scenario, settings):
-    verdicts, placements = [], []
-    make_mpc = bench.mpc_factory(settings=settings)
-
-    def mpc(command):
-        controller = make_mpc(command)
-        step = controller.step
-
-        def recorded(measurement, reference):
-            result = step(measurement, reference)
-            verdicts.append(result.stats.get("sign_verdicts", 0))
-            placements.append(result.stats.get("offset_placement"))
-            return result
-        controller.step = recorded
-        return controller
+    mpc, records = recording_mpc_factory(settings, sign_verdicts=0, offset_placement=None)
+    verdicts, placements = records["sign_verdicts"], records["offset_placement"]
 
     res, traces = bench.run_benchmark([scenario], {"baseline": bench.baseline_factory(), "mpc": mpc}, 0,
                                       plant_factory=lambda **kw: make_plant(variant, **kw))

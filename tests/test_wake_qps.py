@@ -16,6 +16,7 @@ from hvac_mpc.benchmarks.simulate import DETERMINISTIC_DEADLINE_S
 from hvac_mpc.mpc import codegen
 from hvac_mpc.mpc.mpc_controller import InvalidSettings, MpcController, MpcSettings
 from hvac_mpc.mpc.rti_osqp import RtiOsqpSolver
+from recording_helpers import StartingRho
 
 #: The loop's change to 20 C at 60 s and the slow single QP two samples after it (the flow weights' return).
 CHANGE, WAKE = 60, 62
@@ -35,32 +36,11 @@ def cache():
     mp.undo()
 
 
-class _Rho:
-    """Stands in for the OSQP core and keeps, per QP, the step size in force when its solve starts."""
-
-    def __init__(self, core):
-        self.core, self.step, self.starts = core, 0, []
-
-    def _at_start(self):
-        self.starts.append((self.step, self.core.rho))
-
-    def solve(self):
-        self._at_start()
-        return self.core.solve()
-
-    def solve_capped(self, max_iter):
-        self._at_start()
-        return self.core.solve_capped(max_iter)
-
-    def __getattr__(self, name):
-        return getattr(self.core, name)
-
-
 def _loop(steps: int, **fields):
     # the deadline lifted: a missed wall-clock deadline on a loaded machine is the load's, not the solver's
     ctrl = MpcController(settings=MpcSettings(deadline_s=DETERMINISTIC_DEADLINE_S, **fields))
     loop = solve_time.Loop(ctrl, seed=1)
-    ctrl.solver._core = rec = _Rho(ctrl.solver._core)
+    ctrl.solver._core = rec = StartingRho(ctrl.solver._core)
     rows, thread_s = [], []
     for k in range(steps):
         rec.step = k
