@@ -24,6 +24,7 @@ import numpy as np
 from scipy import stats
 
 from .candidates import Candidate
+from .diagnostics import holdout_nll
 from .fitting import Fit, Fitter
 
 #: Smallest change (root of the summed squared noise-scaled change over the held-out rows) the effect at its
@@ -72,14 +73,6 @@ def score_documented(fitter: Fitter, current: Fit, cand: Candidate, effects,
 def is_documented(fit: Fit | None) -> bool:
     """Whether ``fit`` is a candidate scored as a documented hypothesis."""
     return fit is not None and bool(fit.extra.get("documented"))
-
-
-def holdout_nll(fitter: Fitter, fit: Fit) -> float:
-    """EKF negative log-likelihood (x2, constants dropped) of the held-out rows."""
-    sim = fitter.simulator(fit.effects, fit.terms)
-    nu, s = sim.innovations(fit.p, fitter.y_meas, fitter.sigma ** 2, fit.post)
-    ok = np.isfinite(nu) & fitter.log.holdout[:, None]
-    return float(np.sum(np.where(ok, nu ** 2 / s + np.log(s), 0.0)))
 
 
 def holdout_lr(fitter: Fitter, current: Fit, fit: Fit, dof: int) -> tuple[float, float]:
