@@ -148,7 +148,7 @@ def test_a_step_makes_one_qp_and_three_calls_into_generated_code_with_one_qp_per
     for k in range(1, 34):
         extra = ["qp_data"] if k in moved else []
         assert per_step[k] == sorted(["ekf_update", "predict_qp_data", "qp_gradient"] + extra), k
-    assert np.median(times[1:]) < 0.05  # interpreted, on a loaded two-core machine: about 2-5 ms
+    assert np.median(times[1:]) < 0.25  # interpreted, about 2-5 ms quiet, 60 ms seen at load 14; a rebuild per step takes seconds
     _, apart, _, _, commands_apart, factors_apart = run(fused=False)
     assert factors_apart == factors
     for k in range(1, 34):
