@@ -144,7 +144,8 @@ class MpcSettings:
         rti_trust_radii: a trust region for ``rti``/``sqp`` (:mod:`hvac_mpc.mpc.trust_region`): where the QP's plan
             raises the nonlinear cost above the linearisation point's, the QP is solved again with each stage's
             inputs within radius x their range of the linearisation point's plan, for these radii in turn
-            (each in (0, 1), decreasing, at most four), and the first plan no worse is taken. Empty: off.
+            (each in (0, 1), decreasing, at most four), and the first plan no worse is taken; not on a cold start
+            (the plain SQP from the held starting command). Empty: off.
         ipopt_tol, ipopt_max_iter: IPOPT tolerance and iteration cap.
         deadline_s: longest feedback time (measurement to command); beyond it the solution is
             discarded and the fallback chain used.

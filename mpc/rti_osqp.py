@@ -182,7 +182,10 @@ class RtiOsqpSolver:
             again with each stage's inputs within radius x their range of the linearisation point's plan, for
             these radii in turn, and the first plan no worse is taken (else the cheapest of those solved;
             ``trust_taken`` says which radius the last one came from, 1 the QP's own). Before the damped step
-            where both are set. Empty (the default): off.
+            where both are set. Not on a cold start: its linearisation point is the starting command held over
+            the horizon, a guess and not a plan, and its QPs iterate from there (``cold_start_qps``); with the
+            region each iteration stayed within a radius of the last, and the first command came from near the
+            guess (:mod:`.trust_region`). Empty (the default): off.
         codegen: evaluate the QP data as generated C (:func:`.codegen.compiled`, cached on disk);
             otherwise (or without a compiler) CasADi's interpreter runs the same functions.
             ``self.codegen`` reports what happened.
@@ -1000,7 +1003,7 @@ class RtiOsqpSolver:
         saved = self._save_step() if split and self.split_replays_change else None
         z, status, iterations, solves, qp_prep, inexact, fraction = self._solve_qps(
             x0, u_prev, d, ref, w_y, u_lo, u_hi, max_qps, restart=changed and self.restart_duals_on_change,
-            t0=t0, time_limit_s=time_limit_s, cap=self._qp_cap(split, changed, cold))
+            t0=t0, time_limit_s=time_limit_s, cap=self._qp_cap(split, changed, cold), trust=not cold)
         prep += qp_prep
         feedback = time.perf_counter() - t0 - prep
         result = self._result(z, status, iterations, solves, prep, feedback, cold, inexact, fraction)
@@ -1014,10 +1017,11 @@ class RtiOsqpSolver:
         return result
 
     def _solve_qps(self, x0, u_prev, d, ref, w_y, u_lo, u_hi, max_qps: int, *, restart: bool = False, t0: float = 0.0,
-                   time_limit_s: float = 0.0, cap: int = 0, start: np.ndarray | None = None):
+                   time_limit_s: float = 0.0, cap: int = 0, start: np.ndarray | None = None, trust: bool = True):
         """Up to ``max_qps`` QPs (Gauss-Newton SQP to ``sqp_tol``) with the prepared data: the first warm-started from
         ``start`` (default: the linearisation point; the multipliers OSQP's, zero with ``restart``); with ``cap`` > 0,
-        each QP at most ``cap`` OSQP iterations, its iterate at the cap taken. Returns the answer (None: failed), status,
+        each QP at most ``cap`` OSQP iterations, its iterate at the cap taken; ``trust``: the trust region applies (where
+        radii are set; not on a cold start). Returns the answer (None: failed), status,
         iterations, QP solves, the relinearisations' time (s), whether the answer is an iterate at a cap, and the
         smallest globalised step fraction."""
         iterations = 0
@@ -1061,7 +1065,7 @@ class RtiOsqpSolver:
                 status = "non-finite solution"
                 z = None
                 break
-            if self._trust_merit is not None:
+            if self._trust_merit is not None and trust:
                 z, again = self._trusted(z, x0, d, ref, w_y, u_prev, u_lo, u_hi)
                 solves += again
             if self._merit is not None:

@@ -16,6 +16,13 @@ cost (:class:`.plan_merit.PlanMerit`); where it is worse than the linearisation 
 QP again within each radius in turn and takes the first plan no worse than the linearisation point (else the
 least cost among those solved). Unlike the damped step (``step_fractions``), the inputs the region leaves
 free move to their best within it, so the blower is re-planned for the valve a the region allows.
+
+Not on a cold start (the first step after a reset): its linearisation point is the starting command held over the
+horizon, a guess and not a plan, so a QP plan costing more than it says nothing of a linearisation error, and the
+start's SQP iterations (``cold_start_qps``) move on from it anyway. With the region there, each iteration stayed
+within a radius of the last and the first command came from near the guess: on the independent box whose heater
+body loses heat to its walls the heater held at 3 W instead of 10 W through the warm-up, the body leaner at the
+step up (docs/identification.md, "The trust region at the cold start").
 """
 
 from __future__ import annotations
