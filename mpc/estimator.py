@@ -808,6 +808,12 @@ class DisturbanceEkf:
         or the parameter's value where it is not estimated."""
         return self.own_offset_c("supply_heat_w")
 
+    @property
+    def supply_heat_effect_c(self) -> float:
+        """The heat flow's effect on the model's air at the last time update's flow (degC; 0 where the heat is not
+        estimated): with :attr:`mix_offset_c` the level the filter explains the supply air's error by."""
+        return self.supply_heat_w * self._heat_gain
+
     def use_functions(self, predict_fn, update_fn) -> None:
         """Evaluate the time and measurement updates with these functions (the same signatures as
         ``predict_fn`` / ``update_fn``, e.g. generated C of them, :mod:`hvac_mpc.mpc.codegen`).

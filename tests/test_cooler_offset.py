@@ -18,9 +18,11 @@ from hvac_mpc.mpc.estimator import DisturbanceEkf, EkfSettings
 from hvac_mpc.mpc.mpc_controller import MpcSettings
 from hvac_mpc.mpc.ocp import InvalidSettings
 
-#: Without the offsets of the model's air (the mixed-air offset and the heater outlet reading's offset alone), and with
-#: each: the air leaving the cooler core, the air leaving the heater.
-PLAIN = EkfSettings(q_cooler_offset_c=0.0, q_heater_air_offset_c=0.0, q_heater_outlet_offset_c=0.01)
+#: Without the offsets of the model's air (the mixed-air offset and the heater outlet reading's offset alone; the heat
+#: flow into the mixed air off too, whatever its default), and with each: the air leaving the cooler core, the air
+#: leaving the heater.
+PLAIN = EkfSettings(q_cooler_offset_c=0.0, q_heater_air_offset_c=0.0, q_heater_outlet_offset_c=0.01,
+                    q_supply_heat_w=0.0)
 OWN = {"cooler_outlet_offset_c": dict(q_cooler_offset_c=0.01, q_heater_outlet_offset_c=0.0),
        "heater_air_offset_c": dict(q_heater_air_offset_c=0.01, q_heater_outlet_offset_c=0.0)}
 #: Valve a (%) held 60 s each, heater 150 W, blower 150 W, winter inlet air 0 C, chiller at 5 C.
