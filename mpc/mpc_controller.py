@@ -68,7 +68,7 @@ from .reserve import HeaterReserve
 from .reversal_damping import damped_move
 from .background import BackgroundCall, BackgroundWorker
 from .ring_gate import RingGate
-from .start_caution import SCOPES as START_CAUTION_SCOPES, VALVE_A_AND_HEATER, StartCaution, opening_bound
+from .start_caution import SCOPES as START_CAUTION_SCOPES, VALVE_A_AND_HEATER, StartCaution, known_delay_s, opening_bound
 from .rti_osqp import RHO_RESET_ON, RtiOsqpSolver, SolveResult
 from .steady_target import check_steady_start_on
 from .trust_region import check_radii
@@ -206,7 +206,9 @@ class MpcSettings:
             this share of their rates until the filter in use has seen a response of the supply air (its dead-time
             estimate informed, :attr:`~.estimator.DisturbanceEkf.response_seen`) or ``start_caution_s`` (s) has
             passed: a stroke made before anything has shown a dead time becomes a ramp the filter and the dead-time
-            estimate can follow. 1.0 (the default): off; 0.4 the candidate of sec. 2.27, kept off there. Measured with 0.4 and the scope
+            estimate can follow. 1.0 (the default): off; 0.4 the candidate of sec. 2.27, kept off there. Not started
+            where the controller knows a dead time from its start (a transport delay in its prediction, or a model file's delay as the estimator's
+            starting dead time, :func:`~.start_caution.known_delay_s`). Measured with 0.4 and the scope
             ``valve_a_opening`` (sec. 2.25, 2.27): the quick box sweep's worst cells (flow out of reach, 2.88 / 2.56 /
             1.67) 0.55-0.62, the full built-in bench the same to the fourth decimal. Where its bound does not bind it
             still moves the first QPs' answers slightly, and a run whose later QP sits at the solver's iteration limit
@@ -694,7 +696,8 @@ class MpcController:
         self.temp_reach = SaturatedTemperature(pb.i_heater_cmd, pb.i_valve_a, s.dt_s)
         self.ring = RingGate(s.ring_amplitude_c, s.ring_window_s, s.ring_crossings, s.ring_detune, s.ring_floor,
                              s.ring_relax_s, s.dt_s) if s.ring_detune < 1.0 else None
-        self.start_caution = StartCaution(s.start_rate_share, s.start_caution_s, s.dt_s, s.start_caution_scope)
+        self.start_caution = StartCaution(s.start_rate_share, s.start_caution_s, s.dt_s, s.start_caution_scope,
+                                          known_delay_s(self.params.transport_delay_s, s.ekf.dead_time_initial_s))
         self.codegen = getattr(self.solver, "codegen", None) or CodegenReport()
         if s.codegen:
             self._compile_small_functions()

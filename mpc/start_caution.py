@@ -26,16 +26,23 @@ starts close valve a. Slowing valve a's opening only (sec. 2.25) leaves a start 
 bypass, the inlet's air) as it was: the winter heating steps' (60 -> 10 %) and S0-10 heating's; the full built-in
 bench's ratios are the same to the fourth decimal with it, and the flow-jump cells keep their gain.
 
-Off by default (``MpcSettings.start_rate_share`` 1.0); 0.4 measured as a default in docs/robustness.md sec. 2.27. Where its bound does not
-bind (a start that closes valve a, or opens it by less than the share) the commands are the same to the solver's
-tolerance, not to the bit: the bound is in the first QPs all the same, and a run whose later QP ends at the solver's
-iteration limit, or whose loop rings, can take another way from there (traced in sec. 2.27).
+Off by default (``MpcSettings.start_rate_share`` 1.0; 0.4 measured as a default in docs/robustness.md sec. 2.27), and
+not at all where the controller knows a dead time from its start (:func:`known_delay_s`: the transport delay its
+prediction carries, or a model file's delay as the estimator's starting dead time): the caution buys time for a dead
+time nothing has shown, and a controller told of one only loses time by it (the MPC told of the ``delay_3s`` box's 3
+s: 30.1 -> 35.6 C s on a cooling step, sec. 2.27). Where its bound does not bind (a start that closes valve a, or
+opens it by less than the share) the commands are the same to the solver's tolerance, not to the bit: the bound is in
+the first QPs all the same, and a run whose later QP ends at the solver's iteration limit, or whose loop rings, can
+take another way from there (traced in sec. 2.27).
 
 ASSUMPTION: the start is the one moment a dead time is certainly unknown; the stroke worth slowing is an opening one
 (toward the core path); a closing one goes toward the bypass, whose air is the inlet's, and slowing it only costs
 (measured, sec. 2.25, not derived). After the first response (or ``duration_s``, the longest dead time the filter
 honours and a few samples more) the estimate, the response wait and the re-anchor of sec. 2.9 take over. The share
-and the duration are chosen on the traced boxes (sec. 2.23), not derived. Pure python, no model code: the controller
+and the duration are chosen on the traced boxes (sec. 2.23), not derived. ASSUMPTION: the dead time is one between
+the mixed air and the thermocouple whatever moved the air, so the first response the estimate ranks (of valve a, the
+heater or the flow) ends the caution, not valve a's own; and a delay the controller is told of is the box's (a
+model file's or the prediction's): the caution is not started then, nor for the part of a dead time beyond it. Pure python, no model code: the controller
 feeds it.
 """
 
@@ -51,6 +58,14 @@ VALVE_A_AND_HEATER = "valve_a_and_heater"
 SCOPES = (VALVE_A_OPENING, VALVE_A_AND_HEATER)
 
 
+def known_delay_s(transport_delay_s: float, initial_dead_time_s: float) -> float:
+    """The dead time (s) a controller knows from its start: the transport delay its prediction carries (a lag chain,
+    ``Parameters.transport_delay_s``) plus the dead-time estimate's starting value (``EkfSettings.dead_time_initial_s``,
+    where a model file's delay goes, ``mpc_controller._delay_to_estimator``). ASSUMPTION: the estimate's prior
+    (``EkfSettings.dead_time_prior_s``) is a dead time assumed, not known, and does not count."""
+    return max(0.0, float(transport_delay_s)) + max(0.0, float(initial_dead_time_s))
+
+
 def opening_bound(lo: float, hi: float, previous: float, rise: float) -> float:
     """The upper bound of the next command of a valve whose opening is limited to ``rise`` (the same unit as the
     command, >= 0) above ``previous``: ``hi`` where that is lower, never below ``lo``."""
@@ -63,11 +78,17 @@ class StartCaution:
     opening alone: the controller always passes its setting).
 
     ``share`` in (0, 1] (1: off); ``duration_s`` (s, >= 0) the longest the caution lasts; ``dt_s`` the sample
-    time (s). Per control step :meth:`factor` with whether the filter in use has seen a response; :meth:`reset`
-    at the controller's reset.
+    time (s); ``known_delay_s`` (s, >= 0) the dead time the controller honours from its start (a transport delay its
+    prediction carries, or the estimator's starting dead time from a model file): above 0 no caution at all, the
+    dead time it buys time for being known (:func:`known_delay_s`). Per control step :meth:`factor` with whether the
+    filter in use has seen a response; :meth:`reset` at the controller's reset.
     """
 
-    def __init__(self, share: float, duration_s: float, dt_s: float = 1.0, scope: str = VALVE_A_AND_HEATER):
+    def __init__(self, share: float, duration_s: float, dt_s: float = 1.0, scope: str = VALVE_A_AND_HEATER,
+                 known_delay_s: float = 0.0):
+        if not (math.isfinite(known_delay_s) and known_delay_s >= 0.0):
+            raise ValueError(f"StartCaution: known_delay_s must be finite and >= 0 s, got {known_delay_s}")
+        self.known_delay_s = float(known_delay_s)
         if scope not in SCOPES:
             raise ValueError(f"StartCaution: scope must be one of {list(SCOPES)}, got {scope!r}")
         self.scope = scope
@@ -85,7 +106,7 @@ class StartCaution:
     def reset(self) -> None:
         """A new start: the caution on again."""
         self._elapsed_s = 0.0
-        self.active = self.share < 1.0
+        self.active = self.share < 1.0 and self.known_delay_s <= 0.0
 
     def factor(self, response_seen: bool) -> float:
         """The factor for this step's command (``share`` while the caution lasts, then 1 for good)."""
