@@ -101,8 +101,8 @@ class PlacementChoice:
         """Switch to the other filter whatever the sums say, and forget both (the evidence that decided it is of
         another kind: the sign of valve a's answer, :mod:`~.sign_check`). The switch is a trial: until the sums
         have had :data:`TRIAL_FULL` windows the floor counts from here (:func:`trial_floor`), so the filter left
-        takes the prediction back as soon as its innovations show it the better one, not a window later; a wrong
-        sign that passed (the heater body warming after a step) costs seconds on the wrong filter, not a minute."""
+        takes the prediction back as soon as its innovations show it the better one, not a window later (a wrong
+        sign may pass: the heater body warming after a step, docs/robustness.md sec. 2.28)."""
         self.active = 1 - self.active
         self.restart()
         self.trial_steps = 0
