@@ -263,11 +263,13 @@ class MpcSettings:
             departure of valve a from rest by at least this much is checked against the filter in use's model
             (:mod:`~.sign_check`, docs/robustness.md sec. 2.28): where the reading moves by at least
             ``placement_sign_change_c`` (degC) within ``placement_sign_window_s`` and that model's predicted change
-            has the other sign or less than a quarter of the answer along its sign, while the other filter's
-            prediction has the answer's sign, the prediction moves to the other filter at the next step (both sums
-            forgotten). "At rest": over ``placement_sign_rest_s`` (s) before the move valve a within a quarter of
-            the move and the reading within half the change. inf (the default): off (it costs the built-in winter
-            heating 0.017, sec. 2.28). Needs ``choose_offset_placement`` (no other filter: the check is not run).
+            has the other sign, while the other filter's prediction has the answer's sign and at least the change
+            seen, the prediction moves to the other filter at the next step, on trial (both sums forgotten and the
+            evidence floor counted from there, :meth:`~.placement.PlacementChoice.force`: the sums may take it
+            back within seconds). "At rest": over ``placement_sign_rest_s`` (s) before the move valve a within a
+            quarter of the move and the reading within half the change. inf (the default): off (sec. 2.28: the
+            built-in bench unchanged with it at 20, not yet measured on every mismatch check a default needs).
+            Needs ``choose_offset_placement`` (no other filter: the check is not run).
         placement_sign_change_c: the smallest change of the reading (degC, 0.1-5) the check counts as an answer; 0.5
             (ASSUMPTION: ten times the thermocouple noise's standard deviation of the boxes).
         placement_sign_window_s: how long after the departure began its answer is looked for (s, 2-120); 15
@@ -1066,6 +1068,8 @@ class MpcController:
             return
         if self.placement.decide():
             self._use_active_filter()
+            if self.sign_check is not None:
+                self.sign_check.abandon()
 
     def _use_active_filter(self) -> None:
         """Predict with the filter the choice has just made active; where that fails the filter in use stays."""
@@ -1090,7 +1094,7 @@ class MpcController:
             if other.healthy():
                 theirs = predicted_air_change_c(other, u_in, u_cmd, setpoint, steps)
         verdict = self.sign_check.observe(finite_or(measurement.supply_temp_c, math.nan), a, mine, theirs)
-        if verdict is not None and verdict.other_right:
+        if verdict is not None and verdict.other_explains:
             self._sign_switch = True
 
     def _switch_on_sign(self) -> None:

@@ -30,8 +30,13 @@ from __future__ import annotations
 
 import math
 
+from scipy.stats import chi2
+
 #: The filters, in the order of :attr:`PlacementChoice.active`: the reading's own offset, the heater air's.
 PLACEMENTS = ("heater_outlet", "heater_air")
+#: A trial after :meth:`PlacementChoice.force` ends (the full floor again) after this many windows, where a
+#: consistent filter's forgetting sum is within 1 - exp(-3) = 95 % of its steady value.
+TRIAL_FULL = 3.0
 
 
 class PlacementChoice:
@@ -40,17 +45,20 @@ class PlacementChoice:
     def __init__(self, window_s: float, ratio: float, evidence: float, dt_s: float, cap: float = math.inf,
                  margin: float = math.inf, hold: int = 0):
         self.forget = math.exp(-dt_s / window_s)
+        self.window_steps = window_s / dt_s
         self.cap = float(cap)  # the most one sample adds
         self.ratio = float(ratio)
         self.margin = float(margin)  # a lead of the other's sum that switches whatever the ratio (inf: none)
         self.floor = float(evidence) * window_s / dt_s  # a consistent filter's sum, times evidence
         self.hold = int(hold)  # samples after a change of either filter's honoured dead time that count nothing (0: off)
+        self.trial_steps: int | None = None  # after force(): decisions since (the floor counts from it); None: none
         self.reset()
 
     def reset(self) -> None:
         """Forget both sums, back to the first filter."""
         self.restart()
         self.active = 0
+        self.trial_steps = None
 
     def restart(self) -> None:
         """Forget both sums (a filter started afresh: its first innovations are no evidence), keeping the filter
@@ -91,14 +99,59 @@ class PlacementChoice:
 
     def force(self) -> None:
         """Switch to the other filter whatever the sums say, and forget both (the evidence that decided it is of
-        another kind: the sign of valve a's answer, :mod:`~.sign_check`)."""
+        another kind: the sign of valve a's answer, :mod:`~.sign_check`). The switch is a trial: until the sums
+        have had :data:`TRIAL_FULL` windows the floor counts from here (:func:`trial_floor`), so the filter left
+        takes the prediction back as soon as its innovations show it the better one, not a window later (a wrong
+        sign may pass: the heater body warming after a step, docs/robustness.md sec. 2.28)."""
         self.active = 1 - self.active
         self.restart()
+        self.trial_steps = 0
 
     def decide(self) -> bool:
         """Switch to the other filter where the rule says so; True where it switched."""
         mine, other = self.sums[self.active], self.sums[1 - self.active]
-        if mine > self.floor and (other < self.ratio * mine or mine - other > self.margin):
+        if mine > self._floor() and (other < self.ratio * mine or mine - other > self.margin):
             self.active = 1 - self.active
+            self.trial_steps = None
             return True
         return False
+
+    def _floor(self) -> float:
+        """The sum of the filter in use above which a switch is considered: ``evidence`` times a consistent filter's
+        sum over the window; on trial after :meth:`force` (the sums forgotten there) the sum a consistent filter
+        passes over the decisions since as seldom as it passes that floor over the window (:func:`trial_floor`)."""
+        if self.trial_steps is None:
+            return self.floor
+        self.trial_steps += 1
+        if self.trial_steps >= TRIAL_FULL * self.window_steps:
+            self.trial_steps = None
+            return self.floor
+        return trial_floor(self.floor, self.forget, self.trial_steps)
+
+
+def trial_floor(floor: float, forget: float, steps: int) -> float:
+    """The floor of a sum started afresh ``steps`` samples ago: the value a consistent filter's sum (normalised
+    squares of its innovations, chi-square with one degree each, forgotten by ``forget`` per sample) exceeds as
+    seldom as its steady sum exceeds ``floor``. A floor scaled with the samples alone would let one or two samples of
+    a consistent filter decide (one normalised square exceeds 1.5 in 22 % of samples); this one asks of a few
+    samples the confidence the window's floor asks of the window. ASSUMPTION: a forgetting sum of chi-square terms
+    is taken as a scaled chi-square with its first two moments (Satterthwaite)."""
+    rare = chi2.sf(floor / _scale(forget, math.inf), _degrees(forget, math.inf))
+    return float(_scale(forget, steps) * chi2.isf(rare, _degrees(forget, steps)))
+
+
+def _weights(forget: float, steps: float) -> tuple[float, float]:
+    """The sums of the forgetting weights and of their squares over ``steps`` samples (inf: steady)."""
+    return (1.0 - forget ** steps) / (1.0 - forget), (1.0 - forget ** (2.0 * steps)) / (1.0 - forget ** 2)
+
+
+def _degrees(forget: float, steps: float) -> float:
+    """The degrees of freedom of the scaled chi-square with the forgetting sum's moments."""
+    s1, s2 = _weights(forget, steps)
+    return s1 * s1 / s2
+
+
+def _scale(forget: float, steps: float) -> float:
+    """The scale of the scaled chi-square with the forgetting sum's moments."""
+    s1, s2 = _weights(forget, steps)
+    return s2 / s1

@@ -15,15 +15,24 @@ thermocouple lag.
 The check (:class:`ValveSignCheck`): from rest (valve a within a quarter of ``move_pct`` and the reading within
 half of ``change_c`` over ``rest_s``), a departure of valve a by at least ``move_pct``, answered within
 ``window_s`` by a change of the reading of at least ``change_c``, is a verdict where the filter in use's predicted
-change has the other sign or explains less than a quarter of the answer (:data:`EXPLAINED_SHARE`): that model has
-valve a's gain of the wrong sign, or about none where the answer shows a gain. The predicted change is the filter's
-model air with each command of the departure held over a third of the window against the command before it,
-summed (:func:`predicted_air_change_c`): on S2-7 the filter in use predicts -0.03 C for valve a 0 -> 90 %, the
-heater air's filter +3.6 C, the reading rises 2 C. The verdict says whether the other filter predicted the sign the
-reading showed; the controller then switches to it (``MpcSettings.placement_sign_move_pct``). Unlike the sums of
-:mod:`~.placement` the check compares the reading's change over the window, not each sample's innovation: a
-filter that has the right sign but no dead time yet predicts the answer a few samples early and loses the sums on
-those samples (S2-7, sec. 2.28), not the sign.
+change has the other sign: that model has valve a's gain of the wrong sign. A prediction of the right sign but
+smaller than the answer is no verdict: the size of the answer within the window depends on the heater body's and
+the core's lags, on commands held shorter in the prediction than in the window and on a dead time the model may not
+honour yet, and the offsets take a gain that is too small in as the reading comes; only the sign is beyond them
+(an offset shifts the supply air at every valve position alike). The predicted change is the filter's model air with
+each command of the departure held over a third of the window against the command before it, summed
+(:func:`predicted_air_change_c`): on S2-7 the filter in use predicts -0.03 C for valve a 0 -> 90 %, the heater air's
+filter +3.6 C, the reading rises 2 C.
+
+The verdict says whether the other filter explains the answer seen (:attr:`SignVerdict.other_explains`: its
+prediction of the answer's sign and at least the change the reading has made by then); only then does the
+controller switch to it (``MpcSettings.placement_sign_move_pct``), and the switch is a trial
+(:meth:`~.placement.PlacementChoice.force`): the sums start afresh and the filter left may take the prediction back
+as soon as they show it. A wrong sign can be a passing error of the filter in use (on the built-in plant the heater
+body warming after a heating step, sec. 2.28) or a lasting one (the literal cooler); the sums that follow the
+switch tell them apart, the verdict alone cannot. Unlike the sums of :mod:`~.placement` the check compares the
+reading's change over the window, not each sample's innovation: a filter that has the right sign but no dead time
+yet predicts the answer a few samples early and loses the sums on those samples (S2-7, sec. 2.28), not the sign.
 
 ASSUMPTION: a reading at rest before the move, and a change of at least ``change_c`` (0.5 C: ten times the
 thermocouple noise's standard deviation of the boxes in ``hvac_mpc.mismatch``) within the window that the filter in
@@ -31,7 +40,9 @@ use's model does not explain in sign, is the move's own answer: the other comman
 blower, the heater, valve m) are in the predicted change, the heater body's and the core's lags with them. Other
 causes (a change of the inlet air, a disturbance) within the window are not; the rest before the move and the size
 of ``change_c`` make them unlikely, not impossible. ASSUMPTION: the model's air answers within a third of the
-window (no transport-delay chain of the model's own longer than that).
+window (no transport-delay chain of the model's own longer than that). ASSUMPTION: the reading's change at the
+verdict (the first sample at least ``change_c`` from the rest, a dead time and part of a lag after the move) is a
+part of the move's whole answer, so a model that predicts less than it has valve a's gain too small as well.
 """
 
 from __future__ import annotations
@@ -42,10 +53,6 @@ from collections import deque
 
 import numpy as np
 
-#: The share of the reading's answer the filter in use must have predicted (along the answer's sign) not to be
-#: judged wrong. ASSUMPTION: a quarter; a model whose valve a gain has the right sign but a quarter of the size
-#: is wrong enough that the other filter, where it predicted the answer's sign, is the better bet.
-EXPLAINED_SHARE = 0.25
 #: Valve a "at rest": within this share of ``move_pct`` over the rest window.
 REST_SHARE_OF_MOVE = 0.25
 #: The reading "at rest": its range over the rest window below this share of ``change_c``.
@@ -85,6 +92,13 @@ class SignVerdict:
         """Whether the other filter predicted the sign the reading showed."""
         return self.other_predicted_c * self.measured_c > 0.0
 
+    @property
+    def other_explains(self) -> bool:
+        """Whether the other filter predicted the sign the reading showed and at least the change seen so far: the
+        answer at the verdict is its first part (a dead time and a lag into it), so a model that predicts less than
+        that has valve a's gain too small as well, and the answer is one neither model explains."""
+        return self.other_predicted_c * math.copysign(1.0, self.measured_c) >= abs(self.measured_c)
+
 
 @dataclasses.dataclass
 class _Departure:
@@ -114,6 +128,11 @@ class ValveSignCheck:
         """Forget the rest and any departure."""
         self._history: deque = deque(maxlen=self.rest)  # (valve a %, reading degC) before this sample
         self._departure: _Departure | None = None
+
+    def abandon(self) -> None:
+        """Forget the departure under way, keeping the rest: the prediction has moved to the other filter, so the
+        predicted changes summed so far are the filter's no longer in use (a verdict on them would judge it)."""
+        self._departure = None
 
     def _rest(self) -> tuple[float, float] | None:
         """(valve a %, reading degC) at rest over the last ``rest`` samples (their means), or None."""
@@ -167,11 +186,10 @@ class ValveSignCheck:
 
     def _judge(self, measured_c: float, predicted_c: float, other_predicted_c: float) -> SignVerdict | None:
         """A verdict where the reading moved by at least ``change_c`` and the filter in use's predicted change
-        has the other sign or explains less than :data:`EXPLAINED_SHARE` of it."""
+        has the other sign (none predicted: no sign, no verdict)."""
         if abs(measured_c) < self.change_c:
             return None
-        along = predicted_c * math.copysign(1.0, measured_c)  # the prediction's part along the answer
-        if along >= EXPLAINED_SHARE * abs(measured_c):
+        if predicted_c * measured_c >= 0.0:
             return None
         return SignVerdict(measured_c, predicted_c, other_predicted_c)
 

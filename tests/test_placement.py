@@ -28,6 +28,7 @@ from hvac_mpc.mpc.estimator import MEASURED, DisturbanceEkf, EkfSettings
 from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
 from hvac_mpc.mpc.ocp import InvalidSettings
 from hvac_mpc.mpc.ocp import InvalidSettings
+from hvac_mpc.mpc import placement
 from hvac_mpc.mpc.placement import PLACEMENTS, PlacementChoice
 
 LITERAL_COOLER_BOX = "B:transport_delay_s=4.5,cooler_literal_fit=true"
@@ -403,3 +404,45 @@ def test_the_sums_are_forgotten_once_when_the_first_response_is_seen():
 def test_a_setting_with_an_off_value_names_it_in_its_error(field, bad, off):
     with pytest.raises(InvalidSettings, match=rf"{field}.*allowed range.*or {off} \(off\)"):
         MpcSettings(**{field: bad})
+
+
+def test_a_forced_switch_is_a_trial_that_the_sums_take_back_soon_where_the_filter_left_is_better():
+    """After :meth:`PlacementChoice.force` (the sign check's switch) the sums start afresh and the floor counts from
+    there: a filter in use surprised 4 times as much as the one left gives way within a fifth of the window, where
+    after a plain restart (the full floor) it takes most of a window."""
+    def steps_to_switch_back(start) -> int:
+        c = choice(window_s=60.0)
+        start(c)
+        for k in range(1, 200):
+            c.observe(c.active, 4.0)
+            c.observe(1 - c.active, 1.0)
+            if c.decide():
+                return k
+        return 200
+    on_trial = steps_to_switch_back(lambda c: c.force())
+    after_restart = steps_to_switch_back(lambda c: (c.observe(0, 1.0), c.restart()))
+    assert on_trial <= 12 and after_restart >= 25
+    c = choice(window_s=60.0)
+    c.force()
+    assert c.active == 1 and c.sums == [0.0, 0.0] and c.trial_steps == 0
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_on_trial_two_consistent_filters_do_not_switch_back_on_noise(seed):
+    """Both filters' normalised squares chi-square with one degree (consistent): the trial's floor asks a few
+    samples for the confidence the window's floor asks of the window, so noise alone does not undo the switch."""
+    rng = np.random.default_rng(seed)
+    c = choice(window_s=60.0)
+    c.force()
+    for _ in range(3 * 60):
+        c.observe(c.active, rng.chisquare(1))
+        c.observe(1 - c.active, rng.chisquare(1))
+        c.decide()
+    assert c.active == 1 and c.trial_steps is None  # the trial ended (three windows) with the forced filter in use
+
+
+def test_the_trial_floor_grows_to_the_window_floor():
+    forget = math.exp(-1.0 / 60.0)
+    floors = [placement.trial_floor(90.0, forget, n) for n in (1, 5, 20, 60, 600)]
+    assert floors == sorted(floors) and floors[0] > 5.0  # one sample must be far beyond a consistent one
+    assert floors[-1] == pytest.approx(90.0, rel=1e-3)

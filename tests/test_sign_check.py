@@ -67,13 +67,13 @@ def test_an_answer_of_the_other_sign_gives_a_verdict_within_a_dead_time_and_a_la
     assert len(verdicts) == 1
     k, v = verdicts[0]
     assert 20 < k <= 30  # the answer's first 0.5 C: dead time 3 s and about a lag
-    assert v.measured_c >= 0.5 and v.predicted_c == pytest.approx(-0.1) and v.other_right
+    assert v.measured_c >= 0.5 and v.predicted_c == pytest.approx(-0.1) and v.other_right and v.other_explains
 
 
 def test_the_other_filter_predicting_the_same_wrong_sign_is_named():
     valve = opening()
     (_, v), = feed(check(), answer(+2.0), valve, per_move(-1.0, valve), per_move(-0.5, valve))
-    assert not v.other_right  # the controller has nowhere better to go: it keeps its filter
+    assert not v.other_right and not v.other_explains  # nowhere better to go: the controller keeps its filter
 
 
 @pytest.mark.parametrize("seed", range(20))
@@ -81,6 +81,40 @@ def test_no_verdict_where_the_answer_has_the_predicted_sign_whatever_the_noise(s
     valve = opening()
     assert feed(check(), answer(+2.0, seed=seed), valve, per_move(+1.5, valve), per_move(+3.0, valve)) == []
     assert feed(check(), answer(-2.0, seed=seed), valve, per_move(-0.8, valve), per_move(+3.0, valve)) == []
+
+
+def test_a_smaller_answer_of_the_predicted_sign_is_no_verdict():
+    """Only the sign counts: a model that predicts a tenth of the answer with its sign (a gain too small, which its
+    offsets take in as the reading comes) is not judged, however small its prediction."""
+    valve = opening()
+    assert feed(check(), answer(+2.0), valve, per_move(+0.1, valve), per_move(+3.0, valve)) == []
+    (_, v), = feed(check(), answer(+2.0), valve, per_move(-0.1, valve), per_move(+3.0, valve))
+    assert v.predicted_c == pytest.approx(-0.1)
+
+
+def test_the_other_filter_explains_the_answer_only_with_at_least_the_change_seen():
+    """The built-in winter's 134 s (docs/robustness.md sec. 2.28): the reading +0.63 C, the filter in use -0.25 C,
+    the other +0.41 C: the other has the sign but less than the reading has already made, so both models miss the
+    answer and the controller keeps its filter."""
+    valve = opening()
+    (_, small), = feed(check(), answer(+2.0), valve, per_move(-0.25, valve), per_move(+0.41, valve))
+    assert small.other_right and not small.other_explains
+    (_, large), = feed(check(), answer(+2.0), valve, per_move(-0.25, valve), per_move(+3.0, valve))
+    assert large.other_right and large.other_explains
+    (_, falling), = feed(check(), answer(-2.0), valve, per_move(+0.2, valve), per_move(-3.0, valve))
+    assert falling.measured_c < 0.0 and falling.other_explains
+
+
+def test_a_departure_abandoned_when_the_filter_changes_gives_no_verdict():
+    """The controller abandons the departure where the sums switch the filter during it: the predictions summed are
+    the filter's no longer in use, and a verdict on them would switch away from the one just chosen."""
+    valve, readings = opening(), answer(+2.0)
+    predicted, other = per_move(-0.1, valve), per_move(+3.0, valve)
+    c = check()
+    verdicts = feed(c, readings[:22], valve[:22], predicted[:22], other[:22])
+    c.abandon()
+    verdicts += feed(c, readings[22:], valve[22:], predicted[22:], other[22:])
+    assert verdicts == [] and c.verdicts == 0
 
 
 def test_no_verdict_for_a_move_below_the_threshold_nor_without_rest():
@@ -138,13 +172,27 @@ def test_s2_7_valve_a_answered_the_other_way_round_switches_the_filter_and_close
     assert verdicts[-1] == 1
     first = verdicts.index(1)
     assert 155 <= first <= 175  # valve a opens at 156-160 s; the reading rises from about 162 s
-    assert placements[first + 1] == "heater_air"
+    assert set(placements[first + 1:]) == {"heater_air"}  # the trial's sums do not take the switch back
     assert valve_a[-60:].max() < 30.0  # back towards the bypass, the box's coldest path
     assert iae < base
     off_iae, off_base, _, off_placements, off_valve_a = _run(S2_7, cut, None)
     assert off_base == pytest.approx(base)  # the same baseline run
     assert "heater_air" not in off_placements[:first + 10] and off_valve_a[-60:].min() > 80.0
     assert off_iae > 1.5 * base > 1.5 * iae
+
+
+@pytest.mark.slow
+def test_on_the_literal_cooler_box_a_switch_by_the_sums_is_not_undone_by_a_verdict_on_the_filter_left():
+    """``cooler_literal`` (the core's air about 10 C whatever the inlet, no dead time), quick heating: the sums
+    choose the heater air's filter while valve a is opening; the departure under way is then abandoned, so the
+    verdict it would have given against the filter left (the reading +3 C, that filter -0.2 C) does not switch the
+    prediction back. With the check the run is the run without it (before the departure was abandoned: 0.404
+    against 0.342, docs/robustness.md sec. 2.28)."""
+    quick = scenarios.mismatch_scenarios()["winter_heating_steps"].quick()
+    iae, base, verdicts, placements, _ = _run("cooler_literal", quick, ON)
+    off_iae, off_base, _, off_placements, _ = _run("cooler_literal", quick, None)
+    assert "heater_air" in placements and max(verdicts) == 0
+    assert placements == off_placements and iae == pytest.approx(off_iae) and iae < base
 
 
 @pytest.mark.slow
