@@ -19,7 +19,9 @@ nor the :data:`WAKE` steps after one. Each function's own time (``tottime``) goe
 The profiler costs about a microsecond per call, counted in the own times, so the shares are the profiled run's: the
 unprofiled median and mean of the same steps (a second loop stepped alongside, the same commands) are printed beside
 them, and each kind's own time less its calls times the profiler's cost per call (the profiled mean's excess over the
-unprofiled one, per call: ASSUMPTION: the same for every call). Also printed: the ``--top`` functions by own time, with their calls per step.
+unprofiled one, per call: ASSUMPTION: the same for every call). Also printed: the ``--top`` functions by own time,
+with their calls per step, and the time of one data address handed to the generated solver both ways
+(:func:`address_times`, side by side in one run).
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ from collections import defaultdict
 import numpy as np
 
 from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
+from hvac_mpc.mpc.osqp_embedded import data_address
 
 from . import change_start, solve_time
 
@@ -120,6 +123,25 @@ def measure(steps: int, seed: int, settings: dict | None = None) -> dict:
             "top": [{"ms": 1e3 * t, "calls": c, "kind": kind, "function": f} for t, c, kind, f in rows]}
 
 
+def address_times(size: int = 279, rounds: int = 20, calls: int = 2000) -> dict[str, float]:
+    """Thread CPU time (us) of one data address of a float64 array of ``size`` values (the QP's variables), the
+    generated solver's way (:func:`~hvac_mpc.mpc.osqp_embedded.data_address`) and numpy's (``ndarray.ctypes.data``),
+    ``rounds`` rounds of ``calls`` calls each, the two alternating; the medians over the rounds and their ratio."""
+    a = np.zeros(size)
+    ways = {"data_address": lambda: data_address(a), "ndarray.ctypes.data": lambda: a.ctypes.data}
+    times: dict[str, list[float]] = {k: [] for k in ways}
+    for r in range(rounds):
+        for name in (list(ways) if r % 2 == 0 else list(ways)[::-1]):
+            f = ways[name]
+            t0 = time.thread_time()
+            for _ in range(calls):
+                f()
+            times[name].append((time.thread_time() - t0) / calls * 1e6)
+    out = {k: float(np.median(v)) for k, v in times.items()}
+    out["ratio"] = out["data_address"] / out["ndarray.ctypes.data"]
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m hvac_mpc.benchmarks.quiet_profile",
                                      description=__doc__.splitlines()[0])
@@ -147,6 +169,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"the {args.top} largest own times per step:")
     for row in out["top"][:args.top]:
         print(f"  {row['ms']:7.3f} ms  {row['calls']:6.1f} calls  {row['kind']:<7} {row['function']}")
+    addr = address_times()
+    print(f"a data address handed to the generated solver: data_address {addr['data_address']:.2f} us, "
+          f"ndarray.ctypes.data {addr['ndarray.ctypes.data']:.2f} us ({addr['ratio']:.2f}x)")
     return 0
 
 

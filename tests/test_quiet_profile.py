@@ -58,3 +58,9 @@ def test_the_data_address_is_numpys_for_writable_and_read_only_arrays():
     b.flags.writeable = False
     assert data_address(b) == b.ctypes.data
     assert data_address(a[2:]) == a.ctypes.data + 2 * a.itemsize
+
+
+def test_the_address_timing_runs_both_ways_and_gives_their_ratio():
+    out = quiet_profile.address_times(size=10, rounds=2, calls=50)
+    assert out["data_address"] > 0 and out["ndarray.ctypes.data"] > 0
+    assert out["ratio"] == pytest.approx(out["data_address"] / out["ndarray.ctypes.data"])
