@@ -265,7 +265,7 @@ class RtiOsqpSolver:
         self.pb = pb = problem
         self.rho_max = _checked_step_size("rho_max", rho_max)
         self.plain_qp_cap = _checked_cap("plain_qp_cap", plain_qp_cap, max_iter)
-        if isinstance(plain_cap_run, bool) or int(plain_cap_run) != plain_cap_run or plain_cap_run < 0:
+        if isinstance(plain_cap_run, bool) or not isinstance(plain_cap_run, (int, np.integer)) or plain_cap_run < 0:
             raise ValueError(f"RtiOsqpSolver: plain_cap_run = {plain_cap_run!r}, allowed: 0 (no limit) or an integer >= 1")
         self.plain_cap_run = int(plain_cap_run)
         self._capped_run = 0  # plain steps in a row whose QP reached plain_qp_cap

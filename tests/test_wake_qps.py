@@ -157,6 +157,7 @@ def test_bad_values_are_refused_naming_the_field(fields, name):
                                           ({"change_split_iter": 2.5}, "change_split_iter"),
                                           ({"plain_cap_run": -1}, "plain_cap_run"),
                                           ({"plain_cap_run": True}, "plain_cap_run"),
+                                          ({"plain_cap_run": "many"}, "plain_cap_run"),
                                           ({"rho_max": 1e7}, "rho_max"), ({"rho_max": True}, "rho_max")])
 def test_the_solver_refuses_bad_values_naming_them(problem, kwargs, name):
     with pytest.raises(ValueError, match=name):
