@@ -19,7 +19,8 @@ change again from OSQP's workspace as the change step found it, ``split_replays_
 (every step's QPs capped so, each capped step's QPs solved again on the second thread from the saved workspace);
 "rho_max_R" (``MpcSettings.osqp_rho_max``: OSQP's step size at most R at each preparation) and "plain_cap_N"
 (``osqp_plain_qp_cap``: each QP of a step that is not a change at most N OSQP iterations, the iterate taken), and
-"split_replay_30_rho_max_R" / "split_replay_30_plain_cap_N" (each with the change split at 30 and replayed). Per
+"split_replay_30_rho_max_R" / "split_replay_30_plain_cap_N" (each with the change split at 30 and replayed) and
+"split_replay_30_plain_cap_60_run_R" (and at most R plain steps in a row at the cap, ``osqp_plain_cap_run``). Per
 seed the loops run in
 lockstep in one process, one step of each in turn (the order rotates from step to step), so that the load of other
 processes falls on all alike.
@@ -71,7 +72,10 @@ VARIANTS = {"shifted": {"steady_start": False},
             **{f"split_replay_30_rho_max_{r}": {"change_split_iter": 30, "split_replays_change": True,
                                                 "osqp_rho_max": float(r)} for r in ("2e-3", "5e-3")},
             **{f"split_replay_30_plain_cap_{n}": {"change_split_iter": 30, "split_replays_change": True,
-                                                  "osqp_plain_qp_cap": n} for n in (40, 60, 100)}}
+                                                  "osqp_plain_qp_cap": n} for n in (40, 60, 100)},
+            **{f"split_replay_30_plain_cap_60_run_{r}": {"change_split_iter": 30, "split_replays_change": True,
+                                                         "osqp_plain_qp_cap": 60, "osqp_plain_cap_run": r}
+               for r in (1, 2)}}
 #: The variants run unless ``--variant`` names others.
 DEFAULT_VARIANTS = ("shifted", "steady", "temperature")
 #: Steps after a change counted as its wake (the single QPs that follow it).

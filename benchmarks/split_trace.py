@@ -8,10 +8,10 @@ runs the full scenario on the bench's plant (:func:`.bench.mpc_factory`, seed an
 and records per step: OSQP's iterations and QPs, the split rest's iterations (collected by the step after it),
 OSQP's step size ``rho`` after the step (and its rest) and the command. Printed: the supply-temperature IAE (the
 bench's: noise-free thermocouple against the reference from the scored start) of each variant and its difference
-to the first variant per segment of the supply-temperature reference and per window of ``--window`` steps, with the
-largest command differences in the window; OSQP's iterations of the twelve steps from each change of that
-reference; the steps on which OSQP's step size changed. The MPC alone runs: ratios to the baseline come from
-``hvac-mpc bench``. Measured in docs/architecture.md, 'The rest of a split change, traced'.
+to the first variant per segment of the reference and per window of ``--window`` steps, with the
+largest command differences in the window; OSQP's iterations of the twelve steps from each change of the
+reference (any of its fields: temperature, flow, outlet flows); the steps on which OSQP's step size changed. The MPC
+alone runs: ratios to the baseline come from ``hvac-mpc bench``. Measured in docs/architecture.md, 'The rest of a split change, traced'.
 """
 
 from __future__ import annotations
@@ -69,7 +69,16 @@ def run_variant(scenario: scenario_defs.Scenario, seed: int, settings: Mapping[s
     err = box_trace.abs_error(tr, scenario.metrics_start_s) * tr.dt_s
     ref = tr.reference["supply_temp_c"]
     return {"error": err, "reference": ref, "commands": tr.requested, "steps": ctrl.steps, "k0": k0,
-            "changes": [k for k in range(1, ref.size) if ref[k] != ref[k - 1]], "iae": float(err.sum())}
+            "changes": reference_changes(tr.reference), "iae": float(err.sum())}
+
+
+def reference_changes(reference: Mapping[str, np.ndarray]) -> list[int]:
+    """The steps whose reference (any of its fields: temperature, flow, outlet flows) differs from the step before's
+    (a field without a value, NaN, in both is unchanged)."""
+    fields = [np.asarray(v, float) for v in reference.values()]
+    n = fields[0].size
+    return [k for k in range(1, n)
+            if any(v[k] != v[k - 1] and not (np.isnan(v[k]) and np.isnan(v[k - 1])) for v in fields)]
 
 
 def report(runs: dict[str, dict[str, Any]], window: int) -> list[str]:

@@ -327,6 +327,9 @@ class MpcSettings:
         osqp_plain_qp_cap: OSQP iterations at most in each QP of a step that is neither a reference change nor a
             cold start, the iterate at the cap taken and carried into the next step (``rti``/``sqp``; 0, the default:
             off, ``osqp_max_iter`` only). Measured in docs/architecture.md, 'The wake of a reference change'.
+        osqp_plain_cap_run: with ``osqp_plain_qp_cap``, at most this many plain steps in a row with a QP at the cap,
+            the next plain step uncapped (0, the default: no limit). Measured in docs/architecture.md, 'The wake of
+            a reference change'.
         valve_a_reversal_share: the share of a move of valve a that reverses its last applied move (both at least
             ``valve_a_reversal_min_pct`` (% of travel)) applied, in (0, 1], 1 off (:mod:`~.reversal_damping`: the
             Gauss-Newton iteration's two-cycle where valve a's pull depends on valve a, the plan alternating between
@@ -409,6 +412,7 @@ class MpcSettings:
     split_replays_change: bool = False
     osqp_rho_max: float | None = None
     osqp_plain_qp_cap: int = 0
+    osqp_plain_cap_run: int = 0
     valve_a_reversal_share: float = 0.3
     valve_a_reversal_min_pct: float = 5.0
 
@@ -454,6 +458,10 @@ class MpcSettings:
         if self.osqp_rho_max is not None:
             _check_or_off(f"{p}.osqp_rho_max", self.osqp_rho_max, 1e-6, 1e6, "None")
         check_number(f"{p}.osqp_plain_qp_cap", self.osqp_plain_qp_cap, 0, self.osqp_max_iter, integer=True)
+        check_number(f"{p}.osqp_plain_cap_run", self.osqp_plain_cap_run, 0, 1000, integer=True)
+        if self.osqp_plain_cap_run and not self.osqp_plain_qp_cap:
+            raise InvalidSettings(f"{p}.osqp_plain_cap_run needs osqp_plain_qp_cap in [1, {self.osqp_max_iter}] "
+                                  "(the cap whose run it limits)")
         if self.osqp_rho_reset_on not in RHO_RESET_ON:
             raise InvalidSettings(f"{p}.osqp_rho_reset_on = {self.osqp_rho_reset_on!r} must be one of {list(RHO_RESET_ON)}")
         check_number(f"{p}.sqp_tol", self.sqp_tol, 1e-10, 1.0, lo_open=True)
@@ -754,7 +762,7 @@ class MpcController:
                              change_split_iter=s.change_split_iter, split_every_step=s.split_every_step,
                              split_keeps_rho=s.split_keeps_rho, split_replays_change=s.split_replays_change,
                              rho_max=s.osqp_rho_max, plain_qp_cap=s.osqp_plain_qp_cap,
-                             trust_radii=s.rti_trust_radii)
+                             trust_radii=s.rti_trust_radii, plain_cap_run=s.osqp_plain_cap_run)
 
     # ------------------------------------------------------------------ protocol
     def reset(self, command: Command | None = None) -> None:

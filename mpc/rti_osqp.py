@@ -247,6 +247,10 @@ class RtiOsqpSolver:
             start (0: off, ``max_iter`` only): the iterate at the cap is taken (``SolveResult.extra["inexact"]``) and
             the next step's QP starts from it (the plan shifted, OSQP's multipliers and step size kept), so a QP's
             remaining convergence is carried into the next step as the real-time iteration carries the NLP's.
+        plain_cap_run: with ``plain_qp_cap``, at most this many plain steps in a row with a QP stopped at the cap;
+            the next plain step's QPs are then uncapped (``max_iter`` only); that step, a plain step whose QPs all end
+            below the cap, a reference change and a cold start start the count again (0: no limit, every plain step
+            capped).
     """
 
     def __init__(self, problem: TrackingProblem, *, eps: float = 1e-4, max_iter: int = 400,
@@ -259,10 +263,16 @@ class RtiOsqpSolver:
                  relinearise_move: float = 0.3, rho_reset: float | None = None, rho_reset_on: str = "preparation",
                  reweigh_in_place: bool = False, change_split_iter: int = 0,
                  split_every_step: bool = False, split_keeps_rho: bool = False, split_replays_change: bool = False,
-                 rho_max: float | None = None, plain_qp_cap: int = 0, trust_radii: tuple[float, ...] = ()):
+                 rho_max: float | None = None, plain_qp_cap: int = 0, trust_radii: tuple[float, ...] = (),
+                 plain_cap_run: int = 0):
         self.pb = pb = problem
         self.rho_max = _checked_step_size("rho_max", rho_max)
         self.plain_qp_cap = _checked_cap("plain_qp_cap", plain_qp_cap, max_iter)
+        if isinstance(plain_cap_run, bool) or not isinstance(plain_cap_run, (int, np.integer)) or plain_cap_run < 0:
+            raise ValueError(f"RtiOsqpSolver: plain_cap_run = {plain_cap_run!r}, allowed: 0 (no limit) or an integer >= 1")
+        self.plain_cap_run = int(plain_cap_run)
+        self._capped_run = 0  # plain steps in a row whose QP reached plain_qp_cap
+        self._reached_cap = False  # the last _solve_qps had a QP stop at its cap
         self.change_split_iter = _checked_cap("change_split_iter", change_split_iter, max_iter)
         self.split_every_step = bool(split_every_step)
         self.split_keeps_rho = bool(split_keeps_rho)
@@ -370,7 +380,7 @@ class RtiOsqpSolver:
                 "rho_reset_on": self.rho_reset_on, "reweigh_in_place": self.reweigh_in_place,
                 "change_split_iter": self.change_split_iter, "split_every_step": self.split_every_step,
                 "split_keeps_rho": self.split_keeps_rho, "split_replays_change": self.split_replays_change,
-                "rho_max": self.rho_max, "plain_qp_cap": self.plain_qp_cap,
+                "rho_max": self.rho_max, "plain_qp_cap": self.plain_qp_cap, "plain_cap_run": self.plain_cap_run,
                 "step_fractions": list(self._merit.fractions) if self._merit else [],
                 "trust_radii": list(self.trust_radii)}
 
@@ -819,6 +829,7 @@ class RtiOsqpSolver:
         self.X = self.U = self.S = None
         self._prepared = None
         self._change_rest = None
+        self._capped_run = 0
         if self._ml is not None:
             self._ml.forget()
         if getattr(self, "_workspace_used", False):
@@ -1007,6 +1018,8 @@ class RtiOsqpSolver:
         prep += qp_prep
         feedback = time.perf_counter() - t0 - prep
         result = self._result(z, status, iterations, solves, prep, feedback, cold, inexact, fraction)
+        plain = not (split or changed or cold)  # a change's or a cold start's QPs break the run
+        self._capped_run = self._capped_run + 1 if plain and self._reached_cap else 0
         if split and result.ok and (changed or inexact):
             self._change_rest = dict(x0=x0.copy(), u_prev=u_prev.copy(), d=d.copy(), ref=np.array(ref, float),
                                      w_y=w_y.copy(), u_lo=u_lo.copy(), u_hi=u_hi.copy(), z=z.copy(),
@@ -1031,6 +1044,7 @@ class RtiOsqpSolver:
         inexact = False
         fraction = 1.0
         prep = 0.0
+        self._reached_cap = False
         for it in range(max_qps):
             if it > 0:
                 prep += self._relinearise(z, x0, d, ref, w_y, u_prev)
@@ -1055,6 +1069,7 @@ class RtiOsqpSolver:
             status_val, status, n_iter, x = self._core.solve_capped(cap) if capped else self._core.solve()
             solves += 1
             iterations += n_iter
+            self._reached_cap = self._reached_cap or (capped and n_iter >= cap)
             status = str(status)
             if status_val not in (self._accepted_capped if capped else self._accepted):
                 z = None
@@ -1171,7 +1186,9 @@ class RtiOsqpSolver:
         change's (``change_split_iter``), else a plain step's (``plain_qp_cap``; not a change, not a cold start)."""
         if split:
             return self.change_split_iter
-        return self.plain_qp_cap if not (changed or cold) else 0
+        if changed or cold or (self.plain_cap_run and self._capped_run >= self.plain_cap_run):
+            return 0
+        return self.plain_qp_cap
 
     def _reset_rho(self) -> float:
         """OSQP's step size set to ``rho_reset`` for the QPs of a reference change: the matrices in OSQP written again

@@ -82,6 +82,34 @@ def test_the_cap_bounds_every_plain_steps_qp_and_leaves_the_change_uncapped(plai
     assert thread_s[WAKE] < CAPPED_STEP_BUDGET_S
 
 
+#: A cap low enough that quiet steps reach it too, for the run limit's test.
+LOW_CAP = 15
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("run", [1, 2])
+def test_the_run_limit_uncaps_the_plain_step_after_run_capped_ones(run):
+    _, capped, _ = _loop(WAKE + 3, osqp_plain_qp_cap=LOW_CAP)
+    _, limited, _ = _loop(WAKE + 3, osqp_plain_qp_cap=LOW_CAP, osqp_plain_cap_run=run)
+    changes = set(change_start.change_steps(WAKE + 3)) | {0}
+    plain_steps = [k for k in range(WAKE + 3) if k not in changes]
+    assert all(capped[k].stats["iterations"] <= LOW_CAP for k in plain_steps)  # without the limit: every one capped
+    at_cap, over, in_row = 0, 0, 0
+    for k in range(1, WAKE + 3):
+        its = limited[k].stats["iterations"]
+        if k in changes:  # a change's QPs are uncapped: the run is broken
+            in_row = 0
+            continue
+        if in_row == run:  # the step after `run` capped plain steps in a row: uncapped
+            over += its > LOW_CAP
+            in_row = 0
+            continue
+        assert its <= LOW_CAP, k  # any other plain step within the cap
+        at_cap += its == LOW_CAP
+        in_row = in_row + 1 if its == LOW_CAP else 0
+    assert at_cap > 0 and over > 0  # both happened: capped steps, and uncapped ones that needed more
+
+
 @pytest.mark.slow
 def test_the_ceiling_holds_each_preparations_step_size(plain):
     kept, rows, _ = plain
@@ -115,6 +143,8 @@ def test_the_trace_tools_multiplier_shift_moves_each_stage_one_earlier(problem):
                                           ({"osqp_plain_qp_cap": 2000}, "osqp_plain_qp_cap"),
                                           ({"osqp_plain_qp_cap": 1.5}, "osqp_plain_qp_cap"),
                                           ({"osqp_rho_max": 0.0}, "osqp_rho_max"),
+                                          ({"osqp_plain_qp_cap": 60, "osqp_plain_cap_run": -1}, "osqp_plain_cap_run"),
+                                          ({"osqp_plain_cap_run": 2}, "osqp_plain_cap_run"),
                                           ({"osqp_rho_max": "high"}, "osqp_rho_max")])
 def test_bad_values_are_refused_naming_the_field(fields, name):
     with pytest.raises(InvalidSettings, match=name):
@@ -125,6 +155,9 @@ def test_bad_values_are_refused_naming_the_field(fields, name):
                                           ({"plain_qp_cap": True}, "plain_qp_cap"),
                                           ({"plain_qp_cap": "many"}, "plain_qp_cap"),
                                           ({"change_split_iter": 2.5}, "change_split_iter"),
+                                          ({"plain_cap_run": -1}, "plain_cap_run"),
+                                          ({"plain_cap_run": True}, "plain_cap_run"),
+                                          ({"plain_cap_run": "many"}, "plain_cap_run"),
                                           ({"rho_max": 1e7}, "rho_max"), ({"rho_max": True}, "rho_max")])
 def test_the_solver_refuses_bad_values_naming_them(problem, kwargs, name):
     with pytest.raises(ValueError, match=name):
