@@ -762,7 +762,7 @@ class MpcController:
                              change_split_iter=s.change_split_iter, split_every_step=s.split_every_step,
                              split_keeps_rho=s.split_keeps_rho, split_replays_change=s.split_replays_change,
                              rho_max=s.osqp_rho_max, plain_qp_cap=s.osqp_plain_qp_cap,
-                             trust_radii=s.rti_trust_radii, plain_cap_run=s.osqp_plain_cap_run)
+                             trust_radii=s.rti_trust_radii, plain_cap_run=int(s.osqp_plain_cap_run))
 
     # ------------------------------------------------------------------ protocol
     def reset(self, command: Command | None = None) -> None:

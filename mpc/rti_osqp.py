@@ -1045,6 +1045,7 @@ class RtiOsqpSolver:
         fraction = 1.0
         prep = 0.0
         self._reached_cap = False
+        self.trust_taken = 1.0  # the QP's own plan until the trust region takes a radius
         for it in range(max_qps):
             if it > 0:
                 prep += self._relinearise(z, x0, d, ref, w_y, u_prev)

@@ -162,3 +162,9 @@ def test_bad_values_are_refused_naming_the_field(fields, name):
 def test_the_solver_refuses_bad_values_naming_them(problem, kwargs, name):
     with pytest.raises(ValueError, match=name):
         RtiOsqpSolver(problem, max_iter=400, **kwargs)
+
+
+def test_whole_numbers_written_as_floats_build_the_controller_as_integers():
+    """A settings file may write 60.0 and 2.0: both fields take them, and the solver gets integers."""
+    ctrl = MpcController(settings=MpcSettings(osqp_plain_qp_cap=60.0, osqp_plain_cap_run=2.0))
+    assert ctrl.solver.plain_cap_run == 2 and isinstance(ctrl.solver.plain_cap_run, int)
