@@ -52,6 +52,7 @@ class PlacementChoice:
         self.floor = float(evidence) * window_s / dt_s  # a consistent filter's sum, times evidence
         self.hold = int(hold)  # samples after a change of either filter's honoured dead time that count nothing (0: off)
         self.trial_steps: int | None = None  # after force(): decisions since (the floor counts from it); None: none
+        self._trial_floors: dict[int, float] = {}  # trial_floor by decisions since force(), each computed once
         self.reset()
 
     def reset(self) -> None:
@@ -126,7 +127,9 @@ class PlacementChoice:
         if self.trial_steps >= TRIAL_FULL * self.window_steps:
             self.trial_steps = None
             return self.floor
-        return trial_floor(self.floor, self.forget, self.trial_steps)
+        if self.trial_steps not in self._trial_floors:
+            self._trial_floors[self.trial_steps] = trial_floor(self.floor, self.forget, self.trial_steps)
+        return self._trial_floors[self.trial_steps]
 
 
 def trial_floor(floor: float, forget: float, steps: int) -> float:
