@@ -337,9 +337,9 @@ class MpcSettings:
             Gauss-Newton iteration's two-cycle where valve a's pull depends on valve a, the plan alternating between
             valve a shut and open). 0.3 (the default): measured in docs/identification.md, "The recirculation traced
             again" (the full built-in bench lower in seven scenarios, chiller +0.0003).
-        valve_a_hold_shortfall_c: degC in [0, 20]; while the heater command is at its upper bound (power, PTC line
-            or rate limit) and the supply reading is more than this below its reference, a move of valve a towards
-            shut is not applied (:mod:`~.valve_a_hold`: heater-limited heating on a box whose air enters warmer than
+        valve_a_hold_shortfall_c: degC in [0, 20]; while the heater command is at its power limit (the range's top
+            or, with ``ocp.ptc_limit``, the PTC line at the heater estimate) and the supply reading is more than this
+            below its reference, a move of valve a towards shut is not applied (:mod:`~.valve_a_hold`: heater-limited heating on a box whose air enters warmer than
             the core's water, where the plans alternate between storing the heater's heat in the body and
             releasing it). 0, the default: off. Measured in docs/identification.md, "Recirculation in
             heater-limited heating, traced".

@@ -1,6 +1,6 @@
 """Valve a held, not closed, while the heater is at its limit and the supply air well short of its reference.
 
-In heater-limited heating (the heater command at its upper bound: its power, the PTC line or its rate limit) every
+In heater-limited heating (the heater command at its power limit: the range's top or the PTC line) every
 watt the heater gives reaches the supply air through the core's flow, and valve a sets that flow. On a box whose
 air enters warmer than the core's water (cabin air drawn in behind the inlet sensor: the recirculating box of
 :mod:`hvac_mpc.mismatch`), shutting valve a warms the supply air at rest (the core cools the air the heater then
@@ -32,7 +32,7 @@ HEATER_ON_W = 1.0
 
 def heater_limited(heater_cmd_w: float, heater_upper_w: float, reading_c: float | None, reference_c: float | None,
                    shortfall_c: float) -> bool:
-    """True while the heater command is on and at its upper bound of this step (``heater_upper_w``, W) and the
+    """True while the heater command is on and at its power limit (``heater_upper_w``, W) and the
     supply reading (degC) is more than ``shortfall_c`` (degC, > 0) below its reference; False where either is
     missing or not finite, or ``shortfall_c`` is 0 (off)."""
     if shortfall_c <= 0.0 or reading_c is None or reference_c is None:
