@@ -27,7 +27,8 @@ else "cooling"), ``solver``, ``valve_a_cap_pct``, ``mix_offset_c``, ``flow_offse
 (reference name -> shortfall in its unit, e.g. ``{"volume_flow_m3s": 0.004}``; empty when every
 reference is within reach, :mod:`hvac_mpc.mpc.priorities`; ``supply_temp_c`` also while the heater or
 the cooler is saturated and the reading stays away, :mod:`hvac_mpc.mpc.temperature_reach`), ``flow_weight_factor`` (the factor on the
-flow weights of the step: 1, less out of reach or while a large flow error is closed), ``dead_time_s``
+flow weights of the step: 1, less out of reach or while a large flow error is closed), ``valve_a_held`` (valve
+a's closing move of the step not applied, ``valve_a_hold_shortfall_c``, :mod:`hvac_mpc.mpc.valve_a_hold`), ``dead_time_s``
 (the thermocouple's dead time beyond the model's that the estimator has found and honours, :mod:`hvac_mpc.mpc.estimator`),
 ``bypass_flow_exponent`` (the exponent of the bypass split's flow dependence the prediction uses: the
 estimator's estimate where it learns it, :mod:`hvac_mpc.mpc.estimator`), ``reach_wait_s`` (wall time the
@@ -66,6 +67,7 @@ from .sign_check import ValveSignCheck, predicted_air_change_c
 from .readiness import HeaterReadiness
 from .reserve import HeaterReserve
 from .reversal_damping import damped_move
+from .valve_a_hold import heater_limited, held_opening
 from .background import BackgroundCall, BackgroundWorker
 from .ring_gate import RingGate
 from .start_caution import SCOPES as START_CAUTION_SCOPES, VALVE_A_AND_HEATER, StartCaution, known_delay_s, opening_bound
@@ -335,6 +337,12 @@ class MpcSettings:
             Gauss-Newton iteration's two-cycle where valve a's pull depends on valve a, the plan alternating between
             valve a shut and open). 0.3 (the default): measured in docs/identification.md, "The recirculation traced
             again" (the full built-in bench lower in seven scenarios, chiller +0.0003).
+        valve_a_hold_shortfall_c: degC in [0, 20]; while the heater command is at its power limit (the range's top
+            or, with ``ocp.ptc_limit``, the PTC line at the heater estimate) and the supply reading is more than this
+            below its reference, a move of valve a towards shut is not applied (:mod:`~.valve_a_hold`: heater-limited heating on a box whose air enters warmer than
+            the core's water, where the plans alternate between storing the heater's heat in the body and
+            releasing it). 0, the default: off. Measured in docs/identification.md, "Recirculation in
+            heater-limited heating, traced".
     """
 
     dt_s: float = 1.0
@@ -415,6 +423,7 @@ class MpcSettings:
     osqp_plain_cap_run: int = 0
     valve_a_reversal_share: float = 0.3
     valve_a_reversal_min_pct: float = 5.0
+    valve_a_hold_shortfall_c: float = 0.0
 
     def __post_init__(self) -> None:
         p = "MpcSettings"
@@ -522,6 +531,7 @@ class MpcSettings:
                                   f"{list(START_CAUTION_SCOPES)}")
         check_number(f"{p}.valve_a_reversal_share", self.valve_a_reversal_share, 0.0, 1.0, lo_open=True)
         check_number(f"{p}.valve_a_reversal_min_pct", self.valve_a_reversal_min_pct, 0.0, 100.0)
+        check_number(f"{p}.valve_a_hold_shortfall_c", self.valve_a_hold_shortfall_c, 0.0, 20.0)
         check_flag(f"{p}.choose_offset_placement", self.choose_offset_placement)
         check_number(f"{p}.placement_q_heater_air_c", self.placement_q_heater_air_c, 0.0, 1.0, lo_open=True)
         check_number(f"{p}.placement_window_s", self.placement_window_s, self.dt_s, 3600.0)
@@ -952,8 +962,10 @@ class MpcController:
         else:
             self.solver.reset()
             u_cmd, fallback = self._fallback_command(measurement, ref)
+        self._valve_a_held = False
         if sol.ok:
             self._damp_reversal(u_cmd)  # the QP's answer only: a fallback's command stands as its layer made it
+            self._hold_valve_a(u_cmd, heater_c, measurement, ref)
         # project onto bounds, rate limits and the trapped-air cap (np.clip costs ~10 us on 6 values)
         u_cmd = np.minimum(np.maximum(u_cmd, bounds[0]), bounds[1])
         self._valve_a_move = float(u_cmd[pb.i_valve_a] - self.u_prev[pb.i_valve_a])
@@ -1234,6 +1246,23 @@ class MpcController:
             u_cmd[i] = damped_move(float(self.u_prev[i]), self._valve_a_move, float(u_cmd[i]),
                                    s.valve_a_reversal_share, s.valve_a_reversal_min_pct)
 
+    def _hold_valve_a(self, u_cmd: np.ndarray, heater_c: float, measurement: Measurement, ref: Reference) -> None:
+        """Valve a in ``u_cmd`` (in place, before the projection onto the bounds) not closed while the heater is
+        limited (its power limit: the range's top or, with ``ptc_limit``, the PTC line at the heater estimate
+        ``heater_c``, degC) and the reading short of its reference (``valve_a_hold_shortfall_c``, off at 0)."""
+        shortfall = self.settings.valve_a_hold_shortfall_c
+        if shortfall <= 0.0:
+            return
+        pb = self.problem
+        upper_w = float(pb.u_hi_phys[pb.i_heater_cmd])
+        if pb.ptc_limit and math.isfinite(heater_c):
+            upper_w = min(upper_w, float(pb.ptc_available_w(heater_c)))
+        limited = heater_limited(float(u_cmd[pb.i_heater_cmd]), upper_w,
+                                 getattr(measurement, "supply_temp_c", None), ref.supply_temp_c, shortfall)
+        proposed = float(u_cmd[pb.i_valve_a])
+        u_cmd[pb.i_valve_a] = held_opening(float(self.u_prev[pb.i_valve_a]), proposed, limited)
+        self._valve_a_held = bool(u_cmd[pb.i_valve_a] != proposed)
+
     def _ring_factor(self, measurement: Measurement, ref: Reference) -> float:
         """Factor on valve a's and the heater's rate limits: below 1 while the supply reading rings about its
         reference (:class:`~.ring_gate.RingGate`, ``MpcSettings.ring_*``), 1 without the gate."""
@@ -1410,6 +1439,7 @@ class MpcController:
             "solver": getattr(self.solver, "name", self.settings.solver),
             "out_of_reach": dict(getattr(self, "_out_of_reach", {})),
             "flow_weight_factor": float(getattr(self, "_flow_factor", 1.0)),
+            "valve_a_held": bool(getattr(self, "_valve_a_held", False)),
         }
         if cap is not None:
             stats["valve_a_cap_pct"] = cap
