@@ -13,6 +13,7 @@ The discrete problem (scaled variables ``x = (x_phys - x_off) / x_sc``, likewise
        + T_term sum_i w_i ((y_i(x_N, u_{N-1}) - r_i) / s_i)^2
        + sum_k sum_j w_du_j (u_k,j - u_k-1,j)^2          (u_-1 = last applied command)
        + sum_k dt_k-1 (w_l1 s_k + w_l2 s_k^2)
+       + sum_k dt_k w_f sum_j (T - v_j(u_k))^2           (flaps m, f, w; w_f = Weights.flap_closure_per_pct2, 0 by default)
     s.t. x_0 = estimate,  x_k+1 = F(x_k, u_k, d, dt_k)  (RK4)
          u_lo <= u_k <= u_hi,  |u_k - u_k-1| <= rate * dt_k-1  (dt_-1 = one sample)
          heater_temp(x_k) <= heater_temp_max + s_k,  s_k >= 0,  k = 1..N
@@ -83,8 +84,9 @@ FLOOR_SCALE = 1e3
 #: Heater command (W) above which the controller is heating (valve a's heating weight, the step's mode).
 HEATING_CMD_W = 1.0
 
-#: Largest flap-closure weight (per %^2 per s, :attr:`Weights.flap_closure_per_pct2`): at 1e-2 a flap 10 % short of
-#: open weighs like 1 L/s of outlet-flow error, beyond which the term is no longer small beside the tracking.
+#: Largest flap-closure weight (per %^2 per s, :attr:`Weights.flap_closure_per_pct2`): at 1e-2 a flap 10 % from its
+#: target weighs like 1.4 L/s of outlet-flow error (weight 0.5 per (L/s)^2), beyond which the term is no longer small
+#: beside the tracking.
 FLAP_CLOSURE_MAX = 1e-2
 
 #: Offsets and scales of the states (degC): scaled value = (physical - offset) / scale.
@@ -180,12 +182,14 @@ class Weights:
     these directions (its curvature about 2.5e-6 per %^2 of all three flaps' opening at once), so answers within
     OSQP's tolerance differ along them by watts and tens of percent of flap travel, and the closed loop's actuator mix
     is set by the solver's path (docs/architecture.md, 'The flat direction priced'). This weight adds
-    ``dt_k w (100 % - v_j,k)^2`` for each flap j's opening ``v`` (%, :mod:`hvac_mpc.mpc.valve_map`) at each stage k:
-    a quadratic towards fully open, the direction the energy term already prefers, so the mix is the cost's (the
-    largest flap at its end, the blower as low as the flows allow). ASSUMPTION: where the split holds a flap short of
-    open, the term's pull on it is weighed against the outlet flow's error: at 1e-5 and a flap 50 % short, about
-    0.01 L/s with an outlet gain of 0.1 L/s per % of opening. Constant in the QP (its Hessian and gradient are inputs of
-    the generated code, not part of its structure). Off by default (measured in the same section).
+    ``dt_k w (T - v_j,k)^2`` for each flap j's opening ``v`` (%, :mod:`hvac_mpc.mpc.valve_map`) at each stage k, ``T``
+    the target :attr:`OcpSpec.flap_target_pct` (fully open by default, the direction the energy term already prefers:
+    the largest flap at its end, the blower as low as the flows allow; below it a reserve of opening for a flow step),
+    so the mix is the cost's. ASSUMPTION: where the split holds a flap away from the target, the term's pull on it is
+    weighed against the outlet flow's error: at 1e-5 and a flap 50 % away, about 0.01 L/s with an outlet gain of
+    0.1 L/s per % of opening. Constant in the QP (its Hessian and gradient are inputs of the generated code, not part of
+    its structure). Off by default: with 1e-5 or 1e-4 the built-in bench's winter_heating_steps loses 0.02-0.04 of its
+    ratio (measured in the same section).
     """
 
     supply_temp: float = 5.0
@@ -541,7 +545,8 @@ class TrackingProblem:
     def flap_closure_hessian(self) -> tuple[np.ndarray, np.ndarray]:
         """The flap-closure term (:attr:`Weights.flap_closure_per_pct2`) as ``1/2 u' H u + g' u`` per stage, in scaled
         decisions: diagonals ``H`` (N, nu) and gradients ``g`` (N, nu), zero off the flaps and when off. The term is
-        ``dt_k w (c (u_hi - u))^2`` per flap, ``c`` = % of opening per scaled unit."""
+        ``dt_k w (c (u_T - u))^2`` per flap, ``u_T`` the target opening (:attr:`OcpSpec.flap_target_pct`) scaled, ``c``
+        the % of opening per scaled unit."""
         h = np.zeros((self.N, self.nu))
         g = np.zeros((self.N, self.nu))
         if not self.flap_closure_weight:
