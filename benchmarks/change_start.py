@@ -49,10 +49,15 @@ from typing import Any  # noqa: E402
 import numpy as np  # noqa: E402
 
 from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings  # noqa: E402
+from hvac_mpc.mpc.settings_file import settings_with  # noqa: E402
 
 from . import solve_time  # noqa: E402
 
-#: Variant -> its ``MpcSettings`` fields.
+#: The flaps' flat direction priced, "flat_W" (``Weights.flap_closure_per_pct2`` W per %^2 per s, towards fully open) and
+#: "flat_W_tT" (towards ``OcpSpec.flap_target_pct`` T): name -> the ``ocp`` fields.
+FLAT = {f"{w}{'' if t == 100 else f'_t{t}'}": {"flap_target_pct": float(t), "weights": {"flap_closure_per_pct2": float(w)}}
+        for w in ("1e-5", "3e-5", "1e-4") for t in (100, 70)}
+#: Variant -> its ``MpcSettings`` fields (sub-tables as nested mappings, :func:`.settings_file.settings_with`).
 VARIANTS = {"shifted": {"steady_start": False},
             "steady": {"steady_start": True, "steady_start_on": "any"},
             "temperature": {"steady_start": True, "steady_start_on": "temperature"},
@@ -75,7 +80,12 @@ VARIANTS = {"shifted": {"steady_start": False},
                                                   "osqp_plain_qp_cap": n} for n in (40, 60, 100)},
             **{f"split_replay_30_plain_cap_60_run_{r}": {"change_split_iter": 30, "split_replays_change": True,
                                                          "osqp_plain_qp_cap": 60, "osqp_plain_cap_run": r}
-               for r in (1, 2)}}
+               for r in (1, 2)},
+            **{f"flat_{n}": {"ocp": ocp} for n, ocp in FLAT.items()},
+            **{f"flat_{n}_plain_cap_60": {"ocp": ocp, "osqp_plain_qp_cap": 60} for n, ocp in FLAT.items()},
+            **{f"split_replay_30_plain_cap_60_flat_{n}": {"change_split_iter": 30, "split_replays_change": True,
+                                                         "osqp_plain_qp_cap": 60, "ocp": ocp}
+               for n, ocp in FLAT.items()}}
 #: The variants run unless ``--variant`` names others.
 DEFAULT_VARIANTS = ("shifted", "steady", "temperature")
 #: Steps after a change counted as its wake (the single QPs that follow it).
@@ -114,6 +124,9 @@ def summary(iterations: np.ndarray, thread_ms: np.ndarray, changes: list[int],
     slow = np.argsort(-cpu, kind="stable")[:TOP] + 1
     return {"iterations": int(it.sum()), "change_iterations": [int(iterations[c]) for c in changes],
             "wake_iterations": int(iterations[wake].sum()),
+            "step_iterations": {"median": float(np.median(it)), "p95": float(np.percentile(it, 95)),
+                                "p99": float(np.percentile(it, 99)), "max": int(it.max())},
+            "per_step_iterations": [int(v) for v in iterations],
             "cpu_median_ms": float(np.median(cpu)), "cpu_p99_ms": float(np.percentile(cpu, 99)),
             "cpu_max_ms": float(cpu.max()),
             "change_cpu_median_ms": float(np.median(thread_ms[changes])),
@@ -127,7 +140,8 @@ def run_seed(seed: int, steps: int, names: list[str] | None = None) -> dict[str,
     """The loops of one seed (the variants ``names``, default :data:`DEFAULT_VARIANTS`) in lockstep; their figures
     and closed-loop costs."""
     names = list(DEFAULT_VARIANTS) if names is None else names
-    loops = {v: solve_time.Loop(MpcController(settings=MpcSettings(**VARIANTS[v])), seed, idle_s=solve_time.IDLE_S)
+    loops = {v: solve_time.Loop(MpcController(settings=settings_with(MpcSettings(), VARIANTS[v])), seed,
+                                idle_s=solve_time.IDLE_S)
              for v in names}
     iterations = {v: [] for v in names}
     qps = {v: [] for v in names}
@@ -143,7 +157,9 @@ def run_seed(seed: int, steps: int, names: list[str] | None = None) -> dict[str,
 
 
 def line(seed: int, variant: str, r: dict[str, Any]) -> str:
-    return (f"seed {seed} {variant:<11} cost {r['cost']:8.1f} | OSQP iterations {r['iterations']:5d}, changes "
+    q = r["step_iterations"]
+    return (f"seed {seed} {variant:<11} cost {r['cost']:8.1f} | OSQP iterations {r['iterations']:5d} (a step: median "
+            f"{q['median']:.0f}, p95 {q['p95']:.0f}, p99 {q['p99']:.0f}, max {q['max']}), changes "
             f"{sum(r['change_iterations']):4d} {r['change_iterations']}, next {WAKE} steps {r['wake_iterations']:4d} | "
             f"thread CPU median {r['cpu_median_ms']:.3f} p99 {r['cpu_p99_ms']:.2f} max {r['cpu_max_ms']:.2f} ms, "
             f"changes median {r['change_cpu_median_ms']:.2f} max {r['change_cpu_max_ms']:.2f} ms | largest "

@@ -72,6 +72,7 @@ from hvac_mpc.mpc.ipopt_reference import IpoptReferenceSolver  # noqa: E402
 from hvac_mpc.models.model_file import load as load_model_file  # noqa: E402
 from hvac_mpc.mpc.mpc_controller import InvalidSettings, MpcController, MpcSettings  # noqa: E402
 from hvac_mpc.mpc.ocp import TrackingProblem  # noqa: E402
+from hvac_mpc.mpc.settings_file import settings_with  # noqa: E402
 from hvac_mpc.mpc.rti_osqp import RtiOsqpSolver  # noqa: E402
 from hvac_mpc.mpc.stage_ocp import StageOcp  # noqa: E402
 from hvac_mpc.contract import Reference  # noqa: E402
@@ -409,11 +410,12 @@ class Contenders:
 
 def rti_settings(args: argparse.Namespace) -> MpcSettings:
     """The RTI contender's settings: the defaults, ``--no-codegen``, and the fields of ``--rti-settings`` (a JSON
-    object; a field MpcSettings does not have raises TypeError, a value out of range InvalidSettings)."""
+    object, sub-tables as nested objects, e.g. ``{"ocp": {"weights": {...}}}``; a field MpcSettings does not have or a
+    value out of range raises InvalidSettings naming it)."""
     fields = json.loads(args.rti_settings) if getattr(args, "rti_settings", None) else {}
     if not isinstance(fields, dict):
         raise ValueError(f"expected a JSON object of MpcSettings fields, got {args.rti_settings!r}")
-    return MpcSettings(**{"codegen": not getattr(args, "no_codegen", False), **fields})
+    return settings_with(MpcSettings(codegen=not getattr(args, "no_codegen", False)), fields)
 
 
 def _contenders(args: argparse.Namespace) -> Contenders:

@@ -13,6 +13,7 @@ The discrete problem (scaled variables ``x = (x_phys - x_off) / x_sc``, likewise
        + T_term sum_i w_i ((y_i(x_N, u_{N-1}) - r_i) / s_i)^2
        + sum_k sum_j w_du_j (u_k,j - u_k-1,j)^2          (u_-1 = last applied command)
        + sum_k dt_k-1 (w_l1 s_k + w_l2 s_k^2)
+       + sum_k dt_k w_f sum_j (T - v_j(u_k))^2           (flaps m, f, w; w_f = Weights.flap_closure_per_pct2, 0 by default)
     s.t. x_0 = estimate,  x_k+1 = F(x_k, u_k, d, dt_k)  (RK4)
          u_lo <= u_k <= u_hi,  |u_k - u_k-1| <= rate * dt_k-1  (dt_-1 = one sample)
          heater_temp(x_k) <= heater_temp_max + s_k,  s_k >= 0,  k = 1..N
@@ -82,6 +83,11 @@ DEFAULT_STAGES_S = (1.0,) * 8 + (2.0,) * 6 + (4.0,) * 5 + (8.0,) * 4 + (16.0,) *
 FLOOR_SCALE = 1e3
 #: Heater command (W) above which the controller is heating (valve a's heating weight, the step's mode).
 HEATING_CMD_W = 1.0
+
+#: Largest flap-closure weight (per %^2 per s, :attr:`Weights.flap_closure_per_pct2`): at 1e-2 a flap 10 % from its
+#: target weighs like 1.4 L/s of outlet-flow error (weight 0.5 per (L/s)^2), beyond which the term is no longer small
+#: beside the tracking.
+FLAP_CLOSURE_MAX = 1e-2
 
 #: Offsets and scales of the states (degC): scaled value = (physical - offset) / scale.
 STATE_SCALING = {"motor_rise_c": (1.0, 1.0), "water_temp_c": (5.0, 5.0), "heater_temp_c": (40.0, 40.0),
@@ -169,6 +175,21 @@ class Weights:
     ``valve_a_heating_per_pct2`` while heating at rest on the reference with the heater not limiting and the flow
     priority untouched (:mod:`hvac_mpc.mpc.reserve`): the free direction at rest leaned on harder, so the heater body
     keeps heat for a step up. Off by default (measured, docs/identification.md 'A heater reserve at rest').
+
+    ``flap_closure_per_pct2`` (per %^2 of opening per s; 0: off): the flat direction of the outlet flaps priced. Four
+    actuators (the blower and the openings of flaps m, f, w) set three outlet flows, so "blower power down, all flaps
+    opened" changes no tracked output, and a flap near fully open hardly moves its flow; only the energy term prices
+    these directions (its curvature about 2.5e-6 per %^2 of all three flaps' opening at once), so answers within
+    OSQP's tolerance differ along them by watts and tens of percent of flap travel, and the closed loop's actuator mix
+    is set by the solver's path (docs/architecture.md, 'The flat direction priced'). This weight adds
+    ``dt_k w (T - v_j,k)^2`` for each flap j's opening ``v`` (%, :mod:`hvac_mpc.mpc.valve_map`) at each stage k, ``T``
+    the target :attr:`OcpSpec.flap_target_pct` (fully open by default, the direction the energy term already prefers:
+    the largest flap at its end, the blower as low as the flows allow; below it a reserve of opening for a flow step),
+    so the mix is the cost's. ASSUMPTION: where the split holds a flap away from the target, the term's pull on it is
+    weighed against the outlet flow's error: at 1e-5 and a flap 50 % away, about 0.01 L/s with an outlet gain of
+    0.1 L/s per % of opening. Constant in the QP (its Hessian and gradient are inputs of the generated code, not part of
+    its structure). Off by default: with 1e-5 or 1e-4 the built-in bench's winter_heating_steps loses 0.02-0.04 of its
+    ratio (measured in the same section).
     """
 
     supply_temp: float = 5.0
@@ -185,11 +206,13 @@ class Weights:
     body_heat_power_w: float = 0.0
     heater_ready_per_c2: float = 0.0
     valve_a_reserve_per_pct2: float = 0.0
+    flap_closure_per_pct2: float = 0.0
 
     def validate(self, prefix: str = "weights") -> None:
         for f in fields(self):
             check_number(f"{prefix}.{f.name}", getattr(self, f.name), 0.0, 1e6)
         check_number(f"{prefix}.body_heat_power_w", self.body_heat_power_w, 0.0, 2000.0)
+        check_number(f"{prefix}.flap_closure_per_pct2", self.flap_closure_per_pct2, 0.0, FLAP_CLOSURE_MAX)
         if self.supply_temp <= 0 or self.volume_flow <= 0:
             raise InvalidSettings(f"{prefix}.supply_temp and {prefix}.volume_flow must be > 0 (range (0, 1e6])")
 
@@ -248,6 +271,10 @@ class OcpSpec:
         ready_lead_c: the most the readiness floor asks above the heater body's estimate (K; None: no bound): the
             pull of the floor on the plan is bounded, the same for a body estimated far below the floor as for one
             estimated near it (:mod:`hvac_mpc.mpc.readiness`; measured, docs/identification.md 'Heater readiness').
+        flap_target_pct: the opening of flaps m, f, w (% of the opening ``v``, :mod:`hvac_mpc.mpc.valve_map`) the
+            flap-closure term pulls each flap towards (only with ``Weights.flap_closure_per_pct2`` above 0): 100, fully
+            open, the mix of least blower power; below it a reserve of opening each way for a flow step (measured,
+            docs/architecture.md 'The flat direction priced').
     """
 
     stage_durations_s: tuple[float, ...] = DEFAULT_STAGES_S
@@ -267,6 +294,7 @@ class OcpSpec:
     heater_on_w: float = 10.0
     ready_step_c: float = 3.0
     ready_lead_c: float | None = 3.0
+    flap_target_pct: float = 100.0
 
     @property
     def temperature_sensor_share(self) -> float:
@@ -309,6 +337,7 @@ class OcpSpec:
         if self.ready_lead_c is not None:
             check_number(f"{prefix}.ready_lead_c", self.ready_lead_c, 0.0, 100.0, lo_open=True)
         check_flag(f"{prefix}.ptc_limit", self.ptc_limit)
+        check_number(f"{prefix}.flap_target_pct", self.flap_target_pct, 0.0, 100.0)
         unknown = sorted(set(self.model_effects) - set(MODEL_EFFECTS))
         if unknown:
             raise InvalidSettings(f"{prefix}.model_effects has unknown effect(s) {unknown}; allowed: "
@@ -475,6 +504,9 @@ class TrackingProblem:
         self.w_du = move * unit ** 2
         self.energy_weight = w.energy_per_100w2
         self.energy_scale_w = 100.0
+        self.flap_closure_weight = w.flap_closure_per_pct2
+        # the flaps' opening the closure term pulls towards (scaled decisions; zero off the flaps)
+        self.flap_target_u = np.where(self.valve_mask, (spec.flap_target_pct / 100.0 - self.u_off) / self.u_sc, 0.0)
         # d(P_blower)/d(u scaled): the blower term of the energy is linear in the input
         self.energy_grad_u = np.zeros(self.nu)
         self.energy_grad_u[INPUTS.index("blower_power_w")] = self.u_sc[INPUTS.index("blower_power_w")]
@@ -509,6 +541,31 @@ class TrackingProblem:
         ``x0`` to ``x_end`` with the command in force ``u_prev`` (scaled): ``coef (x_end - x0)`` of the heater
         body while heating, else 0."""
         return self.body_heat_on(u_prev) * self.body_heat_coef * (x_end[self.i_heater] - x0[self.i_heater])
+
+    def flap_closure_hessian(self) -> tuple[np.ndarray, np.ndarray]:
+        """The flap-closure term (:attr:`Weights.flap_closure_per_pct2`) as ``1/2 u' H u + g' u`` per stage, in scaled
+        decisions: diagonals ``H`` (N, nu) and gradients ``g`` (N, nu), zero off the flaps and when off. The term is
+        ``dt_k w (c (u_T - u))^2`` per flap, ``u_T`` the target opening (:attr:`OcpSpec.flap_target_pct`) scaled, ``c``
+        the % of opening per scaled unit."""
+        h = np.zeros((self.N, self.nu))
+        g = np.zeros((self.N, self.nu))
+        if not self.flap_closure_weight:
+            return h, g
+        c2 = (self.u_sc * 100.0) ** 2
+        w = self.flap_closure_weight * self.dt[:, None] * np.where(self.valve_mask, c2, 0.0)[None, :]
+        h[:] = 2.0 * w
+        g[:] = -2.0 * w * self.flap_target_u[None, :]
+        return h, g
+
+    def flap_closure_cost(self, u, k: int):
+        """The flap-closure term of stage k for its scaled decisions ``u`` (numpy or CasADi; 0 when off)."""
+        if not self.flap_closure_weight:
+            return 0.0
+        cost = 0.0
+        for j in self.VALVES:
+            closure_pct = self.u_sc[j] * 100.0 * (self.flap_target_u[j] - u[j])
+            cost = cost + self.dt[k] * self.flap_closure_weight * closure_pct * closure_pct
+        return cost
 
     # ------------------------------------------------------------------ scaling
     def scale_x(self, x_phys):
@@ -805,6 +862,8 @@ class TrackingProblem:
             prev = U[:, k]
         cost += ca.dot(ca.DM(self.dt), self.slack_l1 * S + self.slack_l2 * S * S)
         cost += self.body_heat_cost(X[:, 0], X[:, self.N], u_prev)
+        for k in range(self.N):
+            cost += self.flap_closure_cost(U[:, k], k)
         return cost
 
     def cost_function(self) -> ca.Function:

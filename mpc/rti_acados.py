@@ -187,6 +187,9 @@ class RtiAcadosSolver:
         if pb.body_heat_coef:
             raise ValueError("RtiAcadosSolver: weights.body_heat_power_w must be 0 (range [0, 0]); the value of the "
                              "heater body's heat is in the OSQP and IPOPT solvers only")
+        if pb.flap_closure_weight:
+            raise ValueError("RtiAcadosSolver: weights.flap_closure_per_pct2 must be 0 (range [0, 0]); the flaps' "
+                             "closure term is in the OSQP and IPOPT solvers only")
         _check_options(dict(disturbances=disturbances, hpipm_mode=hpipm_mode, warm_start=warm_start,
                             qp_iter_max=qp_iter_max, qp_tol=qp_tol, lm_inputs=lm_inputs, cold_start_qps=cold_start_qps,
                             reference_change_qps=reference_change_qps), cond_n, pb.N)

@@ -411,6 +411,10 @@ class RtiOsqpSolver:
         const_r.append(u_all), const_c.append(u_all), const_v.append(2.0 * np.tile(self.lm, N))
         s_idx = self.is0 + np.arange(N)
         const_r.append(s_idx), const_c.append(s_idx), const_v.append(2.0 * pb.slack_l2 * pb.dt)
+        # the flap-closure term (Weights.flap_closure_per_pct2) on the flaps' diagonal, zero when off: entries of the
+        # stage blocks already in the pattern, so the weight is a value of P0, not a change of the structure
+        flap_h, self._flap_g = pb.flap_closure_hessian()
+        const_r.append(u_all), const_c.append(u_all), const_v.append(flap_h.ravel())
         self._P_const_ids = P.add(np.concatenate(const_r), np.concatenate(const_c))
         self._P_const_vals = np.concatenate(const_v)
         P.finalise()
@@ -498,6 +502,7 @@ class RtiOsqpSolver:
         # constant part of the gradient: the slacks' L1 penalty
         self._q_const = np.zeros(n)
         self._q_const[self.is0:] = pb.slack_l1 * pb.dt
+        self._q_const[self.iu0:self.is0] = self._flap_g.ravel()
         # with the value of the heat stored in the heater body (Weights.body_heat_power_w), linear in x_N, while
         # heating: the constant gradient with it, in place of _q_const as the gradient function's fixed input (_q)
         self._q_heating = self._q_const.copy()

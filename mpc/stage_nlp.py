@@ -109,6 +109,8 @@ class StageNlp:
             wts.append(ocp.weights(k, self.w_y))
             tgt.append(ocp.target(k, self.ref))
             cost += ocp.stage_cost(k, xk, uk, s[k], self.d, self.ref, self.w_y, pm)
+            if not st.terminal:  # the flaps' flat direction priced (Weights.flap_closure_per_pct2), 0 when off
+                cost += ocp.problem.flap_closure_cost(uk, k)
             if st.has_slack:
                 i = self.i_slack[k - 1]
                 self.l1[i], self.l2[i] = st.slack_l1, st.slack_l2
@@ -206,5 +208,9 @@ class StageNlp:
         q = 2.0 * J.T @ (W * (r - J @ w_lin - T)) + self.l1
         pb = self.ocp.problem  # the value of the body's heat, linear in the terminal state, while heating
         q[self.ix[-1][pb.i_heater]] += pb.body_heat_on(np.asarray(p, float).ravel()[pb.nx:pb.nx + pb.nu]) * pb.body_heat_coef
+        flap_h, flap_g = pb.flap_closure_hessian()  # the flaps' flat direction priced, constant (zero when off)
+        iu = np.asarray(self.iu).ravel()
+        P[iu, iu] += flap_h.ravel()
+        q[iu] += flap_g.ravel()
         shift = g - Jg @ w_lin
         return {"P": P, "q": q, "A": Jg, "lg": self.lbg - shift, "ug": self.ubg - shift}

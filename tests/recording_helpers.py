@@ -1,5 +1,7 @@
 """Wrappers that record what a controller or its QP solver did at each step, for the closed-loop tests."""
 
+import numpy as np
+
 from hvac_mpc.benchmarks import bench
 
 
@@ -42,6 +44,25 @@ class StartingRho:
     def solve_capped(self, max_iter):
         self._at_start()
         return self.core.solve_capped(max_iter)
+
+    def __getattr__(self, name):
+        return getattr(self.core, name)
+
+
+class QpRecorder:
+    """Stands between the RTI and OSQP (``RtiOsqpSolver._core``) and keeps the QP last handed over (``qp``: the values of
+    P and A, q, l and u)."""
+
+    def __init__(self, core):
+        self.core, self.qp = core, {}
+
+    def update_matrices(self, Px, Ax):
+        self.qp.update(Px=np.array(Px), Ax=np.array(Ax))
+        self.core.update_matrices(Px, Ax)
+
+    def update_vectors(self, q, l, u):
+        self.qp.update(q=np.array(q), l=np.array(l), u=np.array(u))
+        self.core.update_vectors(q, l, u)
 
     def __getattr__(self, name):
         return getattr(self.core, name)

@@ -145,6 +145,10 @@ def test_benchmark_takes_the_rti_settings_and_refuses_bad_ones(tmp_path, capsys)
     args = argparse.Namespace(rti_settings='{"change_split_iter": 30}', no_codegen=True)
     settings = solve_time.rti_settings(args)
     assert settings.change_split_iter == 30 and settings.codegen is False
+    args.rti_settings = '{"ocp": {"flap_target_pct": 70, "weights": {"flap_closure_per_pct2": 1e-4}}}'
+    settings = solve_time.rti_settings(args)  # sub-tables as nested objects
+    assert settings.ocp.weights.flap_closure_per_pct2 == 1e-4 and settings.ocp.flap_target_pct == 70
+    assert settings.ocp.weights.supply_temp == MpcSettings().ocp.weights.supply_temp
 
 
 def test_stage_cost_is_zero_on_target_and_grows_with_error():

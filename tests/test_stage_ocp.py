@@ -8,6 +8,8 @@ import casadi as ca
 import numpy as np
 import pytest
 
+from recording_helpers import QpRecorder
+
 from hvac_mpc.contract import Command, Reference
 from hvac_mpc.models import Parameters
 from hvac_mpc.mpc.ocp import OcpSpec, TrackingProblem, Weights
@@ -85,24 +87,6 @@ def test_both_layouts_have_the_tracking_problems_exact_cost(pb, ocp):
         StageNlp(ocp, "dense")
 
 
-class _Recorder:
-    """Stands between the RTI and OSQP and keeps the QP handed over."""
-
-    def __init__(self, core):
-        self.core, self.qp = core, {}
-
-    def update_matrices(self, Px, Ax):
-        self.qp.update(Px=np.array(Px), Ax=np.array(Ax))
-        self.core.update_matrices(Px, Ax)
-
-    def update_vectors(self, q, l, u):
-        self.qp.update(q=np.array(q), l=np.array(l), u=np.array(u))
-        self.core.update_vectors(q, l, u)
-
-    def __getattr__(self, name):
-        return getattr(self.core, name)
-
-
 @pytest.mark.parametrize("lm, heater_w", [(0.0, 0.0), (0.1, 0.0), (0.1, 120.0)])
 def test_the_rti_solves_the_gauss_newton_qp_of_the_description(pb, ocp, lm, heater_w):
     """At the RTI's linearisation point the QP handed to OSQP is the Gauss-Newton QP of the stage-wise
@@ -112,7 +96,7 @@ def test_the_rti_solves_the_gauss_newton_qp_of_the_description(pb, ocp, lm, heat
     floor)."""
     x0, u_prev, d, ref, w_y, lo, hi = _state(pb, Command(160.0, heater_w, 40.0, 90.0, 60.0, 50.0))
     rti = RtiOsqpSolver(pb, lm_inputs=lm)
-    rti._core = rec = _Recorder(rti._core)
+    rti._core = rec = QpRecorder(rti._core)
     nlp = StageNlp(ocp, "compact")
     res = rti.feedback(x0, u_prev, d, ref, w_y, lo, hi)
     assert res.ok
@@ -136,6 +120,28 @@ def test_the_value_of_the_body_heat_is_in_both_qps(heater_w):
     while it is off."""
     pb = TrackingProblem(Parameters(), OcpSpec(weights=Weights(body_heat_power_w=340.0)))
     test_the_rti_solves_the_gauss_newton_qp_of_the_description(pb, StageOcp(pb), 0.1, heater_w)
+
+
+def test_the_flap_closure_is_in_both_qps_and_the_exact_cost():
+    """With ``Weights.flap_closure_per_pct2`` (towards ``OcpSpec.flap_target_pct``) the RTI's QP is still the stage-wise
+    description's Gauss-Newton QP, and both layouts of the description have the tracking problem's exact cost."""
+    pb = TrackingProblem(Parameters(), OcpSpec(flap_target_pct=70.0, weights=Weights(flap_closure_per_pct2=1e-4)))
+    ocp = StageOcp(pb)
+    test_the_rti_solves_the_gauss_newton_qp_of_the_description(pb, ocp, 0.0, 0.0)
+    test_both_layouts_have_the_tracking_problems_exact_cost(pb, ocp)
+    # the term is in the exact cost: a plan with the flaps 10 % of opening further from the target costs more by it
+    X = np.zeros((pb.N + 1, pb.nx))
+    U = np.tile(pb.flap_target_u, (pb.N, 1))
+    x0, u_prev, d, ref, w_y, _, _ = _state(pb)
+    cost = pb.cost_function()
+    moved = U.copy()
+    moved[:, list(pb.VALVES)] -= 0.2  # 10 % of opening (scaled decisions span [-1, 1] over 0-100 %)
+    extra = float(cost(X.T, moved.T, np.zeros(pb.N), d, ref, w_y, u_prev) - cost(X.T, U.T, np.zeros(pb.N), d, ref, w_y,
+                                                                                 u_prev))
+    plain = TrackingProblem(Parameters(), OcpSpec(flap_target_pct=70.0))
+    extra_plain = float(plain.cost_function()(X.T, moved.T, np.zeros(pb.N), d, ref, w_y, u_prev)
+                        - plain.cost_function()(X.T, U.T, np.zeros(pb.N), d, ref, w_y, u_prev))
+    assert extra - extra_plain == pytest.approx(1e-4 * 10.0 ** 2 * 3 * pb.dt.sum(), rel=1e-9)
 
 
 def _assert_same_qp(rti, qp, nlp, data, lm):

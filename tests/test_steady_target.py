@@ -143,6 +143,7 @@ def test_an_unknown_choice_of_changes_is_refused_naming_the_field(value):
 
 def test_the_benchmark_finds_the_changes_and_counts_their_iterations():
     from hvac_mpc.benchmarks import change_start
+    from hvac_mpc.mpc.settings_file import settings_with
     starts = [t for t, _ in solve_time.SCENARIO[1:]]  # every reference of the scenario differs from the one before
     assert change_start.change_steps(240) == [int(t) for t in starts]
     assert change_start.change_steps(31) == [30]
@@ -157,7 +158,7 @@ def test_the_benchmark_finds_the_changes_and_counts_their_iterations():
     assert slow[:2] == [[3, 4.0, 80, 2, True], [4, 2.0, 30, 1, False]]  # by CPU time, the cold step left out
     # its variants whatever the defaults: the shifted start, every change, the temperature's only
     starts = {v: (s.steady_start, s.steady_start_on)
-              for v, s in ((v, MpcSettings(**f)) for v, f in change_start.VARIANTS.items())}
+              for v, s in ((v, settings_with(MpcSettings(), f)) for v, f in change_start.VARIANTS.items())}
     assert starts["shifted"][0] is False and starts["steady"] == (True, "any")
     assert starts["temperature"] == starts["one_qp"] == (True, "temperature")
     assert MpcSettings(**change_start.VARIANTS["one_qp"]).reference_change_qps == 1

@@ -1,0 +1,141 @@
+"""The outlet flaps' flat direction priced (``Weights.flap_closure_per_pct2``, ``OcpSpec.flap_target_pct``).
+
+The blower and the openings of flaps m, f, w set three outlet flows: "blower down, all flaps open" changes none of
+them. The QPs here are captured from the RTI itself (what it hands OSQP), at the same linearisation point with and
+without the term, and the flat direction is the model's (the null space of the outlet flows' Jacobian in the blower
+and the flaps at each stage, the states following through the linearised dynamics), not the term's.
+
+Budget: about 5 s.
+"""
+
+import numpy as np
+import osqp
+import pytest
+import scipy.linalg as sl
+
+from recording_helpers import QpRecorder
+
+from hvac_mpc.contract import Command, Reference
+from hvac_mpc.models import Parameters
+from hvac_mpc.mpc.ocp import InvalidSettings, OcpSpec, TrackingProblem, Weights
+from hvac_mpc.mpc.rti_osqp import U_BLOWER, Y_OUTLETS, RtiOsqpSolver
+
+REF = Reference.from_split(15.0, 0.03, (0.4, 0.3, 0.3))
+#: The blower and the three flaps: the decisions of the flat direction.
+FLAT_INPUTS = [U_BLOWER, *TrackingProblem.VALVES]
+#: A start moved along the flat direction by this much (scaled decisions: 10 % of flap opening per unit vector).
+SHIFT = 0.2
+#: OSQP's tolerance in the controller (``MpcSettings.osqp_eps``).
+EPS = 1e-4
+
+
+def _captured(weight: float):
+    """The cold-start QP of a steady cooling point with a split reference (flaps 90 / 60 / 50 %), as the RTI hands it
+    to OSQP: the solver, the QP and the disturbances."""
+    pb = TrackingProblem(Parameters(), OcpSpec(weights=Weights(flap_closure_per_pct2=weight)))
+    u_prev = pb.scale_u(Command(160.0, 0.0, 40.0, 90.0, 60.0, 50.0).vector())
+    d = np.array([28.0, 5.0, -0.3, 0.0])
+    x0 = pb.scale_x(pb.model.steady_state(pb.unscale_u(u_prev), np.array([28.0, 5.0, 0.0, 0.0])))
+    lo, hi = pb.input_bounds(pb.unscale_u(u_prev))
+    rti = RtiOsqpSolver(pb)
+    rti._core = rec = QpRecorder(rti._core)
+    assert rti.feedback(x0, u_prev, d, pb.reference_vector(REF), pb.output_weights(REF), lo, hi).ok
+    return rti, rec.qp, d
+
+
+def _flat_direction(rti, d) -> np.ndarray:
+    """The model's flat direction over the whole plan at the RTI's linearisation point: at each stage the unit vector
+    of the blower and flaps that moves no outlet flow (blower down), the states through the linearised dynamics."""
+    pb, N, nx, nu = rti.pb, rti.pb.N, rti.pb.nx, rti.pb.nu
+    X = rti._z_lin[:rti.iu0].reshape(N + 1, nx)
+    U = rti._z_lin[rti.iu0:rti.is0].reshape(N, nu)
+    lin = pb.linearise(X, np.vstack([U, U[-1]]), d)
+    dz, dx = np.zeros(rti.n), np.zeros(nx)
+    for k in range(N):
+        null = sl.null_space(lin["D"][k][list(Y_OUTLETS)][:, FLAT_INPUTS])
+        assert null.shape[1] == 1  # four decisions, three independent outlet flows
+        n = null[:, 0] if null[0, 0] < 0 else -null[:, 0]
+        assert n[1:].min() > 0  # blower down, every flap opens
+        du = np.zeros(nu)
+        du[FLAT_INPUTS] = n
+        dz[k * nx:(k + 1) * nx] = dx
+        dz[rti.iu0 + k * nu:rti.iu0 + (k + 1) * nu] = du
+        dx = lin["A"][k] @ dx + lin["B"][k] @ du
+    dz[N * nx:(N + 1) * nx] = dx
+    return dz
+
+
+def _osqp(rti, qp, eps: float, **settings) -> osqp.OSQP:
+    solver = osqp.OSQP()
+    solver.setup(rti.P.matrix(qp["Px"]), qp["q"], rti.A.matrix(qp["Ax"]), qp["l"], qp["u"], eps_abs=eps, eps_rel=eps,
+                 polishing=False, verbose=False, **settings)
+    return solver
+
+
+def _curvature_and_shift_left(weight: float) -> tuple[float, float]:
+    """The captured QP's curvature along the flat direction (per scaled unit^2 of the decisions) and the share of a start
+    moved along it (flaps closed, blower up, multipliers of the optimum) that OSQP at the controller's tolerance leaves
+    in its answer."""
+    rti, qp, d = _captured(weight)
+    dz = _flat_direction(rti, d)
+    du = dz[rti.iu0:rti.is0]
+    P = rti.P.matrix(qp["Px"]).toarray()
+    P = P + np.triu(P, 1).T
+    curvature = float(dz @ P @ dz / (du @ du))
+    exact = _osqp(rti, qp, 1e-9, max_iter=50000).solve()
+    assert exact.info.status_val == 1
+    solver = _osqp(rti, qp, EPS, max_iter=4000, rho=1e-2, check_termination=5, scaling=10, alpha=1.6)
+    solver.warm_start(x=exact.x - SHIFT * dz, y=exact.y)
+    answer = solver.solve()
+    assert answer.info.status_val == 1
+    left = float((exact.x - answer.x)[rti.iu0:rti.is0] @ du / (du @ du)) / SHIFT
+    return curvature, left
+
+
+def test_the_term_gives_the_flat_direction_curvature_and_osqp_leaves_it_no_more():
+    """Without the term the captured QP is nearly flat along the direction and OSQP, started from the optimum moved
+    along it, stops at its tolerance with almost all of the move left (the answer's mix is the start's); with 1e-4
+    the curvature is about a hundred times as high and OSQP brings the answer back."""
+    flat, flat_left = _curvature_and_shift_left(0.0)
+    priced, priced_left = _curvature_and_shift_left(1e-4)
+    assert priced > 30.0 * flat
+    assert flat_left > 0.5
+    assert abs(priced_left) < 0.05
+
+
+def test_off_by_default_and_on_only_the_flaps_diagonal_and_gradient():
+    """The defaults leave the term out; with it on, the QP handed to OSQP differs from the default's at the same point
+    only on the flaps' diagonal entries of P (the structure and every other value the same to the bit) and on the
+    flaps' entries of the gradient."""
+    assert Weights().flap_closure_per_pct2 == 0.0 and OcpSpec().flap_target_pct == 100.0
+    h, g = TrackingProblem(Parameters(), OcpSpec(flap_target_pct=50.0)).flap_closure_hessian()
+    assert not h.any() and not g.any()
+    rti, on, _ = _captured(1e-4)
+    _, off, _ = _captured(0.0)
+    N, nu = rti.pb.N, rti.pb.nu
+    flaps = (rti.iu0 + np.arange(N)[:, None] * nu + np.array(TrackingProblem.VALVES)[None, :]).ravel()
+    pattern = rti.P.matrix(np.arange(rti.P.nnz, dtype=float)).tocsc()
+    diagonal = {int(pattern[i, i]) for i in flaps}
+    assert set(np.flatnonzero(on["Px"] != off["Px"]).tolist()) == diagonal
+    assert set(np.flatnonzero(on["q"] != off["q"]).tolist()) == set(flaps.tolist())
+    assert (on["Ax"] == off["Ax"]).all() and (on["l"] == off["l"]).all() and (on["u"] == off["u"]).all()
+
+
+@pytest.mark.parametrize("fields, name", [
+    ({"weights": Weights(flap_closure_per_pct2=-1e-5)}, "flap_closure_per_pct2"),
+    ({"weights": Weights(flap_closure_per_pct2=0.1)}, "flap_closure_per_pct2"),
+    ({"flap_target_pct": 101.0}, "flap_target_pct"),
+    ({"flap_target_pct": float("nan")}, "flap_target_pct"),
+])
+def test_bad_values_are_refused_naming_the_field(fields, name):
+    with pytest.raises(InvalidSettings, match=name):
+        OcpSpec(**fields).validate()
+
+
+def test_acados_refuses_the_term_it_does_not_hold():
+    """The acados RTI builds its cost from the residuals alone: with the term on it refuses, naming the field (before
+    acados itself is needed)."""
+    from hvac_mpc.mpc.rti_acados import RtiAcadosSolver
+    pb = TrackingProblem(Parameters(), OcpSpec(weights=Weights(flap_closure_per_pct2=1e-4)))
+    with pytest.raises(ValueError, match="flap_closure_per_pct2"):
+        RtiAcadosSolver(pb)
