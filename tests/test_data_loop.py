@@ -741,7 +741,7 @@ def test_optional_candidates_are_named_or_refused():
 
 
 def literal_cooler_model(tmp_path_factory):
-    """The model file of issue 12's literal-cooler check (cached per session): a 2 h log of the ``cooler_literal``
+    """The model file of issue 12's literal-cooler check (built once per test run): a 2 h log of the ``cooler_literal``
     box (the core outlet 0.7564 T_w + 6.312 whatever the inlet air, seed 5) identified with the default library."""
     if "cooler_literal_file" not in _RESULTS:
         folder = tmp_path_factory.mktemp("cooler_literal")
