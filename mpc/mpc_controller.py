@@ -208,7 +208,7 @@ class MpcSettings:
             this share of their rates until the filter in use has seen a response of the supply air (its dead-time
             estimate informed, :attr:`~.estimator.DisturbanceEkf.response_seen`) or ``start_caution_s`` (s) has
             passed: a stroke made before anything has shown a dead time becomes a ramp the filter and the dead-time
-            estimate can follow. 1.0 (the default): off; 0.4 the candidate of sec. 2.27, kept off there. Not started
+            estimate can follow. 0.4 by default (sec. 2.30; a share in (0, 1], 1.0: off). Not started
             where the controller knows a dead time from its start (a transport delay in its prediction, or a model file's delay as the estimator's
             starting dead time, :func:`~.start_caution.known_delay_s`). Measured with 0.4 and the scope
             ``valve_a_opening`` (sec. 2.25, 2.27): the quick box sweep's worst cells (flow out of reach, 2.88 / 2.56 /
@@ -389,7 +389,7 @@ class MpcSettings:
     ring_crossings: int = 3
     ring_floor: float = 0.05
     ring_relax_s: float = 30.0
-    start_rate_share: float = 1.0
+    start_rate_share: float = 0.4
     start_caution_s: float = 10.0
     start_caution_scope: str = "valve_a_opening"
     steady_start: bool = False

@@ -26,7 +26,7 @@ starts close valve a. Slowing valve a's opening only (sec. 2.25) leaves a start 
 bypass, the inlet's air) as it was: the winter heating steps' (60 -> 10 %) and S0-10 heating's; the full built-in
 bench's ratios are the same to the fourth decimal with it, and the flow-jump cells keep their gain.
 
-Off by default (``MpcSettings.start_rate_share`` 1.0; 0.4 measured as a default in docs/robustness.md sec. 2.27), and
+On by default (``MpcSettings.start_rate_share`` 0.4 since docs/robustness.md sec. 2.30; 1.0 turns it off), but
 not at all where the controller knows a dead time from its start (:func:`known_delay_s`: the transport delay its
 prediction carries, or a model file's delay as the estimator's starting dead time): the caution buys time for a dead
 time nothing has shown, and a controller told of one only loses time by it (the MPC told of the ``delay_3s`` box's 3

@@ -38,9 +38,9 @@ MOVE_PCT = 5.0
 WINDOW_S = (30.0, 50.0)
 
 
-def on_recirculating_box(**fields):
+def on_recirculating_box(seed: int = 0, **fields):
     """The quick trapped_air_release, the MPC with the recirculation term (thesis parameters otherwise; ``fields``:
-    MpcSettings fields, the deterministic deadline) and the recirculating box of the benchmark's seed 0."""
+    MpcSettings fields, the deterministic deadline) and the recirculating box of the benchmark's noise ``seed``."""
     from hvac_mpc.benchmarks import scenarios
     from hvac_mpc.benchmarks.simulate import DETERMINISTIC_DEADLINE_S, plant_seed
     from hvac_mpc.mismatch import make_plant
@@ -50,7 +50,7 @@ def on_recirculating_box(**fields):
     refined = RefinedModel(Parameters(), ("ptc_power_fall", "fan_curve", "valve_leakage"), (RECIRCULATION_TERM,),
                            absent=("bypass_flow",))
     mpc = MpcController(settings=settings, model=refined)
-    plant = make_plant("recirculation", seed=plant_seed(0, sc.seed), dt_s=1.0, inlet_temp_c=sc.inlet_temp_c,
+    plant = make_plant("recirculation", seed=plant_seed(seed, sc.seed), dt_s=1.0, inlet_temp_c=sc.inlet_temp_c,
                        chiller_setpoint_c=sc.chiller_setpoint_c, initial_command=sc.initial_command)
     return sc, mpc, plant
 

@@ -1,7 +1,7 @@
 """The start-up's caution: valve a's opening (or, with the scope ``valve_a_and_heater``, valve a's and the heater's
 moves) slowed until the supply reading has answered one (``MpcSettings.start_rate_share``, ``start_caution_s``,
-``start_caution_scope``; :class:`hvac_mpc.mpc.start_caution.StartCaution`; docs/robustness.md sec. 2.23, 2.25; off by
-default, measured as a default in sec. 2.27; not started where the controller knows a dead time from its start).
+``start_caution_scope``; :class:`hvac_mpc.mpc.start_caution.StartCaution`; docs/robustness.md sec. 2.23, 2.25; 0.4 by
+default since sec. 2.30; not started where the controller knows a dead time from its start).
 
 Truth for the closed loop is the independent box (``hvac_mpc.mismatch``) of the seeded box sweep
 (``python -m hvac_mpc.benchmarks.box_sweep --seed 0``, box S0-10): a 4.0 s dead time nothing has shown at the start, a
@@ -120,8 +120,9 @@ def test_a_model_told_of_the_delay_is_not_slowed_on_the_delayed_box():
     assert unaware_on[0] and unaware[unaware_on].max() <= bound + 1e-6
 
 
-def test_settings_are_checked_and_off_by_default_with_the_opening_scope():
-    assert MpcSettings().start_rate_share == 1.0  # off (docs/robustness.md sec. 2.27)
+def test_settings_are_checked_and_on_by_default_with_the_opening_scope():
+    assert MpcSettings().start_rate_share == 0.4  # on (docs/robustness.md sec. 2.30)
+    assert MpcSettings(start_rate_share=1.0).start_rate_share == 1.0  # off
     assert MpcSettings().start_caution_scope == VALVE_A_OPENING
     assert MpcSettings(start_caution_scope=VALVE_A_AND_HEATER).start_caution_scope == VALVE_A_AND_HEATER
     for bad in ("heater", "", None):

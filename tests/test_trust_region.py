@@ -52,13 +52,14 @@ MOVE_PCT = 5.0
 WINDOW_S = (30.0, 90.0)
 
 
-def _run(radii: tuple[float, ...]) -> dict:
-    """The MPC with the recirculation term on the recirculating box, quick trapped_air_release up to the end of
-    WINDOW_S: valve a's reversals (a move of at least MOVE_PCT against the last such move) in the window, the
-    steps whose plan came from the trust region, and the thermocouple IAE (C s) in the window."""
+def _run(radii: tuple[float, ...], seed: int = 0, **fields) -> dict:
+    """The MPC with the recirculation term on the recirculating box (the bench's noise ``seed``; ``fields``:
+    MpcSettings fields), quick trapped_air_release up to the end of WINDOW_S: valve a's reversals (a move of at least
+    MOVE_PCT against the last such move) in the window, the steps whose plan came from the trust region, and the
+    thermocouple IAE (C s) in the window."""
     from test_reversal_damping import on_recirculating_box
 
-    sc, mpc, plant = on_recirculating_box(rti_trust_radii=radii)
+    sc, mpc, plant = on_recirculating_box(seed, rti_trust_radii=radii, **fields)
     i_a = mpc.problem.i_valve_a
     a_prev, last_move, reversals, trusted, qps, iae = None, 0.0, 0, 0, 0, 0.0
     for k in range(int(WINDOW_S[1])):
@@ -80,17 +81,48 @@ def _run(radii: tuple[float, ...]) -> dict:
     return {"reversals": reversals, "trusted": trusted, "qps": qps, "iae": iae}
 
 
+#: The trust region's radii the tests use.
+RADII = (0.25, 0.1, 0.03)
+
+
 def test_trust_region_ends_most_of_valve_a_alternation_on_the_recirculating_box():
     """After the warm-up, the QP linearised at valve a open plans it shut with the blower low, and linearised there
     plans it open again; each plan costs more on the model's own rollout than the plan it was linearised at
     (docs/identification.md, 'Why the right model tracks worse'). The trust region re-solves such a QP near the
     linearisation point: valve a reverses far less often in the 60 s after the step, and the thermocouple IAE
-    there is lower (measured with the default reversal damping: 26 -> 14 reversals, 252.5 -> 234.6 C s)."""
-    off, on = _run(()), _run((0.25, 0.1, 0.03))
+    there is lower (measured with the default reversal damping: 26 -> 14 reversals, 252.5 -> 234.6 C s).
+
+    Without the start-up's caution (``start_rate_share`` 1), as measured: one noise sequence's count of reversals
+    scatters more than the bound's margin (docs/robustness.md sec. 2.30). The caution binds once here, the first
+    command (valve a 50 -> 70 % against 90 %); from the third sample the commands are those of the plain start within
+    0.5 W and 0.1 %, the filter's offset 0.02-0.03 degC higher through the warm-up, and the alternation after the
+    step to 22 C takes another course from 33 s (26 -> 23 reversals without the region, 14 -> 16 with it: 0.70). The
+    next test holds the defaults to the same bounds over four noise sequences."""
+    off, on = _run((), start_rate_share=1.0), _run(RADII, start_rate_share=1.0)
     assert off["trusted"] == 0
     assert on["trusted"] >= 10, on
     assert on["qps"] >= off["qps"] + on["trusted"], (on, off)  # each plan from the region took a QP more at least
     assert off["reversals"] >= 20, off
+    assert on["reversals"] <= 0.65 * off["reversals"], (on, off)
+    assert on["iae"] < 0.95 * off["iae"], (on, off)
+
+
+#: The bench's noise seeds the check with the controller's defaults sums over.
+NOISE_SEEDS = (0, 1, 2, 3)
+
+
+@pytest.mark.slow
+def test_trust_region_ends_most_of_valve_a_alternation_over_four_noise_sequences():
+    """The last test's bounds with the controller's defaults (the start-up's caution on), the reversals and the IAE
+    summed over the bench's noise seeds 0-3: the ratio of one sequence's reversals scatters with the caution or
+    without (with ``start_rate_share`` 1: 0.54, 0.56, 0.42, 0.50 for seeds 0-3, seed 5 0.76, above the bound;
+    with 0.4: 0.70, 0.52, 0.36, 0.47), the sums do not (107 -> 54 without the caution, 110 -> 55 with it;
+    docs/robustness.md sec. 2.30). The region's plans taken at least 10 times in each run."""
+    runs = [(_run((), seed), _run(RADII, seed)) for seed in NOISE_SEEDS]
+    assert all(on["trusted"] >= 10 and off["trusted"] == 0 for off, on in runs), runs
+    off = {k: sum(r[0][k] for r in runs) for k in ("reversals", "iae")}
+    on = {k: sum(r[1][k] for r in runs) for k in ("reversals", "iae")}
+    assert off["reversals"] >= 20 * len(NOISE_SEEDS), off
     assert on["reversals"] <= 0.65 * off["reversals"], (on, off)
     assert on["iae"] < 0.95 * off["iae"], (on, off)
 
@@ -123,6 +155,6 @@ def test_cold_start_is_the_plain_sqp_with_the_region_set():
     docs/identification.md, "The trust region at the cold start"). The region is for the real-time iteration's one
     step from the last plan; the cold start's command is the plain SQP's."""
     plain, plain_qps, _ = _first_step(())
-    regioned, qps, radius = _first_step((0.25, 0.1, 0.03))
+    regioned, qps, radius = _first_step(RADII)
     assert radius == 1.0 and qps == plain_qps >= 2, (qps, plain_qps, radius)
     np.testing.assert_array_equal(regioned, plain)
