@@ -197,9 +197,9 @@ class EkfSettings:
     adds to the level's, and 2 W (0.055 degC per sample at 120 m3/h, nearly four times the offset's walk) passes the
     reading's noise on (the built-in plant's cool-down 0.457 -> 0.474 of the baseline's IAE); 0.5 W, the offset's
     walk at 90 m3/h, keeps the gain at the flow steps without that cost (sec. 2.29).
-    ``supply_heat_release_at_rest`` (needs ``r_supply_rest_c`` > 0): the release waits, beyond the dead time, for the
-    rest gate's first settled period after the first response (:mod:`~.rest_gate`: a whole ``rest_window_s`` with the
-    model's air, flow and the offset still), so what the start-up's transient and the first moves leave (a late
+    ``supply_heat_release_at_rest``: the release waits, beyond the dead time, for the first settled period after the
+    first response (:mod:`~.rest_gate`, the gate ``r_supply_rest_c`` uses, built for it where that is 0: a whole
+    ``rest_window_s`` with the model's air, flow and the offset still), so what the start-up's transient and the first moves leave (a late
     response, valve a's answer of the other sign the placement must see) goes to the offset alone, as in the filter
     without the heat (docs/robustness.md sec. 2.31). ``supply_heat_flow_gate_s`` (s, in [0, 3600]; 0: none): once
     released, the heat takes the readings and walks only within this long after ln of the model's flow left its
@@ -459,9 +459,6 @@ class EkfSettings:
         if self.q_supply_heat_w <= 0.0:
             self._refuse_inert(prefix, SUPPLY_HEAT_SHAPES, "the heat flow into the mixed air",
                                f"{prefix}.q_supply_heat_w > 0")
-        if self.supply_heat_release_at_rest and self.r_supply_rest_c <= 0.0:
-            raise InvalidSettings(f"{prefix}.supply_heat_release_at_rest = True waits for the rest gate and needs "
-                                  f"{prefix}.r_supply_rest_c > 0 (else leave it at False)")
 
     def _refuse_inert(self, prefix: str, gates: Mapping[str, Any], what: str, needs: str) -> None:
         """Refuse a setting of ``gates`` (field -> its inert value) moved off its inert value while the setting it
@@ -556,8 +553,12 @@ class DisturbanceEkf:
                                            prior_steps=self.dead_time_prior_s / self.dt_s)
         self.R_diag = np.square([s.r_supply_c, s.r_flow_m3s, s.r_water_c, s.r_inlet_c, s.r_heater_outlet_c])
         # the supply reading's deviation at rest (EkfSettings.r_supply_rest_c): the rest gate and the variances there
-        self.rest_gate = (RestGate(s.rest_window_s, s.rest_air_band_c, s.rest_log_flow_band, s.rest_offset_band_c,
-                                   self.dt_s) if s.r_supply_rest_c > 0.0 else None)
+        self.rest_gate = self._new_rest_gate() if s.r_supply_rest_c > 0.0 else None
+        # the rest the heat flow's release waits for (EkfSettings.supply_heat_release_at_rest): the same gate
+        self.heat_rest_gate = ((self.rest_gate or self._new_rest_gate())
+                               if s.q_supply_heat_w > 0.0 and s.supply_heat_release_at_rest else None)
+        gates = [g for g in (self.rest_gate, self.heat_rest_gate) if g is not None]
+        self._rest_gates = tuple(g for i, g in enumerate(gates) if all(g is not h for h in gates[:i]))  # each once
         # the supply reading left out while a predicted response is still to show (EkfSettings.response_wait_c)
         self.response_wait = (ResponseWait(s.response_wait_c, s.response_wait_share,
                                            max(1, math.ceil(s.dead_time_min_s / self.dt_s - 1e-9)),
@@ -586,6 +587,11 @@ class DisturbanceEkf:
             self.rest_fit = FlowStepFit(s.bypass_flow_exponent_prior, s.bypass_flow_exponent_sd,
                                         s.bypass_flow_rest_noise_c, s.bypass_flow_exponent_min,
                                         s.bypass_flow_exponent_max)
+
+    def _new_rest_gate(self) -> RestGate:
+        """A rest gate of the settings' window and bands (:mod:`~.rest_gate`)."""
+        s = self.settings
+        return RestGate(s.rest_window_s, s.rest_air_band_c, s.rest_log_flow_band, s.rest_offset_band_c, self.dt_s)
 
     def _d(self, z, setpoint):
         x = z[:self.nx]
@@ -621,8 +627,8 @@ class DisturbanceEkf:
         self._relearning = False  # within reanchor_hold_s of a newly honoured dead time
         self._age_s = 0.0  # time since initialise
         self.supply_innovation_c = self.supply_nis = math.nan  # no measurement update of this run yet
-        if self.rest_gate is not None:
-            self.rest_gate.reset()
+        for gate in self._rest_gates:
+            gate.reset()
         if self.response_wait is not None:
             self.response_wait.reset()
         self._committed = self.settings.bypass_flow_exponent_prior  # the exponent at the end of the last flow change
@@ -889,8 +895,8 @@ class DisturbanceEkf:
                 self._add_heat_variance(self.settings.q_supply_heat_w ** 2)
         if self.n_hist:
             self.dead_time.push_air(air_c)
-        if self.rest_gate is not None:
-            self.rest_gate.push(air_c, flow_m3s, self.mix_offset_c)
+        for gate in self._rest_gates:
+            gate.push(air_c, flow_m3s, self.mix_offset_c)
         if self.learns_bypass_flow and not self.anchors_bypass_flow:
             self._gate(flow_m3s)
 
@@ -966,7 +972,7 @@ class DisturbanceEkf:
         if self._heat_released or self.i_heat is None or not self.response_seen:
             return
         if self.settings.supply_heat_release_at_rest and not self._rested:
-            self._rested = self.rest_gate.at_rest  # the first settled period after the first response
+            self._rested = self.heat_rest_gate.at_rest  # the first settled period after the first response
             if not self._rested:
                 return
         if self._heat_seen_at_s is None:

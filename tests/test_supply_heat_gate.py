@@ -41,8 +41,9 @@ def open_loop(**gate):
     def record(e: DisturbanceEkf) -> None:
         u = commands[min(len(rows) // HOLD_S, len(commands) - 1)].vector()
         y = model.outputs.dict(model.y(e.x, u, e.disturbance_values(SETPOINT_C), e.model_parameters()))
+        gate = e.heat_rest_gate or e.rest_gate
         rows.append((y["supply_air_temp_c"] - plant.truth()["supply_air_temp_c"], e.supply_heat_w,
-                     float(e.P[e.i_heat, e.i_heat]), float(e._heat_released), float(e.rest_gate.at_rest),
+                     float(e.P[e.i_heat, e.i_heat]), float(e._heat_released), float(gate.at_rest),
                      float(e.heat_held), float(e.response_seen)))
 
     feed_open_loop(ekf, plant, commands, HOLD_S, record)
@@ -58,23 +59,30 @@ def test_settings_checked():
     for bad in (-1.0, 4000.0, float("nan")):
         with pytest.raises(InvalidSettings, match="ekf.supply_heat_flow_gate_s"):
             MpcSettings(ekf=EkfSettings(q_supply_heat_w=WALK_W, supply_heat_flow_gate_s=bad))
-    with pytest.raises(InvalidSettings, match="ekf.supply_heat_release_at_rest = True .* needs ekf.r_supply_rest_c > 0"):
-        EkfSettings(q_supply_heat_w=WALK_W, supply_heat_release_at_rest=True, r_supply_rest_c=0.0).validate()
+    # without the reading's rest weighting the filter builds the rest gate for the release alone
+    model = HvacModel(Parameters())
+    alone = DisturbanceEkf(model, EkfSettings(q_supply_heat_w=WALK_W, supply_heat_release_at_rest=True,
+                                              r_supply_rest_c=0.0))
+    assert alone.rest_gate is None and alone.heat_rest_gate is not None
+    shared = DisturbanceEkf(model, EkfSettings(q_supply_heat_w=WALK_W, supply_heat_release_at_rest=True))
+    assert shared.heat_rest_gate is shared.rest_gate is not None
 
 
 def test_the_release_waits_for_the_first_settled_period_and_keeps_the_gain_at_the_flow_steps():
     """Ungated the heat is released at the first response once the dead-time window has passed (the box has no dead
     time beyond the model's) before the rest gate is at rest; with ``supply_heat_release_at_rest`` not before it has
-    been at rest since the first response, and until then
-    the heat stays at 0 W with no variance. The error after the flow steps stays below half the plain filter's
-    (sec. 2.29: 174.7 -> 68.9 degC s ungated)."""
-    ungated, gated = open_loop(), open_loop(supply_heat_release_at_rest=True)
+    been at rest since the first response, and until then the heat stays at 0 W with no variance; the same with the
+    filter's own rest gate where the reading's rest weighting is off (``r_supply_rest_c`` 0). The error after the flow
+    steps stays below half the plain filter's (sec. 2.29: 174.7 -> 68.9 degC s ungated)."""
+    ungated, gated = open_loop(supply_heat_release_at_rest=False), open_loop(supply_heat_release_at_rest=True)
     first = int(np.argmax(ungated[:, 3])), int(np.argmax(gated[:, 3]))
     assert ungated[first[0], 3] == 1.0 and gated[first[1], 3] == 1.0  # both released within the run
     assert first[1] > first[0]
     seen = int(np.argmax(gated[:, 6]))
     rested = seen + int(np.argmax(gated[seen:, 4]))  # the rest gate's first sample at rest since the response
     assert gated[seen, 6] == 1.0 and gated[rested, 4] == 1.0 and first[1] >= rested > seen
+    alone = open_loop(supply_heat_release_at_rest=True, r_supply_rest_c=0.0)  # the filter's own rest gate
+    assert alone[-1, 3] == 1.0 and int(np.argmax(alone[:, 3])) >= seen + int(np.argmax(alone[seen:, 4])) > seen
     assert np.all(gated[:first[1], 1] == 0.0) and np.all(gated[:first[1], 2] == 0.0)
     plain, _ = plain_open_loop(0.0)
     assert error_after_flow_steps(gated) < 0.5 * error_after_flow_steps(plain)
@@ -84,7 +92,7 @@ def test_the_flow_gate_holds_the_heat_at_a_steady_flow():
     """With ``supply_heat_flow_gate_s`` 10 the heat takes the readings and walks only within 10 s after the model's
     flow moved: over the last 12 s of every hold it stays as it is, value and variance, where ungated it moves; the
     gain at the flow steps is kept."""
-    gated, ungated = open_loop(supply_heat_flow_gate_s=10.0), open_loop()
+    gated, ungated = open_loop(supply_heat_flow_gate_s=10.0), open_loop(supply_heat_flow_gate_s=0.0)
     released = int(np.argmax(gated[:, 3]))
     tails = [slice(j * HOLD_S + 48, (j + 1) * HOLD_S) for j in range(2, len(MOVES))
              if j * HOLD_S + 48 > released]
@@ -107,7 +115,7 @@ def test_s0_7_heating_switches_the_filter_with_the_heat_released_at_rest():
     gated_iae, base_iae, placements, valve_a = _run({"ekf": {**heat, "supply_heat_release_at_rest": True}})
     assert "heater_air" in placements[80:130]
     assert valve_a[-60:].max() < 30.0 and gated_iae < base_iae
-    ungated_iae, _, ungated_placements, _ = _run({"ekf": heat})
+    ungated_iae, _, ungated_placements, _ = _run({"ekf": {**heat, "supply_heat_release_at_rest": False}})
     assert "heater_air" not in ungated_placements and ungated_iae > 1.3 * base_iae
 
 
@@ -123,11 +131,12 @@ def test_delay_5s_flow_jump_keeps_no_heat_from_the_start_up():
     cut = scenarios.mismatch_scenarios()["flow_out_of_reach"].quick()
 
     def mpc_iae(ekf):
-        res, _ = bench.run_benchmark([cut], {"baseline": bench.baseline_factory(), "mpc": mpc_factory_with(None, ekf)}, 0,
-                                     plant_factory=variant_factory("delay_5s"))
+        factories = {"baseline": bench.baseline_factory(), "mpc": mpc_factory_with(None, ekf)}
+        res, _ = bench.run_benchmark([cut], factories, 0, plant_factory=variant_factory("delay_5s"))
         return res["scenarios"][cut.name]["mpc"]["figures"]["temp_iae_cs"]
 
-    plain, ungated = mpc_iae(None), mpc_iae({"q_supply_heat_w": WALK_W})
+    plain = mpc_iae({"q_supply_heat_w": 0.0})
+    ungated = mpc_iae({"q_supply_heat_w": WALK_W, "supply_heat_release_at_rest": False})
     gated = mpc_iae({"q_supply_heat_w": WALK_W, "supply_heat_release_at_rest": True})
     assert ungated > 1.5 * plain
     assert gated < 1.1 * plain
