@@ -205,7 +205,9 @@ class EkfSettings:
     released, the heat takes the readings and walks only within this long after ln of the model's flow left its
     running mean over :data:`SUPPLY_HEAT_FLOW_WINDOW_S` by more than :data:`SUPPLY_HEAT_FLOW_BAND`; held otherwise
     (:attr:`DisturbanceEkf.heat_held`): at a steady flow the heat and the offset are one to the readings, and the
-    offset alone takes the level.
+    offset alone takes the level. Both settings, off: measured in docs/robustness.md sec. 2.31 (with 0.5 W the release
+    at rest keeps S0-7's placement switch and the full built-in bench below today's in every scenario; the flow gate
+    costs that bench four scenarios).
 
     ``q_heater_outlet_offset_c``: random walk (degC per sample) of an offset of the heater outlet
     reading, its own integrating disturbance (0: none). Without it a persistent error of that reading
