@@ -93,7 +93,8 @@ OWN_RANGES = {"bypass_flow_after_s": (0.0, 3600.0), "motor_sd_after_response_c":
               "rest_log_flow_band": (0.0, 10.0), "rest_offset_band_c": (0.0, 100.0),
               "response_wait_c": (0.0, 10.0), "response_wait_share": (0.01, 1.0), "response_wait_flat_c": (0.0, 10.0),
               "response_wait_rearm_s": (0.0, 3600.0), "q_mix_offset_per_air_change": (0.0, 1.0),
-              "q_supply_heat_w": (0.0, 100.0), "supply_heat_sd0_w": (1.0, 1000.0)}
+              "q_supply_heat_w": (0.0, 100.0), "supply_heat_sd0_w": (1.0, 1000.0),
+              "supply_heat_flow_gate_s": (0.0, 3600.0)}
 #: Settings that shape the learning of the bypass-flow exponent and do nothing without ``learn_bypass_flow``
 #: (field -> its value that leaves learning as it is).
 BYPASS_FLOW_LEARNING_GATES = {"bypass_flow_anchored": False, "bypass_flow_after_response": False,
@@ -101,7 +102,14 @@ BYPASS_FLOW_LEARNING_GATES = {"bypass_flow_anchored": False, "bypass_flow_after_
                               "bypass_flow_at_rest": False}
 #: Settings that shape the heat flow into the mixed air and do nothing without ``q_supply_heat_w`` (field -> its value
 #: that leaves the heat flow as it is).
-SUPPLY_HEAT_SHAPES = {"supply_heat_sd0_w": 5.0, "supply_heat_level_neutral": False}
+SUPPLY_HEAT_SHAPES = {"supply_heat_sd0_w": 5.0, "supply_heat_level_neutral": False, "supply_heat_flow_gate_s": 0.0,
+                      "supply_heat_release_at_rest": False}
+#: The heat flow's flow gate (``EkfSettings.supply_heat_flow_gate_s``): the model's flow counts as moving while ln of
+#: it is more than this from its running mean over :data:`SUPPLY_HEAT_FLOW_WINDOW_S`. ASSUMPTION: as the rest gate's
+#: and the exponent's gate's band (``rest_log_flow_band``, ``bypass_flow_gate``, 0.05: a 5 % change of the flow).
+SUPPLY_HEAT_FLOW_BAND = 0.05
+#: The running mean's time constant (s) of that gate. ASSUMPTION: as ``bypass_flow_window_s`` (10 s).
+SUPPLY_HEAT_FLOW_WINDOW_S = 10.0
 #: Largest change of the heater command (W) across a flow step that still counts for the exponent fitted at rest
 #: (``EkfSettings.bypass_flow_at_rest``). ASSUMPTION: 50 W move the supply air about 1.7 degC at 90 m3/h, as much as
 #: 5-7 percentage points of valve a (about 0.25 degC per point), the valve's bound in the measured setting.
@@ -189,6 +197,17 @@ class EkfSettings:
     adds to the level's, and 2 W (0.055 degC per sample at 120 m3/h, nearly four times the offset's walk) passes the
     reading's noise on (the built-in plant's cool-down 0.457 -> 0.474 of the baseline's IAE); 0.5 W, the offset's
     walk at 90 m3/h, keeps the gain at the flow steps without that cost (sec. 2.29).
+    ``supply_heat_release_at_rest``: the release waits, beyond the dead time, for the first settled period after the
+    first response (:mod:`~.rest_gate`, the gate ``r_supply_rest_c`` uses, built for it where that is 0: a whole
+    ``rest_window_s`` with the model's air, flow and the offset still), so what the start-up's transient and the first moves leave (a late
+    response, valve a's answer of the other sign the placement must see) goes to the offset alone, as in the filter
+    without the heat (docs/robustness.md sec. 2.31). ``supply_heat_flow_gate_s`` (s, in [0, 3600]; 0: none): once
+    released, the heat takes the readings and walks only within this long after ln of the model's flow left its
+    running mean over :data:`SUPPLY_HEAT_FLOW_WINDOW_S` by more than :data:`SUPPLY_HEAT_FLOW_BAND`; held otherwise
+    (:attr:`DisturbanceEkf.heat_held`): at a steady flow the heat and the offset are one to the readings, and the
+    offset alone takes the level. Both settings, off: measured in docs/robustness.md sec. 2.31 (with 0.5 W the release
+    at rest keeps S0-7's placement switch and the full built-in bench below today's in every scenario; the flow gate
+    costs that bench four scenarios).
 
     ``q_heater_outlet_offset_c``: random walk (degC per sample) of an offset of the heater outlet
     reading, its own integrating disturbance (0: none). Without it a persistent error of that reading
@@ -356,6 +375,8 @@ class EkfSettings:
     q_supply_heat_w: float = 0.0
     supply_heat_sd0_w: float = 5.0
     supply_heat_level_neutral: bool = False
+    supply_heat_flow_gate_s: float = 0.0
+    supply_heat_release_at_rest: bool = False
     q_flow_offset_m3s: float = 3e-5
     q_inlet_c: float = 0.01
     r_supply_c: float = 0.05
@@ -412,6 +433,7 @@ class EkfSettings:
                 continue
             if f.name in ("use_heater_outlet", "learn_bypass_flow", "bypass_flow_anchored", "bound_motor_rise",
                           "reanchor_before_response", "response_wait_unseen_only", "supply_heat_level_neutral",
+                          "supply_heat_release_at_rest",
                           "bypass_flow_after_response", "bypass_flow_commit_at_rest", "bypass_flow_at_rest"):
                 check_flag(f"{prefix}.{f.name}", value)
                 continue
@@ -533,8 +555,12 @@ class DisturbanceEkf:
                                            prior_steps=self.dead_time_prior_s / self.dt_s)
         self.R_diag = np.square([s.r_supply_c, s.r_flow_m3s, s.r_water_c, s.r_inlet_c, s.r_heater_outlet_c])
         # the supply reading's deviation at rest (EkfSettings.r_supply_rest_c): the rest gate and the variances there
-        self.rest_gate = (RestGate(s.rest_window_s, s.rest_air_band_c, s.rest_log_flow_band, s.rest_offset_band_c,
-                                   self.dt_s) if s.r_supply_rest_c > 0.0 else None)
+        self.rest_gate = self._new_rest_gate() if s.r_supply_rest_c > 0.0 else None
+        # the rest the heat flow's release waits for (EkfSettings.supply_heat_release_at_rest): the same gate
+        self.heat_rest_gate = ((self.rest_gate or self._new_rest_gate())
+                               if s.q_supply_heat_w > 0.0 and s.supply_heat_release_at_rest else None)
+        gates = [g for g in (self.rest_gate, self.heat_rest_gate) if g is not None]
+        self._rest_gates = tuple(g for i, g in enumerate(gates) if all(g is not h for h in gates[:i]))  # each once
         # the supply reading left out while a predicted response is still to show (EkfSettings.response_wait_c)
         self.response_wait = (ResponseWait(s.response_wait_c, s.response_wait_share,
                                            max(1, math.ceil(s.dead_time_min_s / self.dt_s - 1e-9)),
@@ -564,6 +590,11 @@ class DisturbanceEkf:
                                         s.bypass_flow_rest_noise_c, s.bypass_flow_exponent_min,
                                         s.bypass_flow_exponent_max)
 
+    def _new_rest_gate(self) -> RestGate:
+        """A rest gate of the settings' window and bands (:mod:`~.rest_gate`)."""
+        s = self.settings
+        return RestGate(s.rest_window_s, s.rest_air_band_c, s.rest_log_flow_band, s.rest_offset_band_c, self.dt_s)
+
     def _d(self, z, setpoint):
         x = z[:self.nx]
         target = x[self.i_water] if self.hold_water else setpoint
@@ -588,6 +619,9 @@ class DisturbanceEkf:
         self._heat_released = False  # the heat flow into the mixed air estimated (_release_heat)
         self._heat_seen_at_s: float | None = None  # when the heat's release first saw a response
         self._heat_gain = 0.0  # the heat's effect on the air at the last time update's flow (degC per W)
+        self._heat_flow_mean: float | None = None  # ln of the model's flow, its running mean (supply_heat_flow_gate_s)
+        self._heat_open_until_s = -math.inf  # the heat takes the readings until then (supply_heat_flow_gate_s)
+        self._rested = False  # the rest gate at rest since the first response (supply_heat_release_at_rest)
         self._honoured_lag: float | None = None  # the dead time (samples) honoured at the last re-anchor
         self._hold_until_s = 0.0  # the shadowed states are re-anchored every sample until then (reanchor_hold_s)
         self._seen_at_s: float | None = None  # when the dead-time estimate first saw a response
@@ -595,8 +629,8 @@ class DisturbanceEkf:
         self._relearning = False  # within reanchor_hold_s of a newly honoured dead time
         self._age_s = 0.0  # time since initialise
         self.supply_innovation_c = self.supply_nis = math.nan  # no measurement update of this run yet
-        if self.rest_gate is not None:
-            self.rest_gate.reset()
+        for gate in self._rest_gates:
+            gate.reset()
         if self.response_wait is not None:
             self.response_wait.reset()
         self._committed = self.settings.bypass_flow_exponent_prior  # the exponent at the end of the last flow change
@@ -858,12 +892,13 @@ class DisturbanceEkf:
                                                           + self._air_step_var(air_c))
         if self.i_heat is not None:
             self._heat_gain = self._heat_effect_c_per_w(flow_m3s)
-            if self._heat_released:  # the heat flow's walk (EkfSettings.q_supply_heat_w)
+            self._note_heat_flow(flow_m3s)
+            if self._heat_released and not self.heat_held:  # the heat flow's walk (EkfSettings.q_supply_heat_w)
                 self._add_heat_variance(self.settings.q_supply_heat_w ** 2)
         if self.n_hist:
             self.dead_time.push_air(air_c)
-        if self.rest_gate is not None:
-            self.rest_gate.push(air_c, flow_m3s, self.mix_offset_c)
+        for gate in self._rest_gates:
+            gate.push(air_c, flow_m3s, self.mix_offset_c)
         if self.learns_bypass_flow and not self.anchors_bypass_flow:
             self._gate(flow_m3s)
 
@@ -938,6 +973,10 @@ class DisturbanceEkf:
         took came back as an error at the next flow change."""
         if self._heat_released or self.i_heat is None or not self.response_seen:
             return
+        if self.settings.supply_heat_release_at_rest and not self._rested:
+            self._rested = self.heat_rest_gate.at_rest  # the first settled period after the first response
+            if not self._rested:
+                return
         if self._heat_seen_at_s is None:
             self._heat_seen_at_s = self._age_s
         waited = self._age_s - self._heat_seen_at_s >= self.settings.dead_time_window_s
@@ -945,6 +984,38 @@ class DisturbanceEkf:
             return
         self._add_heat_variance(self.settings.supply_heat_sd0_w ** 2)
         self._heat_released = True
+
+    @property
+    def heat_held(self) -> bool:
+        """Whether the heat flow into the mixed air is held as it is this sample, out of the measurement update and
+        without its walk: with ``EkfSettings.supply_heat_flow_gate_s`` while the model's flow has not moved within
+        that long. Held, the mixed-air offset alone takes the supply reading's error, as in the filter without the
+        heat."""
+        gate = self.settings.supply_heat_flow_gate_s
+        return gate > 0.0 and self._age_s > self._heat_open_until_s
+
+    def _note_heat_flow(self, flow_m3s: float) -> None:
+        """The heat flow's flow gate (``EkfSettings.supply_heat_flow_gate_s``): open for that long after ln of the
+        model's flow leaves its running mean (:data:`SUPPLY_HEAT_FLOW_WINDOW_S`) by more than
+        :data:`SUPPLY_HEAT_FLOW_BAND`; at a steady flow the heat and the offset are one to the readings."""
+        gate = self.settings.supply_heat_flow_gate_s
+        if gate <= 0.0:
+            return
+        log_flow = math.log(max(flow_m3s, 1e-4))
+        if self._heat_flow_mean is None:
+            self._heat_flow_mean = log_flow
+        self._heat_flow_mean += min(1.0, self.dt_s / SUPPLY_HEAT_FLOW_WINDOW_S) * (log_flow - self._heat_flow_mean)
+        if abs(log_flow - self._heat_flow_mean) > SUPPLY_HEAT_FLOW_BAND:
+            self._heat_open_until_s = self._age_s + gate
+
+    def _hide_heat(self) -> float:
+        """Take the heat flow out of the coming measurement update (its correlations dropped, its variance set to 0,
+        so its gain is 0); returns its variance (W^2), which the caller puts back after the update."""
+        i = self.i_heat
+        var = float(self.P[i, i])
+        self.P[i, :] = 0.0
+        self.P[:, i] = 0.0
+        return var
 
     def _heat_effect_c_per_w(self, flow_m3s: float) -> float:
         """The heat flow's effect on the model's air per W (degC/W), 1 / (m_dot c_p) at the model's volume flow
@@ -1032,8 +1103,12 @@ class DisturbanceEkf:
                 self._update.set_fixed(8, r_diag)
                 self._r_in_use = r_diag
         self._note_supply_innovation(values[0], ok[0], weights, float(r_diag[0]))
+        held = self._heat_released and self.heat_held
+        heat_var = self._hide_heat() if held else 0.0
         zn, Pt = self._update(self.z, self.P, values, ok, u, setpoint_c, weights, float(self.learning))
         self.z, self.P = zn, Pt.T
+        if held:
+            self.P[self.i_heat, self.i_heat] = heat_var
         if self.settings.bound_motor_rise:
             self.bound_state("motor_rise_c", 0.0, float(self.model.params.motor_gain_max_c))
         if self.learns_bypass_flow:
