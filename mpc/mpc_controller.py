@@ -221,6 +221,10 @@ class MpcSettings:
             ``"valve_a_opening"`` (the default scope, docs/robustness.md sec. 2.25) valve a's opening only, toward the
             core path, its closing (toward the bypass, whose air is the inlet's) and the heater free;
             ``"valve_a_and_heater"`` both ways of valve a and the heater (sec. 2.23).
+        start_caution_in_qp: with the scope ``valve_a_opening``, the caution's bound on valve a's opening is a bound
+            of the QP (True, the default) or only of the command the QP's answer is projected onto (False): then a
+            step where the bound does not bind is the plain start's step to the bit, and where it binds valve a is
+            cut to the bound with the other inputs as the QP planned them (docs/robustness.md sec. 2.32).
         steady_start: the QPs of a reference change (``rti``/``sqp``) start from the plan toward the new
             reference's steady-state target on the model with the estimator's disturbances (the inputs that hold
             it at rest, ramped to at the rate limits; :mod:`hvac_mpc.mpc.steady_target`) instead of the plan
@@ -392,6 +396,7 @@ class MpcSettings:
     start_rate_share: float = 0.4
     start_caution_s: float = 10.0
     start_caution_scope: str = "valve_a_opening"
+    start_caution_in_qp: bool = True
     steady_start: bool = False
     choose_offset_placement: bool = True
     placement_q_heater_air_c: float = 0.01
@@ -529,6 +534,7 @@ class MpcSettings:
         if self.start_caution_scope not in START_CAUTION_SCOPES:
             raise InvalidSettings(f"{p}.start_caution_scope = {self.start_caution_scope!r} must be one of "
                                   f"{list(START_CAUTION_SCOPES)}")
+        check_flag(f"{p}.start_caution_in_qp", self.start_caution_in_qp)
         check_number(f"{p}.valve_a_reversal_share", self.valve_a_reversal_share, 0.0, 1.0, lo_open=True)
         check_number(f"{p}.valve_a_reversal_min_pct", self.valve_a_reversal_min_pct, 0.0, 100.0)
         check_number(f"{p}.valve_a_hold_shortfall_c", self.valve_a_hold_shortfall_c, 0.0, 20.0)
@@ -927,9 +933,11 @@ class MpcController:
         bounds = pb.command_bounds(self.u_prev, cap, heater_c)  # of the command, and folded into the QP's
         if ring < 1.0:
             bounds = self._ring_slowed(bounds, ring)
+        qp_bounds = bounds
         if start < 1.0 and self.start_caution.scope != VALVE_A_AND_HEATER:
             bounds = self._start_opening_slowed(bounds, start)
-        u_lo, u_hi = pb.input_bounds(self.u_prev, cap, heater_c, command=bounds)
+            qp_bounds = bounds if s.start_caution_in_qp else qp_bounds
+        u_lo, u_hi = pb.input_bounds(self.u_prev, cap, heater_c, command=qp_bounds)
         y_ref = self._tracked_reference(ref, d, cap)
         w_y = pb.heating_weights(pb.output_weights(ref), heating=pb.heating(self.u_prev))
         self._flow_factor = self._flow_weight_factor(y_ref, d)
