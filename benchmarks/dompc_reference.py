@@ -49,6 +49,11 @@ class DoMpcSolver:
     name = "do-mpc"
 
     def __init__(self, problem: TrackingProblem, *, max_iter: int = 300):
+        for weight, field in ((problem.body_heat_coef, "body_heat_power_w"),
+                              (problem.flap_closure_weight, "flap_closure_per_pct2")):
+            if weight:
+                raise ValueError(f"DoMpcSolver: weights.{field} must be 0 (range [0, 0]); the term is in the OSQP, "
+                                 "IPOPT and fatrop solvers only, and do-mpc would solve another problem")
         do_mpc = _import_do_mpc()
         self.pb = pb = problem
         N, nx, nu, nd, ny = pb.N, pb.nx, pb.nu, pb.nd, pb.ny

@@ -806,6 +806,7 @@ class MpcController:
         self._u_prev_scaled: tuple[np.ndarray, np.ndarray] | None = None
         self._out_of_reach: dict = {}
         self._flow_factor = 1.0
+        self._valve_a_held = False
         if self.reach is not None:
             self.reach.reset()
         self.temp_reach.reset()
@@ -894,6 +895,7 @@ class MpcController:
 
     def _step(self, measurement: Measurement, reference, t0: float) -> StepResult:
         s, pb = self.settings, self.problem
+        self._valve_a_held = False  # this step's, also where it returns before the solve
         ref = self._valid_reference(reference)
         ref_status = None
         if ref is None:
@@ -970,7 +972,6 @@ class MpcController:
         else:
             self.solver.reset()
             u_cmd, fallback = self._fallback_command(measurement, ref)
-        self._valve_a_held = False
         if sol.ok:
             self._damp_reversal(u_cmd)  # the QP's answer only: a fallback's command stands as its layer made it
             self._hold_valve_a(u_cmd, heater_c, measurement, ref)
@@ -1447,7 +1448,7 @@ class MpcController:
             "solver": getattr(self.solver, "name", self.settings.solver),
             "out_of_reach": dict(getattr(self, "_out_of_reach", {})),
             "flow_weight_factor": float(getattr(self, "_flow_factor", 1.0)),
-            "valve_a_held": bool(getattr(self, "_valve_a_held", False)),
+            "valve_a_held": self._valve_a_held,
         }
         if cap is not None:
             stats["valve_a_cap_pct"] = cap

@@ -137,7 +137,7 @@ def trial_floor(floor: float, forget: float, steps: int) -> float:
     a consistent filter decide (one normalised square exceeds 1.5 in 22 % of samples); this one asks of a few
     samples the confidence the window's floor asks of the window. ASSUMPTION: a forgetting sum of chi-square terms
     is taken as a scaled chi-square with its first two moments (Satterthwaite)."""
-    from scipy.stats import chi2  # only with the sign check on; scipy.stats takes about 0.3 s to import
+    from scipy.stats import chi2  # the sign check's (off by default), which loads it when it is built
 
     rare = chi2.sf(floor / _scale(forget, math.inf), _degrees(forget, math.inf))
     return float(_scale(forget, steps) * chi2.isf(rare, _degrees(forget, steps)))

@@ -96,7 +96,7 @@ class PlanMerit:
                 cost += ready_w[k - 1] * short * short
             if k < N:
                 du = u - prev
-                cost += ca.dot(ca.DM(pb.w_du), du * du)
+                cost += ca.dot(ca.DM(pb.w_du), du * du) + pb.flap_closure_cost(u, k)
                 if pb.floor:
                     ih = pb.i_heater_cmd
                     row = pb.floor_row(y[i_flow], pb.u_off[ih] + pb.u_sc[ih] * u[ih])

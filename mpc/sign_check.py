@@ -113,6 +113,8 @@ class ValveSignCheck:
     """The sign of the reading's answer to a valve a departure from rest (module docstring)."""
 
     def __init__(self, move_pct: float, change_c: float, window_s: float, rest_s: float, dt_s: float):
+        import scipy.stats  # noqa: F401  the trial floor's (placement.trial_floor): loaded here, not in a control step
+
         self.move_pct = float(move_pct)
         self.change_c = float(change_c)
         self.window = max(1, int(round(window_s / dt_s)))

@@ -23,11 +23,8 @@ from __future__ import annotations
 
 import math
 
-#: Distance of the heater command from its upper bound that still counts as at the bound (W; the command's
-#: resolution, as in :mod:`~.temperature_reach`).
-HEATER_MARGIN_W = 1.0
-#: Heater command above which the heater counts as on (W; ``ocp.HEATING_CMD_W``).
-HEATER_ON_W = 1.0
+from .ocp import HEATING_CMD_W as HEATER_ON_W  # the heater command above which it counts as on (W)
+from .temperature_reach import HEATER_MARGIN_W  # the distance from the upper bound that counts as at it (W)
 
 
 def heater_limited(heater_cmd_w: float, heater_upper_w: float, reading_c: float | None, reference_c: float | None,

@@ -139,3 +139,33 @@ def test_acados_refuses_the_term_it_does_not_hold():
     pb = TrackingProblem(Parameters(), OcpSpec(weights=Weights(flap_closure_per_pct2=1e-4)))
     with pytest.raises(ValueError, match="flap_closure_per_pct2"):
         RtiAcadosSolver(pb)
+
+
+def test_the_do_mpc_reference_refuses_the_term_it_does_not_hold():
+    """do-mpc's objective is built from the stage-wise description's residuals: with the term on it refuses, naming
+    the field (before do-mpc itself is needed), instead of solving another problem."""
+    from hvac_mpc.benchmarks.dompc_reference import DoMpcSolver
+    pb = TrackingProblem(Parameters(), OcpSpec(weights=Weights(flap_closure_per_pct2=1e-4)))
+    with pytest.raises(ValueError, match="flap_closure_per_pct2"):
+        DoMpcSolver(pb)
+
+
+def test_the_plan_merit_prices_the_term_as_the_qp_does():
+    """The globalised step and the trust region judge plans by :class:`~hvac_mpc.mpc.plan_merit.PlanMerit`'s cost: with
+    the term on, that cost is the cost without it plus the term over the horizon's stages, so a plan's pull toward the
+    flaps' target is not priced as a loss."""
+    from hvac_mpc.mpc.plan_merit import PlanMerit
+
+    on = TrackingProblem(Parameters(), OcpSpec(weights=Weights(flap_closure_per_pct2=1e-4)))
+    off = TrackingProblem(Parameters(), OcpSpec())
+    f_on, f_off = PlanMerit(on, (0.5,)).cost_function(), PlanMerit(off, (0.5,)).cost_function()
+    u_prev = on.scale_u(Command(160.0, 0.0, 40.0, 90.0, 60.0, 50.0).vector())
+    d = np.array([28.0, 5.0, -0.3, 0.0])
+    x0 = on.scale_x(on.model.steady_state(on.unscale_u(u_prev), d))
+    U = np.tile(u_prev[:, None], (1, on.N))
+    U[list(TrackingProblem.VALVES), 3] -= 0.1  # one stage's flaps 10 % of opening further shut
+    args = dict(x0=x0, U=U, d=d, SW=np.ones(f_on.size_in(3)), ref=np.zeros(f_on.size_in(4)), u_prev=u_prev,
+                p=on.model.p_default, ready_floor=0.0, ready_w=np.zeros(on.N))
+    term = sum(float(on.flap_closure_cost(U[:, k], k)) for k in range(on.N))
+    assert term > 0.0
+    assert float(f_on(**args)["cost"]) - float(f_off(**args)["cost"]) == pytest.approx(term, rel=1e-6)
