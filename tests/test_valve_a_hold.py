@@ -56,8 +56,10 @@ def _run(shortfall_c: float) -> dict:
     """The MPC with the recirculation term on the recirculating box (test_reversal_damping.on_recirculating_box),
     ``valve_a_hold_shortfall_c`` = ``shortfall_c``: closing moves of valve a of at least MOVE_PCT applied after the
     step while the heater was at its power limit and the reading short of the reference, steps held, and the
-    thermocouple IAE after the step (C s)."""
-    sc, mpc, plant = on_recirculating_box(valve_a_hold_shortfall_c=shortfall_c)
+    thermocouple IAE after the step (C s). The plain start (``start_rate_share`` 1), as measured: the start's caution
+    binds once at the first command on this box and the alternation after the step takes another course
+    (docs/robustness.md sec. 2.30)."""
+    sc, mpc, plant = on_recirculating_box(valve_a_hold_shortfall_c=shortfall_c, start_rate_share=1.0)
     pb = mpc.problem
     out = {"closing_while_limited": 0, "held": 0, "iae": 0.0}
     a_prev = None
