@@ -224,7 +224,12 @@ class MpcSettings:
         start_caution_in_qp: with the scope ``valve_a_opening``, the caution's bound on valve a's opening is a bound
             of the QP (True, the default) or only of the command the QP's answer is projected onto (False): then a
             step where the bound does not bind is the plain start's step to the bit, and where it binds valve a is
-            cut to the bound with the other inputs as the QP planned them (docs/robustness.md sec. 2.32).
+            cut to the bound with the other inputs as the QP planned them. Measured (docs/robustness.md sec. 2.32):
+            the quick box sweeps of seeds 0 / 1 / 2 with False the plain start's where the bound never binds (seed 2
+            0.771 / 1.251 / 4 above 1.0, in the QP 0.779 / 1.248 / 5) and the caution's gain where it binds (seed 0
+            0.837 / 1.054 / 4, as in the QP; seed 1 0.791 / 1.568 / 9, in the QP 8). Not the default: valve a's
+            reversal damping on the recirculating box removes fewer reversals with it (over noise seeds 0-3, 72 -> 47
+            against 69 -> 33 with the plain start), and the reserve's step-down test goes the other way.
         steady_start: the QPs of a reference change (``rti``/``sqp``) start from the plan toward the new
             reference's steady-state target on the model with the estimator's disturbances (the inputs that hold
             it at rest, ramped to at the rate limits; :mod:`hvac_mpc.mpc.steady_target`) instead of the plan
