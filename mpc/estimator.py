@@ -559,8 +559,8 @@ class DisturbanceEkf:
         # the rest the heat flow's release waits for (EkfSettings.supply_heat_release_at_rest): the same gate
         self.heat_rest_gate = ((self.rest_gate or self._new_rest_gate())
                                if s.q_supply_heat_w > 0.0 and s.supply_heat_release_at_rest else None)
-        gates = [g for g in (self.rest_gate, self.heat_rest_gate) if g is not None]
-        self._rest_gates = tuple(g for i, g in enumerate(gates) if all(g is not h for h in gates[:i]))  # each once
+        gate = self.rest_gate or self.heat_rest_gate  # one at most: the heat's is the reading's where that is on
+        self._rest_gates = () if gate is None else (gate,)
         # the supply reading left out while a predicted response is still to show (EkfSettings.response_wait_c)
         self.response_wait = (ResponseWait(s.response_wait_c, s.response_wait_share,
                                            max(1, math.ceil(s.dead_time_min_s / self.dt_s - 1e-9)),
@@ -935,10 +935,8 @@ class DisturbanceEkf:
         """Open the bypass-flow exponent's gate while the model's flow is more than ``bypass_flow_gate``
         (in log) away from its running mean over ``bypass_flow_window_s`` (module docstring)."""
         s = self.settings
-        log_flow = math.log(max(flow_m3s, 1e-4))
-        if self._log_flow_mean is None:
-            self._log_flow_mean = log_flow
-        self._log_flow_mean += min(1.0, self.dt_s / s.bypass_flow_window_s) * (log_flow - self._log_flow_mean)
+        log_flow, self._log_flow_mean = log_flow_and_mean(self._log_flow_mean, flow_m3s, self.dt_s,
+                                                          s.bypass_flow_window_s)
         self._set_learning(abs(log_flow - self._log_flow_mean) > s.bypass_flow_gate)
 
     def _set_learning(self, flow_moves: bool) -> None:
@@ -1001,10 +999,8 @@ class DisturbanceEkf:
         gate = self.settings.supply_heat_flow_gate_s
         if gate <= 0.0:
             return
-        log_flow = math.log(max(flow_m3s, 1e-4))
-        if self._heat_flow_mean is None:
-            self._heat_flow_mean = log_flow
-        self._heat_flow_mean += min(1.0, self.dt_s / SUPPLY_HEAT_FLOW_WINDOW_S) * (log_flow - self._heat_flow_mean)
+        log_flow, self._heat_flow_mean = log_flow_and_mean(self._heat_flow_mean, flow_m3s, self.dt_s,
+                                                           SUPPLY_HEAT_FLOW_WINDOW_S)
         if abs(log_flow - self._heat_flow_mean) > SUPPLY_HEAT_FLOW_BAND:
             self._heat_open_until_s = self._age_s + gate
 
@@ -1013,8 +1009,8 @@ class DisturbanceEkf:
         so its gain is 0); returns its variance (W^2), which the caller puts back after the update."""
         i = self.i_heat
         var = float(self.P[i, i])
-        self.P[i, :] = 0.0
-        self.P[:, i] = 0.0
+        self._decorrelate(i)
+        self.P[i, i] = 0.0
         return var
 
     def _heat_effect_c_per_w(self, flow_m3s: float) -> float:
@@ -1294,6 +1290,14 @@ class DisturbanceEkf:
 
     def healthy(self) -> bool:
         return self.z is not None and bool(np.isfinite(self.z).all() and np.isfinite(self.P).all())
+
+
+def log_flow_and_mean(mean: float | None, flow_m3s: float, dt_s: float, window_s: float) -> tuple[float, float]:
+    """ln of the model's flow (m3/s, floored at 1e-4) and its running mean over ``window_s`` (s) after one sample of
+    ``dt_s`` (s); ``mean`` None starts the mean at this sample. The flow gates' measure of a moving flow."""
+    log_flow = math.log(max(flow_m3s, 1e-4))
+    mean = log_flow if mean is None else mean
+    return log_flow, mean + min(1.0, dt_s / window_s) * (log_flow - mean)
 
 
 def check_state_names(name: str, value) -> None:
