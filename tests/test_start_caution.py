@@ -145,11 +145,11 @@ def on_s0_10(sc, **settings):
     return on_box(10, sc, **settings)
 
 
-def on_box(index: int, sc, **settings):
-    """Scenario ``sc`` on box S0-``index`` of the seeded sweep (seed 0), the MPC with ``settings``; the trace, and
-    per sample the dead time the filter in use honours (s)."""
-    label, variant = draw_boxes(0, index + 1)[index]
-    assert label == f"S0-{index}"
+def on_box(index: int, sc, draw: int = 0, **settings):
+    """Scenario ``sc`` on box S``draw``-``index`` of the seeded sweep (the generator's seed ``draw``), the MPC with
+    ``settings``; the trace, and per sample the dead time the filter in use honours (s)."""
+    label, variant = draw_boxes(draw, index + 1)[index]
+    assert label == f"S{draw}-{index}"
     ctrl = MpcController(Parameters(), MpcSettings(initial_command=sc.initial_command,
                                                    deadline_s=bench.DETERMINISTIC_DEADLINE_S, **settings))
     plant = build_plant(mismatch_suite.variant_factory(variant), simulate.plant_seed(0, sc.seed), bench.DT_S,
@@ -240,17 +240,6 @@ def test_the_caution_caps_valve_as_first_opening_on_another_boxs_flow_jump():
     assert not any(default.fallback)
 
 
-def on_drawn_box(seed: int, index: int, sc, **settings):
-    """Scenario ``sc`` on box S``seed``-``index`` of the seeded sweep, the MPC with ``settings``; the trace."""
-    label, variant = draw_boxes(seed, index + 1)[index]
-    assert label == f"S{seed}-{index}"
-    ctrl = MpcController(Parameters(), MpcSettings(initial_command=sc.initial_command,
-                                                   deadline_s=bench.DETERMINISTIC_DEADLINE_S, **settings))
-    plant = build_plant(mismatch_suite.variant_factory(variant), simulate.plant_seed(0, sc.seed), bench.DT_S,
-                        name=label)
-    return simulate.simulate(sc, ctrl, Parameters(), 0, dt_s=bench.DT_S, plant=plant)
-
-
 @pytest.mark.slow
 def test_a_caution_on_the_command_only_leaves_a_start_it_does_not_bind_as_the_plain_one():
     """S2-5's quick flow out of reach (docs/robustness.md sec. 2.32): the caution's bound never binds there, but as a
@@ -258,9 +247,9 @@ def test_a_caution_on_the_command_only_leaves_a_start_it_does_not_bind_as_the_pl
     cell 0.774 -> 1.054 of the baseline's IAE, measured). On the command only (``start_caution_in_qp`` False) the
     run is the plain start's, sample for sample."""
     sc = scenarios.flow_out_of_reach().quick()
-    plain = on_drawn_box(2, 5, sc, start_rate_share=1.0)
-    in_qp = on_drawn_box(2, 5, sc, start_rate_share=0.4)
-    on_command = on_drawn_box(2, 5, sc, start_rate_share=0.4, start_caution_in_qp=False)
+    plain, _ = on_box(5, sc, draw=2, start_rate_share=1.0)
+    in_qp, _ = on_box(5, sc, draw=2, start_rate_share=0.4)
+    on_command, _ = on_box(5, sc, draw=2, start_rate_share=0.4, start_caution_in_qp=False)
     assert np.array_equal(on_command.applied, plain.applied)
     assert not np.array_equal(in_qp.applied, plain.applied)
 
