@@ -1,7 +1,7 @@
 """Two versions of the code side by side on the solve-time loop: the step time of a code change.
 
     python -m hvac_mpc.benchmarks.step_versions --before REV [--after REV] [--steps 240] [--rounds 3]
-                                                [--seed 1] [--json FILE] [--after-settings JSON]
+                                                [--seed 1] [--json FILE] [--after-settings JSON] [--idle]
 
 ``REV`` is a git revision of the repository this package is installed from (e.g. ``main``), laid
 out as installed in a temporary folder, or an import root holding a ``hvac_mpc`` package (its
@@ -11,10 +11,16 @@ same interpreter, the same generated-code cache), both with the default
 :class:`~hvac_mpc.mpc.mpc_controller.MpcSettings`
 on the solve-time scenario (:class:`.solve_time.Loop`: the same plant, seed and references), stepped
 in lockstep, one step of each in turn (which goes first alternates), so that the load of other
-processes on a shared machine falls on both alike. Step times are the CPU time of the thread that
-runs ``MpcController.step`` (``time.thread_time``), the cold first step excluded. Reported per
-round: median, 99th percentile and their ratios (after / before), the closed-loop cost of each and
-the largest difference between the two versions' commands (0 when the change keeps the arithmetic).
+processes on a shared machine falls on both alike; which goes first at a given step also alternates from
+round to round (a reference change falls on the same steps every round: without it one version would take
+every change's step first, which biased the 99th percentile's ratio by 1.03-1.10x on identical code). Step
+times are the CPU time of the thread that runs ``MpcController.step`` (``time.thread_time``), the cold first
+step excluded. Reported per round: median, 99th percentile and their ratios (after / before), the median of
+the quiet steps (:func:`.quiet_profile.quiet_steps`: not a reference change nor the steps of its wake) and its
+ratio, the closed-loop cost of each and the largest difference between the two versions' commands (0 when the
+change keeps the arithmetic). ``--idle``: each loop gives the controller's second thread the sample's idle time
+between its steps (:data:`.solve_time.IDLE_S`, as ``hvac-mpc solve-time`` does), so the filter not in use is
+updated there and not in the step; without it the steps run back to back.
 ``--after-settings '{"rti_step_fractions": [0.5, 0.25]}'`` runs the version after with these
 :class:`~hvac_mpc.mpc.mpc_controller.MpcSettings` fields (JSON lists become tuples): the step time of a setting,
 e.g. ``--before HEAD`` with the installed version and a setting that is off by default.
@@ -37,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from . import solve_time
+from . import quiet_profile, solve_time
 
 #: The worker each version runs: builds the loop, then answers ``step k`` with the step's thread CPU
 #: time (s), its OSQP iterations and the command, and ``cost`` with the closed-loop cost so far.
@@ -47,7 +53,8 @@ from hvac_mpc.benchmarks import solve_time
 from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
 fields = json.loads(sys.argv[2]) if len(sys.argv) > 2 else {}
 fields = {k: tuple(v) if isinstance(v, list) else v for k, v in fields.items()}
-loop = solve_time.Loop(MpcController(settings=MpcSettings(**fields)), int(sys.argv[1]))
+idle = float(sys.argv[3]) if len(sys.argv) > 3 else 0.0
+loop = solve_time.Loop(MpcController(settings=MpcSettings(**fields)), int(sys.argv[1]), idle_s=idle)
 print("ready", flush=True)
 for line in sys.stdin:
     word, *rest = line.split()
@@ -98,11 +105,12 @@ def import_root(version: str, workdir: Path) -> Path:
 class Version:
     """One version's worker process (``root``: its import root, None for the installed version)."""
 
-    def __init__(self, root: Path | None, seed: int, settings: str | None = None):
+    def __init__(self, root: Path | None, seed: int, settings: str | None = None, idle_s: float = 0.0):
         env = dict(os.environ)
         if root is not None:
             env["PYTHONPATH"] = os.pathsep.join([str(root), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
-        self.proc = subprocess.Popen([sys.executable, "-c", WORKER, str(seed), *([settings] if settings else [])],
+        extra = [settings or "{}", repr(float(idle_s))] if idle_s else ([settings] if settings else [])
+        self.proc = subprocess.Popen([sys.executable, "-c", WORKER, str(seed), *extra],
                                      stdin=subprocess.PIPE,
                                      stdout=subprocess.PIPE, text=True, env=env, cwd=root or None)
         if self.proc.stdout.readline().strip() != "ready":
@@ -119,17 +127,19 @@ class Version:
 
 
 def side_by_side(roots: dict[str, Path | None], steps: int, seed: int,
-                 after_settings: str | None = None) -> dict[str, Any]:
+                 after_settings: str | None = None, idle_s: float = 0.0, swap: bool = False) -> dict[str, Any]:
     """One round: both versions in lockstep; each one's summary, the ratios and the commands' difference
-    (``after_settings``: JSON of MpcSettings fields of the version after)."""
-    versions = {name: Version(root, seed, after_settings if name == "after" else None) for name, root in roots.items()}
+    (``after_settings``: JSON of MpcSettings fields of the version after; ``idle_s``: the idle time given to the
+    second thread after each step, :class:`.solve_time.Loop`; ``swap``: the other version first at even steps)."""
+    versions = {name: Version(root, seed, after_settings if name == "after" else None, idle_s)
+                for name, root in roots.items()}
     times = {name: [] for name in versions}
     iterations = {name: [] for name in versions}
     commands = {name: [] for name in versions}
     order = list(versions)
     try:
         for k in range(steps):
-            for name in (order if k % 2 == 0 else order[::-1]):
+            for name in (order if (k + swap) % 2 == 0 else order[::-1]):
                 t, n, u = versions[name].ask(f"step {k}")
                 times[name].append(t)
                 iterations[name].append(n)
@@ -139,12 +149,15 @@ def side_by_side(roots: dict[str, Path | None], steps: int, seed: int,
         for v in versions.values():
             v.close()
     out: dict[str, Any] = {}
+    quiet = sorted(quiet_profile.quiet_steps(steps))
     for name in versions:
         t = np.array(times[name][1:]) * 1e3
         out[name] = {"thread_median_ms": float(np.median(t)), "thread_p99_ms": float(np.percentile(t, 99)),
+                     "quiet_median_ms": float(np.median(np.array(times[name])[quiet]) * 1e3),
                      "total_iterations": int(sum(iterations[name])), "cost": costs[name]}
     out["median_ratio"] = out["after"]["thread_median_ms"] / out["before"]["thread_median_ms"]
     out["p99_ratio"] = out["after"]["thread_p99_ms"] / out["before"]["thread_p99_ms"]
+    out["quiet_median_ratio"] = out["after"]["quiet_median_ms"] / out["before"]["quiet_median_ms"]
     out["command_difference"] = float(np.abs(np.array(commands["after"]) - np.array(commands["before"])).max())
     return out
 
@@ -172,6 +185,9 @@ def main(argv: list[str] | None = None) -> int:
     version_arguments(p)
     p.add_argument("--after-settings", default=None, metavar="JSON",
                    help="MpcSettings fields of the version after, as a JSON object (lists become tuples)")
+    p.add_argument("--idle", action="store_true",
+                   help=f"give the second thread the sample's idle time ({solve_time.IDLE_S} s) between the steps, "
+                        "as hvac-mpc solve-time does (default: back to back)")
     solve_time.side_by_side_arguments(p)
     args = p.parse_args(argv)
     if args.after_settings is not None:
@@ -187,17 +203,20 @@ def main(argv: list[str] | None = None) -> int:
         roots = version_roots(args, Path(tmp), "step_versions")
         if roots is None:
             return 2
-        rounds = [side_by_side(roots, args.steps, args.seed, args.after_settings) for _ in range(args.rounds)]
+        idle_s = solve_time.IDLE_S if args.idle else 0.0
+        rounds = [side_by_side(roots, args.steps, args.seed, args.after_settings, idle_s, swap=bool(r % 2))
+                  for r in range(args.rounds)]
     for i, r in enumerate(rounds, 1):
         b, a = r["before"], r["after"]
         print(f"round {i}: median {b['thread_median_ms']:.3f} -> {a['thread_median_ms']:.3f} ms "
               f"({r['median_ratio']:.2f}x), p99 {b['thread_p99_ms']:.2f} -> {a['thread_p99_ms']:.2f} ms "
-              f"({r['p99_ratio']:.2f}x), OSQP iterations {b['total_iterations']} -> {a['total_iterations']}, "
+              f"({r['p99_ratio']:.2f}x), quiet steps' median {b['quiet_median_ms']:.3f} -> "
+              f"{a['quiet_median_ms']:.3f} ms ({r['quiet_median_ratio']:.2f}x), OSQP iterations {b['total_iterations']} -> {a['total_iterations']}, "
               f"cost {b['cost']:.2f} -> {a['cost']:.2f}, largest command difference {r['command_difference']:.3g}")
     if args.json is not None:
         args.json.write_text(json.dumps({"versions": {"before": args.before, "after": args.after or "installed",
                                                       "after_settings": args.after_settings},
-                                         "steps": args.steps,
+                                         "steps": args.steps, "idle": bool(args.idle),
                                          "seed": args.seed, "rounds": rounds}, indent=2))
     return 0
 

@@ -134,8 +134,8 @@ class Reference:
     @property
     def split(self) -> tuple[float, float, float] | None:
         """Outlet flows (m, f, w) or ``None`` when the split is free."""
-        vals = tuple(getattr(self, n) for n in _OUTLETS)
-        return None if any(v is None for v in vals) else vals  # type: ignore[return-value]
+        vals = (self.flow_m_m3s, self.flow_f_m3s, self.flow_w_m3s)  # _OUTLETS
+        return None if vals[0] is None or vals[1] is None or vals[2] is None else vals  # type: ignore[return-value]
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)

@@ -27,6 +27,8 @@ import math
 
 import numpy as np
 
+from .arrays import min_reduce
+
 #: A candidate that stays ahead of the estimate (residual below LEAD_RATIO times its) for LEAD_SAMPLES
 #: samples in a row after the first takes over (samples without excitation neither count nor break the row),
 #: however flat the ranking: a response the model's air explains poorly
@@ -50,9 +52,10 @@ def shortest_tied_minimum(res: np.ndarray) -> int:
     flattens the residuals around the true dead time, and the flank's shorter delays are the ones
     that make the loop ring."""
     res = np.maximum(res, 0.0)  # a least-squares residual, >= 0 but for round-off
-    tied = res <= TIE_RATIO * res.min()
-    tied[1:] &= res[1:] <= res[:-1]  # lower than (or as low as) the left neighbour; the first has none
-    tied[:-1] &= res[:-1] <= res[1:]  # ... and the right one; the last has none
+    tied = res <= TIE_RATIO * min_reduce(res)
+    right, left = res[1:], res[:-1]
+    tied[1:] &= right <= left  # lower than (or as low as) the left neighbour; the first has none
+    tied[:-1] &= left <= right  # ... and the right one; the last has none
     first = int(tied.argmax())  # the first True: there is one (the least residual's) unless a residual is nan
     if not tied[first]:
         raise IndexError("shortest_tied_minimum: no minimum among non-finite residuals")
@@ -109,6 +112,7 @@ class DeadTimeEstimator:
         # (row SSY), and a buffer of the changes of the sample (row SSS: the candidate's, row SSY: the reading's)
         self._sums = np.zeros((2, n))
         self._moves = np.zeros((2, n))
+        self._move_s = self._moves[SSS]  # its row SSS (a view)
         self.residuals = np.full(n, np.nan)
         self.informed = False  # the window has held a response (the candidates ranked at least once)
         self._lead = None  # a candidate ahead of the estimate by LEAD_RATIO ...
@@ -128,6 +132,9 @@ class DeadTimeEstimator:
         any air)."""
         if self._air is None:
             return math.nan
+        at = float(steps) * self.SUBDIVISION
+        if 0.0 <= at <= self._pred.size - 1 and at.is_integer():  # a candidate's own delay: its index (they are
+            return float(self._pred[int(at)])                     # distinct multiples of 1/SUBDIVISION)
         return float(self._pred[int(np.argmin(np.abs(self.candidates - float(steps))))])
 
     def push_air(self, air_c: float) -> None:
@@ -157,14 +164,14 @@ class DeadTimeEstimator:
         self._w = f * self._w + 1.0
         self._syy = f * self._syy + dy * dy
         # both sums in one pass: f * sss + ds * ds and f * ssy + ds * dy (the same operations as apart)
-        moves = self._moves
-        np.subtract(self._pred, self._last_pred, out=moves[SSS])
+        moves, move_s = self._moves, self._move_s
+        np.subtract(self._pred, self._last_pred, out=move_s)
         moves[SSY] = dy
         sums = f * self._sums
-        sums += moves * moves[SSS]
+        sums += moves * move_s
         self._sums = sums
         w, sss, ssy = self._w, sums[SSS], sums[SSY]
-        if sss.min() / w < self.min_var:
+        if min_reduce(sss) / w < self.min_var:
             self.residuals[:] = np.nan
             return self.steps
         self.informed = True
@@ -177,13 +184,14 @@ class DeadTimeEstimator:
         self.residuals = res / w
         best = shortest_tied_minimum(res)
         cur = self._best
+        r_best, r_cur = float(res[best]), float(res[cur])
         # a starting value (initial_steps) gives way only to a clearly better candidate, not to a tie
-        tie_moves = best < cur and res[best] <= res[cur] and not self._at_start
-        lead = best if best != cur and res[best] < LEAD_RATIO * res[cur] else None
+        tie_moves = best < cur and r_best <= r_cur and not self._at_start
+        lead = best if best != cur and r_best < LEAD_RATIO * r_cur else None
         self._lead_samples = self._lead_samples + 1 if lead is not None and lead == self._lead else 0
         self._lead = lead
         held = self._lead_samples >= LEAD_SAMPLES and not self._at_start  # a starting value: only clearly
-        if res[best] < self.switch_ratio * res[cur] or tie_moves or held:
+        if r_best < self.switch_ratio * r_cur or tie_moves or held:
             self._at_start = self._at_start and best == cur
             self._best = best
             self._lead, self._lead_samples = None, 0

@@ -71,6 +71,7 @@ from hvac_mpc.models import air as air_props, blower
 from hvac_mpc.models.box import HvacModel, rk4
 from hvac_mpc.contract import Measurement
 
+from .arrays import all_finite
 from .casadi_eval import BufferedFunction
 from .dead_time import DeadTimeEstimator
 from .flow_term import FlowStepFit, SettledFlowSteps
@@ -1205,7 +1206,7 @@ class DisturbanceEkf:
         lag = self.dead_time.observe(supply_c)
         if not self._honours(lag * self.dt_s):
             return self.c_now
-        j0 = int(np.floor(lag))
+        j0 = math.floor(lag)  # int(np.floor(lag)) of a finite float
         w1 = lag - j0
         c = np.zeros(self.n_hist + 1)
         c[j0] += 1.0 - w1
@@ -1289,7 +1290,7 @@ class DisturbanceEkf:
         return self.own_offset_c("cooler_outlet_offset_c")
 
     def healthy(self) -> bool:
-        return self.z is not None and bool(np.isfinite(self.z).all() and np.isfinite(self.P).all())
+        return self.z is not None and all_finite(self.z) and all_finite(self.P)
 
 
 def log_flow_and_mean(mean: float | None, flow_m3s: float, dt_s: float, window_s: float) -> tuple[float, float]:
@@ -1324,4 +1325,4 @@ def finite_or(value, default: float) -> float:
         v = float(value)
     except (TypeError, ValueError):
         return default
-    return v if np.isfinite(v) else default
+    return v if math.isfinite(v) else default  # a float: math's test, numpy's answer without its call

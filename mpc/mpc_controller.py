@@ -68,6 +68,7 @@ from .readiness import HeaterReadiness
 from .reserve import HeaterReserve
 from .reversal_damping import damped_move
 from .valve_a_hold import heater_limited, held_opening
+from .arrays import all_finite
 from .background import BackgroundCall, BackgroundWorker
 from .ring_gate import RingGate
 from .start_caution import SCOPES as START_CAUTION_SCOPES, VALVE_A_AND_HEATER, StartCaution, known_delay_s, opening_bound
@@ -967,7 +968,7 @@ class MpcController:
             if (sol.extra.get("inexact") and not pb.heating(self.u_prev)
                     and u_cmd[pb.i_heater_cmd] < INEXACT_HEATER_OFF_W):
                 u_cmd[pb.i_heater_cmd] = 0.0
-            if not np.all(np.isfinite(u_cmd)):
+            if not all_finite(u_cmd):
                 sol.ok = False
                 status = "non-finite command"
         if sol.ok:

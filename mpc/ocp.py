@@ -74,6 +74,8 @@ TRACKED = ("supply_air_temp_c", "volume_flow_m3s", "flow_m_m3s", "flow_f_m3s", "
 #: Stage-function outputs: the tracked ones plus the electric heater power for the energy term and valve a's
 #: opening, penalised while heating (:attr:`Weights.valve_a_heating_per_pct2`).
 STAGE_OUTPUTS = TRACKED + ("heater_power_w", "valve_a_pct")
+#: Valve a's row of the stage outputs.
+_Y_VALVE_A = STAGE_OUTPUTS.index("valve_a_pct")
 
 #: Default horizon: 25 stages covering 104 s, fine where the thermocouple (tau 5.73 s) and
 #: valve moves matter, coarse where only the heater body (tau ~90 s) and motor lag still move.
@@ -652,9 +654,10 @@ class TrackingProblem:
         reachable = (u_prev_phys[ia] - self.u_off[ia]) / self.u_sc[ia] - self._a_travel
         hi[:, ia] = np.minimum(hi[:, ia], np.maximum(cap, reachable))
         first = self.scale_u(command or self.command_bounds(u_prev_phys, cap_a_pct, heater_temp_c))  # (2, nu)
-        lo[0] = np.maximum(lo[0], first[0])
-        hi[0] = np.minimum(hi[0], first[1])
-        lo[0] = np.minimum(lo[0], hi[0])
+        lo0, hi0 = lo[0], hi[0]  # views: the first stage's rows changed in place
+        np.maximum(lo0, first[0], out=lo0)
+        np.minimum(hi0, first[1], out=hi0)
+        np.minimum(lo0, hi0, out=lo0)
         return lo, hi
 
     def rate_bounds(self) -> np.ndarray:
@@ -690,7 +693,7 @@ class TrackingProblem:
     def heating_weights(self, w_y: np.ndarray, heating: bool) -> np.ndarray:
         """``w_y`` with valve a's weight (:attr:`Weights.valve_a_heating_per_pct2`) on while ``heating`` (the heater
         commanded), off otherwise."""
-        w_y[STAGE_OUTPUTS.index("valve_a_pct")] = self.valve_a_heating_weight if heating else 0.0
+        w_y[_Y_VALVE_A] = self.valve_a_heating_weight if heating else 0.0
         return w_y
 
     # ------------------------------------------------------------------ CasADi

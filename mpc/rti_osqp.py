@@ -38,6 +38,7 @@ import scipy.sparse as sp
 from hvac_mpc.models.box import DISTURBANCES, INPUTS
 
 from . import osqp_embedded
+from .arrays import all_finite, all_reduce, sum_reduce
 from .casadi_eval import BufferedFunction
 from .codegen import CodegenReport, compiled
 from .multilevel import MultiLevel, vector_function
@@ -58,6 +59,8 @@ U_BLOWER = INPUTS.index("blower_power_w")
 #: Disturbance entries estimated by the EKF that enter the gradient without a new linearisation:
 #: the mixed-air offset and the flow offset.
 D_OFFSETS = [DISTURBANCES.index("mix_offset_c"), DISTURBANCES.index("flow_offset_m3s")]
+#: The same as an index array (indexing with it skips the list's conversion every step).
+_D_OFFSETS_IDX = np.array(D_OFFSETS)
 #: Margin (L/s) below the most stage 0's flow-floor row can reach within the first move's bounds, where
 #: that is below the floor (``RtiOsqpSolver._floor_bounds``): a bound on the edge of the feasible set is
 #: left to the QP solver's tolerance otherwise.
@@ -321,6 +324,7 @@ class RtiOsqpSolver:
         self._fused: dict[int, FusedPrediction] = {}  # per filter (id), its fused prediction (build_prediction)
         self._build_pattern()
         self._i0, self._w1, self._j = shift_maps(pb.t_nodes, pb.dt_s)
+        self._j_slack = np.minimum(self._j, pb.N - 1)  # the slacks' shift (N of them), computed once
         self._build_qp_functions()
         self.codegen = CodegenReport()
         self.qp_codegen = CodegenReport()  # OSQP's generated solver (``outcomes["osqp"]``)
@@ -469,6 +473,7 @@ class RtiOsqpSolver:
         # flow floor while the heater is on, stages 0..N-1 (L/s): the flow's Jacobian row over x_k, u_k
         # (values from the QP data) and the heater command's slope of the floor (set per linearisation)
         self.r_floor = rows + np.arange(N if pb.floor else 0)
+        self._floor_rows = slice(rows, rows + self.r_floor.size)  # the same rows as a slice (a cheaper assignment)
         rows += self.r_floor.size
         self.m = rows
         A.shape = (rows, n)
@@ -803,7 +808,7 @@ class RtiOsqpSolver:
         zn, Pt, air, flow, X, U, d, *data = self._predict_qp(
             ekf.z, ekf.P, u_cmd, setpoint_c, float(ekf.learning), self.X, self.U, u_prev, self._weights(w_y))
         ekf.accept_prediction(zn, Pt, air, flow)
-        S = self.S[np.minimum(self._j, self.pb.N - 1)]
+        S = self.S[self._j_slack]
         self.X, self.U, self.S = X, U, S
         self._write(X, U, S, d, ref, w_y, *self._unpack(*data))
         return time.perf_counter() - t0
@@ -817,7 +822,7 @@ class RtiOsqpSolver:
             ekf.z, ekf.P, u_cmd, setpoint_c, float(ekf.learning), self.X, self.U, u_prev, ml.full["ab"],
             ml.full["g"], ml.full["U"][:self.r_floor.size, self.pb.i_heater_cmd])
         ekf.accept_prediction(zn, Pt, air, flow)
-        S = self.S[np.minimum(self._j, self.pb.N - 1)]
+        S = self.S[self._j_slack]
         self.X, self.U, self.S = X, U, S
         if not ml.keeps(X, U, d, self._readiness_weights(X)):
             self._load(X, U, S, d, ref, w_y, u_prev)
@@ -873,7 +878,7 @@ class RtiOsqpSolver:
         X = shift_nodes(self.X, self._i0, self._w1)
         X[0] = x_first
         U = self.U[self._j]
-        S = self.S[np.minimum(self._j, self.pb.N - 1)]
+        S = self.S[self._j_slack]
         return X, U, S
 
     def _load(self, X, U, S, d, ref, w_y, u_prev) -> None:
@@ -934,10 +939,13 @@ class RtiOsqpSolver:
         where that is below the floor (after a fallback, say); the rows of stage 1 on hold it in full."""
         if self.r_floor.size:
             dd = d[D_OFFSETS[1]] - self._prepared["d"][D_OFFSETS[1]]
-            self.l[self.r_floor] = self._prepared["data"]["floor_l"] - self.pb.floor_scale * dd
+            rows = self._floor_rows
+            self.l[rows] = self._prepared["data"]["floor_l"] - self.pb.floor_scale * dd
             a_x, a_u = self._floor_a0[:self.pb.nx], self._floor_a0[self.pb.nx:]
-            most = float(a_x @ x0 + np.maximum(a_u * u_lo[0], a_u * u_hi[0]).sum())
-            self.l[self.r_floor[0]] = min(self.l[self.r_floor[0]], most - FLOOR_TOLERANCE_LS)
+            lo, hi = u_lo[0], u_hi[0]
+            most = float(a_x @ x0 + sum_reduce(np.maximum(a_u * lo, a_u * hi), axis=None))  # ndarray.sum's reduction
+            first = rows.start
+            self.l[first] = min(self.l[first], most - FLOOR_TOLERANCE_LS)
 
     def prepare(self, x_pred: np.ndarray, u_prev: np.ndarray, d: np.ndarray, ref: np.ndarray,
                 w_y: np.ndarray) -> float:
@@ -1082,7 +1090,7 @@ class RtiOsqpSolver:
                 break
             z = np.array(x)
             inexact = status_val == 7  # taken at the cap without meeting even OSQP's inaccurate tolerance
-            if not np.isfinite(z).all():
+            if not all_finite(z):
                 status = "non-finite solution"
                 z = None
                 break
@@ -1285,7 +1293,7 @@ class RtiOsqpSolver:
         """Gradient for the current reference, disturbance estimates and last input."""
         pr = self._prepared
         data = pr["data"]
-        dd = d[D_OFFSETS] - pr["d"][D_OFFSETS]
+        dd = d[_D_OFFSETS_IDX] - pr["d"][_D_OFFSETS_IDX]
         on = bool(self.pb.body_heat_coef) and self.pb.body_heat_on(u_prev) > 0.0
         if on != self._q_body_on:
             self._qp_gradient.set_fixed(7, self._q_heating if on else self._q_const)
@@ -1421,7 +1429,7 @@ def _selection(slots: np.ndarray, size: int) -> ca.DM:
 def same_values(a: np.ndarray, b: np.ndarray) -> bool:
     """``np.array_equal(a, b)`` for two numpy arrays (the same shape and every value equal; nan equals nothing),
     without its conversions: the references and weights a step compares with the preparation's."""
-    return a.shape == b.shape and bool((a == b).all())
+    return a.shape == b.shape and bool(all_reduce(a == b, axis=None))  # ndarray.all's reduction, without its wrapper
 
 
 def _same_signature(a: ca.Function, b: ca.Function) -> bool:

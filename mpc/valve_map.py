@@ -24,6 +24,7 @@ from scipy.interpolate import PchipInterpolator
 
 from hvac_mpc.models import valves
 from hvac_mpc.models.parameters import Parameters
+from .arrays import interp
 
 VALVE_NAMES = ("m", "f", "w")
 
@@ -116,12 +117,12 @@ class ValveMap:
     def angles(self, v) -> np.ndarray:
         """theta(v) in % of valves m, f, w at once: ``v`` (..., 3) -> (..., 3); equals :meth:`angle`."""
         x = np.minimum(np.maximum(v, 0.0), 1.0) + self._opening_offset  # np.clip: ~10 us on 3 values
-        return np.interp(x, self._v_stack, self._t_of_v)
+        return interp(x, self._v_stack, self._t_of_v)
 
     def openings(self, theta_pct) -> np.ndarray:
         """v(theta) of valves m, f, w at once: ``theta_pct`` (..., 3) -> (..., 3); equals :meth:`opening`."""
         x = np.minimum(np.maximum(theta_pct, 0.0), 100.0) + self._angle_offset
-        return np.interp(x, self._t_stack, self._v_of_t)
+        return interp(x, self._t_stack, self._v_of_t)
 
     def opening(self, name: str, theta_pct) -> np.ndarray:
         """v(theta), the inverse of :meth:`angle` (tabulated)."""
