@@ -6,8 +6,8 @@ it passes), and that input's pull on the tracked air changes sign between a tran
 linearised at one end of the input's stroke plans the other end, the next QP linearised there plans the first,
 and the plans alternate every sample. A second Gauss-Newton QP does not help: the iteration itself has the
 two-cycle (a converged SQP alternates the same way), and neither end is the nonlinear cost's best: on the
-recirculating box the QP's plan with valve a open over the whole horizon costs a third to a half less than the
-QP's plan and its linearisation point, at every step of the alternation (docs/identification.md, "The
+recirculating box the QP's plan with valve a open over the whole horizon costs 4-53 % less than the cheaper of the
+QP's plan and its linearisation point, at every step of the alternation's first 40 s (docs/identification.md, "The
 alternation at its root: a search along the reversing input").
 
 So where the step's plan reverses, the QP's linear model is not trusted along that input: :func:`turned_inputs`
