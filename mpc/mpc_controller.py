@@ -149,6 +149,12 @@ class MpcSettings:
             inputs within radius x their range of the linearisation point's plan, for these radii in turn
             (each in (0, 1), decreasing, at most four), and the first plan no worse is taken; not on a cold start
             (the plain SQP from the held starting command). Empty: off.
+        rti_reversal_search: a search along a reversing input for ``rti`` (:mod:`hvac_mpc.mpc.reversal_search`):
+            where the plan's first move of an input turns against the last step's first move, both by more than this
+            share of the input's range (in [0, 1)), the QP's plan with that input's profile replaced by the
+            linearisation point's, by its upper and by its lower bound is priced on the nonlinear cost (the model's
+            rollout) and the cheapest of these and the QP's plan taken (``stats["reversal_searched"]``,
+            ``stats["reversal_taken"]``); only on a plain step (one QP), no QP added. 0: off.
         ipopt_tol, ipopt_max_iter: IPOPT tolerance and iteration cap.
         deadline_s: longest feedback time (measurement to command); beyond it the solution is
             discarded and the fallback chain used.
@@ -373,6 +379,7 @@ class MpcSettings:
     sqp_tol: float = 2e-2
     rti_step_fractions: tuple[float, ...] = ()
     rti_trust_radii: tuple[float, ...] = ()
+    rti_reversal_search: float = 0.0
     ipopt_tol: float = 1e-6
     ipopt_max_iter: int = 300
     deadline_s: float = 0.5
@@ -494,6 +501,10 @@ class MpcSettings:
             check_radii(self.rti_trust_radii)
         except ValueError as exc:
             raise InvalidSettings(f"{p}.rti_trust_radii: {exc}") from None
+        check_number(f"{p}.rti_reversal_search", self.rti_reversal_search, 0.0, 1.0)
+        if self.rti_reversal_search >= 1.0:
+            raise InvalidSettings(f"{p}.rti_reversal_search = {self.rti_reversal_search!r} must be below 1 "
+                                  "(a share of each input's range in [0, 1), 0 off)")
         if not isinstance(self.rti_step_fractions, tuple) or len(self.rti_step_fractions) > 8:
             raise InvalidSettings(f"{p}.rti_step_fractions must be a tuple of at most 8 fractions in (0, 1)")
         for i, a in enumerate(self.rti_step_fractions):
@@ -784,7 +795,8 @@ class MpcController:
                              change_split_iter=s.change_split_iter, split_every_step=s.split_every_step,
                              split_keeps_rho=s.split_keeps_rho, split_replays_change=s.split_replays_change,
                              rho_max=s.osqp_rho_max, plain_qp_cap=s.osqp_plain_qp_cap,
-                             trust_radii=s.rti_trust_radii, plain_cap_run=int(s.osqp_plain_cap_run))
+                             trust_radii=s.rti_trust_radii, plain_cap_run=int(s.osqp_plain_cap_run),
+                             reversal_search=float(s.rti_reversal_search))
 
     # ------------------------------------------------------------------ protocol
     def reset(self, command: Command | None = None) -> None:
@@ -1011,6 +1023,9 @@ class MpcController:
                             feedback=sol.feedback_time_s, iterations=sol.iterations, qp_solves=sol.qp_solves,
                             cap=cap, healthy=True)
         stats["cold_start"] = bool(sol.extra.get("cold_start", False))
+        if s.rti_reversal_search > 0.0:
+            stats["reversal_searched"] = bool(getattr(self.solver, "reversal_searched", False))
+            stats["reversal_taken"] = bool(getattr(self.solver, "reversal_taken", False))
         stats["reach_wait_s"] = self.reach.last_wait_s if self.reach is not None else 0.0
         if self.sign_check is not None:
             stats["sign_verdicts"] = self.sign_check.verdicts

@@ -57,7 +57,7 @@ class PlanMerit:
         wrap: applied to each CasADi function before use (generated C, :func:`.codegen.compiled`).
     """
 
-    def __init__(self, problem: TrackingProblem, fractions: tuple[float, ...], wrap=lambda f: f):
+    def __init__(self, problem: TrackingProblem, fractions: tuple[float, ...], wrap=lambda f: f, several: int = 0):
         self.pb = problem
         self.fractions = tuple(float(a) for a in fractions)
         if not self.fractions or any(not 0.0 < a < 1.0 for a in self.fractions):
@@ -65,6 +65,9 @@ class PlanMerit:
         one = self.cost_function()
         self._pair = BufferedFunction(wrap(_mapped(one, 2, "hvac_plan_merit2")))
         self._damped = BufferedFunction(wrap(_mapped(one, len(self.fractions), f"hvac_plan_merit{len(fractions)}d")))
+        # ``several`` plans priced in one call (:meth:`costs`; 0: none), built here, not in a control step
+        self._several = BufferedFunction(wrap(_mapped(one, several, f"hvac_plan_merit{several}s"))) if several else None
+        self.several = int(several)
 
     def cost_function(self) -> ca.Function:
         """``(x0, U, d, SW, ref, u_prev, p, ready_floor, ready_w) -> cost``: the merit of one plan, scaled
@@ -123,6 +126,15 @@ class PlanMerit:
         r_floor, r_w = (0.0, np.zeros(self.pb.N)) if ready is None else ready
         costs = self._pair(x0, np.concatenate([U_lin, U_qp]), d, sw, ref, u_prev, p, r_floor, r_w)[0].ravel()
         return float(costs[0]), float(costs[1])
+
+    def costs(self, plans: list[np.ndarray], x0: np.ndarray, d: np.ndarray, sw: np.ndarray, ref: np.ndarray,
+              u_prev: np.ndarray, p: np.ndarray, ready: tuple[float, np.ndarray] | None = None) -> np.ndarray:
+        """The merits of :attr:`several` plans (each N x nu, scaled), the arguments as :meth:`choose`'s."""
+        if self._several is None or len(plans) != self.several:
+            raise ValueError(f"PlanMerit.costs: {len(plans)} plans given, built for {self.several}")
+        r_floor, r_w = (0.0, np.zeros(self.pb.N)) if ready is None else ready
+        return np.asarray(self._several(x0, np.concatenate(plans), d, sw, ref, u_prev, p, r_floor, r_w)[0],
+                          float).ravel()
 
     def choose(self, U_lin: np.ndarray, U_qp: np.ndarray, x0: np.ndarray, d: np.ndarray, sw: np.ndarray,
                ref: np.ndarray, u_prev: np.ndarray, p: np.ndarray,

@@ -45,6 +45,7 @@ from .multilevel import MultiLevel, vector_function
 from .ocp import STAGE_OUTPUTS, TRACKED, TrackingProblem, shift_maps, shift_nodes
 from .osqp_embedded import FIRST_PASS_EPS_RATIO  # noqa: F401 - the first pass's tolerance, named here too
 from .plan_merit import MERIT_TOLERANCE, PlanMerit
+from .reversal_search import candidates, check_share, last_moves, turned_inputs
 from .steady_target import SteadyStart, check_steady_start_on, starts_at_target
 from .trust_region import check_radii, region_bounds
 
@@ -189,6 +190,13 @@ class RtiOsqpSolver:
             the horizon, a guess and not a plan, and its QPs iterate from there (``cold_start_qps``); with the
             region each iteration stayed within a radius of the last, and the first command came from near the
             guess (:mod:`.trust_region`). Empty (the default): off.
+        reversal_search: a search along a reversing input (:mod:`.reversal_search`): on a plain step (one QP: not a
+            cold start, not a reference change, not split) where the plan's first move of an input turns against the
+            last step's first move, both by more than this share of the input's range, the QP's plan with that
+            input's profile replaced by the linearisation point's, by its upper and by its lower bound is priced on
+            the nonlinear cost (:class:`.plan_merit.PlanMerit`) and the cheapest of these and the QP's plan taken
+            (``reversal_searched`` says when the search ran, ``reversal_taken`` when a candidate was taken). No QP
+            is added. 0 (the default): off.
         codegen: evaluate the QP data as generated C (:func:`.codegen.compiled`, cached on disk);
             otherwise (or without a compiler) CasADi's interpreter runs the same functions.
             ``self.codegen`` reports what happened.
@@ -267,8 +275,11 @@ class RtiOsqpSolver:
                  reweigh_in_place: bool = False, change_split_iter: int = 0,
                  split_every_step: bool = False, split_keeps_rho: bool = False, split_replays_change: bool = False,
                  rho_max: float | None = None, plain_qp_cap: int = 0, trust_radii: tuple[float, ...] = (),
-                 plain_cap_run: int = 0):
+                 plain_cap_run: int = 0, reversal_search: float = 0.0):
         self.pb = pb = problem
+        self.reversal_search = check_share("RtiOsqpSolver: reversal_search", reversal_search)
+        self._last_move: np.ndarray | None = None  # the last steps' first moves beyond the share (scaled inputs)
+        self.reversal_searched = self.reversal_taken = False  # the last step searched / took a candidate
         self.rho_max = _checked_step_size("rho_max", rho_max)
         self.plain_qp_cap = _checked_cap("plain_qp_cap", plain_qp_cap, max_iter)
         if isinstance(plain_cap_run, bool) or not isinstance(plain_cap_run, (int, np.integer)) or plain_cap_run < 0:
@@ -337,6 +348,7 @@ class RtiOsqpSolver:
         self._merit = PlanMerit(pb, tuple(step_fractions), wrap) if step_fractions else None
         self.trust_radii = check_radii(trust_radii)
         self._trust_merit = (self._merit or PlanMerit(pb, TRUST_MERIT_FRACTIONS, wrap)) if self.trust_radii else None
+        self._search_merit = PlanMerit(pb, TRUST_MERIT_FRACTIONS, wrap, several=3) if self.reversal_search else None
         self._trust_span = np.tile(pb.u_hi - pb.u_lo, (N, 1))  # each input's scaled range
         self.trust_taken: float = 1.0  # the radius of the last step's plan (1: the QP's own)
         self._steady = SteadyStart(pb, wrap) if steady_start else None
@@ -840,6 +852,7 @@ class RtiOsqpSolver:
         self._prepared = None
         self._change_rest = None
         self._capped_run = 0
+        self._last_move = None
         if self._ml is not None:
             self._ml.forget()
         if getattr(self, "_workspace_used", False):
@@ -1029,9 +1042,11 @@ class RtiOsqpSolver:
             x0, u_prev, d, ref, w_y, u_lo, u_hi, max_qps, restart=changed and self.restart_duals_on_change,
             t0=t0, time_limit_s=time_limit_s, cap=self._qp_cap(split, changed, cold), trust=not cold)
         prep += qp_prep
+        plain = not (split or changed or cold)  # a change's or a cold start's QPs break the run
+        if self._search_merit is not None:
+            z = self._searched(z, x0, d, ref, w_y, u_prev, u_lo, u_hi, plain and max_qps == 1)
         feedback = time.perf_counter() - t0 - prep
         result = self._result(z, status, iterations, solves, prep, feedback, cold, inexact, fraction)
-        plain = not (split or changed or cold)  # a change's or a cold start's QPs break the run
         self._capped_run = self._capped_run + 1 if plain and self._reached_cap else 0
         if split and result.ok and (changed or inexact):
             self._change_rest = dict(x0=x0.copy(), u_prev=u_prev.copy(), d=d.copy(), ref=np.array(ref, float),
@@ -1270,6 +1285,37 @@ class RtiOsqpSolver:
         self.l[self._r_u_rows], self.u[self._r_u_rows] = u_lo.ravel(), u_hi.ravel()
         self._core.update_vectors(self._q(ref, d, u_prev), self.l, self.u)
         return best, solved
+
+    def _searched(self, z, x0, d, ref, w_y, u_prev, u_lo, u_hi, plain: bool):
+        """On a plain step (``plain``: one QP) whose plan ``z`` reverses an input's last first move
+        (:func:`.reversal_search.turned_inputs`), the cheapest on the nonlinear cost of ``z`` and the candidates
+        along each reversing input (:func:`.reversal_search.candidates`; the states stay the QP's, the next
+        preparation linearises at them); else ``z``. Keeps each input's last first move beyond the share."""
+        self.reversal_searched = self.reversal_taken = False
+        if z is None:
+            self._last_move = None
+            return z
+        nu, N = self.pb.nu, self.pb.N
+        span = self.pb.u_hi - self.pb.u_lo
+        turned = turned_inputs(self._last_move, z[self.iu0:self.iu0 + nu] - u_prev, span, self.reversal_search)
+        if plain and turned.size:
+            self.reversal_searched = True
+            merit = self._search_merit
+            args = (x0, d, self._weights(w_y), ref, u_prev, self._p, self.readiness_target)
+            U_lin = self._z_lin[self.iu0:self.is0].reshape(N, nu)
+            U_best = z[self.iu0:self.is0].reshape(N, nu)
+            _, c_best = merit.pair(U_lin, U_best, *args)
+            for i in turned:
+                plans = candidates(U_best, U_lin, u_lo, u_hi, int(i))
+                costs = merit.costs(plans, *args)
+                j = int(np.argmin(costs))
+                if costs[j] < c_best:
+                    U_best, c_best, self.reversal_taken = plans[j], float(costs[j]), True
+            if self.reversal_taken:
+                z = z.copy()
+                z[self.iu0:self.is0] = U_best.ravel()
+        self._last_move = last_moves(self._last_move, z[self.iu0:self.iu0 + nu] - u_prev, span, self.reversal_search)
+        return z
 
     def _limit_time(self, remaining_s: float, budget_s: float) -> None:
         """OSQP's time limit: what remains of the feedback budget, set again only when it has shrunk

@@ -1,0 +1,64 @@
+"""A search along a reversing input on the nonlinear cost, on a step whose plan turns against the last one.
+
+The real-time iteration takes one Gauss-Newton QP a sample, linearised at the shifted plan. Where the box's
+response is bilinear in an input and a state (valve a's core flow times the heater body's excess over the air
+it passes), and that input's pull on the tracked air changes sign between a transient and rest, the QP
+linearised at one end of the input's stroke plans the other end, the next QP linearised there plans the first,
+and the plans alternate every sample. A second Gauss-Newton QP does not help: the iteration itself has the
+two-cycle (a converged SQP alternates the same way), and neither end is the nonlinear cost's best: on the
+recirculating box the QP's plan with valve a open over the whole horizon costs 4-53 % less than the cheaper of the
+QP's plan and its linearisation point, at every step of the alternation's first 40 s (docs/identification.md, "The
+alternation at its root: a search along the reversing input").
+
+So where the step's plan reverses, the QP's linear model is not trusted along that input: :func:`turned_inputs`
+names each input whose first move turns against the last step's, both beyond a share of the input's range, and
+:func:`candidates` builds the QP's plan with that input's whole profile replaced by the linearisation point's
+(the input as the last plan had it), by its upper bound and by its lower bound (the QP's bounds of each stage, the
+rate limits of the first). The solver (:class:`.rti_osqp.RtiOsqpSolver`, ``reversal_search``) prices them on the
+problem's nonlinear cost (:class:`.plan_merit.PlanMerit`, the model's rollout) and takes the cheapest of these
+and the QP's own plan. No QP is added: one call of a generated function prices the three candidates of an input.
+Nothing in it knows which input reverses.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def check_share(name: str, share) -> float:
+    """``share`` as a float in [0, 1) (0: off); ValueError naming ``name`` and the range otherwise."""
+    if isinstance(share, bool) or not isinstance(share, (int, float)) or not np.isfinite(share) \
+            or not 0.0 <= share < 1.0:
+        raise ValueError(f"{name} = {share!r}, allowed: a share of each input's range in [0, 1) (0: off)")
+    return float(share)
+
+
+def last_moves(last_move: np.ndarray | None, move: np.ndarray, span: np.ndarray, share: float) -> np.ndarray:
+    """Per input, the last plan's first move larger than ``share`` x the input's ``span``: ``move`` where it is
+    that large, else the one kept in ``last_move`` (0 where there is none), so a step that holds an input between
+    two reversing moves does not hide the second."""
+    big = np.abs(move) > share * np.asarray(span, float)
+    kept = np.zeros_like(move, dtype=float) if last_move is None else last_move
+    return np.where(big, move, kept)
+
+
+def turned_inputs(last_move: np.ndarray | None, move: np.ndarray, span: np.ndarray, share: float) -> np.ndarray:
+    """Indices of the inputs whose ``move`` (this plan's first move from the command in force, scaled) turns
+    against ``last_move`` (:func:`last_moves`), each larger than ``share`` x that input's ``span`` (its scaled
+    range). Empty without a last move or with ``share`` 0."""
+    if last_move is None or share <= 0.0:
+        return np.zeros(0, dtype=int)
+    big = share * np.asarray(span, float)
+    turned = (np.sign(move) * np.sign(last_move) < 0) & (np.abs(move) > big) & (np.abs(last_move) > big)
+    return np.flatnonzero(turned)
+
+
+def candidates(u_qp: np.ndarray, u_lin: np.ndarray, u_lo: np.ndarray, u_hi: np.ndarray, i: int) -> list[np.ndarray]:
+    """The QP's plan ``u_qp`` (N x nu, scaled) with input ``i``'s profile replaced by the linearisation point's
+    (``u_lin``), by ``u_hi`` and by ``u_lo`` (N x nu each, the QP's bounds), each within the bounds."""
+    out = []
+    for profile in (u_lin[:, i], u_hi[:, i], u_lo[:, i]):
+        u = np.array(u_qp, float)
+        u[:, i] = np.minimum(np.maximum(profile, u_lo[:, i]), u_hi[:, i])
+        out.append(u)
+    return out
