@@ -58,7 +58,7 @@ class DoMpcSolver:
         self.pb = pb = problem
         N, nx, nu, nd, ny = pb.N, pb.nx, pb.nu, pb.nd, pb.ny
         ocp = StageOcp(pb)
-        pm = ca.DM(ocp.p_model)
+        self.p_model = np.array(ocp.p_model, float)
         substeps = sorted(ocp.dynamics)
         self._substeps = substeps
         model = do_mpc.model.Model("discrete", "SX")
@@ -73,6 +73,7 @@ class DoMpcSolver:
         lo = model.set_variable("_tvp", "lo", (nu, 1))
         hi = model.set_variable("_tvp", "hi", (nu, 1))
         rb = model.set_variable("_tvp", "rb", (nu, 1))
+        pm = model.set_variable("_tvp", "pm", (self.p_model.size, 1))  # the model parameters (set_parameters)
         xa = ca.vertcat(x, ul)
         x_next = 0
         for i, n in enumerate(substeps):
@@ -140,10 +141,16 @@ class DoMpcSolver:
             tpl["_tvp", k, "lo"] = dd["u_lo"][kk]
             tpl["_tvp", k, "hi"] = dd["u_hi"][kk]
             tpl["_tvp", k, "rb"] = self._rb[k]
+            tpl["_tvp", k, "pm"] = self.p_model
         return tpl
 
     def reset(self) -> None:
         self._initialised = False
+
+    def set_parameters(self, p: np.ndarray) -> None:
+        """Model parameters (``HvacModel.p_default`` order) of the next solves (a filter's, e.g. with its heat flow
+        into the mixed air): a time-varying parameter of do-mpc's model, no rebuild."""
+        self.p_model = np.array(p, float)
 
     def prepare(self, x_pred, u_prev, d, ref, w_y) -> float:
         return 0.0  # do-mpc warm-starts from its previous solution itself

@@ -96,7 +96,7 @@ class FatropSolver(ShiftedPrimalStart):
             self.w = tr.pack(pb.rollout(x0, u_prev, d), np.tile(u_prev, (pb.N, 1)), np.zeros(pb.N), u_prev)
         lbx, ubx = tr.bounds(u_lo, u_hi)
         try:
-            sol = self.nlp(x0=np.clip(self.w, lbx, ubx), p=tr.parameters(x0, u_prev, d, ref, w_y), lbx=lbx,
+            sol = self.nlp(x0=np.clip(self.w, lbx, ubx), p=tr.parameters(x0, u_prev, d, ref, w_y, self.p_model), lbx=lbx,
                            ubx=ubx, lbg=tr.lbg, ubg=tr.ubg)
         except RuntimeError as exc:
             return SolveResult(False, f"fatrop error: {exc}", feedback_time_s=time.perf_counter() - t0)
@@ -125,7 +125,8 @@ class StartRecorder(FeedbackRecorder):
         inner = self.inner
         start = None if inner.w is None else inner.transcription.unpack(inner.w)
         res = super().feedback(x0, u_prev, d, ref, w_y, u_lo, u_hi, time_limit_s=time_limit_s)
-        self.records[-1].update(start=start, ok=bool(res.ok), objective=res.extra.get("objective"))
+        self.records[-1].update(start=start, ok=bool(res.ok), objective=res.extra.get("objective"),
+                                p_model=inner.p_model.copy())
         return res
 
 
@@ -138,6 +139,7 @@ def agreement(pb: TrackingProblem, records: list[dict[str, Any]], **ipopt_settin
     diffs, steps, failed = [], [], 0
     for step, rec in enumerate(records):
         ipopt.reset()
+        ipopt.set_parameters(rec["p_model"])
         if rec["start"] is not None:
             ipopt.w = ipopt.transcription.pack(*rec["start"], rec["u_prev"])
             ipopt.lam_x, ipopt.lam_g = np.zeros(ipopt.n), np.zeros(len(ipopt.lbg))

@@ -47,7 +47,14 @@ class ShiftedPrimalStart:
     def _init_shift(self, pb: TrackingProblem) -> None:
         self._i0, self._w1, self._j = shift_maps(pb.t_nodes, pb.dt_s)
         self.fail_next = 0
+        self.p_model = np.array(pb.model.p_default, float)
         self.reset()
+
+    def set_parameters(self, p: np.ndarray) -> None:
+        """Model parameters (``HvacModel.p_default`` order) of the next solves, e.g. the filter's with its heat flow
+        into the mixed air (:class:`~.estimator.DisturbanceEkf`, ``adapts_parameters``): an NLP parameter, no
+        rebuild. Without it a controller whose filter adapts them fell back at every step."""
+        self.p_model = np.array(p, float)
 
     def reset(self) -> None:
         self.w = None
@@ -120,7 +127,7 @@ class IpoptReferenceSolver(ShiftedPrimalStart):
             self.lam_g = np.zeros(len(self.lbg))
         lbx, ubx = self.transcription.bounds(u_lo, u_hi)
         w0 = np.clip(self.w, lbx, ubx)
-        p = self.transcription.parameters(x0, u_prev, d, ref, w_y)
+        p = self.transcription.parameters(x0, u_prev, d, ref, w_y, self.p_model)
         try:
             sol = self.nlp(x0=w0, p=p, lbx=lbx, ubx=ubx, lbg=self.lbg, ubg=self.ubg, lam_x0=self.lam_x,
                            lam_g0=self.lam_g)

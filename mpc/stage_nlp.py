@@ -49,7 +49,10 @@ class StageNlp:
         N, nx, nu = ocp.N, ocp.nx, ocp.nu
         self.x0, self.u_prev = ca.SX.sym("x0", nx), ca.SX.sym("u_prev", nu)
         self.d, self.ref, self.w_y = ca.SX.sym("d", ocp.nd), ca.SX.sym("ref", ocp.ny), ca.SX.sym("w_y", ocp.ny)
-        p = ca.vertcat(self.x0, self.u_prev, self.d, self.ref, self.w_y)
+        # the model parameters (HvacModel.p_default order) enter as parameters too: a filter that adapts them (the
+        # heat flow into the mixed air, a learned bypass-flow exponent) hands them over per step (set_parameters)
+        self.p_model = ca.SX.sym("p_model", ocp.p_model.size)
+        p = ca.vertcat(self.x0, self.u_prev, self.d, self.ref, self.w_y, self.p_model)
         if layout == "compact":
             xa, u, s = self._compact_variables()
         else:
@@ -95,7 +98,7 @@ class StageNlp:
     # ------------------------------------------------------------------ rows and cost
     def _build(self, xa, u, s, p) -> None:
         """Walk the stages: rows (by group and stage), cost and least-squares terms; then order the rows."""
-        ocp, pm = self.ocp, ca.DM(self.ocp.p_model)
+        ocp, pm = self.ocp, self.p_model
         groups: dict[str, list] = {g: [] for g in ROW_GROUPS}  # (stage, expr, lb, ub)
         order: list[tuple[str, int]] = []  # stage order: (group, stage)
         cost, res, wts, tgt = 0, [], [], []
@@ -160,8 +163,9 @@ class StageNlp:
         self.equality = [bool(a == b) for a, b in zip(self.lbg, self.ubg)]
 
     # ------------------------------------------------------------------ values
-    def parameters(self, x0, u_prev, d, ref, w_y) -> np.ndarray:
-        return np.concatenate([x0, u_prev, d, ref, w_y])
+    def parameters(self, x0, u_prev, d, ref, w_y, p_model=None) -> np.ndarray:
+        """The NLP's parameter vector; ``p_model``: the model parameters (None: those the problem was built with)."""
+        return np.concatenate([x0, u_prev, d, ref, w_y, self.ocp.p_model if p_model is None else p_model])
 
     def bounds(self, u_lo: np.ndarray, u_hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Variable bounds: the inputs (N, nu) per stage, ``s >= 0``, the rest free."""

@@ -147,34 +147,74 @@ def test_two_experiments_and_a_report_give_the_bench_ratios(tmp_path, capsys):
 
 
 #: Widest noise-aware ratio band (95 %) the checks accept where the log resolves both figures: for the
-#: IAE ratios a fifth of the bench's ratio (the noise scales both controllers' IAE alike), for energy
-#: 0.02 absolute.
+#: IAE ratios a fifth of the bench's ratio of the run the widths were measured on, for energy 0.02 absolute.
+#: ASSUMPTION of that form: the noise scales both controllers' IAE alike. It does not where the MPC's IAE
+#: falls (the noise adds an IAE band of its own width in C s, docs/robustness.md sec. 2.33), so a better
+#: controller is held to the measured run's width in the ratio's units.
 MAX_BAND_WIDTH = {"temp_iae_cs": 0.2, "flow_iae_m3": 0.2, "energy_wh": 0.02}
 RELATIVE_WIDTH = {"temp_iae_cs", "flow_iae_m3"}
 
 
-@pytest.mark.slow
-def test_report_bands_hold_the_bench_ratios_where_the_flow_error_is_resolved(tmp_path):
-    """flow_split_changes (flow reference steps, errors well above the flow sensor's noise): both
-    experiments and the report; the bench's temperature, flow and energy ratios lie inside the
-    report's noise-aware bands, each band at most MAX_BAND_WIDTH wide (relative where said)."""
+#: The MPC's filter without the heat flow into the mixed air (``EkfSettings.q_supply_heat_w`` 0), the settings the
+#: flow-split bands' widths were measured with (docs/robustness.md sec. 2.33).
+HEAT_OFF = {"ekf": {"q_supply_heat_w": 0.0, "supply_heat_release_at_rest": False}}
+#: The heat flow released at rest (the candidate default of docs/robustness.md sec. 2.33).
+HEAT = {"ekf": {"q_supply_heat_w": 0.5, "supply_heat_release_at_rest": True}}
+
+
+def _flow_split_bands(tmp_path, monkeypatch, settings: dict | None) -> tuple[dict, dict, float]:
+    """flow_split_changes, quick, seed 0: both experiments through the daemon (the MPC with ``settings``, None: the
+    defaults) and the report's noise-aware figures, the bench's ratios of the same runs, the report's raw temperature
+    ratio."""
+    import hvac_mpc.benchmarks.experiment as experiment
+
+    if settings is not None:
+        def with_settings(base, base_dir, log, controller, ctrl_settings, *args, **kwargs):
+            return experiment_config(base, base_dir, log, controller,
+                                     settings if controller == "mpc" else ctrl_settings, *args, **kwargs)
+        monkeypatch.setattr(experiment, "experiment_config", with_settings)
     name, seed = "flow_split_changes", 0
     logs = []
     for c in ("baseline", "mpc"):
         logs.append(tmp_path / f"{c}.csv")
         assert cli.main(["experiment", "--scenario", name, "--quick", "--controller", c, "--seed", str(seed),
                          "--log", str(logs[-1])]) == 0
+    monkeypatch.undo()
     results, _ = build_results(logs)
-    aware = results["scenarios"][name]["noise_aware"]
     bench_results, _ = bench.run_benchmark([S.all_scenarios()[name].quick()],
-                                           {"baseline": bench.baseline_factory(), "mpc": bench.mpc_factory()}, seed)
-    ref = bench_results["scenarios"][name]["ratios"]
+                                           {"baseline": bench.baseline_factory(),
+                                            "mpc": bench.mpc_factory(settings=settings)}, seed)
+    return (results["scenarios"][name]["noise_aware"], bench_results["scenarios"][name]["ratios"],
+            results["scenarios"][name]["ratios"]["temp_iae_cs"])
+
+
+@pytest.mark.slow
+def test_report_bands_hold_the_bench_ratios_where_the_flow_error_is_resolved(tmp_path, monkeypatch):
+    """flow_split_changes (flow reference steps, errors well above the flow sensor's noise): both
+    experiments and the report; the bench's temperature, flow and energy ratios lie inside the
+    report's noise-aware bands, each band at most MAX_BAND_WIDTH wide (relative where said).
+
+    The widths were measured with the MPC's filter without the heat flow (``HEAT_OFF``: the temperature ratio 0.715,
+    its band 0.622-0.765, 0.19999 of it), which the test pins. With the heat flow released at rest (``HEAT``,
+    docs/robustness.md sec. 2.33) the MPC's IAE is lower (14.00 -> 8.97 C s, the ratio 0.458) and its noise band as wide in C s (2.03 ->
+    1.99; the reading's noise, 0.055 degC over 150 samples, adds the same IAE band to a smaller IAE): the band
+    0.392-0.513 is narrower in the ratio's units (0.143 -> 0.121) but 0.263 of the smaller ratio. So that run is
+    held to the same width in the ratio's units, MAX_BAND_WIDTH of the pinned run's ratio, not of its own."""
+    aware, ref, raw = _flow_split_bands(tmp_path / "pinned", monkeypatch, HEAT_OFF)
+    _assert_bands(aware, ref, raw, ref)
+    aware, ref_d, raw = _flow_split_bands(tmp_path / "heat", monkeypatch, HEAT)
+    _assert_bands(aware, ref_d, raw, ref)
+
+
+def _assert_bands(aware: dict, ref: dict, raw: float, width_of: dict) -> None:
+    """The bench's ratios ``ref`` inside the report's noise-aware bands ``aware``, each band at most MAX_BAND_WIDTH
+    wide (relative to ``width_of``'s ratio where said), both flow figures resolved, and the noise-aware temperature
+    ratio nearer the bench's than the report's ``raw`` one."""
     for fig, width in MAX_BAND_WIDTH.items():
         lo, hi = aware[fig]["band"]
         assert lo <= ref[fig] <= hi, (fig, aware[fig]["band"], ref[fig])
-        assert hi - lo <= width * (ref[fig] if fig in RELATIVE_WIDTH else 1.0), (fig, aware[fig]["band"])
+        assert hi - lo <= width * (width_of[fig] if fig in RELATIVE_WIDTH else 1.0), (fig, aware[fig]["band"])
     assert aware["flow_iae_m3"]["mpc"]["resolved"] and aware["flow_iae_m3"]["baseline"]["resolved"]
-    raw = results["scenarios"][name]["ratios"]["temp_iae_cs"]
     assert abs(aware["temp_iae_cs"]["ratio"] - ref["temp_iae_cs"]) < abs(raw - ref["temp_iae_cs"])
 
 

@@ -302,6 +302,41 @@ def test_converged_sqp_matches_ipopt_on_the_same_problem():
     assert np.max(np.abs(pb.unscale_u(rs.U[0]) - pb.unscale_u(ri.U[0]))) < 0.5  # W and %
 
 
+def test_the_converged_reference_takes_the_model_parameters_at_run_time():
+    """The IPOPT reference's NLP takes the model parameters as parameters (``set_parameters``), as the RTI's QP does: with
+    a heat of 20 W into the mixed air both converge to one optimum, another than with the parameters the problem was
+    built with; and the MPC with ``solver="ipopt"`` runs with the filter's heat flow (``q_supply_heat_w``, which hands
+    the filter's parameters to the solver at every step: without ``set_parameters`` each step fell back)."""
+    from hvac_mpc.mpc.ipopt_reference import IpoptReferenceSolver
+    from hvac_mpc.mpc.rti_osqp import RtiOsqpSolver
+
+    pb = TrackingProblem(PARAMS, OcpSpec())
+    u_prev = pb.scale_u(Command(160.0, 0.0, 40.0, 90.0, 60.0, 50.0).vector())
+    d = np.array([28.0, 5.0, -0.3, 0.0])
+    x0 = pb.scale_x(pb.model.steady_state(pb.unscale_u(u_prev), np.array([28.0, 5.0, 0.0, 0.0])))
+    ref, w_y = pb.reference_vector(REF_COOL), pb.output_weights(REF_COOL)
+    lo, hi = pb.input_bounds(pb.unscale_u(u_prev))
+    p = np.array(pb.model.p_default, float)
+    p[pb.model.param_names.index("supply_heat_w")] = 20.0
+    built = IpoptReferenceSolver(pb, tol=1e-9).feedback(x0, u_prev, d, ref, w_y, lo, hi)
+    sqp, ip = RtiOsqpSolver(pb, eps=1e-7, max_iter=20000, sqp_max_iter=40, sqp_tol=1e-6), IpoptReferenceSolver(pb, tol=1e-9)
+    sqp.set_parameters(p)
+    ip.set_parameters(p)
+    rs, ri = sqp.feedback(x0, u_prev, d, ref, w_y, lo, hi), ip.feedback(x0, u_prev, d, ref, w_y, lo, hi)
+    assert rs.ok and ri.ok and built.ok
+    assert np.max(np.abs(pb.unscale_u(rs.U[0]) - pb.unscale_u(ri.U[0]))) < 0.5  # W and %
+    assert np.max(np.abs(pb.unscale_u(built.U) - pb.unscale_u(ri.U))) > 2.0  # W and %, over the plan
+    from hvac_mpc.benchmarks.simulate import DETERMINISTIC_DEADLINE_S
+    heat = EkfSettings(q_supply_heat_w=0.5, supply_heat_release_at_rest=True)  # docs/robustness.md sec. 2.33
+    ctrl = MpcController(PARAMS, MpcSettings(solver="ipopt", deadline_s=DETERMINISTIC_DEADLINE_S, ekf=heat))
+    plant = SimulatedPlant(PARAMS, seed=0)
+    for _ in range(3):
+        r = ctrl.step(plant.read(), REF_COOL)
+        assert r.stats["fallback"] is None, r.stats
+        plant.apply(r.command)
+        plant.advance()
+
+
 @pytest.mark.slow
 def test_jit_and_virtual_machine_linearise_identically():
     pb = TrackingProblem(PARAMS, OcpSpec())

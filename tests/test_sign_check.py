@@ -24,6 +24,11 @@ from hvac_mpc.mpc.sign_check import ValveSignCheck
 from recording_helpers import recording_mpc_factory
 
 ON = {"placement_sign_move_pct": 20.0}
+#: The filter without the heat flow into the mixed air, S2-7's figures were measured with (docs/robustness.md sec. 2.33:
+#: with the heat released at rest, ``HEAT``, the run without the check loses less, 367.0 C s against the baseline's
+#: 266.8).
+HEAT_OFF = {"ekf": {"q_supply_heat_w": 0.0}}
+HEAT = {"ekf": {"q_supply_heat_w": 0.5, "supply_heat_release_at_rest": True}}
 S2_7 = Variant(transport_delay_s=3.37, duct_loss_ua_w_per_k=6.13, cooler_literal_fit=True, thermocouple_tau_scale=0.78,
                blower_gain_scale=0.9, valve_shift_pct=-6.38, heater_power_scale=0.94, chiller_rate_scale=0.56)
 
@@ -166,16 +171,22 @@ def _run(variant, scenario, settings):
 
 @pytest.mark.slow
 def test_s2_7_valve_a_answered_the_other_way_round_switches_the_filter_and_closes_valve_a():
+    """Measured with the filter without the heat flow (``HEAT_OFF``, pinned): the check switches the filter within
+    the first response and closes valve a; without it the MPC loses more than half the baseline's IAE again. With the
+    heat flow released at rest (``HEAT``, the candidate default) the check's run does the same; the run without it
+    loses less there (367.0 C s, 1.38 of the baseline's), the heat's gain, not the check's (docs/robustness.md sec.
+    2.29, 2.33)."""
     full = scenarios.mismatch_scenarios()["winter_heating_steps"]
     cut = dataclasses.replace(full, segments=full.segments[:1])  # the 120 s warm-up at 9 C, then 180 s at 12 C
-    iae, base, verdicts, placements, valve_a = _run(S2_7, cut, ON)
-    assert verdicts[-1] == 1
-    first = verdicts.index(1)
-    assert 155 <= first <= 175  # valve a opens at 156-160 s; the reading rises from about 162 s
-    assert set(placements[first + 1:]) == {"heater_air"}  # the trial's sums do not take the switch back
-    assert valve_a[-60:].max() < 30.0  # back towards the bypass, the box's coldest path
-    assert iae < base
-    off_iae, off_base, _, off_placements, off_valve_a = _run(S2_7, cut, None)
+    pinned, heat = _run(S2_7, cut, {**ON, **HEAT_OFF}), _run(S2_7, cut, {**ON, **HEAT})
+    for iae, base, verdicts, placements, valve_a in (heat, pinned):
+        assert verdicts[-1] == 1
+        first = verdicts.index(1)
+        assert 155 <= first <= 175  # valve a opens at 156-160 s; the reading rises from about 162 s
+        assert set(placements[first + 1:]) == {"heater_air"}  # the trial's sums do not take the switch back
+        assert valve_a[-60:].max() < 30.0  # back towards the bypass, the box's coldest path
+        assert iae < base
+    off_iae, off_base, _, off_placements, off_valve_a = _run(S2_7, cut, HEAT_OFF)
     assert off_base == pytest.approx(base)  # the same baseline run
     assert "heater_air" not in off_placements[:first + 10] and off_valve_a[-60:].min() > 80.0
     assert off_iae > 1.5 * base > 1.5 * iae
