@@ -9,6 +9,8 @@ turns into an error at the flow jump).
 Budget: the open loop about 3 s (three filters over 480 samples), the closed loops about 30 s (slow).
 """
 
+import math
+
 import numpy as np
 import pytest
 
@@ -110,10 +112,11 @@ def test_s0_7_heating_switches_the_filter_with_the_heat_released_at_rest():
     other sign, the placement never switches and valve a stays open (1.486 of the baseline's IAE, measured); released
     at rest it is held until after the switch (0.732; the heat off: 0.742). Measured, and run, with the plain start
     (``start_rate_share`` 1: the caution's bound in the first QPs moves the run within the solver's tolerance,
-    docs/robustness.md sec. 2.30)."""
+    docs/robustness.md sec. 2.30) and without the sign check of valve a's answer (on by default since sec. 2.34: it
+    switches the ungated run too, a second route to the switch, so the gate's own effect is measured with it off)."""
     from test_placement_margin import _run
 
-    heat, plain = {"q_supply_heat_w": WALK_W}, {"start_rate_share": 1.0}
+    heat, plain = {"q_supply_heat_w": WALK_W}, {"start_rate_share": 1.0, "placement_sign_move_pct": math.inf}
     gated_iae, base_iae, placements, valve_a = _run({**plain, "ekf": {**heat, "supply_heat_release_at_rest": True}})
     assert "heater_air" in placements[80:130]
     assert valve_a[-60:].max() < 30.0 and gated_iae < base_iae
