@@ -502,10 +502,10 @@ class MpcSettings:
             check_radii(self.rti_trust_radii)
         except ValueError as exc:
             raise InvalidSettings(f"{p}.rti_trust_radii: {exc}") from None
-        check_number(f"{p}.rti_reversal_search", self.rti_reversal_search, 0.0, 1.0)
-        if self.rti_reversal_search >= 1.0:
-            raise InvalidSettings(f"{p}.rti_reversal_search = {self.rti_reversal_search!r} must be below 1 "
-                                  "(a share of each input's range in [0, 1), 0 off)")
+        v = self.rti_reversal_search
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= v < 1.0:
+            raise InvalidSettings(f"{p}.rti_reversal_search = {v!r} must be in [0, 1) (a share of each input's "
+                                  "range, 0 off)")
         if not isinstance(self.rti_step_fractions, tuple) or len(self.rti_step_fractions) > 8:
             raise InvalidSettings(f"{p}.rti_step_fractions must be a tuple of at most 8 fractions in (0, 1)")
         for i, a in enumerate(self.rti_step_fractions):
@@ -702,8 +702,9 @@ class MpcController:
         if s.ocp.ptc_limit and "ptc_power_fall" not in s.ocp.model_effects:
             ekf_model = HvacModel(self.params, tuple(s.ocp.model_effects) + ("ptc_power_fall",), dt_s=s.dt_s,
                                   terms=terms)
-        # the bypass-flow exponent is learned only where the prediction can take it as a runtime
-        # parameter (the RTI/SQP solver; the reference solvers predict with the parameters as given)
+        # the bypass-flow exponent is learned, and the placement chosen, only where the prediction can take the
+        # model parameters at run time (``set_parameters``: the RTI/SQP solver and, since the stage-wise NLP takes
+        # them as parameters, the converged references too, so every contender runs the same estimator)
         self.ekf = DisturbanceEkf(ekf_model, s.ekf, s.dt_s, s.water_prediction,
                                   learn_bypass_flow=hasattr(self.solver, "set_parameters"))
         self._filters = [self.ekf]  # with choose_offset_placement, the heater air's filter too (mpc/placement.py)

@@ -53,12 +53,25 @@ def turned_inputs(last_move: np.ndarray | None, move: np.ndarray, span: np.ndarr
     return np.flatnonzero(turned)
 
 
-def candidates(u_qp: np.ndarray, u_lin: np.ndarray, u_lo: np.ndarray, u_hi: np.ndarray, i: int) -> list[np.ndarray]:
+def candidates(u_qp: np.ndarray, u_lin: np.ndarray, u_lo: np.ndarray, u_hi: np.ndarray, i: int,
+               rate: np.ndarray | None = None) -> list[np.ndarray]:
     """The QP's plan ``u_qp`` (N x nu, scaled) with input ``i``'s profile replaced by the linearisation point's
-    (``u_lin``), by ``u_hi`` and by ``u_lo`` (N x nu each, the QP's bounds), each within the bounds."""
+    (``u_lin``), by ``u_hi`` and by ``u_lo`` (N x nu each, the QP's bounds), each within the bounds and, with
+    ``rate`` ((N-1) x nu, the QP's largest change between stages k-1 and k, scaled), passed forward through the
+    rate limits, so every candidate is a plan the QP could have given."""
     out = []
     for profile in (u_lin[:, i], u_hi[:, i], u_lo[:, i]):
         u = np.array(u_qp, float)
-        u[:, i] = np.minimum(np.maximum(profile, u_lo[:, i]), u_hi[:, i])
+        u[:, i] = rate_limited(profile, u_lo[:, i], u_hi[:, i], None if rate is None else rate[:, i])
         out.append(u)
+    return out
+
+
+def rate_limited(profile: np.ndarray, lo: np.ndarray, hi: np.ndarray, rate: np.ndarray | None) -> np.ndarray:
+    """``profile`` (N, scaled) clipped to ``[lo, hi]`` stage by stage and, with ``rate`` (N-1), each stage to
+    within ``rate[k-1]`` of the stage before it (forward, from the clipped first stage)."""
+    out = np.minimum(np.maximum(np.asarray(profile, float), lo), hi)
+    if rate is not None:
+        for k in range(1, out.size):
+            out[k] = min(max(out[k], out[k - 1] - rate[k - 1], lo[k]), out[k - 1] + rate[k - 1], hi[k])
     return out

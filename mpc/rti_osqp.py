@@ -503,7 +503,7 @@ class RtiOsqpSolver:
         # constant bounds
         self.l = np.zeros(rows)
         self.u = np.zeros(rows)
-        rb = pb.rate_bounds()
+        rb = self._rate_bounds = pb.rate_bounds()
         self.l[self.r_rate] = -rb
         self.u[self.r_rate] = rb
         self.l[self.r_soft] = -np.inf
@@ -1022,6 +1022,7 @@ class RtiOsqpSolver:
             prep += self.prepare(x0, u_prev, d, ref, w_y)
         elif not started and changed and self._vector_prepared:  # a change linearises in full at the prepared point
             prep += self._relinearise(self._z_lin, self._z_lin[:self.pb.nx], self._prepared["d"], ref, w_y, u_prev)
+        self.reversal_searched = self.reversal_taken = False
         if self.fail_next > 0:
             self.fail_next -= 1
             return SolveResult(False, "forced failure", prep_time_s=prep,
@@ -1306,8 +1307,9 @@ class RtiOsqpSolver:
             U_best = z[self.iu0:self.is0].reshape(N, nu)
             _, c_best = merit.pair(U_lin, U_best, *args)
             for i in turned:
-                plans = candidates(U_best, U_lin, u_lo, u_hi, int(i))
-                costs = merit.costs(plans, *args)
+                plans = candidates(U_best, U_lin, u_lo, u_hi, int(i), self._rate_bounds)
+                costs = np.asarray(merit.costs(plans, *args), float)
+                costs[~np.isfinite(costs)] = np.inf  # a candidate the model cannot price is not taken
                 j = int(np.argmin(costs))
                 if costs[j] < c_best:
                     U_best, c_best, self.reversal_taken = plans[j], float(costs[j]), True

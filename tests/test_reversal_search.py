@@ -87,7 +87,7 @@ def _run(seed: int = 0, **fields) -> dict:
 
     sc, mpc, plant = on_recirculating_box(seed, **fields)
     i_a = mpc.problem.i_valve_a
-    out = dict(reversals=0, searched=0, taken=0, qps=0, iae=0.0)
+    out = dict(reversals=0, searched=0, taken=0, qps=0, iae=0.0, keyed=False)
     a_prev, last_move = None, 0.0
     for k in range(int(WINDOW_S[1])):
         ref = sc.reference_at(float(k))
@@ -96,6 +96,7 @@ def _run(seed: int = 0, **fields) -> dict:
             out["iae"] += abs(plant.truth()["supply_temp_c"] - ref.supply_temp_c)
         result = mpc.step(plant.read(), ref)
         u = np.asarray(result.command.vector(), float)
+        out["keyed"] |= "reversal_searched" in result.stats
         out["searched"] += int(inside and result.stats.get("reversal_searched", False))
         out["taken"] += int(inside and result.stats.get("reversal_taken", False))
         out["qps"] += int(inside) * result.stats["qp_solves"]
@@ -118,9 +119,28 @@ def test_search_ends_valve_a_alternation_on_the_recirculating_box():
     reversals, 255.2 -> 230.0 C s, 45 steps searched, 41 candidates taken, 61 QPs either way; seeds 1-3: 29 -> 2,
     28 -> 6, 30 -> 2 reversals, 262.5 -> 233.2, 266.1 -> 230.5, 263.1 -> 230.9 C s)."""
     off, on = _run(), _run(rti_reversal_search=0.05)
-    assert off["searched"] == off["taken"] == 0, off
+    assert not off["keyed"] and on["keyed"], (off, on)  # the search's stats only where it is on
     assert on["taken"] >= 20, on
     assert on["qps"] == off["qps"], (on, off)  # no QP added
     assert off["reversals"] >= 15, off
     assert on["reversals"] <= 0.3 * off["reversals"], (on, off)
     assert on["iae"] < 0.95 * off["iae"], (on, off)
+
+
+def test_candidates_follow_the_rate_limits_from_the_first_stage():
+    """A candidate at an input's bound starts from the first stage's (rate-limited) bound and moves on no faster than
+    the QP's rate rows allow, so it is a plan the QP could have given; without the rates it jumps to the range's
+    bound at the second stage."""
+    from hvac_mpc.mpc.reversal_search import candidates
+
+    N, nu = 5, 2
+    u_lo, u_hi = np.full((N, nu), -1.0), np.full((N, nu), 1.0)
+    u_lo[0, 1], u_hi[0, 1] = -0.1, 0.1  # the applied move's rate-limited bounds
+    rate = np.full((N - 1, nu), 0.25)
+    u_qp = np.zeros((N, nu))
+    lin, up, down = candidates(u_qp, u_qp, u_lo, u_hi, 1, rate)
+    np.testing.assert_allclose(up[:, 1], [0.1, 0.35, 0.6, 0.85, 1.0])
+    np.testing.assert_allclose(down[:, 1], [-0.1, -0.35, -0.6, -0.85, -1.0])
+    np.testing.assert_array_equal(lin, u_qp)
+    np.testing.assert_array_equal(up[:, 0], u_qp[:, 0])  # the other input keeps the QP's profile
+    assert candidates(u_qp, u_qp, u_lo, u_hi, 1)[1][1, 1] == 1.0  # no rates: the bound at once
