@@ -2,7 +2,7 @@
 
 A quiet control step makes about a hundred numpy calls on arrays of a few to a few hundred values, where the
 Python wrappers around numpy's C (``np.all``, ``ndarray.all``'s ``_methods._all``, ``np.interp``'s checks) cost
-as much as the work. The helpers here skip the wrappers, not the arithmetic: the same booleans and the same
+as much as the work. The functions here skip the wrappers, not the arithmetic: the same booleans and the same
 floating-point numbers to the bit (``tests/test_quiet_step.py``; docs/architecture.md "The quiet step's glue").
 """
 
