@@ -112,7 +112,6 @@ class DeadTimeEstimator:
         # (row SSY), and a buffer of the changes of the sample (row SSS: the candidate's, row SSY: the reading's)
         self._sums = np.zeros((2, n))
         self._moves = np.zeros((2, n))
-        self._move_s = self._moves[SSS]  # its row SSS (a view)
         self.residuals = np.full(n, np.nan)
         self.informed = False  # the window has held a response (the candidates ranked at least once)
         self._lead = None  # a candidate ahead of the estimate by LEAD_RATIO ...
@@ -164,7 +163,8 @@ class DeadTimeEstimator:
         self._w = f * self._w + 1.0
         self._syy = f * self._syy + dy * dy
         # both sums in one pass: f * sss + ds * ds and f * ssy + ds * dy (the same operations as apart)
-        moves, move_s = self._moves, self._move_s
+        moves = self._moves
+        move_s = moves[SSS]  # a view of row SSS, taken here so a copy of the estimator keeps its own
         np.subtract(self._pred, self._last_pred, out=move_s)
         moves[SSY] = dy
         sums = f * self._sums
