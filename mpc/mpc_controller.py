@@ -67,6 +67,7 @@ from .sign_check import ValveSignCheck, predicted_air_change_c
 from .readiness import HeaterReadiness
 from .reserve import HeaterReserve
 from .reversal_damping import damped_move
+from .reversal_search import check_share
 from .valve_a_hold import heater_limited, held_opening
 from .arrays import all_finite
 from .background import BackgroundCall, BackgroundWorker
@@ -502,10 +503,10 @@ class MpcSettings:
             check_radii(self.rti_trust_radii)
         except ValueError as exc:
             raise InvalidSettings(f"{p}.rti_trust_radii: {exc}") from None
-        v = self.rti_reversal_search
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= v < 1.0:
-            raise InvalidSettings(f"{p}.rti_reversal_search = {v!r} must be in [0, 1) (a share of each input's "
-                                  "range, 0 off)")
+        try:
+            check_share(f"{p}.rti_reversal_search", self.rti_reversal_search)
+        except ValueError as exc:
+            raise InvalidSettings(str(exc)) from None
         if not isinstance(self.rti_step_fractions, tuple) or len(self.rti_step_fractions) > 8:
             raise InvalidSettings(f"{p}.rti_step_fractions must be a tuple of at most 8 fractions in (0, 1)")
         for i, a in enumerate(self.rti_step_fractions):

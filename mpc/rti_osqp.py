@@ -1291,8 +1291,8 @@ class RtiOsqpSolver:
         """On a plain step (``plain``: one QP) whose plan ``z`` reverses an input's last first move
         (:func:`.reversal_search.turned_inputs`), the cheapest on the nonlinear cost of ``z`` and the candidates
         along each reversing input (:func:`.reversal_search.candidates`; the states stay the QP's, the next
-        preparation linearises at them); else ``z``. Keeps each input's last first move beyond the share."""
-        self.reversal_searched = self.reversal_taken = False
+        preparation linearises at them); else ``z``. Keeps each input's last first move beyond the share. (The
+        step's flags are reset by :meth:`feedback` before any return.)"""
         if z is None:
             self._last_move = None
             return z
