@@ -96,8 +96,8 @@ class FatropSolver(ShiftedPrimalStart):
             self.w = tr.pack(pb.rollout(x0, u_prev, d), np.tile(u_prev, (pb.N, 1)), np.zeros(pb.N), u_prev)
         lbx, ubx = tr.bounds(u_lo, u_hi)
         try:
-            sol = self.nlp(x0=np.clip(self.w, lbx, ubx), p=tr.parameters(x0, u_prev, d, ref, w_y, self.p_model), lbx=lbx,
-                           ubx=ubx, lbg=tr.lbg, ubg=tr.ubg)
+            sol = self.nlp(x0=np.clip(self.w, lbx, ubx), p=tr.parameters(x0, u_prev, d, ref, w_y, self.p_model),
+                           lbx=lbx, ubx=ubx, lbg=tr.lbg, ubg=tr.ubg)
         except RuntimeError as exc:
             return SolveResult(False, f"fatrop error: {exc}", feedback_time_s=time.perf_counter() - t0)
         st = self.nlp.stats()
