@@ -47,29 +47,35 @@ class Recorder:
 
     def step(self, measurement, reference):
         result = self.controller.step(measurement, reference)
+        self.steps.append(self.record(result))
+        return result
+
+    def record(self, result) -> dict[str, Any]:
+        """What is kept of one step: OSQP's iterations and QPs, the split rest's iterations, the step size after."""
         rest = getattr(self.controller, "_change_call", None)
         if rest is not None:  # a split change's rest done before the step size is read (the commands do not change)
             rest.wait(REST_WAIT_S)
         stats = result.stats or {}
         rest = stats.get("change_finish") or {}
         core = getattr(getattr(self.controller, "solver", None), "_core", None)
-        self.steps.append({"iterations": int(stats.get("iterations") or 0), "qp_solves": int(stats.get("qp_solves") or 0),
-                           "rest_iterations": int(rest.get("iterations", 0)),
-                           "rho": float(core.rho) if core is not None and hasattr(core, "rho") else None})
-        return result
+        return {"iterations": int(stats.get("iterations") or 0), "qp_solves": int(stats.get("qp_solves") or 0),
+                "rest_iterations": int(rest.get("iterations", 0)),
+                "rho": float(core.rho) if core is not None and hasattr(core, "rho") else None}
 
 
-def run_variant(scenario: scenario_defs.Scenario, seed: int, settings: Mapping[str, Any]) -> dict[str, Any]:
-    """The MPC with ``settings`` through ``scenario`` on the bench's plant of ``seed``; per-step records."""
+def run_variant(scenario: scenario_defs.Scenario, seed: int, settings: Mapping[str, Any],
+                recorder: type = Recorder) -> dict[str, Any]:
+    """The MPC with ``settings`` through ``scenario`` on the bench's plant of ``seed``; per-step records (kept by
+    ``recorder``, a :class:`Recorder`)."""
     plant_params, _ = perturb_parameters(Parameters(), seed)
-    ctrl = Recorder(bench.mpc_factory(settings=dict(settings))(scenario.initial_command))
+    ctrl = recorder(bench.mpc_factory(settings=dict(settings))(scenario.initial_command))
     tr = simulate(scenario, ctrl, plant_params, seed, name="mpc")
     ctrl.close()
     k0 = int(np.searchsorted(tr.time_s, scenario.metrics_start_s - 1e-9))
     err = box_trace.abs_error(tr, scenario.metrics_start_s) * tr.dt_s
     ref = tr.reference["supply_temp_c"]
     return {"error": err, "reference": ref, "commands": tr.requested, "steps": ctrl.steps, "k0": k0,
-            "changes": reference_changes(tr.reference), "iae": float(err.sum())}
+            "changes": reference_changes(tr.reference), "iae": float(err.sum()), "body_c": tr.truth["heater_temp_c"]}
 
 
 def reference_changes(reference: Mapping[str, np.ndarray]) -> list[int]:
