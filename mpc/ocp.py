@@ -66,6 +66,7 @@ from hvac_mpc.models.parameters import Parameters
 
 from .casadi_eval import BufferedFunction
 from hvac_mpc.contract import Reference
+from .flap_target import SplitTarget
 from .valve_map import VALVE_NAMES, ValveMap
 
 #: Tracked outputs (model output names) in the order of the residual vector; the first is
@@ -76,6 +77,8 @@ TRACKED = ("supply_air_temp_c", "volume_flow_m3s", "flow_m_m3s", "flow_f_m3s", "
 STAGE_OUTPUTS = TRACKED + ("heater_power_w", "valve_a_pct")
 #: Valve a's row of the stage outputs.
 _Y_VALVE_A = STAGE_OUTPUTS.index("valve_a_pct")
+#: Outlet m's row of the stage outputs: its weight is on where the reference's split is tracked.
+_Y_OUTLET_M = STAGE_OUTPUTS.index("flow_m_m3s")
 
 #: Default horizon: 25 stages covering 104 s, fine where the thermocouple (tau 5.73 s) and
 #: valve moves matter, coarse where only the heater body (tau ~90 s) and motor lag still move.
@@ -191,7 +194,11 @@ class Weights:
     weighed against the outlet flow's error: at 1e-5 and a flap 50 % away, about 0.01 L/s with an outlet gain of
     0.1 L/s per % of opening. Constant in the QP (its Hessian and gradient are inputs of the generated code, not part of
     its structure). Off by default: with 1e-5 or 1e-4 the built-in bench's winter_heating_steps loses 0.02-0.04 of its
-    ratio (measured in the same section).
+    ratio (measured in the same section). Traced in 'The flat direction priced, winter traced': towards a fixed 70 % the
+    term moves the winter split's rest mix (flap f 100 -> 62 % of its angle) and costs that scenario +2.7 % of its IAE
+    over plant seeds 0-9; towards the split's own rest mix (``OcpSpec.flap_target_from_split``) +0.25 % (OSQP's
+    tolerance 10 % tighter, nothing else changed: -0.33 %), but on the bench's seed 0 still above the rule's fourth
+    decimal (the seed-0 figure moves by several % with any change to OSQP's iterates).
     """
 
     supply_temp: float = 5.0
@@ -277,6 +284,16 @@ class OcpSpec:
             flap-closure term pulls each flap towards (only with ``Weights.flap_closure_per_pct2`` above 0): 100, fully
             open, the mix of least blower power; below it a reserve of opening each way for a flow step (measured,
             docs/architecture.md 'The flat direction priced').
+        flap_targets_pct: the targets of flaps m, f and w one by one (% of the opening ``v``, each in [0, 100]) in
+            place of ``flap_target_pct`` for all three; None (the default): ``flap_target_pct``. A target at a split's
+            rest mix (the largest flap fully open, the others at the openings that split the flow) puts the term's
+            pull where the energy term already holds the flaps at rest, so only the flat direction's curvature is
+            added (measured on winter_heating_steps, docs/architecture.md 'The flat direction priced, winter traced').
+        flap_target_from_split: the flap-closure term's targets from the reference at each step in place of
+            ``flap_target_pct`` / ``flap_targets_pct``: the openings of least blower power that give the reference's
+            outlet shares (the flap that limits the network's conductance fully open, the others at the conductance
+            their share asks; all fully open where the split is not tracked; :mod:`hvac_mpc.mpc.flap_target`). Off by
+            default (measured in the same section).
     """
 
     stage_durations_s: tuple[float, ...] = DEFAULT_STAGES_S
@@ -297,6 +314,8 @@ class OcpSpec:
     ready_step_c: float = 3.0
     ready_lead_c: float | None = 3.0
     flap_target_pct: float = 100.0
+    flap_targets_pct: tuple[float, float, float] | None = None
+    flap_target_from_split: bool = False
 
     @property
     def temperature_sensor_share(self) -> float:
@@ -339,7 +358,14 @@ class OcpSpec:
         if self.ready_lead_c is not None:
             check_number(f"{prefix}.ready_lead_c", self.ready_lead_c, 0.0, 100.0, lo_open=True)
         check_flag(f"{prefix}.ptc_limit", self.ptc_limit)
+        check_flag(f"{prefix}.flap_target_from_split", self.flap_target_from_split)
         check_number(f"{prefix}.flap_target_pct", self.flap_target_pct, 0.0, 100.0)
+        if self.flap_targets_pct is not None:
+            if not isinstance(self.flap_targets_pct, (tuple, list)) or len(self.flap_targets_pct) != 3:
+                raise InvalidSettings(f"{prefix}.flap_targets_pct = {self.flap_targets_pct!r}: expected three openings "
+                                      f"(%, flaps m, f, w, each in [0, 100]) or None")
+            for name, value in zip("mfw", self.flap_targets_pct):
+                check_number(f"{prefix}.flap_targets_pct[{name}]", value, 0.0, 100.0)
         unknown = sorted(set(self.model_effects) - set(MODEL_EFFECTS))
         if unknown:
             raise InvalidSettings(f"{prefix}.model_effects has unknown effect(s) {unknown}; allowed: "
@@ -508,7 +534,10 @@ class TrackingProblem:
         self.energy_scale_w = 100.0
         self.flap_closure_weight = w.flap_closure_per_pct2
         # the flaps' opening the closure term pulls towards (scaled decisions; zero off the flaps)
-        self.flap_target_u = np.where(self.valve_mask, (spec.flap_target_pct / 100.0 - self.u_off) / self.u_sc, 0.0)
+        self.flap_target_u = np.where(self.valve_mask, (self.flap_targets_opening(spec) - self.u_off) / self.u_sc, 0.0)
+        # with OcpSpec.flap_target_from_split the targets follow the reference's split (flap_target_for)
+        self.flap_split_target = (SplitTarget(self.params, self.valve_map, "valve_leakage" in spec.model_effects)
+                                  if spec.flap_target_from_split else None)
         # d(P_blower)/d(u scaled): the blower term of the energy is linear in the input
         self.energy_grad_u = np.zeros(self.nu)
         self.energy_grad_u[INPUTS.index("blower_power_w")] = self.u_sc[INPUTS.index("blower_power_w")]
@@ -544,28 +573,56 @@ class TrackingProblem:
         body while heating, else 0."""
         return self.body_heat_on(u_prev) * self.body_heat_coef * (x_end[self.i_heater] - x0[self.i_heater])
 
-    def flap_closure_hessian(self) -> tuple[np.ndarray, np.ndarray]:
+    def flap_targets_opening(self, spec: OcpSpec) -> np.ndarray:
+        """The flap-closure term's target openings (fraction of the opening ``v``, per decision; 0 off the flaps):
+        :attr:`OcpSpec.flap_targets_pct` flap by flap where set, else :attr:`OcpSpec.flap_target_pct` for all."""
+        target = np.zeros(self.nu)
+        per_flap = spec.flap_targets_pct or (spec.flap_target_pct,) * len(self.VALVES)
+        target[list(self.VALVES)] = np.asarray(per_flap, float) / 100.0
+        return target
+
+    def flap_target_for(self, ref, tracked):
+        """The flap-closure term's targets (scaled decisions, nu entries, zero off the flaps) for the reference
+        vector ``ref`` (:meth:`reference_vector`) where ``tracked`` (the split's weights on): from its split with
+        :attr:`OcpSpec.flap_target_from_split` (:mod:`~.flap_target`), else the fixed :attr:`flap_target_u`. numpy in,
+        numpy out; CasADi in, a list of nu entries out."""
+        if self.flap_split_target is None:
+            return self.flap_target_u
+        openings = self.flap_split_target.openings(ref[2:5], tracked)
+        if isinstance(openings, np.ndarray):
+            target = np.zeros(self.nu)
+            target[list(self.VALVES)] = (openings - self.u_off[list(self.VALVES)]) / self.u_sc[list(self.VALVES)]
+            return target
+        target = [0.0] * self.nu
+        for j, v in zip(self.VALVES, openings):
+            target[j] = (v - self.u_off[j]) / self.u_sc[j]
+        return target
+
+    def flap_closure_hessian(self, target_u: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """The flap-closure term (:attr:`Weights.flap_closure_per_pct2`) as ``1/2 u' H u + g' u`` per stage, in scaled
         decisions: diagonals ``H`` (N, nu) and gradients ``g`` (N, nu), zero off the flaps and when off. The term is
-        ``dt_k w (c (u_T - u))^2`` per flap, ``u_T`` the target opening (:attr:`OcpSpec.flap_target_pct`) scaled, ``c``
-        the % of opening per scaled unit."""
+        ``dt_k w (c (u_T - u))^2`` per flap, ``u_T`` the target opening (``target_u``, scaled; by default
+        :attr:`flap_target_u`, from :attr:`OcpSpec.flap_target_pct`), ``c`` the % of opening per scaled unit."""
         h = np.zeros((self.N, self.nu))
         g = np.zeros((self.N, self.nu))
         if not self.flap_closure_weight:
             return h, g
+        target = self.flap_target_u if target_u is None else np.asarray(target_u, float)
         c2 = (self.u_sc * 100.0) ** 2
         w = self.flap_closure_weight * self.dt[:, None] * np.where(self.valve_mask, c2, 0.0)[None, :]
         h[:] = 2.0 * w
-        g[:] = -2.0 * w * self.flap_target_u[None, :]
+        g[:] = -2.0 * w * target[None, :]
         return h, g
 
-    def flap_closure_cost(self, u, k: int):
-        """The flap-closure term of stage k for its scaled decisions ``u`` (numpy or CasADi; 0 when off)."""
+    def flap_closure_cost(self, u, k: int, target_u=None):
+        """The flap-closure term of stage k for its scaled decisions ``u`` (numpy or CasADi; 0 when off), towards
+        ``target_u`` (scaled, nu entries; by default :attr:`flap_target_u`)."""
         if not self.flap_closure_weight:
             return 0.0
+        target = self.flap_target_u if target_u is None else target_u
         cost = 0.0
         for j in self.VALVES:
-            closure_pct = self.u_sc[j] * 100.0 * (self.flap_target_u[j] - u[j])
+            closure_pct = self.u_sc[j] * 100.0 * (target[j] - u[j])
             cost = cost + self.dt[k] * self.flap_closure_weight * closure_pct * closure_pct
         return cost
 
@@ -865,8 +922,9 @@ class TrackingProblem:
             prev = U[:, k]
         cost += ca.dot(ca.DM(self.dt), self.slack_l1 * S + self.slack_l2 * S * S)
         cost += self.body_heat_cost(X[:, 0], X[:, self.N], u_prev)
+        target = self.flap_target_for(ref, w_y[_Y_OUTLET_M] > 0.0) if self.flap_closure_weight else None
         for k in range(self.N):
-            cost += self.flap_closure_cost(U[:, k], k)
+            cost += self.flap_closure_cost(U[:, k], k, target)
         return cost
 
     def cost_function(self) -> ca.Function:

@@ -87,6 +87,8 @@ class PlanMerit:
         ib, ip = INPUTS.index("blower_power_w"), STAGE_OUTPUTS.index("heater_power_w")
         i_flow = STAGE_OUTPUTS.index("volume_flow_m3s")
         x, prev, cost = x0, u_prev, 0
+        # the flaps' target (OcpSpec.flap_target_from_split: from the reference's split where its weights are on)
+        flap_target = pb.flap_target_for(ref, SW[STAGE_OUTPUTS.index("flow_m_m3s"), 0] > 0.0)
         for k in range(N + 1):
             u = U[:, min(k, N - 1)]
             x_next, y = values[int(pb.stage_substeps[k])](x, u, d, dt[k], p)
@@ -99,7 +101,7 @@ class PlanMerit:
                 cost += ready_w[k - 1] * short * short
             if k < N:
                 du = u - prev
-                cost += ca.dot(ca.DM(pb.w_du), du * du) + pb.flap_closure_cost(u, k)
+                cost += ca.dot(ca.DM(pb.w_du), du * du) + pb.flap_closure_cost(u, k, flap_target)
                 if pb.floor:
                     ih = pb.i_heater_cmd
                     row = pb.floor_row(y[i_flow], pb.u_off[ih] + pb.u_sc[ih] * u[ih])

@@ -525,6 +525,7 @@ class RtiOsqpSolver:
         self._q_heating = self._q_const.copy()
         self._q_heating[N * nx + pb.i_heater] += pb.body_heat_coef
         self._q_body_on = False
+        self._flap_key = None  # the reference's split and whether it is tracked, as the flaps' gradient last had them
 
     def _setup_osqp(self, build: bool = True) -> None:
         """OSQP's workspace set up afresh; ``build`` False: OSQP's generated solver only from the code cache."""
@@ -1337,6 +1338,18 @@ class RtiOsqpSolver:
         self._load(X, U, S, d, ref, w_y, u_prev)
         return time.perf_counter() - t0
 
+    def _flap_gradient_for(self, ref: np.ndarray, w_y: np.ndarray) -> None:
+        """The flaps' entries of the constant gradient for the targets of the reference's split
+        (``OcpSpec.flap_target_from_split``), written again only where the split or its weights changed."""
+        tracked = bool(w_y[Y_OUTLETS[0]] > 0.0)
+        key = (np.asarray(ref, float)[2:5].tobytes(), tracked)
+        if key == self._flap_key:
+            return
+        self._flap_key = key
+        _, flap_g = self.pb.flap_closure_hessian(self.pb.flap_target_for(np.asarray(ref, float), tracked))
+        self._q_const[self.iu0:self.is0] = self._q_heating[self.iu0:self.is0] = flap_g.ravel()
+        self._qp_gradient.set_fixed(7, self._q_heating if self._q_body_on else self._q_const)
+
     def _q(self, ref: np.ndarray, d: np.ndarray, u_prev: np.ndarray) -> np.ndarray:
         """Gradient for the current reference, disturbance estimates and last input."""
         pr = self._prepared
@@ -1346,6 +1359,8 @@ class RtiOsqpSolver:
         if on != self._q_body_on:
             self._qp_gradient.set_fixed(7, self._q_heating if on else self._q_const)
             self._q_body_on = on
+        if self.pb.flap_split_target is not None:
+            self._flap_gradient_for(ref, pr["w_y"])
         q = self._qp_gradient(data["gw2"], data["c_base"], data["y"], ref, dd,
                               self._z_lin[self.iu0:self.is0], u_prev)[0]
         if self._ready_q is not None:

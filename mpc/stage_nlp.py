@@ -25,6 +25,7 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
+from .ocp import STAGE_OUTPUTS
 from .stage_ocp import StageOcp
 
 LAYOUTS = ("compact", "stagewise")
@@ -103,6 +104,10 @@ class StageNlp:
         order: list[tuple[str, int]] = []  # stage order: (group, stage)
         cost, res, wts, tgt = 0, [], [], []
         self.l1, self.l2 = np.zeros(self.n), np.zeros(self.n)
+        # the flaps' target: fixed, or from the reference's split (OcpSpec.flap_target_from_split), a function of p
+        flap_target = ocp.problem.flap_target_for(self.ref, self.w_y[STAGE_OUTPUTS.index("flow_m_m3s")] > 0.0)
+        self._flap_target = (ca.Function("stage_nlp_flap_target", [p], [ca.vertcat(*flap_target)])
+                             if ocp.problem.flap_split_target is not None else None)
         for k, st in enumerate(ocp.stages):
             xk, uk = xa[k][:ocp.nxa], None if st.terminal else u[k]
             for group, expr, lb, ub in self._stage_rows(k, xa, uk, s[k], pm):
@@ -113,7 +118,7 @@ class StageNlp:
             tgt.append(ocp.target(k, self.ref))
             cost += ocp.stage_cost(k, xk, uk, s[k], self.d, self.ref, self.w_y, pm)
             if not st.terminal:  # the flaps' flat direction priced (Weights.flap_closure_per_pct2), 0 when off
-                cost += ocp.problem.flap_closure_cost(uk, k)
+                cost += ocp.problem.flap_closure_cost(uk, k, flap_target)
             if st.has_slack:
                 i = self.i_slack[k - 1]
                 self.l1[i], self.l2[i] = st.slack_l1, st.slack_l2
@@ -212,7 +217,9 @@ class StageNlp:
         q = 2.0 * J.T @ (W * (r - J @ w_lin - T)) + self.l1
         pb = self.ocp.problem  # the value of the body's heat, linear in the terminal state, while heating
         q[self.ix[-1][pb.i_heater]] += pb.body_heat_on(np.asarray(p, float).ravel()[pb.nx:pb.nx + pb.nu]) * pb.body_heat_coef
-        flap_h, flap_g = pb.flap_closure_hessian()  # the flaps' flat direction priced, constant (zero when off)
+        # the flaps' flat direction priced (zero when off): constant, or with its target from the reference's split
+        target = None if self._flap_target is None else np.asarray(self._flap_target(p), float).ravel()
+        flap_h, flap_g = pb.flap_closure_hessian(target)
         iu = np.asarray(self.iu).ravel()
         P[iu, iu] += flap_h.ravel()
         q[iu] += flap_g.ravel()

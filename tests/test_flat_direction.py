@@ -126,10 +126,83 @@ def test_off_by_default_and_on_only_the_flaps_diagonal_and_gradient():
     ({"weights": Weights(flap_closure_per_pct2=0.1)}, "flap_closure_per_pct2"),
     ({"flap_target_pct": 101.0}, "flap_target_pct"),
     ({"flap_target_pct": float("nan")}, "flap_target_pct"),
+    ({"flap_targets_pct": (70.0, 100.0)}, "flap_targets_pct"),
+    ({"flap_targets_pct": (70.0, 100.0, -1.0)}, r"flap_targets_pct\[w\]"),
+    ({"flap_targets_pct": (float("nan"), 100.0, 30.0)}, r"flap_targets_pct\[m\]"),
+    ({"flap_target_from_split": 1}, "flap_target_from_split"),
 ])
 def test_bad_values_are_refused_naming_the_field(fields, name):
     with pytest.raises(InvalidSettings, match=name):
         OcpSpec(**fields).validate()
+
+
+def test_flap_by_flap_targets_give_each_flap_its_own_single_target_gradient():
+    """``OcpSpec.flap_targets_pct`` sets each flap's target on its own: each flap's Hessian and gradient entries are
+    those of the problem with that flap's target as ``flap_target_pct`` for all three (to the bit), and three equal
+    targets are ``flap_target_pct`` itself."""
+    weights = Weights(flap_closure_per_pct2=1e-4)
+    targets = (69.0, 100.0, 32.8)
+    h, g = TrackingProblem(Parameters(), OcpSpec(weights=weights, flap_targets_pct=targets)).flap_closure_hessian()
+    for j, target in zip(TrackingProblem.VALVES, targets):
+        h1, g1 = TrackingProblem(Parameters(), OcpSpec(weights=weights, flap_target_pct=target)).flap_closure_hessian()
+        assert (h[:, j] == h1[:, j]).all() and (g[:, j] == g1[:, j]).all() and g[:, j].any() == (target > 0.0)
+    same = TrackingProblem(Parameters(), OcpSpec(weights=weights, flap_targets_pct=(70.0,) * 3)).flap_closure_hessian()
+    single = TrackingProblem(Parameters(), OcpSpec(weights=weights, flap_target_pct=70.0)).flap_closure_hessian()
+    assert all((a == b).all() for a, b in zip(same, single))
+
+
+def test_the_split_target_is_the_rest_mix_of_least_blower_power():
+    """``OcpSpec.flap_target_from_split``'s openings (:mod:`hvac_mpc.mpc.flap_target`) for a split: the flap whose
+    conductance limits the network fully open, the others at the shares the split asks of the model's own flows; all
+    fully open where the split is not tracked. On the winter split (0.3, 0.5, 0.2) they are the angles the MPC holds
+    at rest without the term in the built-in bench's winter_heating_steps (83.4 / 100 / 40.7 %)."""
+    pb = TrackingProblem(Parameters(), OcpSpec(flap_target_from_split=True, weights=Weights(flap_closure_per_pct2=1e-4)))
+    split = pb.flap_split_target
+    winter = split.openings(np.array([0.3, 0.5, 0.2]) * 0.011, True)
+    assert winter[1] == pytest.approx(1.0, abs=1e-12) and np.abs(pb.valve_map.angles(winter) - [83.4, 100.0, 40.7]).max() < 0.2
+    assert (split.openings(np.array([0.3, 0.5, 0.2]), False) == 1.0).all()
+    assert (split.openings(np.zeros(3), True) == 1.0).all()
+    for shares in ((0.6, 0.15, 0.25), (0.2, 0.2, 0.6), (0.4, 0.3, 0.3)):
+        v = split.openings(np.array(shares) * 0.02, True)
+        assert v.max() == pytest.approx(1.0, abs=1e-12)
+        angles = pb.valve_map.angles(v)  # the model's outlet flows at these angles split as asked
+        u = pb.scale_u(Command(150.0, 0.0, 40.0, *angles).vector())
+        d = np.array([28.0, 5.0, 0.0, 0.0])
+        y = pb.model.outputs.dict(pb.model.y(pb.model.steady_state(pb.unscale_u(u), d), pb.unscale_u(u), d))
+        flows = np.array([y["flow_m_m3s"], y["flow_f_m3s"], y["flow_w_m3s"]], float)
+        assert np.abs(flows / flows.sum() - shares).max() < 0.01
+
+
+def test_the_split_target_follows_the_reference_into_the_qp():
+    """With ``flap_target_from_split`` the QP handed to OSQP is, at the same point, the one with the split's openings
+    as fixed targets flap by flap (P, A, bounds and gradient to round-off), and after a change of the split the
+    gradient's flap entries are the new split's."""
+    weights = Weights(flap_closure_per_pct2=1e-4)
+    pb = TrackingProblem(Parameters(), OcpSpec(flap_target_from_split=True, weights=weights))
+    u_prev = pb.scale_u(Command(160.0, 0.0, 40.0, 90.0, 60.0, 50.0).vector())
+    d = np.array([28.0, 5.0, -0.3, 0.0])
+    x0 = pb.scale_x(pb.model.steady_state(pb.unscale_u(u_prev), np.array([28.0, 5.0, 0.0, 0.0])))
+    lo, hi = pb.input_bounds(pb.unscale_u(u_prev))
+
+    def qp(problem, ref):
+        rti = RtiOsqpSolver(problem)
+        rti._core = rec = QpRecorder(rti._core)
+        assert rti.feedback(x0, u_prev, d, problem.reference_vector(ref), problem.output_weights(ref), lo, hi).ok
+        return rti, rec
+
+    rti, rec = qp(pb, REF)
+    openings = pb.flap_split_target.openings(pb.reference_vector(REF)[2:5], True)
+    _, fixed = qp(TrackingProblem(Parameters(), OcpSpec(flap_targets_pct=tuple(100.0 * openings), weights=weights)), REF)
+    for key in ("Px", "Ax", "l", "u", "q"):
+        assert np.allclose(rec.qp[key], fixed.qp[key], rtol=1e-12, atol=1e-12), key
+    other = Reference.from_split(15.0, 0.03, (0.2, 0.2, 0.6))
+    lo, hi = pb.input_bounds(pb.unscale_u(u_prev))
+    assert rti.feedback(x0, u_prev, d, pb.reference_vector(other), pb.output_weights(other), lo, hi).ok
+    target = pb.flap_target_for(pb.reference_vector(other), True)
+    _, g = pb.flap_closure_hessian(target)
+    flaps = list(TrackingProblem.VALVES)
+    assert np.allclose(rti._q_const[rti.iu0:rti.is0].reshape(pb.N, pb.nu)[:, flaps], g[:, flaps], rtol=1e-12)
+    assert not np.allclose(target[flaps], pb.flap_target_for(pb.reference_vector(REF), True)[flaps])
 
 
 def test_acados_refuses_the_term_it_does_not_hold():
@@ -150,13 +223,16 @@ def test_the_do_mpc_reference_refuses_the_term_it_does_not_hold():
         DoMpcSolver(pb)
 
 
-def test_the_plan_merit_prices_the_term_as_the_qp_does():
+@pytest.mark.parametrize("spec", [OcpSpec(weights=Weights(flap_closure_per_pct2=1e-4)),
+                                  OcpSpec(flap_target_from_split=True, weights=Weights(flap_closure_per_pct2=1e-4))],
+                         ids=["fixed", "from_split"])
+def test_the_plan_merit_prices_the_term_as_the_qp_does(spec):
     """The globalised step and the trust region judge plans by :class:`~hvac_mpc.mpc.plan_merit.PlanMerit`'s cost: with
-    the term on, that cost is the cost without it plus the term over the horizon's stages, so a plan's pull toward the
-    flaps' target is not priced as a loss."""
+    the term on, that cost is the cost without it plus the term over the horizon's stages (towards the fixed target, or
+    the reference's split's), so a plan's pull toward the flaps' target is not priced as a loss."""
     from hvac_mpc.mpc.plan_merit import PlanMerit
 
-    on = TrackingProblem(Parameters(), OcpSpec(weights=Weights(flap_closure_per_pct2=1e-4)))
+    on = TrackingProblem(Parameters(), spec)
     off = TrackingProblem(Parameters(), OcpSpec())
     f_on, f_off = PlanMerit(on, (0.5,)).cost_function(), PlanMerit(off, (0.5,)).cost_function()
     u_prev = on.scale_u(Command(160.0, 0.0, 40.0, 90.0, 60.0, 50.0).vector())
@@ -164,8 +240,10 @@ def test_the_plan_merit_prices_the_term_as_the_qp_does():
     x0 = on.scale_x(on.model.steady_state(on.unscale_u(u_prev), d))
     U = np.tile(u_prev[:, None], (1, on.N))
     U[list(TrackingProblem.VALVES), 3] -= 0.1  # one stage's flaps 10 % of opening further shut
-    args = dict(x0=x0, U=U, d=d, SW=np.ones(f_on.size_in(3)), ref=np.zeros(f_on.size_in(4)), u_prev=u_prev,
+    ref = on.reference_vector(REF)
+    args = dict(x0=x0, U=U, d=d, SW=np.ones(f_on.size_in(3)), ref=ref, u_prev=u_prev,
                 p=on.model.p_default, ready_floor=0.0, ready_w=np.zeros(on.N))
-    term = sum(float(on.flap_closure_cost(U[:, k], k)) for k in range(on.N))
+    target = on.flap_target_for(ref, True)
+    term = sum(float(on.flap_closure_cost(U[:, k], k, target)) for k in range(on.N))
     assert term > 0.0
     assert float(f_on(**args)["cost"]) - float(f_off(**args)["cost"]) == pytest.approx(term, rel=1e-6)

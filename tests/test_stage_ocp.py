@@ -144,6 +144,28 @@ def test_the_flap_closure_is_in_both_qps_and_the_exact_cost():
     assert extra - extra_plain == pytest.approx(1e-4 * 10.0 ** 2 * 3 * pb.dt.sum(), rel=1e-9)
 
 
+def test_the_flap_target_from_the_split_is_in_both_qps_and_the_exact_cost():
+    """With ``OcpSpec.flap_target_from_split`` (the flaps' targets from the reference's outlet shares, a function of
+    the reference in the description's parameters) the RTI's QP is still the description's Gauss-Newton QP and both
+    layouts have the exact cost; that cost is the one with the split's openings as fixed targets flap by flap
+    (``flap_targets_pct``), and its flap term moves with the split."""
+    weights = Weights(flap_closure_per_pct2=1e-4)
+    pb = TrackingProblem(Parameters(), OcpSpec(flap_target_from_split=True, weights=weights))
+    ocp = StageOcp(pb)
+    test_the_rti_solves_the_gauss_newton_qp_of_the_description(pb, ocp, 0.0, 0.0)
+    test_both_layouts_have_the_tracking_problems_exact_cost(pb, ocp)
+    x0, u_prev, d, ref, w_y, _, _ = _state(pb)
+    openings = pb.flap_split_target.openings(ref[2:5], True)
+    fixed = TrackingProblem(Parameters(), OcpSpec(flap_targets_pct=tuple(100.0 * openings), weights=weights))
+    X, U, S = np.zeros((pb.nx, pb.N + 1)), np.tile(u_prev[:, None], (1, pb.N)), np.zeros(pb.N)
+    from_split = float(pb.cost_function()(X, U, S, d, ref, w_y, u_prev))
+    assert from_split == pytest.approx(float(fixed.cost_function()(X, U, S, d, ref, w_y, u_prev)), rel=1e-12)
+    other = ref.copy()
+    other[2:5] = other[2:5][::-1]  # the same flow, the split reversed: other targets, another flap term
+    assert float(pb.cost_function()(X, U, S, d, other, w_y, u_prev)) != pytest.approx(
+        float(fixed.cost_function()(X, U, S, d, other, w_y, u_prev)), rel=1e-9)
+
+
 def _assert_same_qp(rti, qp, nlp, data, lm):
     x0, u_prev, d, ref, w_y, lo, hi = data
     z_lin = rti._z_lin.copy()
