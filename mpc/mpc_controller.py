@@ -67,7 +67,7 @@ from .sign_check import ValveSignCheck, predicted_air_change_c
 from .readiness import HeaterReadiness
 from .reserve import HeaterReserve
 from .reversal_damping import damped_move
-from .reversal_search import check_share
+from .reversal_search import check_share, check_wait
 from .valve_a_hold import heater_limited, held_opening
 from .arrays import all_finite
 from .background import BackgroundCall, BackgroundWorker
@@ -156,6 +156,14 @@ class MpcSettings:
             linearisation point's, by its upper and by its lower bound is priced on the nonlinear cost (the model's
             rollout) and the cheapest of these and the QP's plan taken (``stats["reversal_searched"]``,
             ``stats["reversal_taken"]``); only on a plain step (one QP), no QP added. 0: off.
+        rti_reversal_wait_steps: with ``rti_reversal_search``, the plain steps (one QP each, 1 s apart at the bench's
+            sample) after a cold start, a reference change or a split step on which the search does not act (an
+            integer >= 0; 0: it acts from the first). The bench's takes in a change's wake moved the path and the
+            later steps (docs/identification.md, "The search's cost on the built-in bench, traced").
+        rti_reversal_repeat: with ``rti_reversal_search``, only an input whose plan turned on the step before as
+            well (a two-cycle). False: every turned input.
+        rti_reversal_margin: with ``rti_reversal_search``, a candidate is taken only where its nonlinear cost is
+            below (1 - this share) x the QP plan's (a share in [0, 1); 0: any candidate cheaper than the QP's plan).
         ipopt_tol, ipopt_max_iter: IPOPT tolerance and iteration cap.
         deadline_s: longest feedback time (measurement to command); beyond it the solution is
             discarded and the fallback chain used.
@@ -382,6 +390,9 @@ class MpcSettings:
     rti_step_fractions: tuple[float, ...] = ()
     rti_trust_radii: tuple[float, ...] = ()
     rti_reversal_search: float = 0.0
+    rti_reversal_wait_steps: int = 0
+    rti_reversal_repeat: bool = False
+    rti_reversal_margin: float = 0.0
     ipopt_tol: float = 1e-6
     ipopt_max_iter: int = 300
     deadline_s: float = 0.5
@@ -505,6 +516,9 @@ class MpcSettings:
             raise InvalidSettings(f"{p}.rti_trust_radii: {exc}") from None
         try:
             check_share(f"{p}.rti_reversal_search", self.rti_reversal_search)
+            check_wait(f"{p}.rti_reversal_wait_steps", self.rti_reversal_wait_steps)
+            check_flag(f"{p}.rti_reversal_repeat", self.rti_reversal_repeat)
+            check_share(f"{p}.rti_reversal_margin", self.rti_reversal_margin, "the QP plan's cost")
         except ValueError as exc:
             raise InvalidSettings(str(exc)) from None
         if not isinstance(self.rti_step_fractions, tuple) or len(self.rti_step_fractions) > 8:
@@ -795,7 +809,10 @@ class MpcController:
                              split_keeps_rho=s.split_keeps_rho, split_replays_change=s.split_replays_change,
                              rho_max=s.osqp_rho_max, plain_qp_cap=s.osqp_plain_qp_cap,
                              trust_radii=s.rti_trust_radii, plain_cap_run=int(s.osqp_plain_cap_run),
-                             reversal_search=float(s.rti_reversal_search))
+                             reversal_search=float(s.rti_reversal_search),
+                             reversal_wait_steps=int(s.rti_reversal_wait_steps),
+                             reversal_repeat=bool(s.rti_reversal_repeat),
+                             reversal_margin=float(s.rti_reversal_margin))
 
     # ------------------------------------------------------------------ protocol
     def reset(self, command: Command | None = None) -> None:

@@ -25,12 +25,40 @@ from __future__ import annotations
 import numpy as np
 
 
-def check_share(name: str, share) -> float:
-    """``share`` as a float in [0, 1) (0: off); ValueError naming ``name`` and the range otherwise."""
+def check_share(name: str, share, of: str = "each input's range") -> float:
+    """``share`` (of ``of``, for the message) as a float in [0, 1) (0: off); ValueError naming ``name`` and the
+    range otherwise."""
     if isinstance(share, bool) or not isinstance(share, (int, float)) or not np.isfinite(share) \
             or not 0.0 <= share < 1.0:
-        raise ValueError(f"{name} = {share!r}, allowed: a share of each input's range in [0, 1) (0: off)")
+        raise ValueError(f"{name} = {share!r}, allowed: a share of {of} in [0, 1) (0: off)")
     return float(share)
+
+
+def check_wait(name: str, steps) -> int:
+    """``steps`` as an int >= 0 (0: no wait); ValueError naming ``name`` and the range otherwise."""
+    if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 0:
+        raise ValueError(f"{name} = {steps!r}, allowed: an integer number of plain steps >= 0 (0: no wait)")
+    return int(steps)
+
+
+def check_bool(name: str, flag) -> bool:
+    """``flag`` as a bool; ValueError naming ``name`` otherwise."""
+    if not isinstance(flag, (bool, np.bool_)):
+        raise ValueError(f"{name} = {flag!r}, allowed: True or False")
+    return bool(flag)
+
+
+def eligible_inputs(turned: np.ndarray, turned_before: np.ndarray | None, quiet_run: int,
+                    wait_steps: int) -> np.ndarray:
+    """Of the ``turned`` inputs, those the search prices: none while ``quiet_run`` (plain one-QP steps in a row,
+    this one included) is at most ``wait_steps``; with ``turned_before`` (the inputs the last step's plan turned;
+    None: no such rule) only those in it, an input whose reversal repeats (a two-cycle)."""
+    turned = np.asarray(turned, dtype=int)
+    if quiet_run <= wait_steps:
+        return turned[:0]
+    if turned_before is not None:
+        turned = turned[np.isin(turned, turned_before)]
+    return turned
 
 
 def last_moves(last_move: np.ndarray | None, move: np.ndarray, span: np.ndarray, share: float) -> np.ndarray:

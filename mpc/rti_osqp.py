@@ -45,7 +45,7 @@ from .multilevel import MultiLevel, vector_function
 from .ocp import STAGE_OUTPUTS, TRACKED, TrackingProblem, shift_maps, shift_nodes
 from .osqp_embedded import FIRST_PASS_EPS_RATIO  # noqa: F401 - the first pass's tolerance, named here too
 from .plan_merit import MERIT_TOLERANCE, PlanMerit
-from .reversal_search import candidates, check_share, last_moves, turned_inputs
+from .reversal_search import candidates, check_bool, check_share, check_wait, eligible_inputs, last_moves, turned_inputs
 from .steady_target import SteadyStart, check_steady_start_on, starts_at_target
 from .trust_region import check_radii, region_bounds
 
@@ -197,6 +197,10 @@ class RtiOsqpSolver:
             the nonlinear cost (:class:`.plan_merit.PlanMerit`) and the cheapest of these and the QP's plan taken
             (``reversal_searched`` says when the search ran, ``reversal_taken`` when a candidate was taken). No QP
             is added. 0 (the default): off.
+        reversal_wait_steps: the search acts only after this many plain one-QP steps in a row (a cold start, a
+            reference change and a split step start the count again; 0: from the first plain step).
+        reversal_repeat: the search prices only an input whose plan turned on the step before as well.
+        reversal_margin: a candidate is taken only where its cost is below (1 - this share) x the QP plan's.
         codegen: evaluate the QP data as generated C (:func:`.codegen.compiled`, cached on disk);
             otherwise (or without a compiler) CasADi's interpreter runs the same functions.
             ``self.codegen`` reports what happened.
@@ -275,9 +279,15 @@ class RtiOsqpSolver:
                  reweigh_in_place: bool = False, change_split_iter: int = 0,
                  split_every_step: bool = False, split_keeps_rho: bool = False, split_replays_change: bool = False,
                  rho_max: float | None = None, plain_qp_cap: int = 0, trust_radii: tuple[float, ...] = (),
-                 plain_cap_run: int = 0, reversal_search: float = 0.0):
+                 plain_cap_run: int = 0, reversal_search: float = 0.0, reversal_wait_steps: int = 0,
+                 reversal_repeat: bool = False, reversal_margin: float = 0.0):
         self.pb = pb = problem
         self.reversal_search = check_share("RtiOsqpSolver: reversal_search", reversal_search)
+        self.reversal_wait_steps = check_wait("RtiOsqpSolver: reversal_wait_steps", reversal_wait_steps)
+        self.reversal_repeat = check_bool("RtiOsqpSolver: reversal_repeat", reversal_repeat)
+        self.reversal_margin = check_share("RtiOsqpSolver: reversal_margin", reversal_margin, "the QP plan's cost")
+        self._quiet_run = 0  # plain one-QP steps in a row, the last included
+        self._turned_before = np.zeros(0, dtype=int)  # the inputs the last step's plan turned
         self._last_move: np.ndarray | None = None  # the last steps' first moves beyond the share (scaled inputs)
         self.reversal_searched = self.reversal_taken = False  # the last step searched / took a candidate
         self.rho_max = _checked_step_size("rho_max", rho_max)
@@ -1290,29 +1300,36 @@ class RtiOsqpSolver:
 
     def _searched(self, z, x0, d, ref, w_y, u_prev, u_lo, u_hi, plain: bool):
         """On a plain step (``plain``: one QP) whose plan ``z`` reverses an input's last first move
-        (:func:`.reversal_search.turned_inputs`), the cheapest on the nonlinear cost of ``z`` and the candidates
-        along each reversing input (:func:`.reversal_search.candidates`; the states stay the QP's, the next
-        preparation linearises at them); else ``z``. Keeps each input's last first move beyond the share. (The
-        step's flags are reset by :meth:`feedback` before any return.)"""
+        (:func:`.reversal_search.turned_inputs`; with ``reversal_repeat`` only an input the last step's plan turned
+        as well; with ``reversal_wait_steps`` only after that many plain steps in a row), the cheapest on the
+        nonlinear cost of ``z`` and the candidates along each reversing input (:func:`.reversal_search.candidates`;
+        with ``reversal_margin`` a candidate only where it costs less than (1 - margin) x the QP plan's cost; the
+        states stay the QP's, the next preparation linearises at them); else ``z``. Keeps each input's last first
+        move beyond the share. (The step's flags are reset by :meth:`feedback` before any return.)"""
         if z is None:
-            self._last_move = None
+            self._last_move, self._quiet_run, self._turned_before = None, 0, np.zeros(0, dtype=int)
             return z
         nu, N = self.pb.nu, self.pb.N
         span = self.pb.u_hi - self.pb.u_lo
         turned = turned_inputs(self._last_move, z[self.iu0:self.iu0 + nu] - u_prev, span, self.reversal_search)
-        if plain and turned.size:
+        self._quiet_run = self._quiet_run + 1 if plain else 0
+        searched = eligible_inputs(turned, self._turned_before if self.reversal_repeat else None,
+                                   self._quiet_run, self.reversal_wait_steps) if plain else turned[:0]
+        self._turned_before = turned
+        if searched.size:
             self.reversal_searched = True
             merit = self._search_merit
             args = (x0, d, self._weights(w_y), ref, u_prev, self._p, self.readiness_target)
             U_lin = self._z_lin[self.iu0:self.is0].reshape(N, nu)
             U_best = z[self.iu0:self.is0].reshape(N, nu)
             _, c_best = merit.pair(U_lin, U_best, *args)
-            for i in turned:
+            c_take = c_best * (1.0 - self.reversal_margin)  # a candidate taken only below this
+            for i in searched:
                 plans = candidates(U_best, U_lin, u_lo, u_hi, int(i), self._rate_bounds)
                 costs = np.asarray(merit.costs(plans, *args), float)
                 costs[~np.isfinite(costs)] = np.inf  # a candidate the model cannot price is not taken
                 j = int(np.argmin(costs))
-                if costs[j] < c_best:
+                if costs[j] < min(c_best, c_take):
                     U_best, c_best, self.reversal_taken = plans[j], float(costs[j]), True
             if self.reversal_taken:
                 z = z.copy()
