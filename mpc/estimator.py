@@ -96,7 +96,7 @@ OWN_RANGES = {"bypass_flow_after_s": (0.0, 3600.0), "motor_sd_after_response_c":
               "response_wait_rearm_s": (0.0, 3600.0), "q_mix_offset_per_air_change": (0.0, 1.0),
               "q_supply_heat_w": (0.0, 100.0), "supply_heat_sd0_w": (1.0, 1000.0),
               "supply_heat_flow_gate_s": (0.0, 3600.0), "supply_heat_walk_flow_m3h": (0.0, 1000.0),
-              "supply_heat_release_hold_s": (0.0, 3600.0)}
+              "supply_heat_release_hold_s": (0.0, 3600.0), "supply_heat_step_hold_s": (0.0, 3600.0)}
 #: Settings that shape the learning of the bypass-flow exponent and do nothing without ``learn_bypass_flow``
 #: (field -> its value that leaves learning as it is).
 BYPASS_FLOW_LEARNING_GATES = {"bypass_flow_anchored": False, "bypass_flow_after_response": False,
@@ -107,7 +107,7 @@ BYPASS_FLOW_LEARNING_GATES = {"bypass_flow_anchored": False, "bypass_flow_after_
 SUPPLY_HEAT_SHAPES = {"supply_heat_sd0_w": 5.0, "supply_heat_level_neutral": False, "supply_heat_flow_gate_s": 0.0,
                       "supply_heat_release_at_rest": False, "supply_heat_walk_flow_m3h": 0.0,
                       "supply_heat_walk_at_rest": False, "supply_heat_release_hold_s": 0.0,
-                      "supply_heat_level_neutral_at_rest": False}
+                      "supply_heat_level_neutral_at_rest": False, "supply_heat_step_hold_s": 0.0}
 #: The heat flow's flow gate (``EkfSettings.supply_heat_flow_gate_s``): the model's flow counts as moving while ln of
 #: it is more than this from its running mean over :data:`SUPPLY_HEAT_FLOW_WINDOW_S`. ASSUMPTION: as the rest gate's
 #: and the exponent's gate's band (``rest_log_flow_band``, ``bypass_flow_gate``, 0.05: a 5 % change of the flow).
@@ -224,9 +224,14 @@ class EkfSettings:
     back (the heat back to the parameter's value, the offset taking its effect at the flow in force, so the air is
     as it was; its variance 0) and waits for the next settled period: a heat released just before a step takes the
     step's transient with its whole release variance (the literal-cooler box's trapped-air run, sec. 2.33).
-    ``supply_heat_level_neutral_at_rest``: the heat's variance (release and walk) level-neutral, as with
-    ``supply_heat_level_neutral``, only while the rest gate is at rest: at rest the level walks at the offset's rate
-    (the heat's walk passed the reading's noise into it there, sec. 2.33), in a transient the heat's walk adds to it.
+    ``supply_heat_level_neutral_at_rest``: the heat's walk level-neutral, as with ``supply_heat_level_neutral``, only
+    while the rest gate is at rest; its release variance as without it: at rest the level walks at the offset's rate
+    (the heat's walk passed the reading's noise into it there, sec. 2.33), in a transient the heat's walk adds to it
+    (a release level-neutral as well took S0-3's quick proband 0.974 -> 1.019 of the baseline's IAE, sec. 2.35).
+    ``supply_heat_step_hold_s`` (s, in [0, 3600]; 0: none): the released heat held
+    (:attr:`DisturbanceEkf.heat_held`: out of the measurement update, no walk) within this long after a change of the
+    reference, whose first seconds are the model's own answer to the step, the offset's to take (the built-in trapped
+    air's step down: the heater air's filter's heat -53 W within 7 s of the step without it, sec. 2.35).
 
     ``q_heater_outlet_offset_c``: random walk (degC per sample) of an offset of the heater outlet
     reading, its own integrating disturbance (0: none). Without it a persistent error of that reading
@@ -400,6 +405,7 @@ class EkfSettings:
     supply_heat_walk_at_rest: bool = False
     supply_heat_release_hold_s: float = 0.0
     supply_heat_level_neutral_at_rest: bool = False
+    supply_heat_step_hold_s: float = 0.0
     q_flow_offset_m3s: float = 3e-5
     q_inlet_c: float = 0.01
     r_supply_c: float = 0.05
@@ -923,7 +929,7 @@ class DisturbanceEkf:
             self._heat_gain = self._heat_effect_c_per_w(flow_m3s)
             self._note_heat_flow(flow_m3s)
             if self._heat_released and not self.heat_held:  # the heat flow's walk (EkfSettings.q_supply_heat_w)
-                self._add_heat_variance(self._heat_walk_w(flow_m3s) ** 2)
+                self._add_heat_variance(self._heat_walk_w(flow_m3s) ** 2, walk=True)
         if self.n_hist:
             self.dead_time.push_air(air_c)
         for gate in self._rest_gates:
@@ -1057,10 +1063,12 @@ class DisturbanceEkf:
     def heat_held(self) -> bool:
         """Whether the heat flow into the mixed air is held as it is this sample, out of the measurement update and
         without its walk: with ``EkfSettings.supply_heat_flow_gate_s`` while the model's flow has not moved within
-        that long. Held, the mixed-air offset alone takes the supply reading's error, as in the filter without the
-        heat."""
-        gate = self.settings.supply_heat_flow_gate_s
-        return gate > 0.0 and self._age_s > self._heat_open_until_s
+        that long, with ``supply_heat_step_hold_s`` within that long after a change of the reference. Held, the
+        mixed-air offset alone takes the supply reading's error, as in the filter without the heat."""
+        s = self.settings
+        if self._age_s - self._reference_moved_at_s < s.supply_heat_step_hold_s:
+            return True  # the first seconds of a change of the reference (EkfSettings.supply_heat_step_hold_s)
+        return s.supply_heat_flow_gate_s > 0.0 and self._age_s > self._heat_open_until_s
 
     def _note_heat_flow(self, flow_m3s: float) -> None:
         """The heat flow's flow gate (``EkfSettings.supply_heat_flow_gate_s``): open for that long after ln of the
@@ -1091,15 +1099,17 @@ class DisturbanceEkf:
         mass_flow = float(air_props.density_kgm3(t_in, prm)) * flow_m3s
         return float(air_props.heat_gain_c(1.0, mass_flow, blower.least_mass_flow_kgs(t_in, prm), prm))
 
-    def _add_heat_variance(self, var_w2: float) -> None:
+    def _add_heat_variance(self, var_w2: float, walk: bool = False) -> None:
         """Variance ``var_w2`` (W^2) for the heat flow; with ``EkfSettings.supply_heat_level_neutral`` along the
         direction that leaves the air at the flow in force as it is: the heat up by w, the mixed-air offset down by
         w / (m_dot c_p), so the heat's walk shapes only how the air changes with the flow and the level at a steady
         flow walks at the offset's rate, as in the plain filter. Without it the heat's walk adds to the level's (at 90
-        m3/h 1 W per sample is 0.033 degC, the offset's 0.015)."""
+        m3/h 1 W per sample is 0.033 degC, the offset's 0.015); with ``supply_heat_level_neutral_at_rest`` so for the
+        ``walk`` while the rest gate is at rest."""
         i, j = self.i_heat, self.i_mix_offset
         s = self.settings
-        neutral = s.supply_heat_level_neutral or (s.supply_heat_level_neutral_at_rest and self.heat_rest_gate.at_rest)
+        neutral = s.supply_heat_level_neutral or (walk and s.supply_heat_level_neutral_at_rest
+                                                  and self.heat_rest_gate.at_rest)
         g = self._heat_gain if neutral else 0.0
         self.P[i, i] += var_w2
         self.P[j, j] += var_w2 * g * g
