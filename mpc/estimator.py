@@ -212,7 +212,9 @@ class EkfSettings:
     offset alone takes the level. Both settings, off: measured in docs/robustness.md sec. 2.31 (with 0.5 W the release
     at rest keeps S0-7's placement switch and the full built-in bench below today's in every scenario; the flow gate
     costs that bench four scenarios).
-    Three shapes of the heat's walk, all off (docs/robustness.md sec. 2.35): ``supply_heat_walk_flow_m3h`` (m3/h, in
+    Five shapes of the heat's walk and release, all off (docs/robustness.md sec. 2.35; with
+    ``supply_heat_release_at_rest``, the last three at 10 s, 10 s and on, the candidate measured there):
+    ``supply_heat_walk_flow_m3h`` (m3/h, in
     [0, 1000]; 0: none): below this model flow the walk is scaled with the mass flow, ``q_supply_heat_w`` times
     (m_dot c_p) over its value at this flow, so its effect on the air per sample stays that of ``q_supply_heat_w``
     at this flow (at a low flow 0.5 W moves the air most: 0.037 degC at 40 m3/h against the offset's walk of 0.015,
@@ -231,7 +233,8 @@ class EkfSettings:
     ``supply_heat_step_hold_s`` (s, in [0, 3600]; 0: none): the released heat held
     (:attr:`DisturbanceEkf.heat_held`: out of the measurement update, no walk) within this long after a change of the
     reference, whose first seconds are the model's own answer to the step, the offset's to take (the built-in trapped
-    air's step down: the heater air's filter's heat -53 W within 7 s of the step without it, sec. 2.35).
+    air's step down: the heater air's filter's heat -53 W within 7 s of the step without it, sec. 2.35). ASSUMPTION
+    for both holds: a step's first answer is over in about 10 s (a hold of 20 s lost the trapped air's gain, sec. 2.35).
 
     ``q_heater_outlet_offset_c``: random walk (degC per sample) of an offset of the heater outlet
     reading, its own integrating disturbance (0: none). Without it a persistent error of that reading
@@ -462,7 +465,8 @@ class EkfSettings:
                 continue
             if f.name in ("use_heater_outlet", "learn_bypass_flow", "bypass_flow_anchored", "bound_motor_rise",
                           "reanchor_before_response", "response_wait_unseen_only", "supply_heat_level_neutral",
-                          "supply_heat_release_at_rest", "supply_heat_walk_at_rest", "supply_heat_level_neutral_at_rest",
+                          "supply_heat_release_at_rest", "supply_heat_walk_at_rest",
+                          "supply_heat_level_neutral_at_rest",
                           "bypass_flow_after_response", "bypass_flow_commit_at_rest", "bypass_flow_at_rest"):
                 check_flag(f"{prefix}.{f.name}", value)
                 continue
@@ -586,10 +590,9 @@ class DisturbanceEkf:
         # the supply reading's deviation at rest (EkfSettings.r_supply_rest_c): the rest gate and the variances there
         self.rest_gate = self._new_rest_gate() if s.r_supply_rest_c > 0.0 else None
         # the rest the heat flow's release waits for (EkfSettings.supply_heat_release_at_rest): the same gate
-        self.heat_rest_gate = ((self.rest_gate or self._new_rest_gate())
-                               if s.q_supply_heat_w > 0.0 and (s.supply_heat_release_at_rest or s.supply_heat_walk_at_rest
-                                                               or s.supply_heat_level_neutral_at_rest
-                                                               or s.supply_heat_release_hold_s > 0.0) else None)
+        gated = (s.supply_heat_release_at_rest or s.supply_heat_walk_at_rest or s.supply_heat_level_neutral_at_rest
+                 or s.supply_heat_release_hold_s > 0.0)  # the settings that ask whether the filter is at rest
+        self.heat_rest_gate = (self.rest_gate or self._new_rest_gate()) if s.q_supply_heat_w > 0.0 and gated else None
         gate = self.rest_gate or self.heat_rest_gate  # one at most: the heat's is the reading's where that is on
         self._rest_gates = () if gate is None else (gate,)
         # the supply reading left out while a predicted response is still to show (EkfSettings.response_wait_c)
