@@ -95,7 +95,8 @@ OWN_RANGES = {"bypass_flow_after_s": (0.0, 3600.0), "motor_sd_after_response_c":
               "response_wait_c": (0.0, 10.0), "response_wait_share": (0.01, 1.0), "response_wait_flat_c": (0.0, 10.0),
               "response_wait_rearm_s": (0.0, 3600.0), "q_mix_offset_per_air_change": (0.0, 1.0),
               "q_supply_heat_w": (0.0, 100.0), "supply_heat_sd0_w": (1.0, 1000.0),
-              "supply_heat_flow_gate_s": (0.0, 3600.0)}
+              "supply_heat_flow_gate_s": (0.0, 3600.0), "supply_heat_walk_flow_m3h": (0.0, 1000.0),
+              "supply_heat_release_hold_s": (0.0, 3600.0), "supply_heat_step_hold_s": (0.0, 3600.0)}
 #: Settings that shape the learning of the bypass-flow exponent and do nothing without ``learn_bypass_flow``
 #: (field -> its value that leaves learning as it is).
 BYPASS_FLOW_LEARNING_GATES = {"bypass_flow_anchored": False, "bypass_flow_after_response": False,
@@ -104,7 +105,9 @@ BYPASS_FLOW_LEARNING_GATES = {"bypass_flow_anchored": False, "bypass_flow_after_
 #: Settings that shape the heat flow into the mixed air and do nothing without ``q_supply_heat_w`` (field -> its value
 #: that leaves the heat flow as it is).
 SUPPLY_HEAT_SHAPES = {"supply_heat_sd0_w": 5.0, "supply_heat_level_neutral": False, "supply_heat_flow_gate_s": 0.0,
-                      "supply_heat_release_at_rest": False}
+                      "supply_heat_release_at_rest": False, "supply_heat_walk_flow_m3h": 0.0,
+                      "supply_heat_walk_at_rest": False, "supply_heat_release_hold_s": 0.0,
+                      "supply_heat_level_neutral_at_rest": False, "supply_heat_step_hold_s": 0.0}
 #: The heat flow's flow gate (``EkfSettings.supply_heat_flow_gate_s``): the model's flow counts as moving while ln of
 #: it is more than this from its running mean over :data:`SUPPLY_HEAT_FLOW_WINDOW_S`. ASSUMPTION: as the rest gate's
 #: and the exponent's gate's band (``rest_log_flow_band``, ``bypass_flow_gate``, 0.05: a 5 % change of the flow).
@@ -209,6 +212,29 @@ class EkfSettings:
     offset alone takes the level. Both settings, off: measured in docs/robustness.md sec. 2.31 (with 0.5 W the release
     at rest keeps S0-7's placement switch and the full built-in bench below today's in every scenario; the flow gate
     costs that bench four scenarios).
+    Five shapes of the heat's walk and release, all off (docs/robustness.md sec. 2.35; with
+    ``supply_heat_release_at_rest``, the last three at 10 s, 10 s and on, the candidate measured there):
+    ``supply_heat_walk_flow_m3h`` (m3/h, in
+    [0, 1000]; 0: none): below this model flow the walk is scaled with the mass flow, ``q_supply_heat_w`` times
+    (m_dot c_p) over its value at this flow, so its effect on the air per sample stays that of ``q_supply_heat_w``
+    at this flow (at a low flow 0.5 W moves the air most: 0.037 degC at 40 m3/h against the offset's walk of 0.015,
+    sec. 2.33); above it the walk is ``q_supply_heat_w``. ``supply_heat_walk_at_rest``: the walk is added only while
+    the rest gate is at rest, frozen in every transient (a step, a flow change, the heater body's creep), whose error
+    the offset's walk and the heat's variance already take. ``supply_heat_release_hold_s`` (s, in [0, 3600]; 0:
+    none): no release within this long of a change of the reference (:meth:`DisturbanceEkf.note_reference`, the
+    controller's): a release within this long after one waits, and one a change follows within this long is taken
+    back (the heat back to the parameter's value, the offset taking its effect at the flow in force, so the air is
+    as it was; its variance 0) and waits for the next settled period: a heat released just before a step takes the
+    step's transient with its whole release variance (the literal-cooler box's trapped-air run, sec. 2.33).
+    ``supply_heat_level_neutral_at_rest``: the heat's walk level-neutral, as with ``supply_heat_level_neutral``, only
+    while the rest gate is at rest; its release variance as without it: at rest the level walks at the offset's rate
+    (the heat's walk passed the reading's noise into it there, sec. 2.33), in a transient the heat's walk adds to it
+    (a release level-neutral as well took S0-3's quick proband 0.974 -> 1.019 of the baseline's IAE, sec. 2.35).
+    ``supply_heat_step_hold_s`` (s, in [0, 3600]; 0: none): the released heat held
+    (:attr:`DisturbanceEkf.heat_held`: out of the measurement update, no walk) within this long after a change of the
+    reference, whose first seconds are the model's own answer to the step, the offset's to take (the built-in trapped
+    air's step down: the heater air's filter's heat -53 W within 7 s of the step without it, sec. 2.35). ASSUMPTION
+    for both holds: a step's first answer is over in about 10 s (a hold of 20 s lost the trapped air's gain, sec. 2.35).
 
     ``q_heater_outlet_offset_c``: random walk (degC per sample) of an offset of the heater outlet
     reading, its own integrating disturbance (0: none). Without it a persistent error of that reading
@@ -378,6 +404,11 @@ class EkfSettings:
     supply_heat_level_neutral: bool = False
     supply_heat_flow_gate_s: float = 0.0
     supply_heat_release_at_rest: bool = False
+    supply_heat_walk_flow_m3h: float = 0.0
+    supply_heat_walk_at_rest: bool = False
+    supply_heat_release_hold_s: float = 0.0
+    supply_heat_level_neutral_at_rest: bool = False
+    supply_heat_step_hold_s: float = 0.0
     q_flow_offset_m3s: float = 3e-5
     q_inlet_c: float = 0.01
     r_supply_c: float = 0.05
@@ -434,7 +465,8 @@ class EkfSettings:
                 continue
             if f.name in ("use_heater_outlet", "learn_bypass_flow", "bypass_flow_anchored", "bound_motor_rise",
                           "reanchor_before_response", "response_wait_unseen_only", "supply_heat_level_neutral",
-                          "supply_heat_release_at_rest",
+                          "supply_heat_release_at_rest", "supply_heat_walk_at_rest",
+                          "supply_heat_level_neutral_at_rest",
                           "bypass_flow_after_response", "bypass_flow_commit_at_rest", "bypass_flow_at_rest"):
                 check_flag(f"{prefix}.{f.name}", value)
                 continue
@@ -558,8 +590,9 @@ class DisturbanceEkf:
         # the supply reading's deviation at rest (EkfSettings.r_supply_rest_c): the rest gate and the variances there
         self.rest_gate = self._new_rest_gate() if s.r_supply_rest_c > 0.0 else None
         # the rest the heat flow's release waits for (EkfSettings.supply_heat_release_at_rest): the same gate
-        self.heat_rest_gate = ((self.rest_gate or self._new_rest_gate())
-                               if s.q_supply_heat_w > 0.0 and s.supply_heat_release_at_rest else None)
+        gated = (s.supply_heat_release_at_rest or s.supply_heat_walk_at_rest or s.supply_heat_level_neutral_at_rest
+                 or s.supply_heat_release_hold_s > 0.0)  # the settings that ask whether the filter is at rest
+        self.heat_rest_gate = (self.rest_gate or self._new_rest_gate()) if s.q_supply_heat_w > 0.0 and gated else None
         gate = self.rest_gate or self.heat_rest_gate  # one at most: the heat's is the reading's where that is on
         self._rest_gates = () if gate is None else (gate,)
         # the supply reading left out while a predicted response is still to show (EkfSettings.response_wait_c)
@@ -623,6 +656,10 @@ class DisturbanceEkf:
         self._heat_flow_mean: float | None = None  # ln of the model's flow, its running mean (supply_heat_flow_gate_s)
         self._heat_open_until_s = -math.inf  # the heat takes the readings until then (supply_heat_flow_gate_s)
         self._rested = False  # the rest gate at rest since the first response (supply_heat_release_at_rest)
+        self._heat_released_at_s = -math.inf  # when the heat was released (supply_heat_release_hold_s)
+        self._heat_taken_back = False  # a release taken back: the next waits for rest (supply_heat_release_hold_s)
+        self._reference: tuple[float, ...] | None = None  # the reference last noted (note_reference)
+        self._reference_moved_at_s = -math.inf  # when it last changed
         self._honoured_lag: float | None = None  # the dead time (samples) honoured at the last re-anchor
         self._hold_until_s = 0.0  # the shadowed states are re-anchored every sample until then (reanchor_hold_s)
         self._seen_at_s: float | None = None  # when the dead-time estimate first saw a response
@@ -895,7 +932,7 @@ class DisturbanceEkf:
             self._heat_gain = self._heat_effect_c_per_w(flow_m3s)
             self._note_heat_flow(flow_m3s)
             if self._heat_released and not self.heat_held:  # the heat flow's walk (EkfSettings.q_supply_heat_w)
-                self._add_heat_variance(self.settings.q_supply_heat_w ** 2)
+                self._add_heat_variance(self._heat_walk_w(flow_m3s) ** 2, walk=True)
         if self.n_hist:
             self.dead_time.push_air(air_c)
         for gate in self._rest_gates:
@@ -972,10 +1009,12 @@ class DisturbanceEkf:
         took came back as an error at the next flow change."""
         if self._heat_released or self.i_heat is None or not self.response_seen:
             return
-        if self.settings.supply_heat_release_at_rest and not self._rested:
+        if (self.settings.supply_heat_release_at_rest or self._heat_taken_back) and not self._rested:
             self._rested = self.heat_rest_gate.at_rest  # the first settled period after the first response
             if not self._rested:
                 return
+        if self._age_s - self._reference_moved_at_s < self.settings.supply_heat_release_hold_s:
+            return  # too soon after a change of the reference (EkfSettings.supply_heat_release_hold_s)
         if self._heat_seen_at_s is None:
             self._heat_seen_at_s = self._age_s
         waited = self._age_s - self._heat_seen_at_s >= self.settings.dead_time_window_s
@@ -983,15 +1022,56 @@ class DisturbanceEkf:
             return
         self._add_heat_variance(self.settings.supply_heat_sd0_w ** 2)
         self._heat_released = True
+        self._heat_released_at_s = self._age_s
+
+    def _heat_walk_w(self, flow_m3s: float) -> float:
+        """The heat flow's walk this sample (W): ``EkfSettings.q_supply_heat_w``, scaled down with the mass flow below
+        ``supply_heat_walk_flow_m3h`` and 0 outside rest with ``supply_heat_walk_at_rest`` (:class:`EkfSettings`)."""
+        s = self.settings
+        if s.supply_heat_walk_at_rest and not self.heat_rest_gate.at_rest:
+            return 0.0
+        walk = s.q_supply_heat_w
+        if s.supply_heat_walk_flow_m3h > 0.0 and flow_m3s > 0.0:
+            # the effect per W falls with the mass flow: the walk's effect held at the reference flow's
+            walk *= min(1.0, self._heat_effect_c_per_w(s.supply_heat_walk_flow_m3h / 3600.0) / self._heat_gain)
+        return walk
+
+    def _take_back_heat(self) -> None:
+        """With ``EkfSettings.supply_heat_release_hold_s``: a release a change of the reference follows within that
+        long is taken back: the heat to the parameter's value, the mixed-air offset taking its effect at the last
+        time update's flow (the air as it was), its variance and correlations 0; the next release waits for rest."""
+        hold = self.settings.supply_heat_release_hold_s
+        if (hold <= 0.0 or not self._heat_released
+                or not 0.0 <= self._reference_moved_at_s - self._heat_released_at_s <= hold):
+            return
+        i = self.i_heat
+        prior = float(self.p[self.i_own_p[self.i_own.index(i)]])
+        self.z[self.i_mix_offset] += (float(self.z[i]) - prior) * self._heat_gain
+        self.z[i] = prior
+        self._decorrelate(i)
+        self.P[i, i] = 0.0
+        self._heat_released = self._rested = False
+        self._heat_taken_back = True
+
+    def note_reference(self, *values: float | None) -> None:
+        """The controller's reference this step (its values, e.g. the supply air's degC and the flow's m3/s): a change
+        from the last noted is when ``EkfSettings.supply_heat_release_hold_s`` counts from (:meth:`_take_back_heat`,
+        :meth:`_release_heat`); the first noted is not a change."""
+        now = tuple(values)
+        if self._reference is not None and now != self._reference:
+            self._reference_moved_at_s = self._age_s
+        self._reference = now
 
     @property
     def heat_held(self) -> bool:
         """Whether the heat flow into the mixed air is held as it is this sample, out of the measurement update and
         without its walk: with ``EkfSettings.supply_heat_flow_gate_s`` while the model's flow has not moved within
-        that long. Held, the mixed-air offset alone takes the supply reading's error, as in the filter without the
-        heat."""
-        gate = self.settings.supply_heat_flow_gate_s
-        return gate > 0.0 and self._age_s > self._heat_open_until_s
+        that long, with ``supply_heat_step_hold_s`` within that long after a change of the reference. Held, the
+        mixed-air offset alone takes the supply reading's error, as in the filter without the heat."""
+        s = self.settings
+        if self._age_s - self._reference_moved_at_s < s.supply_heat_step_hold_s:
+            return True  # the first seconds of a change of the reference (EkfSettings.supply_heat_step_hold_s)
+        return s.supply_heat_flow_gate_s > 0.0 and self._age_s > self._heat_open_until_s
 
     def _note_heat_flow(self, flow_m3s: float) -> None:
         """The heat flow's flow gate (``EkfSettings.supply_heat_flow_gate_s``): open for that long after ln of the
@@ -1022,14 +1102,18 @@ class DisturbanceEkf:
         mass_flow = float(air_props.density_kgm3(t_in, prm)) * flow_m3s
         return float(air_props.heat_gain_c(1.0, mass_flow, blower.least_mass_flow_kgs(t_in, prm), prm))
 
-    def _add_heat_variance(self, var_w2: float) -> None:
+    def _add_heat_variance(self, var_w2: float, walk: bool = False) -> None:
         """Variance ``var_w2`` (W^2) for the heat flow; with ``EkfSettings.supply_heat_level_neutral`` along the
         direction that leaves the air at the flow in force as it is: the heat up by w, the mixed-air offset down by
         w / (m_dot c_p), so the heat's walk shapes only how the air changes with the flow and the level at a steady
         flow walks at the offset's rate, as in the plain filter. Without it the heat's walk adds to the level's (at 90
-        m3/h 1 W per sample is 0.033 degC, the offset's 0.015)."""
+        m3/h 1 W per sample is 0.033 degC, the offset's 0.015); with ``supply_heat_level_neutral_at_rest`` so for the
+        ``walk`` while the rest gate is at rest."""
         i, j = self.i_heat, self.i_mix_offset
-        g = self._heat_gain if self.settings.supply_heat_level_neutral else 0.0
+        s = self.settings
+        neutral = s.supply_heat_level_neutral or (walk and s.supply_heat_level_neutral_at_rest
+                                                  and self.heat_rest_gate.at_rest)
+        g = self._heat_gain if neutral else 0.0
         self.P[i, i] += var_w2
         self.P[j, j] += var_w2 * g * g
         self.P[i, j] -= var_w2 * g
@@ -1088,6 +1172,8 @@ class DisturbanceEkf:
             self._move_anchor(u, setpoint_c)
         self._release_motor()
         weights = self._supply_weights(values[0], ok[0])
+        if self.i_heat is not None:
+            self._take_back_heat()
         self._release_heat(weights)
         if ok[0] and self._response_due(values[0], weights):
             ok[0] = False  # the reading left out while the response the model made is still to show

@@ -940,6 +940,8 @@ class MpcController:
                 return StepResult(Command.from_vector(cmd), self._stats(t0, status="invalid reference",
                                                                         fallback="hold_last_command"))
         self._reference = ref
+        for f in self._filters:  # the heat flow's release kept away from a change of the reference (EkfSettings)
+            f.note_reference(ref.supply_temp_c, ref.volume_flow_m3s)
         setpoint = self._setpoint(measurement)
         u_in = self.u_prev
         self._switch_setpoint = setpoint
