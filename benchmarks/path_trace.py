@@ -60,6 +60,9 @@ def describe(run: dict[str, Any], windows: list[tuple[int, int]]) -> list[str]:
     lines = [f"    dead time (s) {changes(steps, 'dead_time_s')}; placement {changes(steps, 'offset_placement')}",
              f"    steps of {SLOW_ITERATIONS}+ iterations (step, iterations, QPs) {slow}; not 'solved' {inexact}"]
     for a, b in windows:
+        if b > len(run["commands"]):
+            lines.append(f"    {a}-{b} s: beyond the run's {len(run['commands'])} samples")
+            continue
         u = np.round(run["commands"][a:b].mean(axis=0), 1).tolist()
         lines.append(f"    {a}-{b} s: mean command {u}, heater body {run['body_c'][a:b].mean():.1f} C")
     return lines
@@ -99,7 +102,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="MpcSettings fields of a variant (repeatable; the first is the reference of the "
                              "differences)")
     parser.add_argument("--window", action="append", type=parse_window, default=[], metavar="A-B",
-                        help="seconds over which the mean command is printed (repeatable)")
+                        help="seconds over which the mean command is printed (repeatable; samples of the bench's 1 s)")
     parser.add_argument("--quick", action="store_true", help="the scenario's short version")
     parser.add_argument("--json", type=Path, default=None, help="also write the IAE and the per-step records here")
     args = parser.parse_args(argv)
@@ -110,7 +113,12 @@ def main(argv: list[str] | None = None) -> int:
         name, sep, fields = text.partition("=")
         if not sep:
             parser.error(f"--variant {text!r}: expected NAME=JSON")
-        chosen[name] = json.loads(fields)
+        if name in chosen:
+            parser.error(f"--variant {text!r}: the name {name!r} is given twice")
+        try:
+            chosen[name] = json.loads(fields)
+        except json.JSONDecodeError as err:
+            parser.error(f"--variant {text!r}: its settings are not JSON ({err})")
     scenario = scenario_defs.select([args.scenario], quick=args.quick)[0]
     seeds = range(args.first_seed, args.first_seed + args.seeds)
     runs = {seed: {n: run_variant(scenario, seed, s) for n, s in chosen.items()} for seed in seeds}

@@ -213,7 +213,8 @@ class EkfSettings:
     at rest keeps S0-7's placement switch and the full built-in bench below today's in every scenario; the flow gate
     costs that bench four scenarios).
     Five shapes of the heat's walk and release, all off (docs/robustness.md sec. 2.35; with
-    ``supply_heat_release_at_rest``, the last three at 10 s, 10 s and on, the candidate measured there):
+    ``supply_heat_release_at_rest``, the release hold at 10 s, the level-neutral walk at rest on and the step hold at
+    10 s, the candidate measured there):
     ``supply_heat_walk_flow_m3h`` (m3/h, in
     [0, 1000]; 0: none): below this model flow the walk is scaled with the mass flow, ``q_supply_heat_w`` times
     (m_dot c_p) over its value at this flow, so its effect on the air per sample stays that of ``q_supply_heat_w``
@@ -222,7 +223,7 @@ class EkfSettings:
     the rest gate is at rest, frozen in every transient (a step, a flow change, the heater body's creep), whose error
     the offset's walk and the heat's variance already take. ``supply_heat_release_hold_s`` (s, in [0, 3600]; 0:
     none): no release within this long of a change of the reference (:meth:`DisturbanceEkf.note_reference`, the
-    controller's): a release within this long after one waits, and one a change follows within this long is taken
+    controller's supply-air and total-flow references; a change of the outlet split alone does not count): a release within this long after one waits, and one a change follows within this long is taken
     back (the heat back to the parameter's value, the offset taking its effect at the flow in force, so the air is
     as it was; its variance 0) and waits for the next settled period: a heat released just before a step takes the
     step's transient with its whole release variance (the literal-cooler box's trapped-air run, sec. 2.33).
@@ -1031,7 +1032,7 @@ class DisturbanceEkf:
         if s.supply_heat_walk_at_rest and not self.heat_rest_gate.at_rest:
             return 0.0
         walk = s.q_supply_heat_w
-        if s.supply_heat_walk_flow_m3h > 0.0 and flow_m3s > 0.0:
+        if s.supply_heat_walk_flow_m3h > 0.0:  # at no flow too: the effect per W is largest there
             # the effect per W falls with the mass flow: the walk's effect held at the reference flow's
             walk *= min(1.0, self._heat_effect_c_per_w(s.supply_heat_walk_flow_m3h / 3600.0) / self._heat_gain)
         return walk

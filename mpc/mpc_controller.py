@@ -158,8 +158,9 @@ class MpcSettings:
             ``stats["reversal_taken"]``); only on a plain step (one QP), no QP added. 0: off.
         rti_reversal_wait_steps: with ``rti_reversal_search``, the plain steps (one QP each, 1 s apart at the bench's
             sample) after a cold start, a reference change or a split step on which the search does not act (an
-            integer >= 0; 0: it acts from the first). The bench's takes in a change's wake moved the path and the
-            later steps (docs/identification.md, "The search's cost on the built-in bench, traced").
+            integer in [0, 3600]; 0: it acts from the first). The bench's takes in a change's wake moved the path and the
+            later steps (docs/identification.md, "The search's cost on the built-in bench, traced; a wait
+            and a margin").
         rti_reversal_repeat: with ``rti_reversal_search``, only an input whose plan turned on the step before as
             well (a two-cycle). False: every turned input.
         rti_reversal_margin: with ``rti_reversal_search``, a candidate is taken only where its nonlinear cost is

@@ -35,9 +35,9 @@ def check_share(name: str, share, of: str = "each input's range") -> float:
 
 
 def check_wait(name: str, steps) -> int:
-    """``steps`` as an int >= 0 (0: no wait); ValueError naming ``name`` and the range otherwise."""
-    if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 0:
-        raise ValueError(f"{name} = {steps!r}, allowed: an integer number of plain steps >= 0 (0: no wait)")
+    """``steps`` as an int in [0, 3600] (0: no wait); ValueError naming ``name`` and the range otherwise."""
+    if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or not 0 <= steps <= 3600:
+        raise ValueError(f"{name} = {steps!r}, allowed: an integer number of plain steps in [0, 3600] (0: no wait)")
     return int(steps)
 
 

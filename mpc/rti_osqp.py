@@ -863,7 +863,7 @@ class RtiOsqpSolver:
         self._prepared = None
         self._change_rest = None
         self._capped_run = 0
-        self._last_move = None
+        self._last_move, self._quiet_run, self._turned_before = None, 0, np.zeros(0, dtype=int)
         if self._ml is not None:
             self._ml.forget()
         if getattr(self, "_workspace_used", False):
@@ -1323,7 +1323,7 @@ class RtiOsqpSolver:
             U_lin = self._z_lin[self.iu0:self.is0].reshape(N, nu)
             U_best = z[self.iu0:self.is0].reshape(N, nu)
             _, c_best = merit.pair(U_lin, U_best, *args)
-            c_take = c_best * (1.0 - self.reversal_margin)  # a candidate taken only below this
+            c_take = c_best - self.reversal_margin * abs(c_best)  # a candidate taken only below this
             for i in searched:
                 plans = candidates(U_best, U_lin, u_lo, u_hi, int(i), self._rate_bounds)
                 costs = np.asarray(merit.costs(plans, *args), float)

@@ -65,8 +65,8 @@ def test_the_searched_inputs_wait_for_plain_steps_and_a_repeated_reversal():
 def test_the_rules_of_the_search_are_off_by_default_and_checked():
     s = MpcSettings()
     assert (s.rti_reversal_wait_steps, s.rti_reversal_repeat, s.rti_reversal_margin) == (0, False, 0.0)
-    for field, value in (("rti_reversal_wait_steps", -1), ("rti_reversal_wait_steps", 2.5),
-                         ("rti_reversal_wait_steps", True), ("rti_reversal_repeat", 1),
+    for field, value in (("rti_reversal_wait_steps", -1), ("rti_reversal_wait_steps", 3601),
+                         ("rti_reversal_wait_steps", 2.5), ("rti_reversal_wait_steps", True), ("rti_reversal_repeat", 1),
                          ("rti_reversal_margin", 1.0), ("rti_reversal_margin", -0.1),
                          ("rti_reversal_margin", float("nan"))):
         with pytest.raises(InvalidSettings, match=field):

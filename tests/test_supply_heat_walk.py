@@ -79,7 +79,7 @@ def test_the_walk_scaled_with_the_flow_holds_its_effect_on_the_air_below_the_ref
     ekf.z = np.zeros(ekf.nz)
     ekf.z[ekf.i_inlet] = 20.0
     at_ref = ekf._heat_effect_c_per_w(90.0 / 3600.0) * WALK_W
-    for flow_m3h in (25.0, 40.0, 60.0, 89.0):
+    for flow_m3h in (0.0, 0.0036, 25.0, 40.0, 60.0, 89.0):  # at no flow too (the effect per W largest)
         ekf._heat_gain = ekf._heat_effect_c_per_w(flow_m3h / 3600.0)
         walk = ekf._heat_walk_w(flow_m3h / 3600.0)
         assert walk < WALK_W and walk * ekf._heat_gain == pytest.approx(at_ref, rel=1e-9)
