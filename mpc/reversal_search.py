@@ -41,13 +41,6 @@ def check_wait(name: str, steps) -> int:
     return int(steps)
 
 
-def check_bool(name: str, flag) -> bool:
-    """``flag`` as a bool; ValueError naming ``name`` otherwise."""
-    if not isinstance(flag, (bool, np.bool_)):
-        raise ValueError(f"{name} = {flag!r}, allowed: True or False")
-    return bool(flag)
-
-
 def eligible_inputs(turned: np.ndarray, turned_before: np.ndarray | None, quiet_run: int,
                     wait_steps: int) -> np.ndarray:
     """Of the ``turned`` inputs, those the search prices: none while ``quiet_run`` (plain one-QP steps in a row,

@@ -42,10 +42,10 @@ from .arrays import all_finite, all_reduce, sum_reduce
 from .casadi_eval import BufferedFunction
 from .codegen import CodegenReport, compiled
 from .multilevel import MultiLevel, vector_function
-from .ocp import STAGE_OUTPUTS, TRACKED, TrackingProblem, shift_maps, shift_nodes
+from .ocp import STAGE_OUTPUTS, TRACKED, TrackingProblem, check_flag, shift_maps, shift_nodes
 from .osqp_embedded import FIRST_PASS_EPS_RATIO  # noqa: F401 - the first pass's tolerance, named here too
 from .plan_merit import MERIT_TOLERANCE, PlanMerit
-from .reversal_search import candidates, check_bool, check_share, check_wait, eligible_inputs, last_moves, turned_inputs
+from .reversal_search import candidates, check_share, check_wait, eligible_inputs, last_moves, turned_inputs
 from .steady_target import SteadyStart, check_steady_start_on, starts_at_target
 from .trust_region import check_radii, region_bounds
 
@@ -284,7 +284,8 @@ class RtiOsqpSolver:
         self.pb = pb = problem
         self.reversal_search = check_share("RtiOsqpSolver: reversal_search", reversal_search)
         self.reversal_wait_steps = check_wait("RtiOsqpSolver: reversal_wait_steps", reversal_wait_steps)
-        self.reversal_repeat = check_bool("RtiOsqpSolver: reversal_repeat", reversal_repeat)
+        check_flag("RtiOsqpSolver: reversal_repeat", reversal_repeat)  # the settings' one flag check
+        self.reversal_repeat = reversal_repeat
         self.reversal_margin = check_share("RtiOsqpSolver: reversal_margin", reversal_margin, "the QP plan's cost")
         self._quiet_run = 0  # plain one-QP steps in a row, the last included
         self._turned_before = np.zeros(0, dtype=int)  # the inputs the last step's plan turned

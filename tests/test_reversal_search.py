@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from hvac_mpc.mpc.mpc_controller import MpcSettings
-from hvac_mpc.mpc.ocp import InvalidSettings
-from hvac_mpc.mpc.reversal_search import (candidates, check_bool, check_share, check_wait, eligible_inputs, last_moves,
+from hvac_mpc.mpc.ocp import InvalidSettings, check_flag
+from hvac_mpc.mpc.reversal_search import (candidates, check_share, check_wait, eligible_inputs, last_moves,
                                           turned_inputs)
 
 
@@ -73,7 +73,9 @@ def test_the_rules_of_the_search_are_off_by_default_and_checked():
             MpcSettings(**{field: value})
     with pytest.raises(ValueError, match="plan's cost"):
         check_share("m", 1.0, "the QP plan's cost")
-    assert check_wait("w", 3) == 3 and check_bool("r", np.bool_(True)) is True
+    assert check_wait("w", 3) == 3
+    with pytest.raises(InvalidSettings, match="reversal_repeat"):  # the solver's own check, the settings' flag
+        check_flag("RtiOsqpSolver: reversal_repeat", 1)
 
 
 def test_several_plans_priced_as_pairs_are():
