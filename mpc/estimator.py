@@ -225,7 +225,8 @@ class EkfSettings:
     none): no release within this long of a change of the reference (:meth:`DisturbanceEkf.note_reference`, the
     controller's supply-air and total-flow references; a change of the outlet split alone does not count): a release
     within this long after one waits, and one a change follows within this long is taken back (the heat back to the
-    parameter's value, the offset taking its effect at the flow in force, so the air is as it was; its variance 0) and waits for the next settled period: a heat released just before a step takes the
+    parameter's value, the offset taking its effect at the flow in force, so the air is as it was; its variance 0)
+    and waits for the next settled period: a heat released just before a step takes the
     step's transient with its whole release variance (the literal-cooler box's trapped-air run, sec. 2.33).
     ``supply_heat_level_neutral_at_rest``: the heat's walk level-neutral, as with ``supply_heat_level_neutral``, only
     while the rest gate is at rest; its release variance as without it: at rest the level walks at the offset's rate
