@@ -51,7 +51,11 @@ import dataclasses
 import math
 from collections import deque
 
+import casadi as ca
 import numpy as np
+
+from .casadi_eval import BufferedFunction
+from .codegen import shared
 
 #: Valve a "at rest": within this share of ``move_pct`` over the rest window.
 REST_SHARE_OF_MOVE = 0.25
@@ -78,6 +82,52 @@ def _held_air_c(ekf, u: np.ndarray, setpoint_c: float, steps: int) -> float:
     for _ in range(steps):
         z = ekf.f_p(z, u, setpoint_c, ekf.p)[0]
     return float(ekf.f_p(z, u, setpoint_c, ekf.p)[AIR_OUTPUT])
+
+
+def held_air_function(ekf, steps: int) -> ca.Function:
+    """``(z, u_before, u_after, setpoint, p) -> (air_after, air_before)``: the filter's model air (degC) after
+    ``steps`` samples with each command held from the state ``z``, both in one call: what :func:`_held_air_c` gives
+    for ``u_after`` and for ``u_before``, to the bit. Each sample is a call of the filter's next state and air
+    (``DisturbanceEkf.step_air_fn``: ``f_p``'s expression nodes without its Jacobian, common subexpressions computed
+    once, :func:`~.codegen.shared`), so every floating-point operation is the one ``f_p`` evaluates."""
+    step = shared(ekf.step_air_fn)
+    z = ca.MX.sym("z", ekf.nz)
+    u_before, u_after = ca.MX.sym("u_before", step.size1_in(1)), ca.MX.sym("u_after", step.size1_in(1))
+    sp, p = ca.MX.sym("setpoint"), ca.MX.sym("p", step.size1_in(3))
+
+    def held(u):
+        zk = z
+        for _ in range(steps):
+            zk = step(zk, u, sp, p)[0]
+        return step(zk, u, sp, p)[1]
+    return ca.Function(f"{ekf.name}_held_air{steps}", [z, u_before, u_after, sp, p], [held(u_after), held(u_before)],
+                       ["z", "u_before", "u_after", "setpoint", "p"], ["air_after", "air_before"])
+
+
+class HeldAirChange:
+    """:func:`predicted_air_change_c` of one filter in one call of :func:`held_air_function` (generated C where the
+    controller builds it, :meth:`use_function`), instead of ``2 (steps + 1)`` interpreted calls of ``f_p`` that
+    evaluate its Jacobian too and convert every argument: the same number to the bit (``tests/test_step_glue.py``;
+    docs/architecture.md "The step's glue")."""
+
+    def __init__(self, ekf, steps: int):
+        self.ekf = ekf
+        self.steps = int(steps)
+        self.function = held_air_function(ekf, self.steps)
+        self.use_function(self.function)
+
+    def use_function(self, fn: ca.Function) -> None:
+        """Evaluate with ``fn`` (the signature of :attr:`function`, e.g. its generated C)."""
+        self._call = BufferedFunction(fn)
+
+    def __call__(self, u_before: np.ndarray, u_after: np.ndarray, setpoint_c: float) -> float:
+        """The change of the filter's model air (degC) that ``u_after`` makes against ``u_before`` (physical), each
+        held over :attr:`steps` samples from the filter's state now; nan where the filter is not initialised."""
+        ekf = self.ekf
+        if not ekf.initialised:
+            return math.nan
+        after, before = self._call(ekf.z, u_before, u_after, setpoint_c, ekf.p)
+        return float(after[0]) - float(before[0])
 
 
 @dataclasses.dataclass
