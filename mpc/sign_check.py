@@ -57,6 +57,7 @@ import numpy as np
 from .casadi_eval import BufferedFunction
 from .codegen import shared
 
+_max, _min, _sum = np.maximum.reduce, np.minimum.reduce, np.add.reduce
 #: Valve a "at rest": within this share of ``move_pct`` over the rest window.
 REST_SHARE_OF_MOVE = 0.25
 #: The reading "at rest": its range over the rest window below this share of ``change_c``.
@@ -180,6 +181,7 @@ class ValveSignCheck:
         """Forget the rest and any departure."""
         self._history: deque = deque(maxlen=self.rest)  # (valve a %, reading degC) before this sample
         self._departure: _Departure | None = None
+        self._rest_of: tuple[float, float] | None | bool = False  # _rest of the history as it is (False: not known)
 
     def abandon(self) -> None:
         """Forget the departure under way, keeping the rest: the prediction has moved to the other filter, so the
@@ -187,13 +189,23 @@ class ValveSignCheck:
         self._departure = None
 
     def _rest(self) -> tuple[float, float] | None:
-        """(valve a %, reading degC) at rest over the last ``rest`` samples (their means), or None."""
+        """(valve a %, reading degC) at rest over the last ``rest`` samples (their means), or None. Computed once per
+        sample: a step asks up to three times (:meth:`wants_prediction` before and in :meth:`observe`, the departure's
+        start) and the history changes only where :meth:`observe` appends to it."""
+        if self._rest_of is False:
+            self._rest_of = self._rest_now()
+        return self._rest_of
+
+    def _rest_now(self) -> tuple[float, float] | None:
         if len(self._history) < self.rest:
             return None
         valve, reading = np.array(self._history).T
-        if np.ptp(valve) > self.rest_tol_pct or np.ptp(reading) > self.rest_tol_c:
+        # np.ptp and np.mean without their Python wrappers: the reductions they run on the same 1-D views, so the
+        # same numbers (tests/test_step_glue.py)
+        if _max(valve) - _min(valve) > self.rest_tol_pct or _max(reading) - _min(reading) > self.rest_tol_c:
             return None
-        return float(np.mean(valve)), float(np.mean(reading))
+        n = valve.shape[0]
+        return float(_sum(valve) / n), float(_sum(reading) / n)
 
     def wants_prediction(self, valve_a_after_pct: float) -> bool:
         """Whether :meth:`observe` will use this sample's predicted changes: a departure is under way, or this
@@ -216,6 +228,7 @@ class ValveSignCheck:
             valve0, reading0 = self._rest()
             self._departure = _Departure(reading0, valve0, _finite(predicted_c), _finite(other_predicted_c))
         self._history.append((valve_a_after_pct, reading_c))
+        self._rest_of = False
         return verdict
 
     def _follow(self, reading_c: float, valve_a_pct: float, predicted_c: float,

@@ -11,7 +11,7 @@ import pytest
 
 from hvac_mpc.benchmarks import solve_time
 from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
-from hvac_mpc.mpc.sign_check import HeldAirChange, predicted_air_change_c
+from hvac_mpc.mpc.sign_check import HeldAirChange, ValveSignCheck, predicted_air_change_c
 
 
 def _bits(x: float) -> int:
@@ -104,3 +104,55 @@ def test_the_loop_with_the_one_call_gives_the_commands_of_the_separate_calls(mon
     separate_calls = run()
     assert np.array_equal(one_call[0], separate_calls[0])
     assert one_call[1] == separate_calls[1]
+
+
+def test_the_rest_computed_once_per_sample_is_the_rest_of_the_history_as_it_is():
+    """The sign check's rest, kept from its first computation until the next sample, at every call of a run of
+    rests, departures, verdicts, abandoned departures and resets (``_rest_now`` computes it afresh)."""
+    rng = np.random.default_rng(4)
+    check = ValveSignCheck(20.0, 0.5, 15.0, 10.0, 1.0)
+    valve, reading, asked = 0.0, 20.0, 0
+    for k in range(3000):
+        if rng.random() < 0.03:
+            valve = float(rng.uniform(0.0, 100.0))
+        reading += float(rng.normal(0.0, 0.05)) + (0.3 if rng.random() < 0.05 else 0.0)
+        for _ in range(int(rng.integers(1, 3))):
+            assert check._rest() == check._rest_now()
+            check.wants_prediction(valve)
+            asked += check._rest() is not None
+        check.observe(reading, valve, float(rng.normal()), float(rng.normal()))
+        assert check._rest() == check._rest_now()
+        if rng.random() < 0.01:
+            check.abandon()
+        if rng.random() < 0.002:
+            check.reset()
+    assert asked > 100 and check.verdicts > 0
+
+
+def _rest_general(check: ValveSignCheck):
+    """The rest as first written (np.ptp, np.mean)."""
+    if len(check._history) < check.rest:
+        return None
+    valve, reading = np.array(check._history).T
+    if np.ptp(valve) > check.rest_tol_pct or np.ptp(reading) > check.rest_tol_c:
+        return None
+    return float(np.mean(valve)), float(np.mean(reading))
+
+
+@pytest.mark.parametrize("rest_s", [2.0, 10.0, 37.0, 600.0])
+def test_the_rest_without_numpys_wrappers_is_its_general_form_to_the_bit(rest_s):
+    """Histories of 2 to 600 samples (numpy's pairwise summation over more than eight), at rest and not."""
+    rng = np.random.default_rng(int(rest_s))
+    check = ValveSignCheck(20.0, 0.5, 15.0, rest_s, 1.0)
+    rests = 0
+    for k in range(1500):
+        scale = 10.0 ** float(rng.uniform(-3.0, 1.5)) if k >= 800 else 0.01  # at rest first, then mostly not
+        valve = 40.0 + float(rng.normal(0.0, 0.3)) * scale
+        check.observe(15.0 + float(rng.normal(0.0, 0.02)) + 1e-7 * k, valve)
+        check.abandon()
+        got, expected = check._rest_now(), _rest_general(check)
+        assert (got is None) == (expected is None)
+        if got is not None:
+            rests += 1
+            assert [_bits(v) for v in got] == [_bits(v) for v in expected]
+    assert rests > 20
