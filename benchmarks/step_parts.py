@@ -2,6 +2,7 @@
 
     python -m hvac_mpc.benchmarks.step_parts [--loops 3] [--seed 1] [--max-iterations 20]
                                              [--changes] [--settings JSON] [--thread-cpu] [--back-to-back]
+                                             [--mean]
 
 Runs the solve-time loop (:class:`.solve_time.Loop`, default :class:`~hvac_mpc.mpc.mpc_controller.MpcSettings`,
 the idle time of a sample between steps) with a timer around each of the parts below, and prints each
@@ -30,7 +31,7 @@ from typing import Iterator
 
 import numpy as np
 
-from hvac_mpc.mpc import estimator, mpc_controller, ocp, osqp_embedded, priorities, rti_osqp
+from hvac_mpc.mpc import casadi_eval, estimator, mpc_controller, ocp, osqp_embedded, priorities, rti_osqp
 from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
 
 from . import solve_time
@@ -59,6 +60,8 @@ PARTS = (
     (priorities.ReachableFlow, "check", "priorities check"),
     (priorities.ReachableFlow, "transient_flow_error", "flow-weight factor's flow error"),
     (mpc_controller.MpcController, "_trap_cap", "trapped-air cap"),
+    (mpc_controller.MpcController, "_check_valve_sign", "valve a sign check (with its predicted air changes)"),
+    (casadi_eval.BufferedFunction, "__call__", "  generated calls through buffers (all of them, within the parts above)"),
     (mpc_controller.MpcController, "_stats", "statistics"),
 )
 
@@ -104,10 +107,12 @@ def selected(stats: dict, max_iterations: int, changes: bool) -> bool:
 
 
 def measure(loops: int, seed: int, max_iterations: int, steps: int = solve_time.FULL_STEPS, changes: bool = False,
-            settings: dict | None = None, clock=time.perf_counter, idle_s: float = solve_time.IDLE_S) -> dict[str, float]:
+            settings: dict | None = None, clock=time.perf_counter, idle_s: float = solve_time.IDLE_S,
+            mean: bool = False) -> dict[str, float]:
     """Median time (s, ``clock``'s) of each part over the selected steps (:func:`selected`) of ``loops`` loops, and the
-    median OSQP iterations of those steps. ``idle_s``: the time given between the steps (:class:`.solve_time.Loop`;
-    0: back to back)."""
+    median OSQP iterations of those steps; with ``mean`` each part's mean instead (a part that runs in some of the
+    steps only, the sign check's predictions in about a third, has a median that hides it). ``idle_s``: the time
+    given between the steps (:class:`.solve_time.Loop`; 0: back to back)."""
     rows: dict[str, list[float]] = defaultdict(list)
     iterations = []
     for _ in range(loops):
@@ -124,7 +129,7 @@ def measure(loops: int, seed: int, max_iterations: int, steps: int = solve_time.
                     for _, _, label in PARTS:
                         rows[label].append(totals.get(label, 0.0))
     return {"steps": len(iterations), "iterations": float(np.median(iterations)) if iterations else 0.0,
-            **{label: float(np.median(v)) for label, v in rows.items()}}
+            **{label: float(np.mean(v) if mean else np.median(v)) for label, v in rows.items()}}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -138,14 +143,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--thread-cpu", action="store_true", help="the thread's CPU time instead of wall time")
     parser.add_argument("--back-to-back", action="store_true",
                         help="no idle time between the steps (the filter not in use then updates inside the step)")
+    parser.add_argument("--mean", action="store_true", help="each part's mean over the steps instead of its median")
     args = parser.parse_args(argv)
     if args.loops < 1 or args.max_iterations < 1:
         parser.error("--loops and --max-iterations must be at least 1")
     clock = time.thread_time if args.thread_cpu else time.perf_counter
     out = measure(args.loops, args.seed, args.max_iterations, changes=args.changes, settings=args.settings,
-                  clock=clock, idle_s=0.0 if args.back_to_back else solve_time.IDLE_S)
+                  clock=clock, idle_s=0.0 if args.back_to_back else solve_time.IDLE_S, mean=args.mean)
     kind = "two QPs or more" if args.changes else f"one QP of at most {args.max_iterations} OSQP iterations"
-    print(f"median over {out.pop('steps')} steps with {kind} (OSQP iterations {out.pop('iterations'):.0f}; "
+    print(f"{'mean' if args.mean else 'median'} over {out.pop('steps')} steps with {kind} (OSQP iterations {out.pop('iterations'):.0f}; "
           f"{'thread CPU' if args.thread_cpu else 'wall'} time, timers' own cost included):")
     for label, value in out.items():
         if value > 0.0:

@@ -725,6 +725,10 @@ class DisturbanceEkf:
                                                           y[m.outputs.index("mass_flow_kgs")]]
                                   ) if self.anchors_bypass_flow else None
         self.f_p = ca.Function("ekf_f", [z, u, sp, p], [zn, ca.jacobian(zn, z), air, flow])
+        # f_p's next state and air without its Jacobian (the same expression nodes, so the same values to the bit):
+        # the sign check's held commands (:func:`~.sign_check.held_air_function`)
+        self.step_air_fn = ca.Function("ekf_step_air", [z, u, sp, p], [zn, air], ["z", "u", "setpoint", "p"],
+                                       ["z_next", "air"])
         self.h_p = ca.Function("ekf_h", [z, u, sp, p, c], [meas, ca.jacobian(meas, z)])
         self.h = BufferedFunction(self.h_p, fixed={4: self.c_now})
         self.predict_fn = self._predict_function()

@@ -63,7 +63,7 @@ from .priorities import ReachableFlow, flow_weight_factor
 from .ocp import HEATING_CMD_W, STAGE_OUTPUTS, HeaterOffBound, InvalidSettings, OcpSpec, TrackingProblem, check_flag, check_number, trap_cap_pct
 from hvac_mpc.contract import InvalidReference, Reference
 from .placement import PLACEMENTS, PlacementChoice
-from .sign_check import ValveSignCheck, predicted_air_change_c
+from .sign_check import HeldAirChange, ValveSignCheck
 from .readiness import HeaterReadiness
 from .reserve import HeaterReserve
 from .reversal_damping import damped_move
@@ -737,6 +737,9 @@ class MpcController:
         if self.placement is not None and s.placement_sign_move_pct != math.inf:
             self.sign_check = ValveSignCheck(s.placement_sign_move_pct, s.placement_sign_change_c,
                                              s.placement_sign_window_s, s.placement_sign_rest_s, s.dt_s)
+        # each filter's predicted change of the air in one call (the check's held commands; by the filter's id)
+        self._air_change = {id(f): HeldAirChange(f, self.sign_check.horizon) for f in self._filters
+                            } if self.sign_check is not None else {}
         self._sign_switch = False  # a verdict of the sign check: the next step predicts with the other filter
         self._pending = None  # the other filter's update and time update of the last step, not yet run
         pb = self.problem
@@ -785,6 +788,8 @@ class MpcController:
             f.use_functions(compiled(shared(f.predict_fn), self.codegen), compiled(shared(f.update_fn), self.codegen))
             if f.shadow is not None:  # the filters' shadows are one function where they share the model
                 f.shadow.use_functions(once(f.shadow.step_fn), once(f.shadow.air_fn))
+        for change in self._air_change.values():
+            change.use_function(compiled(change.function, self.codegen))
         if self.reach is not None:
             self.reach.use_out_function(once(self.reach.out_fn))
             self.reach.use_flows_function(once(self.reach.flows_fn))
@@ -1158,10 +1163,10 @@ class MpcController:
         a = float(u_cmd[self.problem.i_valve_a])
         mine = theirs = math.nan
         if self.sign_check.wants_prediction(a):
-            other, steps = self._filters[1 - self.placement.active], self.sign_check.horizon
-            mine = predicted_air_change_c(self.ekf, u_in, u_cmd, setpoint, steps)
+            other = self._filters[1 - self.placement.active]
+            mine = self._air_change[id(self.ekf)](u_in, u_cmd, setpoint)
             if other.healthy():
-                theirs = predicted_air_change_c(other, u_in, u_cmd, setpoint, steps)
+                theirs = self._air_change[id(other)](u_in, u_cmd, setpoint)
         verdict = self.sign_check.observe(finite_or(measurement.supply_temp_c, math.nan), a, mine, theirs)
         if verdict is not None and verdict.other_explains:
             self._sign_switch = True

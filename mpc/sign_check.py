@@ -51,8 +51,13 @@ import dataclasses
 import math
 from collections import deque
 
+import casadi as ca
 import numpy as np
 
+from .casadi_eval import BufferedFunction
+from .codegen import shared
+
+_max, _min, _sum = np.maximum.reduce, np.minimum.reduce, np.add.reduce
 #: Valve a "at rest": within this share of ``move_pct`` over the rest window.
 REST_SHARE_OF_MOVE = 0.25
 #: The reading "at rest": its range over the rest window below this share of ``change_c``.
@@ -78,6 +83,52 @@ def _held_air_c(ekf, u: np.ndarray, setpoint_c: float, steps: int) -> float:
     for _ in range(steps):
         z = ekf.f_p(z, u, setpoint_c, ekf.p)[0]
     return float(ekf.f_p(z, u, setpoint_c, ekf.p)[AIR_OUTPUT])
+
+
+def held_air_function(ekf, steps: int) -> ca.Function:
+    """``(z, u_before, u_after, setpoint, p) -> (air_after, air_before)``: the filter's model air (degC) after
+    ``steps`` samples with each command held from the state ``z``, both in one call: what :func:`_held_air_c` gives
+    for ``u_after`` and for ``u_before``, to the bit. Each sample is a call of the filter's next state and air
+    (``DisturbanceEkf.step_air_fn``: ``f_p``'s expression nodes without its Jacobian, common subexpressions computed
+    once, :func:`~.codegen.shared`), so every floating-point operation is the one ``f_p`` evaluates."""
+    step = shared(ekf.step_air_fn)
+    z = ca.MX.sym("z", ekf.nz)
+    u_before, u_after = ca.MX.sym("u_before", step.size1_in(1)), ca.MX.sym("u_after", step.size1_in(1))
+    sp, p = ca.MX.sym("setpoint"), ca.MX.sym("p", step.size1_in(3))
+
+    def held(u):
+        zk = z
+        for _ in range(steps):
+            zk = step(zk, u, sp, p)[0]
+        return step(zk, u, sp, p)[1]
+    return ca.Function(f"{ekf.name}_held_air{steps}", [z, u_before, u_after, sp, p], [held(u_after), held(u_before)],
+                       ["z", "u_before", "u_after", "setpoint", "p"], ["air_after", "air_before"])
+
+
+class HeldAirChange:
+    """:func:`predicted_air_change_c` of one filter in one call of :func:`held_air_function` (generated C where the
+    controller builds it, :meth:`use_function`), instead of ``2 (steps + 1)`` interpreted calls of ``f_p`` that
+    evaluate its Jacobian too and convert every argument: the same number to the bit (``tests/test_step_glue.py``;
+    docs/architecture.md "The step's glue")."""
+
+    def __init__(self, ekf, steps: int):
+        self.ekf = ekf
+        self.steps = int(steps)
+        self.function = held_air_function(ekf, self.steps)
+        self.use_function(self.function)
+
+    def use_function(self, fn: ca.Function) -> None:
+        """Evaluate with ``fn`` (the signature of :attr:`function`, e.g. its generated C)."""
+        self._call = BufferedFunction(fn)
+
+    def __call__(self, u_before: np.ndarray, u_after: np.ndarray, setpoint_c: float) -> float:
+        """The change of the filter's model air (degC) that ``u_after`` makes against ``u_before`` (physical), each
+        held over :attr:`steps` samples from the filter's state now; nan where the filter is not initialised."""
+        ekf = self.ekf
+        if not ekf.initialised:
+            return math.nan
+        after, before = self._call(ekf.z, u_before, u_after, setpoint_c, ekf.p)
+        return float(after[0]) - float(before[0])
 
 
 @dataclasses.dataclass
@@ -130,6 +181,7 @@ class ValveSignCheck:
         """Forget the rest and any departure."""
         self._history: deque = deque(maxlen=self.rest)  # (valve a %, reading degC) before this sample
         self._departure: _Departure | None = None
+        self._rest_of: tuple[float, float] | None | bool = False  # _rest of the history as it is (False: not known)
 
     def abandon(self) -> None:
         """Forget the departure under way, keeping the rest: the prediction has moved to the other filter, so the
@@ -137,13 +189,23 @@ class ValveSignCheck:
         self._departure = None
 
     def _rest(self) -> tuple[float, float] | None:
-        """(valve a %, reading degC) at rest over the last ``rest`` samples (their means), or None."""
+        """(valve a %, reading degC) at rest over the last ``rest`` samples (their means), or None. Computed once per
+        sample: a step asks up to three times (:meth:`wants_prediction` before and in :meth:`observe`, the departure's
+        start) and the history changes only where :meth:`observe` appends to it."""
+        if self._rest_of is False:
+            self._rest_of = self._rest_now()
+        return self._rest_of
+
+    def _rest_now(self) -> tuple[float, float] | None:
         if len(self._history) < self.rest:
             return None
         valve, reading = np.array(self._history).T
-        if np.ptp(valve) > self.rest_tol_pct or np.ptp(reading) > self.rest_tol_c:
+        # np.ptp and np.mean without their Python wrappers: the reductions they run on the same 1-D views, so the
+        # same numbers (tests/test_step_glue.py)
+        if _max(valve) - _min(valve) > self.rest_tol_pct or _max(reading) - _min(reading) > self.rest_tol_c:
             return None
-        return float(np.mean(valve)), float(np.mean(reading))
+        n = valve.shape[0]
+        return float(_sum(valve) / n), float(_sum(reading) / n)
 
     def wants_prediction(self, valve_a_after_pct: float) -> bool:
         """Whether :meth:`observe` will use this sample's predicted changes: a departure is under way, or this
@@ -166,6 +228,7 @@ class ValveSignCheck:
             valve0, reading0 = self._rest()
             self._departure = _Departure(reading0, valve0, _finite(predicted_c), _finite(other_predicted_c))
         self._history.append((valve_a_after_pct, reading_c))
+        self._rest_of = False
         return verdict
 
     def _follow(self, reading_c: float, valve_a_pct: float, predicted_c: float,
