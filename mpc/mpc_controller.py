@@ -941,6 +941,8 @@ class MpcController:
                 return StepResult(Command.from_vector(cmd), self._stats(t0, status="invalid reference",
                                                                         fallback="hold_last_command"))
         self._reference = ref
+        if self.placement is not None:  # the other filter's deferred sample first, as between steps (its holds
+            self._run_other_filter()  # count from this note on its clock: wait_background must not change them)
         for f in self._filters:  # the heat flow's release kept away from a change of the reference (EkfSettings)
             f.note_reference(ref.supply_temp_c, ref.volume_flow_m3s)
         setpoint = self._setpoint(measurement)
