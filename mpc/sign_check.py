@@ -112,7 +112,8 @@ class _Departure:
 class ValveSignCheck:
     """The sign of the reading's answer to a valve a departure from rest (module docstring)."""
 
-    def __init__(self, move_pct: float, change_c: float, window_s: float, rest_s: float, dt_s: float):
+    def __init__(self, move_pct: float, change_c: float, window_s: float, rest_s: float, dt_s: float,
+                 rest_hold_s: float = 0.0):
         import scipy.stats  # noqa: F401  the trial floor's (placement.trial_floor): loaded here, not in a control step
 
         self.move_pct = float(move_pct)
@@ -123,6 +124,8 @@ class ValveSignCheck:
         self.rest_tol_pct = REST_SHARE_OF_MOVE * self.move_pct  # valve a "still": within this of its rest
         self.rest_tol_c = REST_SHARE_OF_CHANGE * self.change_c  # the reading "still": its range below this
         self.rest = max(2, int(round(rest_s / dt_s)))
+        #: samples a rest lost to valve a alone still starts a departure (``rest_hold_s``; 0: none)
+        self.rest_hold = max(0, int(round(rest_hold_s / dt_s)))
         self.verdicts = 0
         self.reset()
 
@@ -130,6 +133,8 @@ class ValveSignCheck:
         """Forget the rest and any departure."""
         self._history: deque = deque(maxlen=self.rest)  # (valve a %, reading degC) before this sample
         self._departure: _Departure | None = None
+        self._samples = 0  # samples observed
+        self._last_rest: tuple[tuple[float, float], int] | None = None  # the last rest and the sample it was seen
 
     def abandon(self) -> None:
         """Forget the departure under way, keeping the rest: the prediction has moved to the other filter, so the
@@ -137,13 +142,19 @@ class ValveSignCheck:
         self._departure = None
 
     def _rest(self) -> tuple[float, float] | None:
-        """(valve a %, reading degC) at rest over the last ``rest`` samples (their means), or None."""
+        """(valve a %, reading degC) at rest over the last ``rest`` samples (their means), or None; with
+        ``rest_hold`` the last rest also while valve a alone has left it within that many samples (it creeps before
+        it opens) and the reading is still at rest."""
         if len(self._history) < self.rest:
             return None
         valve, reading = np.array(self._history).T
-        if np.ptp(valve) > self.rest_tol_pct or np.ptp(reading) > self.rest_tol_c:
+        if np.ptp(reading) > self.rest_tol_c:
             return None
-        return float(np.mean(valve)), float(np.mean(reading))
+        if np.ptp(valve) <= self.rest_tol_pct:
+            return float(np.mean(valve)), float(np.mean(reading))
+        if self._last_rest is None or self._samples - self._last_rest[1] > self.rest_hold:
+            return None
+        return self._last_rest[0]
 
     def wants_prediction(self, valve_a_after_pct: float) -> bool:
         """Whether :meth:`observe` will use this sample's predicted changes: a departure is under way, or this
@@ -161,11 +172,16 @@ class ValveSignCheck:
         other sign (module docstring), else None."""
         if not math.isfinite(reading_c):
             return None
+        rest = self._rest()
+        if self.rest_hold > 0 and rest is not None and np.ptp(np.array(self._history)[:, 0]) <= self.rest_tol_pct:
+            self._last_rest = (rest, self._samples)  # a rest of both, not one held
         verdict = self._follow(reading_c, valve_a_after_pct, predicted_c, other_predicted_c)
         if self._departure is None and verdict is None and self.wants_prediction(valve_a_after_pct):
             valve0, reading0 = self._rest()
             self._departure = _Departure(reading0, valve0, _finite(predicted_c), _finite(other_predicted_c))
+            self._last_rest = None  # a held rest starts one departure at most
         self._history.append((valve_a_after_pct, reading_c))
+        self._samples += 1
         return verdict
 
     def _follow(self, reading_c: float, valve_a_pct: float, predicted_c: float,
