@@ -15,7 +15,9 @@ thermocouple lag.
 The check (:class:`ValveSignCheck`): from rest (valve a within a quarter of ``move_pct`` and the reading within
 half of ``change_c`` over ``rest_s``), a departure of valve a by at least ``move_pct``, answered within
 ``window_s`` by a change of the reading of at least ``change_c``, is a verdict where the filter in use's predicted
-change has the other sign: that model has valve a's gain of the wrong sign. A prediction of the right sign but
+change has the other sign: that model has valve a's gain of the wrong sign. With ``rest_hold_s`` a rest lost to
+valve a alone (the reading still at rest) starts a departure from the last rest's means for that long: valve a that
+creeps a few % before it opens leaves no rest of the full rule (docs/robustness.md sec. 2.37). A prediction of the right sign but
 smaller than the answer is no verdict: the size of the answer within the window depends on the heater body's and
 the core's lags, on commands held shorter in the prediction than in the window and on a dead time the model may not
 honour yet, and the offsets take a gain that is too small in as the reading comes; only the sign is beyond them
