@@ -304,6 +304,11 @@ class MpcSettings:
         placement_sign_window_s: how long after the departure began its answer is looked for (s, 2-120); 15
             (ASSUMPTION: the boxes' dead time, at most 5 s, and about two of the model's thermocouple time constants).
         placement_sign_rest_s: the rest required before the departure (s, 2-600); 10.
+        placement_sign_rest_hold_s: a rest lost to valve a alone (its range over the rest window above a quarter of
+            the move, the reading still at rest) still starts a departure from the last rest's means for this long
+            after it was last seen (s, 0-600; 0, the default: off): valve a that creeps a few % before it opens
+            (S2-7 with the heat released at rest: 5.1 % at 150 s, then 3.3, 0, 6.6, 13.5, 37.9, 90 %) leaves no
+            rest of the full rule before its opening (docs/robustness.md sec. 2.37).
         rti_relinearise_every: multi-level steps (``rti``, :mod:`hvac_mpc.mpc.multilevel`): a full linearisation
             of the QP (new Jacobians and Hessian, OSQP's equilibration and refactorisation) at least on every this
             many preparations; the ones between keep the QP's matrices of the last full one and renew only its
@@ -439,6 +444,7 @@ class MpcSettings:
     placement_sign_change_c: float = 0.5
     placement_sign_window_s: float = 15.0
     placement_sign_rest_s: float = 10.0
+    placement_sign_rest_hold_s: float = 0.0
     rti_relinearise_every: int = 1
     rti_relinearise_move: float = 0.3
     steady_start_on: str = "any"
@@ -592,6 +598,7 @@ class MpcSettings:
         check_number(f"{p}.placement_sign_change_c", self.placement_sign_change_c, 0.1, 5.0)
         check_number(f"{p}.placement_sign_window_s", self.placement_sign_window_s, 2.0, 120.0)
         check_number(f"{p}.placement_sign_rest_s", self.placement_sign_rest_s, 2.0, 600.0)
+        check_number(f"{p}.placement_sign_rest_hold_s", self.placement_sign_rest_hold_s, 0.0, 600.0)
 
 
 def _check_or_off(name: str, value, lo: float, hi: float, off: str, lo_open: bool = False) -> None:
@@ -736,7 +743,8 @@ class MpcController:
         self.sign_check = None  # with placement_sign_move_pct: the sign of valve a's answer (mpc/sign_check.py)
         if self.placement is not None and s.placement_sign_move_pct != math.inf:
             self.sign_check = ValveSignCheck(s.placement_sign_move_pct, s.placement_sign_change_c,
-                                             s.placement_sign_window_s, s.placement_sign_rest_s, s.dt_s)
+                                             s.placement_sign_window_s, s.placement_sign_rest_s, s.dt_s,
+                                             s.placement_sign_rest_hold_s)
         # each filter's predicted change of the air in one call (the check's held commands; by the filter's id)
         self._air_change = {id(f): HeldAirChange(f, self.sign_check.horizon) for f in self._filters
                             } if self.sign_check is not None else {}
@@ -946,6 +954,8 @@ class MpcController:
                 return StepResult(Command.from_vector(cmd), self._stats(t0, status="invalid reference",
                                                                         fallback="hold_last_command"))
         self._reference = ref
+        if self.placement is not None:  # the other filter's deferred sample first, as between steps (its holds
+            self._run_other_filter()  # count from this note on its clock: wait_background must not change them)
         for f in self._filters:  # the heat flow's release kept away from a change of the reference (EkfSettings)
             f.note_reference(ref.supply_temp_c, ref.volume_flow_m3s)
         setpoint = self._setpoint(measurement)

@@ -15,9 +15,11 @@ thermocouple lag.
 The check (:class:`ValveSignCheck`): from rest (valve a within a quarter of ``move_pct`` and the reading within
 half of ``change_c`` over ``rest_s``), a departure of valve a by at least ``move_pct``, answered within
 ``window_s`` by a change of the reading of at least ``change_c``, is a verdict where the filter in use's predicted
-change has the other sign: that model has valve a's gain of the wrong sign. A prediction of the right sign but
-smaller than the answer is no verdict: the size of the answer within the window depends on the heater body's and
-the core's lags, on commands held shorter in the prediction than in the window and on a dead time the model may not
+change has the other sign: that model has valve a's gain of the wrong sign. With ``rest_hold_s`` a rest lost to
+valve a alone (the reading still at rest) starts a departure from the last rest's means for that long: valve a that
+creeps a few % before it opens leaves no rest of the full rule (docs/robustness.md sec. 2.37). A prediction of the
+right sign but smaller than the answer is no verdict: the size of the answer within the window depends on the heater
+body's and the core's lags, on commands held shorter in the prediction than in the window and on a dead time the model may not
 honour yet, and the offsets take a gain that is too small in as the reading comes; only the sign is beyond them
 (an offset shifts the supply air at every valve position alike). The predicted change is the filter's model air with
 each command of the departure held over a third of the window against the command before it, summed
@@ -163,7 +165,8 @@ class _Departure:
 class ValveSignCheck:
     """The sign of the reading's answer to a valve a departure from rest (module docstring)."""
 
-    def __init__(self, move_pct: float, change_c: float, window_s: float, rest_s: float, dt_s: float):
+    def __init__(self, move_pct: float, change_c: float, window_s: float, rest_s: float, dt_s: float,
+                 rest_hold_s: float = 0.0):
         import scipy.stats  # noqa: F401  the trial floor's (placement.trial_floor): loaded here, not in a control step
 
         self.move_pct = float(move_pct)
@@ -174,6 +177,8 @@ class ValveSignCheck:
         self.rest_tol_pct = REST_SHARE_OF_MOVE * self.move_pct  # valve a "still": within this of its rest
         self.rest_tol_c = REST_SHARE_OF_CHANGE * self.change_c  # the reading "still": its range below this
         self.rest = max(2, int(round(rest_s / dt_s)))
+        #: samples a rest lost to valve a alone still starts a departure (``rest_hold_s``; 0: none)
+        self.rest_hold = max(0, int(round(rest_hold_s / dt_s)))
         self.verdicts = 0
         self.reset()
 
@@ -182,6 +187,8 @@ class ValveSignCheck:
         self._history: deque = deque(maxlen=self.rest)  # (valve a %, reading degC) before this sample
         self._departure: _Departure | None = None
         self._rest_of: tuple[float, float] | None | bool = False  # _rest of the history as it is (False: not known)
+        self._samples = 0  # samples observed
+        self._last_rest: tuple[tuple[float, float], int] | None = None  # the last rest and the sample it was seen
 
     def abandon(self) -> None:
         """Forget the departure under way, keeping the rest: the prediction has moved to the other filter, so the
@@ -189,9 +196,11 @@ class ValveSignCheck:
         self._departure = None
 
     def _rest(self) -> tuple[float, float] | None:
-        """(valve a %, reading degC) at rest over the last ``rest`` samples (their means), or None. Computed once per
-        sample: a step asks up to three times (:meth:`wants_prediction` before and in :meth:`observe`, the departure's
-        start) and the history changes only where :meth:`observe` appends to it."""
+        """(valve a %, reading degC) at rest over the last ``rest`` samples (their means), or None; with
+        ``rest_hold`` the last rest also while valve a alone has left it within that many samples (it creeps before
+        it opens) and the reading is still at rest. Computed once per sample: a step asks up to three times
+        (:meth:`wants_prediction` before and in :meth:`observe`, the departure's start) and what it depends on
+        changes only where :meth:`observe` appends to the history."""
         if self._rest_of is False:
             self._rest_of = self._rest_now()
         return self._rest_of
@@ -202,10 +211,14 @@ class ValveSignCheck:
         valve, reading = np.array(self._history).T
         # np.ptp and np.mean without their Python wrappers: the reductions they run on the same 1-D views, so the
         # same numbers (tests/test_step_glue.py)
-        if _max(valve) - _min(valve) > self.rest_tol_pct or _max(reading) - _min(reading) > self.rest_tol_c:
+        if _max(reading) - _min(reading) > self.rest_tol_c:
             return None
-        n = valve.shape[0]
-        return float(_sum(valve) / n), float(_sum(reading) / n)
+        if _max(valve) - _min(valve) <= self.rest_tol_pct:
+            n = valve.shape[0]
+            return float(_sum(valve) / n), float(_sum(reading) / n)
+        if self._last_rest is None or self._samples - self._last_rest[1] > self.rest_hold:
+            return None
+        return self._last_rest[0]
 
     def wants_prediction(self, valve_a_after_pct: float) -> bool:
         """Whether :meth:`observe` will use this sample's predicted changes: a departure is under way, or this
@@ -223,12 +236,17 @@ class ValveSignCheck:
         other sign (module docstring), else None."""
         if not math.isfinite(reading_c):
             return None
+        rest = self._rest()
+        if self.rest_hold > 0 and rest is not None and np.ptp(np.array(self._history)[:, 0]) <= self.rest_tol_pct:
+            self._last_rest = (rest, self._samples)  # a rest of both, not one held
         verdict = self._follow(reading_c, valve_a_after_pct, predicted_c, other_predicted_c)
         if self._departure is None and verdict is None and self.wants_prediction(valve_a_after_pct):
             valve0, reading0 = self._rest()
             self._departure = _Departure(reading0, valve0, _finite(predicted_c), _finite(other_predicted_c))
+            self._last_rest = None  # a held rest starts one departure at most
         self._history.append((valve_a_after_pct, reading_c))
         self._rest_of = False
+        self._samples += 1
         return verdict
 
     def _follow(self, reading_c: float, valve_a_pct: float, predicted_c: float,
