@@ -155,16 +155,18 @@ class MpcSettings:
             share of the input's range (in [0, 1)), the QP's plan with that input's profile replaced by the
             linearisation point's, by its upper and by its lower bound is priced on the nonlinear cost (the model's
             rollout) and the cheapest of these and the QP's plan taken (``stats["reversal_searched"]``,
-            ``stats["reversal_taken"]``); only on a plain step (one QP), no QP added. 0: off.
+            ``stats["reversal_taken"]``); only on a plain step (one QP), no QP added. 0: off; 0.05 by default, with
+            the wait and the margin below (docs/identification.md, "The guarded search as the default").
         rti_reversal_wait_steps: with ``rti_reversal_search``, the plain steps (one QP each, 1 s apart at the bench's
             sample) after a cold start, a reference change or a split step on which the search does not act (an
-            integer in [0, 3600]; 0: it acts from the first). The bench's takes in a change's wake moved the path and the
-            later steps (docs/identification.md, "The search's cost on the built-in bench, traced; a wait
-            and a margin").
+            integer in [0, 3600]; 0: it acts from the first; 20 by default). The bench's takes in a change's wake moved
+            the path and the later steps (docs/identification.md, "The search's cost on the built-in bench, traced; a
+            wait and a margin").
         rti_reversal_repeat: with ``rti_reversal_search``, only an input whose plan turned on the step before as
             well (a two-cycle). False: every turned input.
         rti_reversal_margin: with ``rti_reversal_search``, a candidate is taken only where its nonlinear cost is
-            below (1 - this share) x the QP plan's (a share in [0, 1); 0: any candidate cheaper than the QP's plan).
+            below (1 - this share) x the QP plan's (a share in [0, 1); 0: any candidate cheaper than the QP's plan;
+            0.1 by default).
         ipopt_tol, ipopt_max_iter: IPOPT tolerance and iteration cap.
         deadline_s: longest feedback time (measurement to command); beyond it the solution is
             discarded and the fallback chain used.
@@ -395,10 +397,10 @@ class MpcSettings:
     sqp_tol: float = 2e-2
     rti_step_fractions: tuple[float, ...] = ()
     rti_trust_radii: tuple[float, ...] = ()
-    rti_reversal_search: float = 0.0
-    rti_reversal_wait_steps: int = 0
+    rti_reversal_search: float = 0.05
+    rti_reversal_wait_steps: int = 20
     rti_reversal_repeat: bool = False
-    rti_reversal_margin: float = 0.0
+    rti_reversal_margin: float = 0.1
     ipopt_tol: float = 1e-6
     ipopt_max_iter: int = 300
     deadline_s: float = 0.5

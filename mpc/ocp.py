@@ -506,16 +506,14 @@ class TrackingProblem:
         self.heater_max_phys = float(hmax)
         # soft row in degC: x_sc * x_heater - s <= heater_max - x_off
         self.heater_row_coef = float(self.x_sc[self.i_heater])
-        self.heater_row_bound = float(hmax - self.x_off[self.i_heater])
         # PTC row in degC, stages k = 1..N-1 (x_k with u_k, slack s_k):
         # cmd / c + T_h - s <= T_zero with c = P_max / (T_zero - T_knee) (W/K), the falling part of
         # heater.available_power_w
-        prm = self.params
         self.ptc_limit = bool(spec.ptc_limit)
-        slope_w_per_k = prm.heater_power_max_w / (prm.ptc_zero_c - prm.ptc_knee_c)
-        ih = self.i_heater_cmd
-        self.ptc_row_coef_u = float(self.u_sc[ih] / slope_w_per_k)
-        self.ptc_row_bound = float(prm.ptc_zero_c - self.u_off[ih] / slope_w_per_k - self.x_off[self.i_heater])
+        self.energy_weight = spec.weights.energy_per_100w2
+        self.energy_scale_w = 100.0
+        rows = self.parameter_rows(self.model.p_default)
+        self.heater_row_bound, self.ptc_row_coef_u, self.ptc_row_bound, self.body_heat_coef = map(float, rows)
         # flow floor while the heater is on (module docstring), in L/s
         self.floor = bool(spec.heater_min_flow_m3s)
         self.floor_m3s = float(spec.heater_min_flow_m3s or 0.0)
@@ -530,8 +528,6 @@ class TrackingProblem:
         move = np.array([w.move_blower_per_w2, w.move_heater_per_w2] + [w.move_valve_per_pct2] * 4)
         unit = np.where(self.valve_mask, self.u_sc * 100.0, self.u_sc)
         self.w_du = move * unit ** 2
-        self.energy_weight = w.energy_per_100w2
-        self.energy_scale_w = 100.0
         self.flap_closure_weight = w.flap_closure_per_pct2
         # the flaps' opening the closure term pulls towards (scaled decisions; zero off the flaps)
         self.flap_target_u = np.where(self.valve_mask, (self.flap_targets_opening(spec) - self.u_off) / self.u_sc, 0.0)
@@ -545,17 +541,35 @@ class TrackingProblem:
         self.slack_l1 = w.slack_l1_per_c
         self.slack_l2 = w.slack_l2_per_c2
         self.terminal_s = w.terminal_s
-        self.body_heat_coef = self.body_heat_coefficient()
         self._build_functions()
 
-    def body_heat_coefficient(self) -> float:
+    def parameter_rows(self, p) -> tuple:
+        """The constants of the soft rows and of the body's heat that follow from the model parameters ``p``
+        (:attr:`HvacModel.p_default` order; numpy or CasADi, the same operations): the heater row's bound (degC;
+        :attr:`OcpSpec.heater_temp_max_c` where set), the PTC row's coefficient of the scaled heater command and its
+        bound (degC), and :meth:`body_heat_coefficient`. From the symbolic ``p`` in generated code (the plans'
+        merit, :mod:`.plan_merit`), so that code serves every parameter set of the same structure."""
+        names = Parameters.scalar_names()
+
+        def at(name):
+            return p[names.index(name)]
+        ih = self.i_heater_cmd
+        hmax = self.spec.heater_temp_max_c if self.spec.heater_temp_max_c is not None else at("heater_temp_max_c")
+        slope_w_per_k = at("heater_power_max_w") / (at("ptc_zero_c") - at("ptc_knee_c"))
+        return (hmax - self.x_off[self.i_heater], self.u_sc[ih] / slope_w_per_k,
+                at("ptc_zero_c") - self.u_off[ih] / slope_w_per_k - self.x_off[self.i_heater],
+                self.body_heat_coefficient(at("heater_mass_kg") * at("heater_c_j_per_kgk")))
+
+    def body_heat_coefficient(self, capacity_j_per_k=None):
         """Cost per unit of the scaled terminal heater-body state (:attr:`Weights.body_heat_power_w`): the
         value of the stored heat enters the cost as ``coef * x_N[i_heater]`` (negative: a hotter body at the
-        horizon's end costs less); 0 when off. Price per J ``2 w_E P / (100 W)^2`` times ``C_body`` (J/K)
-        times the state's scale (K per scaled unit)."""
+        horizon's end costs less); 0 when off. Price per J ``2 w_E P / (100 W)^2`` times ``C_body`` (J/K;
+        ``capacity_j_per_k``, by default the parameters', numpy or CasADi) times the state's scale (K per scaled
+        unit)."""
         w = self.spec.weights
         price_per_j = 2.0 * self.energy_weight * w.body_heat_power_w / self.energy_scale_w ** 2
-        capacity_j_per_k = self.params.heater_mass_kg * self.params.heater_c_j_per_kgk
+        if capacity_j_per_k is None:
+            capacity_j_per_k = self.params.heater_mass_kg * self.params.heater_c_j_per_kgk
         return -price_per_j * capacity_j_per_k * float(self.x_sc[self.i_heater])
 
     def body_heat_on(self, u_prev):
@@ -567,11 +581,12 @@ class TrackingProblem:
             return ca.if_else(cmd_w > HEATING_CMD_W, 1.0, 0.0)
         return float(cmd_w > HEATING_CMD_W)
 
-    def body_heat_cost(self, x0, x_end, u_prev):
+    def body_heat_cost(self, x0, x_end, u_prev, coef=None):
         """The value of the body's heat (:attr:`Weights.body_heat_power_w`) for a plan from the scaled state
         ``x0`` to ``x_end`` with the command in force ``u_prev`` (scaled): ``coef (x_end - x0)`` of the heater
-        body while heating, else 0."""
-        return self.body_heat_on(u_prev) * self.body_heat_coef * (x_end[self.i_heater] - x0[self.i_heater])
+        body while heating, else 0 (``coef`` by default :attr:`body_heat_coef`)."""
+        coef = self.body_heat_coef if coef is None else coef
+        return self.body_heat_on(u_prev) * coef * (x_end[self.i_heater] - x0[self.i_heater])
 
     def flap_targets_opening(self, spec: OcpSpec) -> np.ndarray:
         """The flap-closure term's target openings (fraction of the opening ``v``, per decision; 0 off the flaps):
@@ -654,11 +669,13 @@ class TrackingProblem:
         """Heater power available at ``heater_temp_c`` (W), the line of :attr:`OcpSpec.ptc_limit`."""
         return float(heater.available_power_w(heater_temp_c, self.params))
 
-    def ptc_row(self, heater_x, heater_u):
+    def ptc_row(self, heater_x, heater_u, rows=None):
         """PTC row, ``<= 0`` when kept (degC, before its slack), of the scaled heater temperature
         ``heater_x`` and scaled heater command ``heater_u`` of the same stage (CasADi or numpy; the
-        QP of ``rti_osqp`` holds the same coefficients)."""
-        return self.heater_row_coef * heater_x + self.ptc_row_coef_u * heater_u - self.ptc_row_bound
+        QP of ``rti_osqp`` holds the same coefficients); ``rows``: :meth:`parameter_rows` of other (e.g.
+        symbolic) parameters, by default this problem's."""
+        coef_u, bound = (self.ptc_row_coef_u, self.ptc_row_bound) if rows is None else rows[1:3]
+        return self.heater_row_coef * heater_x + coef_u * heater_u - bound
 
     def floor_row(self, flow_m3s, heater_cmd_w):
         """Flow-floor row, ``>= 0`` when kept (L/s), of the total flow and the heater command of one stage

@@ -87,6 +87,7 @@ class PlanMerit:
         ib, ip = INPUTS.index("blower_power_w"), STAGE_OUTPUTS.index("heater_power_w")
         i_flow = STAGE_OUTPUTS.index("volume_flow_m3s")
         x, prev, cost = x0, u_prev, 0
+        rows = pb.parameter_rows(p)  # the rows' constants from the parameters: one build serves every parameter set
         # the flaps' target (OcpSpec.flap_target_from_split: from the reference's split where its weights are on)
         flap_target = pb.flap_target_for(ref, SW[STAGE_OUTPUTS.index("flow_m_m3s"), 0] > 0.0)
         for k in range(N + 1):
@@ -96,7 +97,7 @@ class PlanMerit:
             r = ca.vertcat(y - ref, power)
             cost += ca.dot(SW[:, k], r * r)
             if k >= 1:
-                cost += self._slack_cost(k, x, u)
+                cost += self._slack_cost(k, x, u, rows)
                 short = ca.fmax(ready_floor - x[pb.i_heater], 0.0)
                 cost += ready_w[k - 1] * short * short
             if k < N:
@@ -107,17 +108,18 @@ class PlanMerit:
                     row = pb.floor_row(y[i_flow], pb.u_off[ih] + pb.u_sc[ih] * u[ih])
                     cost += FLOOR_PENALTY_PER_LS * pb.slack_l1 * pb.dt[k] * ca.fmax(0.0, -row)
                 prev, x = u, x_next
-        cost += pb.body_heat_cost(x0, x, u_prev)  # x: the last node's state
+        cost += pb.body_heat_cost(x0, x, u_prev, rows[3])  # x: the last node's state
         return ca.Function("hvac_plan_merit", [x0, U, d, SW, ref, u_prev, p, ready_floor, ready_w], [cost],
                            list(ARGUMENTS), ["cost"])
 
-    def _slack_cost(self, k: int, x, u):
+    def _slack_cost(self, k: int, x, u, rows):
         """The soft rows' price at stage k (1..N): the least slack that holds the heater row (and the PTC
-        row, stages 1..N-1), at the QP's L1 and L2 prices over the stage before."""
+        row, stages 1..N-1; :meth:`.ocp.TrackingProblem.ptc_row`), at the QP's L1 and L2 prices over the stage
+        before; ``rows``: :meth:`.ocp.TrackingProblem.parameter_rows` of the merit's parameters."""
         pb = self.pb
-        excess = pb.heater_row_coef * x[pb.i_heater] - pb.heater_row_bound
+        excess = pb.heater_row_coef * x[pb.i_heater] - rows[0]
         if pb.ptc_limit and k < pb.N:
-            excess = ca.fmax(excess, pb.ptc_row(x[pb.i_heater], u[pb.i_heater_cmd]))
+            excess = ca.fmax(excess, pb.ptc_row(x[pb.i_heater], u[pb.i_heater_cmd], rows))
         s = ca.fmax(0.0, excess)
         return pb.dt[k - 1] * (pb.slack_l1 * s + pb.slack_l2 * s * s)
 

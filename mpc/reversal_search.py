@@ -18,6 +18,11 @@ rate limits of the first). The solver (:class:`.rti_osqp.RtiOsqpSolver`, ``rever
 problem's nonlinear cost (:class:`.plan_merit.PlanMerit`, the model's rollout) and takes the cheapest of these
 and the QP's own plan. No QP is added: one call of a generated function prices the three candidates of an input.
 Nothing in it knows which input reverses.
+
+The controller's default (``MpcSettings``): the search at 0.05 of each input's range, acting only after 20 plain
+steps in a row (:func:`eligible_inputs`) and taking a candidate only where it costs 10 % less than the QP's plan
+(docs/identification.md, "The guarded search as the default": the built-in bench today's in every scenario, the
+refined MPC's IAE on both recirculating boxes lower).
 """
 
 from __future__ import annotations

@@ -112,7 +112,10 @@ def test_the_globalised_step_ends_valve_a_alternating_on_the_recirculating_box()
     thesis parameters otherwise), the quick trapped-air scenario: at the step up the air through the heater is
     hardly warmer than the bypass air, and the plain real-time iteration moves valve a 0 -> 50 -> 0 % from sample
     to sample (measured: 104 reversals of more than 20 % over the run, 484.0 C s). With the damped step three, in
-    the first 5 s after the step, and the thermocouple tracks better (382.4 C s)."""
+    the first 5 s after the step, and the thermocouple tracks better (382.4 C s). Both runs without the search along
+    the reversing input (``rti_reversal_search`` 0; on by default): it ends most of the same alternation itself
+    (measured on this run: 107 -> 19 reversals, 506.7 -> 415.9 C s), so the plain run with it would not show the
+    damped step's effect; with both 4 reversals, 382.5 C s."""
     from hvac_mpc.benchmarks import scenarios
     from hvac_mpc.benchmarks.simulate import DETERMINISTIC_DEADLINE_S, plant_seed
     from hvac_mpc.mismatch import make_plant
@@ -125,7 +128,7 @@ def test_the_globalised_step_ends_valve_a_alternating_on_the_recirculating_box()
     def run(fractions):
         # valve a's reversing moves applied whole (valve_a_reversal_share=1): the iteration's steps alone compared
         settings = MpcSettings(initial_command=sc.initial_command, deadline_s=DETERMINISTIC_DEADLINE_S,
-                               rti_step_fractions=fractions, valve_a_reversal_share=1.0)
+                               rti_step_fractions=fractions, valve_a_reversal_share=1.0, rti_reversal_search=0.0)
         ctrl = MpcController(settings=settings, model=refined)
         plant = make_plant("recirculation", seed=plant_seed(0, sc.seed), inlet_temp_c=sc.inlet_temp_c,
                            chiller_setpoint_c=sc.chiller_setpoint_c, initial_command=sc.initial_command)
@@ -150,3 +153,32 @@ def test_the_globalised_step_ends_valve_a_alternating_on_the_recirculating_box()
     assert plain > 50 and plain_damped == 0  # the case alternates without the damped step
     assert globalised <= 5 and damped > 0, (globalised, damped)
     assert globalised_iae < 0.9 * plain_iae, (globalised_iae, plain_iae)
+
+
+def test_the_merit_takes_the_parameters_rows_from_its_parameter_input():
+    """The soft rows' and the body heat's constants that follow from the model parameters (the heater's limit, the PTC
+    line, the body's capacity: ``TrackingProblem.parameter_rows``) come from the merit's parameter input, so the
+    generated merit of one parameter set is the function of another (the same structure key, built once into the code
+    cache) and prices a plan as the other's own merit does; with the first set's parameters it prices it otherwise."""
+    from hvac_mpc.mpc import codegen
+    from hvac_mpc.mpc.ocp import OcpSpec, TrackingProblem, Weights
+
+    spec = OcpSpec(weights=Weights(body_heat_power_w=50.0))  # the body's heat priced: its coefficient counts
+    other = Parameters(heater_power_max_w=200.0, ptc_knee_c=55.0, heater_mass_kg=0.3, heater_temp_max_c=150.0)
+    pb_a, pb_b = TrackingProblem(Parameters(), spec), TrackingProblem(other, spec)
+    f_a, f_b = (PlanMerit(pb, (0.5,)).cost_function() for pb in (pb_a, pb_b))
+    assert codegen.structure_key(f_a) == codegen.structure_key(f_b)
+    x0 = pb_a.placeholder_state()
+    x0[pb_a.i_heater] = 140.0  # beyond both PTC knees, near the lower heater limit: the rows' slack counts
+    x0 = pb_a.scale_x(x0)
+    d = np.array([5.0, 5.0, 0.0, 0.0])
+    ref, w_y = pb_a.reference_vector(_reference()), pb_a.heating_weights(pb_a.w_y_full.copy(), heating=True)
+    sw = MpcController(settings=MpcSettings(codegen=False, ocp=spec)).solver._stage_weights(w_y).T
+    U, u_prev = _plan(pb_a, 190.0, 60.0), pb_a.scale_u(np.array([150.0, 190.0, 60.0, 50.0, 50.0, 50.0]))
+    off = (0.0, np.zeros(pb_a.N))
+    p_a, p_b = pb_a.model.p_default, pb_b.model.p_default
+    priced_b = float(f_b(x0, U.T, d, sw, ref, u_prev, p_b, *off))
+    assert float(f_a(x0, U.T, d, sw, ref, u_prev, p_b, *off)) == pytest.approx(priced_b, rel=1e-12)
+    assert float(f_a(x0, U.T, d, sw, ref, u_prev, p_a, *off)) != pytest.approx(priced_b, rel=1e-3)
+    assert pb_b.parameter_rows(p_b) == (pb_b.heater_row_bound, pb_b.ptc_row_coef_u, pb_b.ptc_row_bound,
+                                        pb_b.body_heat_coef)

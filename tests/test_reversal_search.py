@@ -1,7 +1,8 @@
 """The search along a reversing input (mpc/reversal_search.py, ``MpcSettings.rti_reversal_search``): the pure rules,
 the setting's check, the merit of several plans in one call, and, on the independent box that draws cabin air behind
 its inlet sensor (hvac_mpc.mismatch ``recirculation``), the MPC with the identified recirculation term: the search
-ends valve a's alternation after the step up and lowers the tracking error, without a QP more."""
+ends valve a's alternation after the step up and lowers the tracking error, without a QP more. On by default with a
+wait of 20 plain steps and a margin of 10 %; the runs without it pin ``rti_reversal_search`` to 0."""
 
 from __future__ import annotations
 
@@ -49,8 +50,8 @@ def test_bad_search_share_names_the_field(value):
         check_share("RtiOsqpSolver: reversal_search", value)
 
 
-def test_search_is_off_by_default():
-    assert MpcSettings().rti_reversal_search == 0.0
+def test_search_is_on_by_default():
+    assert MpcSettings().rti_reversal_search == 0.05
 
 
 def test_the_searched_inputs_wait_for_plain_steps_and_a_repeated_reversal():
@@ -62,9 +63,9 @@ def test_the_searched_inputs_wait_for_plain_steps_and_a_repeated_reversal():
     assert eligible_inputs(turned, np.zeros(0, dtype=int), 4, 0).size == 0  # none turned the step before
 
 
-def test_the_rules_of_the_search_are_off_by_default_and_checked():
+def test_the_rules_of_the_search_default_to_a_wait_and_a_margin_and_are_checked():
     s = MpcSettings()
-    assert (s.rti_reversal_wait_steps, s.rti_reversal_repeat, s.rti_reversal_margin) == (0, False, 0.0)
+    assert (s.rti_reversal_wait_steps, s.rti_reversal_repeat, s.rti_reversal_margin) == (20, False, 0.1)
     for field, value in (("rti_reversal_wait_steps", -1), ("rti_reversal_wait_steps", 3601),
                          ("rti_reversal_wait_steps", 2.5), ("rti_reversal_wait_steps", True), ("rti_reversal_repeat", 1),
                          ("rti_reversal_margin", 1.0), ("rti_reversal_margin", -0.1),
@@ -146,8 +147,10 @@ def test_search_ends_valve_a_alternation_on_the_recirculating_box():
     as the last plan had it and shut, on each reversing step and takes the cheapest: valve a stops alternating and
     the thermocouple IAE in the 60 s after the step falls, with the same QPs (measured, noise seed 0: 23 -> 2
     reversals, 255.2 -> 230.0 C s, 45 steps searched, 41 candidates taken, 61 QPs either way; seeds 1-3: 29 -> 2,
-    28 -> 6, 30 -> 2 reversals, 262.5 -> 233.2, 266.1 -> 230.5, 263.1 -> 230.9 C s)."""
-    off, on = _run(), _run(rti_reversal_search=0.05)
+    28 -> 6, 30 -> 2 reversals, 262.5 -> 233.2, 266.1 -> 230.5, 263.1 -> 230.9 C s). The search alone: without the
+    default wait and margin (the next test and the one after it have them)."""
+    off, on = _run(rti_reversal_search=0.0), _run(rti_reversal_search=0.05, rti_reversal_wait_steps=0,
+                                                   rti_reversal_margin=0.0)
     assert not off["keyed"] and on["keyed"], (off, on)  # the search's stats only where it is on
     assert on["taken"] >= 20, on
     assert on["qps"] == off["qps"], (on, off)  # no QP added
@@ -162,13 +165,26 @@ def test_search_waits_after_the_step_and_takes_a_candidate_only_by_a_margin():
     less than the QP's plan; the alternation that follows is still cut, by less than with the search alone (measured,
     noise seed 0: 23 reversals and 255.2 C s without the search, 2 and 230.0 with it, 6 and 241.6 with both rules,
     16 candidates taken; docs/identification.md, "The search's cost on the built-in bench, traced")."""
-    off = _run()
+    off = _run(rti_reversal_search=0.0)
     both = _run(rti_reversal_search=0.05, rti_reversal_wait_steps=10, rti_reversal_margin=0.1)
     assert both["first_searched"] is not None and both["first_searched"] > WINDOW_S[0] + 10, both
     assert both["taken"] >= 8, both
     assert both["qps"] == off["qps"], (both, off)  # no QP added
     assert both["reversals"] <= 0.5 * off["reversals"], (both, off)
     assert both["iae"] < 0.98 * off["iae"], (both, off)
+
+
+def test_the_default_search_waits_twenty_steps_and_cuts_the_alternation():
+    """The defaults (the search 0.05 with a wait of 20 plain steps and a margin of 10 %; docs/identification.md, "The
+    guarded search as the default"): no search in the 20 plain steps after the step to 22 C, then candidates taken
+    and valve a's alternation cut, with the same QPs (measured, noise seed 0: 23 -> 10 reversals, 255.2 -> 242.6 C s,
+    19 steps searched, 11 candidates taken, 61 QPs either way)."""
+    off, default = _run(rti_reversal_search=0.0), _run()
+    assert default["first_searched"] is not None and default["first_searched"] > WINDOW_S[0] + 20, default
+    assert default["taken"] >= 5, default
+    assert default["qps"] == off["qps"], (default, off)  # no QP added
+    assert default["reversals"] <= 0.6 * off["reversals"], (default, off)
+    assert default["iae"] < 0.97 * off["iae"], (default, off)
 
 
 def test_candidates_follow_the_rate_limits_from_the_first_stage():
