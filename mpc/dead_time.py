@@ -16,8 +16,10 @@ reading clearly better than the current one (residual below ``switch_ratio`` tim
 one's), or one that stays ahead of it (below ``LEAD_RATIO`` times its residual) for ``LEAD_SAMPLES``
 samples in a row (with ``lead_reach_steps`` > 0, a leader within that many samples of the one before continues the
 row: the same minimum's neighbouring half sample does not restart it; with ``count_quiet``, samples without
-excitation count for a lead that stands); while nothing moves it stays where it is. Of separate minima that explain the reading
-about equally (within ``TIE_RATIO``) the shortest is taken, of one minimum its bottom
+excitation count for a lead that stands; with ``lead_tie_hold``, an estimate the lead rule moved to gives way to a
+tie no more, only to a clearly better candidate or another lead); while nothing moves it stays where it is. Of
+separate minima that explain the reading about equally (within ``TIE_RATIO``) the shortest is taken, of one minimum
+its bottom
 (:func:`shortest_tied_minimum`; docs/robustness.md sec. 2.11). A starting value (``initial_steps``, or
 ``prior_steps`` where none is given) gives way only to a clearly better candidate, not to a tie.
 Pure numpy, no model code: the estimator feeds it.
@@ -78,7 +80,8 @@ class DeadTimeEstimator:
 
     def __init__(self, max_steps: int, sensor_tau_s: float, dt_s: float = 1.0, window_s: float = 60.0,
                  min_excitation_c: float = 0.05, switch_ratio: float = 0.7, initial_steps: float = 0.0,
-                 prior_steps: float = 0.0, lead_reach_steps: float = 0.0, count_quiet: bool = False):
+                 prior_steps: float = 0.0, lead_reach_steps: float = 0.0, count_quiet: bool = False,
+                 lead_tie_hold: bool = False):
         """``initial_steps``: the estimate before the readings move it (samples; e.g. a delay identified from
         a log, docs/identification.md), rounded to the nearest candidate; it gives way only to a clearly
         better candidate, not to a tie. ``prior_steps``: the same for a dead time assumed, not identified,
@@ -87,9 +90,12 @@ class DeadTimeEstimator:
         the same candidate, the rule before; 0.5: its neighbouring half samples; docs/robustness.md sec. 2.38).
         ``count_quiet``: a sample without excitation adds to the count of a candidate that stands ahead (False: it
         neither counts nor breaks the row, the rule before); the switch itself still waits for a ranked sample in
-        which that candidate is ahead."""
+        which that candidate is ahead. ``lead_tie_hold``: an estimate the lead rule switched to gives way only to a
+        clearly better candidate or another lead, not to a shorter tied one (False: to a tie as well, the rule
+        before): on a flat ranking the tie rule otherwise takes the estimate back to 0 within samples."""
         self.lead_reach_steps = float(lead_reach_steps)
         self.count_quiet = bool(count_quiet)
+        self.lead_tie_hold = bool(lead_tie_hold)
         self.initial_steps = float(initial_steps)
         self.prior_steps = float(prior_steps)
         self.max_steps = int(max_steps)
@@ -125,6 +131,7 @@ class DeadTimeEstimator:
         self.informed = False  # the window has held a response (the candidates ranked at least once)
         self._lead = None  # a candidate ahead of the estimate by LEAD_RATIO ...
         self._lead_samples = 0  # ... for this many samples in a row
+        self._by_lead = False  # the estimate is one the lead rule moved to (not a clearly better one)
 
     @property
     def steps(self) -> float:
@@ -201,17 +208,25 @@ class DeadTimeEstimator:
         explained /= sss
         res = self._syy - explained
         self.residuals = res / w
+        return self._rank(res)
+
+    def _rank(self, res: np.ndarray) -> float:
+        """Move the estimate on the candidates' residuals ``res`` of a ranked sample (the switch, the tie and the lead
+        rules); returns the estimate (samples)."""
         best = shortest_tied_minimum(res)
         cur = self._best
         r_best, r_cur = float(res[best]), float(res[cur])
         # a starting value (initial_steps) gives way only to a clearly better candidate, not to a tie
-        tie_moves = best < cur and r_best <= r_cur and not self._at_start
+        held_against_tie = self._at_start or (self.lead_tie_hold and self._by_lead)
+        tie_moves = best < cur and r_best <= r_cur and not held_against_tie
         lead = best if best != cur and r_best < LEAD_RATIO * r_cur else None
         self._lead_samples = self._lead_samples + 1 if self._continues_lead(lead) else 0
         self._lead = lead
         held = self._lead_samples >= LEAD_SAMPLES and not self._at_start  # a starting value: only clearly
-        if r_best < self.switch_ratio * r_cur or tie_moves or held:
+        clearly = r_best < self.switch_ratio * r_cur
+        if clearly or tie_moves or held:
             self._at_start = self._at_start and best == cur
+            self._by_lead = held and not clearly
             self._best = best
             self._lead, self._lead_samples = None, 0
         return self.steps

@@ -159,7 +159,10 @@ class EkfSettings:
     docs/robustness.md sec. 2.38). ``dead_time_lead_count_quiet``: samples whose window holds too little response to
     rank the candidates (below ``dead_time_excitation_c``) count for a candidate that stands ahead, instead of neither
     counting nor breaking the row; the switch still waits for a ranked sample with it ahead (a setting, off; sec. 2.38).
-    ASSUMPTION: nothing in a quiet window argues against the lead it left standing.
+    ASSUMPTION: nothing in a quiet window argues against the lead it left standing. ``dead_time_lead_tie_hold``: a
+    dead time the lead rule switched to gives way only to a clearly better candidate or another lead, not to a shorter
+    candidate that merely ties (the tie rule took a lead's 3.5 s back to 0 within 4 s on a flat ranking; a setting,
+    off; sec. 2.38).
 
     ``q_mix_offset_c``: random walk (degC per sample) of the mixed-air offset. 0.015 (0.03 before): with
     the faster valve and the reading-heavy tracked temperature (``OcpSpec``) the offset's sample-to-sample
@@ -434,6 +437,7 @@ class EkfSettings:
     dead_time_prior_s: float = 0.0
     dead_time_lead_reach_s: float = 0.0
     dead_time_lead_count_quiet: bool = False
+    dead_time_lead_tie_hold: bool = False
     q_heater_outlet_offset_c: float = 0.01
     q_cooler_offset_c: float = 0.0
     q_heater_air_offset_c: float = 0.0
@@ -479,7 +483,7 @@ class EkfSettings:
                           "supply_heat_release_at_rest", "supply_heat_walk_at_rest",
                           "supply_heat_level_neutral_at_rest",
                           "bypass_flow_after_response", "bypass_flow_commit_at_rest", "bypass_flow_at_rest",
-                          "dead_time_lead_count_quiet"):
+                          "dead_time_lead_count_quiet", "dead_time_lead_tie_hold"):
                 check_flag(f"{prefix}.{f.name}", value)
                 continue
             if f.name in ("bypass_flow_exponent_prior", "bypass_flow_exponent_min", "bypass_flow_exponent_max"):
@@ -599,7 +603,8 @@ class DisturbanceEkf:
                                            s.dead_time_excitation_c, initial_steps=s.dead_time_initial_s / self.dt_s,
                                            prior_steps=self.dead_time_prior_s / self.dt_s,
                                            lead_reach_steps=s.dead_time_lead_reach_s / self.dt_s,
-                                           count_quiet=s.dead_time_lead_count_quiet)
+                                           count_quiet=s.dead_time_lead_count_quiet,
+                                           lead_tie_hold=s.dead_time_lead_tie_hold)
         self.R_diag = np.square([s.r_supply_c, s.r_flow_m3s, s.r_water_c, s.r_inlet_c, s.r_heater_outlet_c])
         # the supply reading's deviation at rest (EkfSettings.r_supply_rest_c): the rest gate and the variances there
         self.rest_gate = self._new_rest_gate() if s.r_supply_rest_c > 0.0 else None
