@@ -17,7 +17,8 @@ one's), or one that stays ahead of it (below ``LEAD_RATIO`` times its residual) 
 samples in a row (with ``lead_reach_steps`` > 0, a leader within that many samples of the one before continues the
 row: the same minimum's neighbouring half sample does not restart it; with ``count_quiet``, samples without
 excitation count for a lead that stands; with ``lead_tie_hold``, an estimate the lead rule moved to gives way to a
-tie no more, only to a clearly better candidate or another lead); while nothing moves it stays where it is. Of
+tie only within that reach, else to a clearly better candidate or another lead); while nothing moves it stays where
+it is. Of
 separate minima that explain the reading about equally (within ``TIE_RATIO``) the shortest is taken, of one minimum
 its bottom
 (:func:`shortest_tied_minimum`; docs/robustness.md sec. 2.11). A starting value (``initial_steps``, or
@@ -91,8 +92,9 @@ class DeadTimeEstimator:
         ``count_quiet``: a sample without excitation adds to the count of a candidate that stands ahead (False: it
         neither counts nor breaks the row, the rule before); the switch itself still waits for a ranked sample in
         which that candidate is ahead. ``lead_tie_hold``: an estimate the lead rule switched to gives way only to a
-        clearly better candidate or another lead, not to a shorter tied one (False: to a tie as well, the rule
-        before): on a flat ranking the tie rule otherwise takes the estimate back to 0 within samples."""
+        clearly better candidate, another lead, or a tie within ``lead_reach_steps`` (its minimum's bottom moving to
+        the neighbour), not to a shorter tie farther away, another minimum (False: to any tie, the rule before): on a
+        flat ranking the tie rule otherwise takes the estimate back to 0 within samples."""
         self.lead_reach_steps = float(lead_reach_steps)
         self.count_quiet = bool(count_quiet)
         self.lead_tie_hold = bool(lead_tie_hold)
@@ -167,13 +169,14 @@ class DeadTimeEstimator:
         delayed = self._w0 * self._air[self._i0] + self._w1 * self._air[self._i1]
         self._pred = self.lag * self._pred + self._lag_c * delayed
 
+    def _within_reach(self, a: int, b: int) -> bool:
+        """Whether candidates ``a`` and ``b`` (indices) are within ``lead_reach_steps`` samples of each other."""
+        return abs(a - b) <= self.lead_reach_steps * self.SUBDIVISION + 1e-9  # the reach in candidates (half samples)
+
     def _continues_lead(self, lead: int | None) -> bool:
         """Whether the candidate ahead of the estimate now (index; None: none) continues the count of the one
         ahead before: the same candidate, or one within ``lead_reach_steps`` samples of it."""
-        if lead is None or self._lead is None:
-            return False
-        reach = self.lead_reach_steps * self.SUBDIVISION  # in candidates (half samples)
-        return abs(lead - self._lead) <= reach + 1e-9
+        return lead is not None and self._lead is not None and self._within_reach(lead, self._lead)
 
     def observe(self, reading_c: float) -> float:
         """Score every candidate on a thermocouple reading; returns the estimate (samples)."""
@@ -217,7 +220,8 @@ class DeadTimeEstimator:
         cur = self._best
         r_best, r_cur = float(res[best]), float(res[cur])
         # a starting value (initial_steps) gives way only to a clearly better candidate, not to a tie
-        held_against_tie = self._at_start or (self.lead_tie_hold and self._by_lead)
+        lead_held = self.lead_tie_hold and self._by_lead and not self._within_reach(best, cur)
+        held_against_tie = self._at_start or lead_held
         tie_moves = best < cur and r_best <= r_cur and not held_against_tie
         lead = best if best != cur and r_best < LEAD_RATIO * r_cur else None
         self._lead_samples = self._lead_samples + 1 if self._continues_lead(lead) else 0

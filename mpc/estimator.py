@@ -160,9 +160,9 @@ class EkfSettings:
     rank the candidates (below ``dead_time_excitation_c``) count for a candidate that stands ahead, instead of neither
     counting nor breaking the row; the switch still waits for a ranked sample with it ahead (a setting, off; sec. 2.38).
     ASSUMPTION: nothing in a quiet window argues against the lead it left standing. ``dead_time_lead_tie_hold``: a
-    dead time the lead rule switched to gives way only to a clearly better candidate or another lead, not to a shorter
-    candidate that merely ties (the tie rule took a lead's 3.5 s back to 0 within 4 s on a flat ranking; a setting,
-    off; sec. 2.38).
+    dead time the lead rule switched to gives way only to a clearly better candidate, another lead, or a tie within
+    ``dead_time_lead_reach_s`` (the same minimum's bottom), not to a shorter tie farther away (the tie rule took a
+    lead's 3.5 s back to 0 s within 4 s on a flat ranking; a setting, off; sec. 2.38).
 
     ``q_mix_offset_c``: random walk (degC per sample) of the mixed-air offset. 0.015 (0.03 before): with
     the faster valve and the reading-heavy tracked temperature (``OcpSpec``) the offset's sample-to-sample
