@@ -14,8 +14,13 @@ The estimate moves only when the window holds a response (the root mean square o
 changes over the window above ``min_excitation_c`` per sample) and another candidate explains the
 reading clearly better than the current one (residual below ``switch_ratio`` times the current
 one's), or one that stays ahead of it (below ``LEAD_RATIO`` times its residual) for ``LEAD_SAMPLES``
-samples in a row; while nothing moves it stays where it is. Of separate minima that explain the reading
-about equally (within ``TIE_RATIO``) the shortest is taken, of one minimum its bottom
+samples in a row (with ``lead_reach_steps`` > 0, a leader within that many samples of the one before continues the
+row: the same minimum's neighbouring half sample does not restart it; with ``count_quiet``, samples without
+excitation count for a lead that stands; with ``lead_tie_hold``, an estimate the lead rule moved to gives way to a
+tie only within that reach, else to a clearly better candidate or another lead); while nothing moves it stays where
+it is. Of
+separate minima that explain the reading about equally (within ``TIE_RATIO``) the shortest is taken, of one minimum
+its bottom
 (:func:`shortest_tied_minimum`; docs/robustness.md sec. 2.11). A starting value (``initial_steps``, or
 ``prior_steps`` where none is given) gives way only to a clearly better candidate, not to a tie.
 Pure numpy, no model code: the estimator feeds it.
@@ -76,11 +81,23 @@ class DeadTimeEstimator:
 
     def __init__(self, max_steps: int, sensor_tau_s: float, dt_s: float = 1.0, window_s: float = 60.0,
                  min_excitation_c: float = 0.05, switch_ratio: float = 0.7, initial_steps: float = 0.0,
-                 prior_steps: float = 0.0):
+                 prior_steps: float = 0.0, lead_reach_steps: float = 0.0, count_quiet: bool = False,
+                 lead_tie_hold: bool = False):
         """``initial_steps``: the estimate before the readings move it (samples; e.g. a delay identified from
         a log, docs/identification.md), rounded to the nearest candidate; it gives way only to a clearly
         better candidate, not to a tie. ``prior_steps``: the same for a dead time assumed, not identified,
-        where no ``initial_steps`` is given (samples)."""
+        where no ``initial_steps`` is given (samples). ``lead_reach_steps``: how far (samples) the candidate
+        ahead of the estimate may move from one sample to the next and still continue the lead's count (0: only
+        the same candidate, the rule before; 0.5: its neighbouring half samples; docs/robustness.md sec. 2.38).
+        ``count_quiet``: a sample without excitation adds to the count of a candidate that stands ahead (False: it
+        neither counts nor breaks the row, the rule before); the switch itself still waits for a ranked sample in
+        which that candidate is ahead. ``lead_tie_hold``: an estimate the lead rule switched to gives way only to a
+        clearly better candidate, another lead, or a tie within ``lead_reach_steps`` (its minimum's bottom moving to
+        the neighbour), not to a shorter tie farther away, another minimum (False: to any tie, the rule before): on a
+        flat ranking the tie rule otherwise takes the estimate back to 0 within samples."""
+        self.lead_reach_steps = float(lead_reach_steps)
+        self.count_quiet = bool(count_quiet)
+        self.lead_tie_hold = bool(lead_tie_hold)
         self.initial_steps = float(initial_steps)
         self.prior_steps = float(prior_steps)
         self.max_steps = int(max_steps)
@@ -116,6 +133,7 @@ class DeadTimeEstimator:
         self.informed = False  # the window has held a response (the candidates ranked at least once)
         self._lead = None  # a candidate ahead of the estimate by LEAD_RATIO ...
         self._lead_samples = 0  # ... for this many samples in a row
+        self._by_lead = False  # the estimate is one the lead rule moved to (not a clearly better one)
 
     @property
     def steps(self) -> float:
@@ -151,6 +169,15 @@ class DeadTimeEstimator:
         delayed = self._w0 * self._air[self._i0] + self._w1 * self._air[self._i1]
         self._pred = self.lag * self._pred + self._lag_c * delayed
 
+    def _within_reach(self, a: int, b: int) -> bool:
+        """Whether candidates ``a`` and ``b`` (indices) are within ``lead_reach_steps`` samples of each other."""
+        return abs(a - b) <= self.lead_reach_steps * self.SUBDIVISION + 1e-9  # the reach in candidates (half samples)
+
+    def _continues_lead(self, lead: int | None) -> bool:
+        """Whether the candidate ahead of the estimate now (index; None: none) continues the count of the one
+        ahead before: the same candidate, or one within ``lead_reach_steps`` samples of it."""
+        return lead is not None and self._lead is not None and self._within_reach(lead, self._lead)
+
     def observe(self, reading_c: float) -> float:
         """Score every candidate on a thermocouple reading; returns the estimate (samples)."""
         if self._air is None or not math.isfinite(reading_c):
@@ -173,6 +200,8 @@ class DeadTimeEstimator:
         w, sss, ssy = self._w, sums[SSS], sums[SSY]
         if min_reduce(sss) / w < self.min_var:
             self.residuals[:] = np.nan
+            if self.count_quiet and self._lead is not None:  # nothing ranked: the lead stands, its time counts
+                self._lead_samples += 1
             return self.steps
         self.informed = True
         # least-squares gain per candidate, syy - ssy^2 / sss; a response of the wrong sign (ssy <= 0) explains
@@ -182,17 +211,26 @@ class DeadTimeEstimator:
         explained /= sss
         res = self._syy - explained
         self.residuals = res / w
+        return self._rank(res)
+
+    def _rank(self, res: np.ndarray) -> float:
+        """Move the estimate on the candidates' residuals ``res`` of a ranked sample (the switch, the tie and the lead
+        rules); returns the estimate (samples)."""
         best = shortest_tied_minimum(res)
         cur = self._best
         r_best, r_cur = float(res[best]), float(res[cur])
         # a starting value (initial_steps) gives way only to a clearly better candidate, not to a tie
-        tie_moves = best < cur and r_best <= r_cur and not self._at_start
+        lead_held = self.lead_tie_hold and self._by_lead and not self._within_reach(best, cur)
+        held_against_tie = self._at_start or lead_held
+        tie_moves = best < cur and r_best <= r_cur and not held_against_tie
         lead = best if best != cur and r_best < LEAD_RATIO * r_cur else None
-        self._lead_samples = self._lead_samples + 1 if lead is not None and lead == self._lead else 0
+        self._lead_samples = self._lead_samples + 1 if self._continues_lead(lead) else 0
         self._lead = lead
         held = self._lead_samples >= LEAD_SAMPLES and not self._at_start  # a starting value: only clearly
-        if r_best < self.switch_ratio * r_cur or tie_moves or held:
+        clearly = r_best < self.switch_ratio * r_cur
+        if clearly or tie_moves or held:
             self._at_start = self._at_start and best == cur
+            self._by_lead = held and not clearly
             self._best = best
             self._lead, self._lead_samples = None, 0
         return self.steps

@@ -152,7 +152,17 @@ class EkfSettings:
     the baseline's IAE (nothing there excites the estimate, and the dead time not honoured turns the sensor
     noise into ringing), but the built-in plant's quick ``flow_split_changes`` (no delay, no temperature step)
     from 0.78 to 1.08: not a default (docs/robustness.md sec. 2.4). Module docstring; ASSUMPTIONS tuned on the
-    independent simulator's variants.
+    independent simulator's variants. ``dead_time_lead_reach_s``: a candidate ahead of the estimate continues the
+    lead's count (:data:`~.dead_time.LEAD_SAMPLES` samples in a row switch the estimate) while it moves by at most
+    this from one sample to the next (s in [0, ``dead_time_max_s``]; 0: only the same candidate, as before; 0.5 at
+    1 s samples: the neighbouring half sample of the same minimum, which otherwise restarts the count; a setting, off;
+    docs/robustness.md sec. 2.38). ``dead_time_lead_count_quiet``: samples whose window holds too little response to
+    rank the candidates (below ``dead_time_excitation_c``) count for a candidate that stands ahead, instead of neither
+    counting nor breaking the row; the switch still waits for a ranked sample with it ahead (a setting, off; sec. 2.38).
+    ASSUMPTION: nothing in a quiet window argues against the lead it left standing. ``dead_time_lead_tie_hold``: a
+    dead time the lead rule switched to gives way only to a clearly better candidate, another lead, or a tie within
+    ``dead_time_lead_reach_s`` (the same minimum's bottom), not to a shorter tie farther away (the tie rule took a
+    lead's 3.5 s back to 0 s within 4 s on a flat ranking; a setting, off; sec. 2.38).
 
     ``q_mix_offset_c``: random walk (degC per sample) of the mixed-air offset. 0.015 (0.03 before): with
     the faster valve and the reading-heavy tracked temperature (``OcpSpec``) the offset's sample-to-sample
@@ -425,6 +435,9 @@ class EkfSettings:
     dead_time_min_s: float = 1.5
     dead_time_initial_s: float = 0.0
     dead_time_prior_s: float = 0.0
+    dead_time_lead_reach_s: float = 0.0
+    dead_time_lead_count_quiet: bool = False
+    dead_time_lead_tie_hold: bool = False
     q_heater_outlet_offset_c: float = 0.01
     q_cooler_offset_c: float = 0.0
     q_heater_air_offset_c: float = 0.0
@@ -469,7 +482,8 @@ class EkfSettings:
                           "reanchor_before_response", "response_wait_unseen_only", "supply_heat_level_neutral",
                           "supply_heat_release_at_rest", "supply_heat_walk_at_rest",
                           "supply_heat_level_neutral_at_rest",
-                          "bypass_flow_after_response", "bypass_flow_commit_at_rest", "bypass_flow_at_rest"):
+                          "bypass_flow_after_response", "bypass_flow_commit_at_rest", "bypass_flow_at_rest",
+                          "dead_time_lead_count_quiet", "dead_time_lead_tie_hold"):
                 check_flag(f"{prefix}.{f.name}", value)
                 continue
             if f.name in ("bypass_flow_exponent_prior", "bypass_flow_exponent_min", "bypass_flow_exponent_max"):
@@ -483,7 +497,7 @@ class EkfSettings:
             if f.name in OWN_RANGES:
                 check_number(f"{prefix}.{f.name}", value, *OWN_RANGES[f.name])
                 continue
-            if f.name == "dead_time_initial_s":
+            if f.name in ("dead_time_initial_s", "dead_time_lead_reach_s"):
                 check_number(f"{prefix}.{f.name}", value, 0.0, float(self.dead_time_max_s))
                 continue
             check_number(f"{prefix}.{f.name}", value, 0.0, 100.0 if f.name != "dead_time_window_s" else 3600.0,
@@ -587,7 +601,10 @@ class DisturbanceEkf:
         self.dead_time_prior_s = s.dead_time_prior_s if model.params.transport_delay_s <= 0.0 else 0.0
         self.dead_time = DeadTimeEstimator(self.n_hist, model.params.tau_tc_s, self.dt_s, s.dead_time_window_s,
                                            s.dead_time_excitation_c, initial_steps=s.dead_time_initial_s / self.dt_s,
-                                           prior_steps=self.dead_time_prior_s / self.dt_s)
+                                           prior_steps=self.dead_time_prior_s / self.dt_s,
+                                           lead_reach_steps=s.dead_time_lead_reach_s / self.dt_s,
+                                           count_quiet=s.dead_time_lead_count_quiet,
+                                           lead_tie_hold=s.dead_time_lead_tie_hold)
         self.R_diag = np.square([s.r_supply_c, s.r_flow_m3s, s.r_water_c, s.r_inlet_c, s.r_heater_outlet_c])
         # the supply reading's deviation at rest (EkfSettings.r_supply_rest_c): the rest gate and the variances there
         self.rest_gate = self._new_rest_gate() if s.r_supply_rest_c > 0.0 else None
