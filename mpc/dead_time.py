@@ -230,7 +230,9 @@ class DeadTimeEstimator:
         clearly = r_best < self.switch_ratio * r_cur
         if clearly or tie_moves or held:
             self._at_start = self._at_start and best == cur
-            self._by_lead = held and not clearly
+            # a lead-made estimate stays one across a tie within reach (its minimum's bottom moving to the neighbour)
+            kept = self._by_lead and tie_moves and not clearly and self._within_reach(best, cur)
+            self._by_lead = (held and not clearly) or kept
             self._best = best
             self._lead, self._lead_samples = None, 0
         return self.steps

@@ -310,7 +310,8 @@ class MpcSettings:
             the move, the reading still at rest) still starts a departure from the last rest's means for this long
             after it was last seen (s, 0-600; 0, the default: off): valve a that creeps a few % before it opens
             (S2-7 with the heat released at rest: 5.1 % at 150 s, then 3.3, 0, 6.6, 13.5, 37.9, 90 %) leaves no
-            rest of the full rule before its opening (docs/robustness.md sec. 2.37).
+            rest of the full rule before its opening (docs/robustness.md sec. 2.37). The held rest counts only while
+            the reading's mean is within the rest tolerance of the held one; below half a sample it rounds to off.
         rti_relinearise_every: multi-level steps (``rti``, :mod:`hvac_mpc.mpc.multilevel`): a full linearisation
             of the QP (new Jacobians and Hessian, OSQP's equilibration and refactorisation) at least on every this
             many preparations; the ones between keep the QP's matrices of the last full one and renew only its

@@ -87,7 +87,7 @@ class PlanMerit:
         ib, ip = INPUTS.index("blower_power_w"), STAGE_OUTPUTS.index("heater_power_w")
         i_flow = STAGE_OUTPUTS.index("volume_flow_m3s")
         x, prev, cost = x0, u_prev, 0
-        rows = pb.parameter_rows(p)  # the rows' constants from the parameters: one build serves every parameter set
+        rows = pb.parameter_rows(p)  # the rows' constants from the parameters: one build serves every parameter set of the same structure
         # the flaps' target (OcpSpec.flap_target_from_split: from the reference's split where its weights are on)
         flap_target = pb.flap_target_for(ref, SW[STAGE_OUTPUTS.index("flow_m_m3s"), 0] > 0.0)
         for k in range(N + 1):

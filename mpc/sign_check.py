@@ -198,9 +198,10 @@ class ValveSignCheck:
     def _rest(self) -> tuple[float, float] | None:
         """(valve a %, reading degC) at rest over the last ``rest`` samples (their means), or None; with
         ``rest_hold`` the last rest also while valve a alone has left it within that many samples (it creeps before
-        it opens) and the reading is still at rest. Computed once per sample: a step asks up to three times
-        (:meth:`wants_prediction` before and in :meth:`observe`, the departure's start) and what it depends on
-        changes only where :meth:`observe` appends to the history."""
+        it opens) and the reading is still at rest, within ``rest_tol_c`` of the held rest's mean. Computed once per
+        sample: a step asks up to three times (:meth:`wants_prediction` before and in :meth:`observe`, the
+        departure's start); what it depends on changes where :meth:`observe` appends to the history (the cache
+        cleared there) and where a departure takes the held rest, just before that append."""
         if self._rest_of is False:
             self._rest_of = self._rest_now()
         return self._rest_of
@@ -218,7 +219,10 @@ class ValveSignCheck:
             return float(_sum(valve) / n), float(_sum(reading) / n)
         if self._last_rest is None or self._samples - self._last_rest[1] > self.rest_hold:
             return None
-        return self._last_rest[0]
+        held = self._last_rest[0]
+        if abs(_sum(reading) / reading.shape[0] - held[1]) > self.rest_tol_c:
+            return None  # the reading has moved on from the held rest's level: no departure from a stale level
+        return held
 
     def wants_prediction(self, valve_a_after_pct: float) -> bool:
         """Whether :meth:`observe` will use this sample's predicted changes: a departure is under way, or this

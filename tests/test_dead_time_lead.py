@@ -51,6 +51,23 @@ def test_a_dead_time_the_lead_moved_to_gives_way_to_a_tie_only_when_asked():
         assert est.steps == expected
 
 
+def test_a_lead_made_estimate_stays_held_after_a_tie_within_reach_moved_it():
+    """Two rankings: the estimate the lead rule moved to 3.5 s steps to its neighbour 3.0 s on a tie within reach
+    (the same minimum's bottom), then a shorter candidate farther away (0 s) ties with 3.0 s. With
+    ``lead_tie_hold`` the estimate is still the lead's and stays at 3.0 s; without it the tie takes it to 0 s."""
+    for hold, expected in ((True, 3.0), (False, 0.0)):
+        est = DeadTimeEstimator(max_steps=6, sensor_tau_s=5.73, lead_tie_hold=hold, lead_reach_steps=0.5)
+        est._best, est._by_lead = 7, True
+        near = np.full(est.candidates.size, 2.0)
+        near[7], near[6] = 1.0, 0.99
+        est._rank(near)
+        assert est.steps == 3.0
+        far = np.full(est.candidates.size, 2.0)
+        far[0] = far[6] = 1.0
+        est._rank(far)
+        assert est.steps == expected
+
+
 def test_quiet_samples_count_for_a_standing_lead_only_when_asked():
     """The rule on its own: a candidate ahead of the estimate for 5 samples, then 3 samples whose window holds no
     response (constant air and reading: nothing ranked). Without ``count_quiet`` they neither count nor break the

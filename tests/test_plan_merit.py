@@ -182,3 +182,12 @@ def test_the_merit_takes_the_parameters_rows_from_its_parameter_input():
     assert float(f_a(x0, U.T, d, sw, ref, u_prev, p_a, *off)) != pytest.approx(priced_b, rel=1e-3)
     assert pb_b.parameter_rows(p_b) == (pb_b.heater_row_bound, pb_b.ptc_row_coef_u, pb_b.ptc_row_bound,
                                         pb_b.body_heat_coef)
+    # the closed forms the problem held before the rows came from the parameters, to the bit
+    ih, xh = pb_b.i_heater_cmd, pb_b.x_off[pb_b.i_heater]
+    slope_w_per_k = other.heater_power_max_w / (other.ptc_zero_c - other.ptc_knee_c)
+    price_per_j = 2.0 * pb_b.energy_weight * spec.weights.body_heat_power_w / pb_b.energy_scale_w ** 2
+    assert pb_b.heater_row_bound == float(other.heater_temp_max_c - xh)
+    assert pb_b.ptc_row_coef_u == float(pb_b.u_sc[ih] / slope_w_per_k)
+    assert pb_b.ptc_row_bound == float(other.ptc_zero_c - pb_b.u_off[ih] / slope_w_per_k - xh)
+    assert pb_b.body_heat_coef == pytest.approx(
+        -price_per_j * other.heater_mass_kg * other.heater_c_j_per_kgk * pb_b.x_sc[pb_b.i_heater], rel=1e-12)

@@ -162,6 +162,23 @@ def test_a_creep_before_the_opening_starts_a_departure_only_with_the_rest_held()
     assert feed(ValveSignCheck(**held, rest_hold_s=10.0), drifting, valve, predicted, other) == []
 
 
+def test_a_held_rest_starts_no_departure_once_the_reading_has_left_its_level():
+    """The held rest (``rest_hold_s``) is valve a's and the reading's means when both were last at rest. A reading
+    that has since stepped down 0.2 C every 10 s (each rest window within the 0.25 C tolerance, 0.6 C in all) while
+    valve a creeps is no longer at that level: the opening starts no departure from it, so the drift is not taken
+    for an answer of the other sign; with the reading still at the held level the same opening is judged."""
+    n = 60
+    valve = np.array([0.0, 2.0] * 8 + [0.0, 6.0] * 15 + [6.6, 13.5, 37.9, 66.6] + [90.0] * (n - 50))
+    steps = np.clip((np.arange(n) - 6) // 10, 0, 3)  # 0 to sample 15, then 1, 2 and 3 from samples 16, 26, 36
+    predicted, other = per_move(+1.0, valve), per_move(+1.0, valve)
+    held = dict(move_pct=20.0, change_c=0.5, window_s=15.0, rest_s=10.0, dt_s=1.0, rest_hold_s=60.0)
+    drifted = 13.0 - 0.2 * steps
+    assert feed(ValveSignCheck(**held), drifted, valve, predicted, other) == []
+    falls_after = 13.0 - 0.6 * (np.arange(n) >= 52)  # at the held level until the opening, then an answer of -0.6 C
+    (k, v), = feed(ValveSignCheck(**held), falls_after, valve, predicted, other)
+    assert 50 <= k and v.measured_c <= -0.5 and v.predicted_c > 0.0
+
+
 @pytest.mark.parametrize("field, value", [("placement_sign_move_pct", 0.5), ("placement_sign_move_pct", 101.0),
                                           ("placement_sign_change_c", 0.0), ("placement_sign_window_s", 1.0),
                                           ("placement_sign_rest_s", 1000.0), ("placement_sign_rest_hold_s", -1.0),
