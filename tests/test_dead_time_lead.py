@@ -108,6 +108,7 @@ def flow_jump_on_s1_13(reach_s: float, quiet: bool = False):
     return iae, float(np.flatnonzero(honoured > 0.0)[0])  # the samples are 1 s from 0 s
 
 
+@pytest.mark.slow  # closed-loop runs on a sweep box (3-6 s each)
 def test_lead_counted_across_neighbours_honours_the_dead_time_sooner():
     """Measured (sec. 2.38): without the reach the leader 3.0 s (from 20 s) gives way to 3.5 s at 38 s, the count
     restarts and the dead time is honoured at 50 s, after valve a's move at 45-47 s that the reading's dip at 51-55 s
@@ -119,6 +120,7 @@ def test_lead_counted_across_neighbours_honours_the_dead_time_sooner():
     assert iae_1 <= 0.95 * iae_0
 
 
+@pytest.mark.slow  # closed-loop runs on a sweep box (3-6 s each)
 def test_quiet_samples_counted_honour_the_dead_time_before_the_move():
     """Measured (sec. 2.38): the 8 quiet samples (23-26 s, 34-37 s) counted as well, the dead time is honoured at
     40 s, before valve a's move, and the MPC's IAE is 5.67 C s (0.81 of the baseline's); the quiet samples alone do
@@ -131,6 +133,7 @@ def test_quiet_samples_counted_honour_the_dead_time_before_the_move():
     assert iae_b <= 0.6 * iae_0
 
 
+@pytest.mark.slow  # closed-loop runs on a sweep box (3-6 s each)
 def test_a_dead_time_the_lead_moved_to_is_held_against_a_tie():
     """Box S0-10 (``box_sweep --seed 0``; a 4.03 s dead time the MPC is not told), quick heating steps, measured in
     sec. 2.38: with the lead counted across neighbours and quiet samples, the lead moves the estimate to 3.5 s at 59 s,
@@ -146,6 +149,7 @@ def test_a_dead_time_the_lead_moved_to_is_held_against_a_tie():
     assert iae_held <= 0.9 * iae_free
 
 
+@pytest.mark.slow  # closed-loop runs on a sweep box (3-6 s each)
 def test_a_dead_time_the_lead_moved_to_still_follows_its_minimum():
     """Box S0-8 (``box_sweep --seed 0``; 2.19 s), the quick proband sequence, measured in sec. 2.38: the estimate
     alternates between 2.0 s and 2.5 s, the two halves of one minimum; the lead moves it to 2.5 s at 137 s and at
