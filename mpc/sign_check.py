@@ -198,10 +198,11 @@ class ValveSignCheck:
     def _rest(self) -> tuple[float, float] | None:
         """(valve a %, reading degC) at rest over the last ``rest`` samples (their means), or None; with
         ``rest_hold`` the last rest also while valve a alone has left it within that many samples (it creeps before
-        it opens) and the reading is still at rest, within ``rest_tol_c`` of the held rest's mean. Computed once per
-        sample: a step asks up to three times (:meth:`wants_prediction` before and in :meth:`observe`, the
-        departure's start); what it depends on changes where :meth:`observe` appends to the history (the cache
-        cleared there) and where a departure takes the held rest, just before that append."""
+        it opens) and the reading is still at rest, within ``rest_tol_c`` of the held rest's mean (a rest of both is
+        kept as the last rest where ``rest_hold`` is set). Computed once per sample: a step asks up to three times
+        (:meth:`wants_prediction` before and in :meth:`observe`, the departure's start); what it depends on changes
+        where :meth:`observe` appends to the history (the cache cleared there) and where a departure takes the held
+        rest, just before that append."""
         if self._rest_of is False:
             self._rest_of = self._rest_now()
         return self._rest_of
@@ -216,7 +217,10 @@ class ValveSignCheck:
             return None
         if _max(valve) - _min(valve) <= self.rest_tol_pct:
             n = valve.shape[0]
-            return float(_sum(valve) / n), float(_sum(reading) / n)
+            rest = float(_sum(valve) / n), float(_sum(reading) / n)
+            if self.rest_hold > 0:
+                self._last_rest = (rest, self._samples)  # a rest of both, not one held
+            return rest
         if self._last_rest is None or self._samples - self._last_rest[1] > self.rest_hold:
             return None
         held = self._last_rest[0]
@@ -240,9 +244,7 @@ class ValveSignCheck:
         other sign (module docstring), else None."""
         if not math.isfinite(reading_c):
             return None
-        rest = self._rest()
-        if self.rest_hold > 0 and rest is not None and np.ptp(np.array(self._history)[:, 0]) <= self.rest_tol_pct:
-            self._last_rest = (rest, self._samples)  # a rest of both, not one held
+        self._rest()  # this sample's rest (a rest of both is kept for the hold) before the departure moves on
         verdict = self._follow(reading_c, valve_a_after_pct, predicted_c, other_predicted_c)
         if self._departure is None and verdict is None and self.wants_prediction(valve_a_after_pct):
             valve0, reading0 = self._rest()

@@ -165,13 +165,8 @@ def test_search_waits_after_the_step_and_takes_a_candidate_only_by_a_margin():
     less than the QP's plan; the alternation that follows is still cut, by less than with the search alone (measured,
     noise seed 0: 23 reversals and 255.2 C s without the search, 2 and 230.0 with it, 6 and 241.6 with both rules,
     16 candidates taken; docs/identification.md, "The search's cost on the built-in bench, traced")."""
-    off = _run(rti_reversal_search=0.0)
     both = _run(rti_reversal_search=0.05, rti_reversal_wait_steps=10, rti_reversal_margin=0.1)
-    assert both["first_searched"] is not None and both["first_searched"] > WINDOW_S[0] + 10, both
-    assert both["taken"] >= 8, both
-    assert both["qps"] == off["qps"], (both, off)  # no QP added
-    assert both["reversals"] <= 0.5 * off["reversals"], (both, off)
-    assert both["iae"] < 0.98 * off["iae"], (both, off)
+    _assert_waits_then_cuts(both, _run(rti_reversal_search=0.0), wait=10, taken=8, reversals=0.5, iae=0.98)
 
 
 def test_the_default_search_waits_twenty_steps_and_cuts_the_alternation():
@@ -179,12 +174,18 @@ def test_the_default_search_waits_twenty_steps_and_cuts_the_alternation():
     guarded search as the default"): no search in the 20 plain steps after the step to 22 C, then candidates taken
     and valve a's alternation cut, with the same QPs (measured, noise seed 0: 23 -> 10 reversals, 255.2 -> 242.6 C s,
     19 steps searched, 11 candidates taken, 61 QPs either way)."""
-    off, default = _run(rti_reversal_search=0.0), _run()
-    assert default["first_searched"] is not None and default["first_searched"] > WINDOW_S[0] + 20, default
-    assert default["taken"] >= 5, default
-    assert default["qps"] == off["qps"], (default, off)  # no QP added
-    assert default["reversals"] <= 0.6 * off["reversals"], (default, off)
-    assert default["iae"] < 0.97 * off["iae"], (default, off)
+    _assert_waits_then_cuts(_run(), _run(rti_reversal_search=0.0), wait=20, taken=5, reversals=0.6, iae=0.97)
+
+
+def _assert_waits_then_cuts(on: dict, off: dict, wait: int, taken: int, reversals: float, iae: float) -> None:
+    """``on`` searched first more than ``wait`` steps after the step at the window's start, took at least ``taken``
+    candidates with the QPs of ``off`` (no QP added), and has at most ``reversals`` x its reversals and below ``iae`` x
+    its IAE."""
+    assert on["first_searched"] is not None and on["first_searched"] > WINDOW_S[0] + wait, on
+    assert on["taken"] >= taken, on
+    assert on["qps"] == off["qps"], (on, off)  # no QP added
+    assert on["reversals"] <= reversals * off["reversals"], (on, off)
+    assert on["iae"] < iae * off["iae"], (on, off)
 
 
 def test_candidates_follow_the_rate_limits_from_the_first_stage():
