@@ -167,6 +167,13 @@ class MpcSettings:
         rti_reversal_margin: with ``rti_reversal_search``, a candidate is taken only where its nonlinear cost is
             below (1 - this share) x the QP plan's (a share in [0, 1); 0: any candidate cheaper than the QP's plan;
             0.1 by default).
+        rti_reversal_bound_only: with ``rti_reversal_search``, the linearisation point's profile of a reversing input
+            is a candidate only where its first stage is at the input's bound (within 2 % of its range,
+            :func:`hvac_mpc.mpc.reversal_search.at_bound`); the bounds' profiles stay candidates. False (the
+            default): that profile wherever it is. Taken in mid-stroke it holds the input where the last plan had it
+            on every step the QP's plan is dearer, and on the recirculating box's refined model that held valve a
+            at 43 % through winter heating's first heater-limited rise (docs/identification.md, "Recirculation's
+            refined winter, traced").
         ipopt_tol, ipopt_max_iter: IPOPT tolerance and iteration cap.
         deadline_s: longest feedback time (measurement to command); beyond it the solution is
             discarded and the fallback chain used.
@@ -402,6 +409,7 @@ class MpcSettings:
     rti_reversal_wait_steps: int = 20
     rti_reversal_repeat: bool = False
     rti_reversal_margin: float = 0.1
+    rti_reversal_bound_only: bool = False
     ipopt_tol: float = 1e-6
     ipopt_max_iter: int = 300
     deadline_s: float = 0.5
@@ -529,6 +537,7 @@ class MpcSettings:
             check_wait(f"{p}.rti_reversal_wait_steps", self.rti_reversal_wait_steps)
             check_flag(f"{p}.rti_reversal_repeat", self.rti_reversal_repeat)
             check_share(f"{p}.rti_reversal_margin", self.rti_reversal_margin, "the QP plan's cost")
+            check_flag(f"{p}.rti_reversal_bound_only", self.rti_reversal_bound_only)
         except ValueError as exc:
             raise InvalidSettings(str(exc)) from None
         if not isinstance(self.rti_step_fractions, tuple) or len(self.rti_step_fractions) > 8:
@@ -829,7 +838,8 @@ class MpcController:
                              reversal_search=float(s.rti_reversal_search),
                              reversal_wait_steps=int(s.rti_reversal_wait_steps),
                              reversal_repeat=bool(s.rti_reversal_repeat),
-                             reversal_margin=float(s.rti_reversal_margin))
+                             reversal_margin=float(s.rti_reversal_margin),
+                             reversal_bound_only=bool(s.rti_reversal_bound_only))
 
     # ------------------------------------------------------------------ protocol
     def reset(self, command: Command | None = None) -> None:

@@ -22,7 +22,9 @@ Nothing in it knows which input reverses.
 The controller's default (``MpcSettings``): the search at 0.05 of each input's range, acting only after 20 plain
 steps in a row (:func:`eligible_inputs`) and taking a candidate only where it costs 10 % less than the QP's plan
 (docs/identification.md, "The guarded search as the default": the built-in bench today's in every scenario, the
-refined MPC's IAE on both recirculating boxes lower).
+refined MPC's IAE on both recirculating boxes lower). ``MpcSettings.rti_reversal_bound_only`` (off) prices the
+linearisation point's profile only where it starts at the input's bound (:func:`at_bound`; docs/identification.md,
+"Recirculation's refined winter, traced").
 """
 
 from __future__ import annotations
@@ -91,6 +93,23 @@ def candidates(u_qp: np.ndarray, u_lin: np.ndarray, u_lo: np.ndarray, u_hi: np.n
         u[:, i] = rate_limited(profile, u_lo[:, i], u_hi[:, i], None if rate is None else rate[:, i])
         out.append(u)
     return out
+
+
+#: A profile's first stage within this share of the input's range of the stage's bound is at that bound
+#: (:func:`at_bound`). ASSUMPTION: 2 % of the range is beyond the QP's tolerance on an active bound (OSQP's
+#: plans on a bound sit on it to a few 0.01 % of the range) and well within the strokes the search is for.
+BOUND_SHARE = 0.02
+
+
+def at_bound(u_lin: np.ndarray, u_lo: np.ndarray, u_hi: np.ndarray, i: int, span: float,
+             share: float = BOUND_SHARE) -> bool:
+    """True where input ``i``'s profile in ``u_lin`` (N x nu, scaled; the linearisation point's plan) starts at
+    its first stage's lower or upper bound (``u_lo``, ``u_hi``, N x nu, the QP's bounds), within ``share`` x
+    ``span`` (the input's scaled range): an end of the input's stroke, where a two-cycle of the real-time
+    iteration rests (``MpcSettings.rti_reversal_bound_only``)."""
+    tol = share * float(span)
+    first = float(u_lin[0, i])
+    return bool(abs(first - float(u_hi[0, i])) <= tol or abs(first - float(u_lo[0, i])) <= tol)
 
 
 def rate_limited(profile: np.ndarray, lo: np.ndarray, hi: np.ndarray, rate: np.ndarray | None) -> np.ndarray:

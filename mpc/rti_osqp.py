@@ -45,7 +45,7 @@ from .multilevel import MultiLevel, vector_function
 from .ocp import STAGE_OUTPUTS, TRACKED, TrackingProblem, check_flag, shift_maps, shift_nodes
 from .osqp_embedded import FIRST_PASS_EPS_RATIO  # noqa: F401 - the first pass's tolerance, named here too
 from .plan_merit import MERIT_TOLERANCE, PlanMerit
-from .reversal_search import candidates, check_share, check_wait, eligible_inputs, last_moves, turned_inputs
+from .reversal_search import at_bound, candidates, check_share, check_wait, eligible_inputs, last_moves, turned_inputs
 from .steady_target import SteadyStart, check_steady_start_on, starts_at_target
 from .trust_region import check_radii, region_bounds
 
@@ -201,6 +201,9 @@ class RtiOsqpSolver:
             reference change and a split step start the count again; 0: from the first plain step).
         reversal_repeat: the search prices only an input whose plan turned on the step before as well.
         reversal_margin: a candidate is taken only where its cost is below (1 - this share) x the QP plan's.
+        reversal_bound_only: the linearisation point's profile of a reversing input is a candidate only where its
+            first stage is at that input's bound (:func:`.reversal_search.at_bound`); the two bounds' profiles are
+            candidates as before.
         codegen: evaluate the QP data as generated C (:func:`.codegen.compiled`, cached on disk);
             otherwise (or without a compiler) CasADi's interpreter runs the same functions.
             ``self.codegen`` reports what happened.
@@ -280,13 +283,15 @@ class RtiOsqpSolver:
                  split_every_step: bool = False, split_keeps_rho: bool = False, split_replays_change: bool = False,
                  rho_max: float | None = None, plain_qp_cap: int = 0, trust_radii: tuple[float, ...] = (),
                  plain_cap_run: int = 0, reversal_search: float = 0.0, reversal_wait_steps: int = 0,
-                 reversal_repeat: bool = False, reversal_margin: float = 0.0):
+                 reversal_repeat: bool = False, reversal_margin: float = 0.0, reversal_bound_only: bool = False):
         self.pb = pb = problem
         self.reversal_search = check_share("RtiOsqpSolver: reversal_search", reversal_search)
         self.reversal_wait_steps = check_wait("RtiOsqpSolver: reversal_wait_steps", reversal_wait_steps)
         check_flag("RtiOsqpSolver: reversal_repeat", reversal_repeat)  # the settings' one flag check
         self.reversal_repeat = reversal_repeat
         self.reversal_margin = check_share("RtiOsqpSolver: reversal_margin", reversal_margin, "the QP plan's cost")
+        check_flag("RtiOsqpSolver: reversal_bound_only", reversal_bound_only)
+        self.reversal_bound_only = reversal_bound_only
         self._quiet_run = 0  # plain one-QP steps in a row, the last included
         self._turned_before = np.zeros(0, dtype=int)  # the inputs the last step's plan turned
         self._last_move: np.ndarray | None = None  # the last steps' first moves beyond the share (scaled inputs)
@@ -1329,6 +1334,8 @@ class RtiOsqpSolver:
                 plans = candidates(U_best, U_lin, u_lo, u_hi, int(i), self._rate_bounds)
                 costs = np.asarray(merit.costs(plans, *args), float)
                 costs[~np.isfinite(costs)] = np.inf  # a candidate the model cannot price is not taken
+                if self.reversal_bound_only and not at_bound(U_lin, u_lo, u_hi, int(i), float(span[i])):
+                    costs[0] = np.inf  # the last plan's profile in mid-stroke: not a candidate
                 j = int(np.argmin(costs))
                 if costs[j] < min(c_best, c_take):
                     U_best, c_best, self.reversal_taken = plans[j], float(costs[j]), True

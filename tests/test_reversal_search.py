@@ -11,8 +11,8 @@ import pytest
 
 from hvac_mpc.mpc.mpc_controller import MpcSettings
 from hvac_mpc.mpc.ocp import InvalidSettings, check_flag
-from hvac_mpc.mpc.reversal_search import (candidates, check_share, check_wait, eligible_inputs, last_moves,
-                                          turned_inputs)
+from hvac_mpc.mpc.reversal_search import (at_bound, candidates, check_share, check_wait, eligible_inputs,
+                                          last_moves, turned_inputs)
 
 
 def test_an_input_turned_against_its_last_move_beyond_the_share():
@@ -205,3 +205,74 @@ def test_candidates_follow_the_rate_limits_from_the_first_stage():
     np.testing.assert_array_equal(lin, u_qp)
     np.testing.assert_array_equal(up[:, 0], u_qp[:, 0])  # the other input keeps the QP's profile
     assert candidates(u_qp, u_qp, u_lo, u_hi, 1)[1][1, 1] == 1.0  # no rates: the bound at once
+
+
+def test_a_profile_is_at_a_bound_where_its_first_stage_is_within_two_percent_of_the_range():
+    lo, hi = np.full((3, 2), -1.0), np.full((3, 2), 1.0)
+    hi[0, 0] = 0.6  # the first stage's bound (a cap or a rate limit), not the range's
+    u_lin = np.array([[0.59, -0.97], [0.0, 0.0], [0.0, 0.0]])
+    assert at_bound(u_lin, lo, hi, 0, span=2.0)  # 0.01 from the first stage's upper bound
+    assert at_bound(u_lin, lo, hi, 1, span=2.0)  # 0.03 from the lower one, within 0.02 x 2.0
+    u_lin[0] = [0.5, -0.9]
+    assert not at_bound(u_lin, lo, hi, 0, span=2.0) and not at_bound(u_lin, lo, hi, 1, span=2.0)  # mid-stroke
+
+
+def test_the_bound_only_rule_is_off_by_default_and_checked():
+    assert MpcSettings().rti_reversal_bound_only is False
+    assert MpcSettings(rti_reversal_bound_only=True).rti_reversal_bound_only is True
+    with pytest.raises(InvalidSettings, match="rti_reversal_bound_only"):
+        MpcSettings(rti_reversal_bound_only=1)
+    with pytest.raises(InvalidSettings, match="reversal_bound_only"):  # the solver's own check
+        check_flag("RtiOsqpSolver: reversal_bound_only", "yes")
+
+
+def _winter_on_recirculating_box(end_s: int, **fields) -> dict:
+    """Full winter_heating_steps to ``end_s`` on the recirculating box (noise seed 0), the MPC with the recirculation
+    term (thesis parameters otherwise; ``fields``: MpcSettings fields): the steps that took a candidate and the
+    thermocouple IAE (C s) of the step to 12 C (120-300 s) and of the first 45 s of the step to 15 C (300-345 s)."""
+    from hvac_mpc.benchmarks import scenarios
+    from hvac_mpc.benchmarks.simulate import DETERMINISTIC_DEADLINE_S, plant_seed
+    from hvac_mpc.mismatch import make_plant
+    from hvac_mpc.models import Parameters
+    from hvac_mpc.models.model_file import RefinedModel
+    from hvac_mpc.mpc.mpc_controller import MpcController
+    from test_reversal_damping import RECIRCULATION_TERM
+
+    sc = scenarios.select(["winter_heating_steps"], quick=False)[0]
+    settings = MpcSettings(initial_command=sc.initial_command, deadline_s=DETERMINISTIC_DEADLINE_S, **fields)
+    refined = RefinedModel(Parameters(), ("ptc_power_fall", "fan_curve", "valve_leakage"), (RECIRCULATION_TERM,),
+                           absent=("bypass_flow",))
+    mpc = MpcController(settings=settings, model=refined)
+    plant = make_plant("recirculation", seed=plant_seed(0, sc.seed), dt_s=1.0, inlet_temp_c=sc.inlet_temp_c,
+                       chiller_setpoint_c=sc.chiller_setpoint_c, initial_command=sc.initial_command)
+    out = {"taken": [], "step_12": 0.0, "step_15": 0.0}
+    for k in range(end_s):
+        ref = sc.reference_at(float(k))
+        error = abs(plant.truth()["supply_temp_c"] - ref.supply_temp_c)
+        out["step_12"] += error if 120 <= k < 300 else 0.0
+        out["step_15"] += error if 300 <= k < 345 else 0.0
+        result = mpc.step(plant.read(), ref)
+        if result.stats.get("reversal_taken"):
+            out["taken"].append(k)
+        plant.apply(np.asarray(result.command.vector(), float))
+        plant.advance()
+    return out
+
+
+@pytest.mark.slow
+def test_bound_only_keeps_valve_a_from_being_held_mid_stroke_in_winter_heating():
+    """In winter heating's first heater-limited rise (the step to 12 C at 120 s) the default search takes the last
+    plan's valve-a profile, mid-stroke, on step after step (the QP's plan 1.1-1.9 times as dear as its linearisation
+    point's), so valve a stays where the last plan had it; the body stores less heat on the way to the 12 C rest and
+    the step to 15 C, heater-limited, rises later. With ``rti_reversal_bound_only`` that profile is a candidate only
+    at valve a's bound, no candidate is taken in that rise, and the first 45 s of the step to 15 C cost less, the 12 C
+    step the same (measured, noise seed 0, thesis parameters with the term: 13 takes at 146-161 s -> none;
+    300-345 s 37.3 -> 30.0 C s; 120-300 s 91.50 -> 91.58 C s; with the seed-5 file of ``refined_variants`` the
+    whole winter 295.1 -> 261.0 C s, docs/identification.md, "Recirculation's refined winter, traced")."""
+    default = _winter_on_recirculating_box(345)
+    bound = _winter_on_recirculating_box(345, rti_reversal_bound_only=True)
+    rise = [k for k in default["taken"] if 140 <= k < 170]
+    assert len(rise) >= 5, default
+    assert not [k for k in bound["taken"] if 140 <= k < 170], bound
+    assert bound["step_15"] < 0.9 * default["step_15"], (bound, default)
+    assert bound["step_12"] < 1.01 * default["step_12"], (bound, default)
