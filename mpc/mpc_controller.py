@@ -75,6 +75,7 @@ from .ring_gate import RingGate
 from .start_caution import SCOPES as START_CAUTION_SCOPES, VALVE_A_AND_HEATER, StartCaution, known_delay_s, opening_bound
 from .rti_osqp import RHO_RESET_ON, RtiOsqpSolver, SolveResult
 from .steady_target import check_steady_start_on
+from .change_rho import check_adaptation, check_change_rho
 from .trust_region import check_radii
 from .temperature_reach import SaturatedTemperature
 
@@ -374,6 +375,17 @@ class MpcSettings:
         osqp_plain_cap_run: with ``osqp_plain_qp_cap``, at most this many plain steps in a row with a QP at the cap,
             the next plain step uncapped (0, the default: no limit). Measured in docs/architecture.md, 'The wake of
             a reference change'.
+        osqp_change_rho: OSQP's step size ``rho`` (dimensionless) a reference change's QPs start from
+            (``rti``/``sqp``; :mod:`~.change_rho`): "off" (the default: as the steps before left it), "last" (the value
+            OSQP's adaptation reached in the last change's first QP) or "kind" (so per kind of change: the
+            supply-temperature reference up, down or unchanged); one refactorisation more in the change's step;
+            "last_each" / "kind_each": so each QP of the change. Not
+            with ``osqp_rho_reset`` on "change". ``osqp_change_rho_restore`` (off by default): the first preparation
+            after a change sets the step size back to the value before the change. ``osqp_change_rho_interval``
+            (iterations, 0 the default: off) and ``osqp_change_rho_tolerance`` (a factor, 0 the default: OSQP's 5):
+            OSQP's step size adapted so often (where its estimate differs by more than that factor) in a change's
+            QPs; the generated solver only (``osqp_codegen``). Measured in
+            docs/architecture.md, 'The change's step size'.
         valve_a_reversal_share: the share of a move of valve a that reverses its last applied move (both at least
             ``valve_a_reversal_min_pct`` (% of travel)) applied, in (0, 1], 1 off (:mod:`~.reversal_damping`: the
             Gauss-Newton iteration's two-cycle where valve a's pull depends on valve a, the plan alternating between
@@ -470,6 +482,10 @@ class MpcSettings:
     osqp_rho_max: float | None = None
     osqp_plain_qp_cap: int = 0
     osqp_plain_cap_run: int = 0
+    osqp_change_rho: str = "off"
+    osqp_change_rho_restore: bool = False
+    osqp_change_rho_interval: int = 0
+    osqp_change_rho_tolerance: float = 0.0
     valve_a_reversal_share: float = 0.3
     valve_a_reversal_min_pct: float = 5.0
     valve_a_hold_shortfall_c: float = 0.0
@@ -520,6 +536,15 @@ class MpcSettings:
         if self.osqp_plain_cap_run and not self.osqp_plain_qp_cap:
             raise InvalidSettings(f"{p}.osqp_plain_cap_run needs osqp_plain_qp_cap in [1, {self.osqp_max_iter}] "
                                   "(the cap whose run it limits)")
+        try:
+            check_change_rho(f"{p}.osqp_change_rho", self.osqp_change_rho, self.osqp_change_rho_restore)
+            check_adaptation(f"{p}.osqp_change_rho_interval", self.osqp_change_rho_interval,
+                             self.osqp_change_rho_tolerance)
+        except ValueError as exc:
+            raise InvalidSettings(str(exc)) from None
+        if self.osqp_change_rho != "off" and self.osqp_rho_reset is not None and self.osqp_rho_reset_on == "change":
+            raise InvalidSettings(f"{p}.osqp_change_rho = {self.osqp_change_rho!r} and {p}.osqp_rho_reset with "
+                                  "osqp_rho_reset_on 'change' both set a change's step size; allowed: one of them")
         if self.osqp_rho_reset_on not in RHO_RESET_ON:
             raise InvalidSettings(f"{p}.osqp_rho_reset_on = {self.osqp_rho_reset_on!r} must be one of {list(RHO_RESET_ON)}")
         check_number(f"{p}.sqp_tol", self.sqp_tol, 1e-10, 1.0, lo_open=True)
@@ -839,7 +864,10 @@ class MpcController:
                              reversal_wait_steps=int(s.rti_reversal_wait_steps),
                              reversal_repeat=bool(s.rti_reversal_repeat),
                              reversal_margin=float(s.rti_reversal_margin),
-                             reversal_bound_only=bool(s.rti_reversal_bound_only))
+                             reversal_bound_only=bool(s.rti_reversal_bound_only), change_rho=s.osqp_change_rho,
+                             change_rho_restore=s.osqp_change_rho_restore,
+                             change_rho_interval=int(s.osqp_change_rho_interval),
+                             change_rho_tolerance=float(s.osqp_change_rho_tolerance))
 
     # ------------------------------------------------------------------ protocol
     def reset(self, command: Command | None = None) -> None:

@@ -255,6 +255,14 @@ API int hq_settings(double alpha, int max_iter, int check_termination, double ep
 }
 API void hq_time_limit(double seconds) { limit_s = seconds; }
 API double hq_rho(void) { return (double)S->settings->rho; }
+/* OSQP's step-size adaptation: its estimate checked every interval iterations, taken where it differs from rho by
+   more than tolerance times (both fixed at set-up by OSQP's own interface; read at every adaptation check) */
+API void hq_rho_adaptation(int interval, double tolerance) {
+  S->settings->adaptive_rho_interval = interval;
+  S->settings->adaptive_rho_tolerance = tolerance;
+}
+API int hq_rho_interval(void) { return (int)S->settings->adaptive_rho_interval; }
+API double hq_rho_tolerance(void) { return (double)S->settings->adaptive_rho_tolerance; }
 /* OSQP's workspace as the next solve finds it, saved into buf and restored from it (split_replays_change): the
    multipliers y (scaled), the scaled P and A, the equilibration, the constraint types, the step size rho (its
    reciprocal, the last KKT error of its adaptation); the primal iterate and q, l, u are what the warm start and
@@ -477,6 +485,8 @@ class EmbeddedOsqp(TwoPassSolve):
                                                  ctypes.c_double], ctypes.c_int),
                                 ("hq_time_limit", [ctypes.c_double], None), ("hq_rho", [], ctypes.c_double),
                                 ("hq_rho_next_update", [ctypes.c_double], None),
+                                ("hq_rho_adaptation", [ctypes.c_int, ctypes.c_double], None),
+                                ("hq_rho_interval", [], ctypes.c_int), ("hq_rho_tolerance", [], ctypes.c_double),
                                 ("hq_solve", [_DOUBLE, _DOUBLE], ctypes.c_int),
                                 ("hq_state_size", [], ctypes.c_int), ("hq_save_state", [_DOUBLE], None),
                                 ("hq_restore_state", [_DOUBLE], ctypes.c_int),
@@ -547,6 +557,21 @@ class EmbeddedOsqp(TwoPassSolve):
         refactorisation takes it in: no factorisation of its own; OSQP's ``update_rho`` and then the update give the
         same workspace)."""
         self._lib.hq_rho_next_update(float(rho))
+
+    @property
+    def rho_adaptation(self) -> tuple[int, float]:
+        """OSQP's step-size adaptation now: its interval (iterations) and tolerance (a factor)."""
+        return int(self._lib.hq_rho_interval()), float(self._lib.hq_rho_tolerance())
+
+    def set_rho_adaptation(self, interval: int, tolerance: float) -> bool:
+        """OSQP's step size adapted every ``interval`` (>= 1) iterations where its estimate differs by more than
+        ``tolerance`` (> 1) times, from the next solve on (OSQP's own interface fixes both at set-up; the solve reads
+        them at every check). Returns True (done)."""
+        if int(interval) < 1 or not float(tolerance) > 1.0:
+            raise ValueError(f"EmbeddedOsqp.set_rho_adaptation: interval = {interval!r}, tolerance = {tolerance!r}; "
+                             "allowed: an integer >= 1 and a number > 1")
+        self._lib.hq_rho_adaptation(int(interval), float(tolerance))
+        return True
 
     def save_state(self) -> dict:
         """OSQP's workspace as the next solve finds it (the multipliers, the scaled matrices and their equilibration,

@@ -40,6 +40,7 @@ from hvac_mpc.models.box import DISTURBANCES, INPUTS
 from . import osqp_embedded
 from .arrays import all_finite, all_reduce, sum_reduce
 from .casadi_eval import BufferedFunction
+from .change_rho import ChangeStepSize, check_adaptation, check_change_rho
 from .codegen import CodegenReport, compiled
 from .multilevel import MultiLevel, vector_function
 from .ocp import STAGE_OUTPUTS, TRACKED, TrackingProblem, check_flag, shift_maps, shift_nodes
@@ -269,6 +270,20 @@ class RtiOsqpSolver:
             the next plain step's QPs are then uncapped (``max_iter`` only); that step, a plain step whose QPs all end
             below the cap, a reference change and a cold start start the count again (0: no limit, every plain step
             capped).
+        change_rho: OSQP's step size at a reference change (:mod:`.change_rho`): "off" (kept as the steps before left
+            it), "last" (the value OSQP's adaptation reached in the first QP of the last change; the first change
+            keeps it) or "kind" (so per kind of change: the supply-temperature reference up, down or unchanged); set
+            with one refactorisation more in the change's step; "last_each" / "kind_each": so each QP of the change
+            (the later ones in their relinearisation's refactorisation). Not with ``rho_reset`` on "change".
+        change_rho_interval: OSQP's step size adapted every this many iterations in a change's QPs (0: off, OSQP's
+            set-up interval); ``change_rho_tolerance``: where its estimate differs by more than this factor (0: OSQP's
+            set-up tolerance, 5). OSQP's own estimate (from the QP's residuals) chooses the step size sooner; each
+            adaptation refactorises. The generated solver only (OSQP's interface fixes both at set-up: there no
+            effect). The steps after the change adapt as set up.
+        change_rho_restore: the first preparation after a change sets OSQP's step size back to the value it had
+            before the change (in the refactorisation the update makes anyway), so the steps after the change do not
+            inherit the step size the change's QPs adapted to. Measured in docs/architecture.md, 'The change's step
+            size'.
     """
 
     def __init__(self, problem: TrackingProblem, *, eps: float = 1e-4, max_iter: int = 400,
@@ -283,7 +298,9 @@ class RtiOsqpSolver:
                  split_every_step: bool = False, split_keeps_rho: bool = False, split_replays_change: bool = False,
                  rho_max: float | None = None, plain_qp_cap: int = 0, trust_radii: tuple[float, ...] = (),
                  plain_cap_run: int = 0, reversal_search: float = 0.0, reversal_wait_steps: int = 0,
-                 reversal_repeat: bool = False, reversal_margin: float = 0.0, reversal_bound_only: bool = False):
+                 reversal_repeat: bool = False, reversal_margin: float = 0.0, reversal_bound_only: bool = False,
+                 change_rho: str = "off", change_rho_restore: bool = False, change_rho_interval: int = 0,
+                 change_rho_tolerance: float = 0.0):
         self.pb = pb = problem
         self.reversal_search = check_share("RtiOsqpSolver: reversal_search", reversal_search)
         self.reversal_wait_steps = check_wait("RtiOsqpSolver: reversal_wait_steps", reversal_wait_steps)
@@ -320,6 +337,13 @@ class RtiOsqpSolver:
         if rho_reset_on not in RHO_RESET_ON:
             raise ValueError(f"RtiOsqpSolver: rho_reset_on = {rho_reset_on!r}, allowed: one of {list(RHO_RESET_ON)}")
         self.rho_reset_on = rho_reset_on
+        check_change_rho("RtiOsqpSolver: change_rho", change_rho, change_rho_restore)
+        if change_rho != "off" and self.rho_reset is not None and rho_reset_on == "change":
+            raise ValueError("RtiOsqpSolver: change_rho and rho_reset with rho_reset_on='change' both set a change's "
+                             "step size; allowed: one of them")
+        self._change_rho = ChangeStepSize(change_rho, change_rho_restore)
+        self.change_rho_interval, self.change_rho_tolerance = check_adaptation(
+            "RtiOsqpSolver: change_rho_interval", change_rho_interval, change_rho_tolerance)
         self.steady_start_on = check_steady_start_on("RtiOsqpSolver: steady_start_on", steady_start_on)
         if isinstance(relinearise_every, bool) or int(relinearise_every) != relinearise_every or relinearise_every < 1:
             raise ValueError(f"RtiOsqpSolver: relinearise_every = {relinearise_every!r}, allowed: an integer >= 1")
@@ -413,6 +437,8 @@ class RtiOsqpSolver:
                 "change_split_iter": self.change_split_iter, "split_every_step": self.split_every_step,
                 "split_keeps_rho": self.split_keeps_rho, "split_replays_change": self.split_replays_change,
                 "rho_max": self.rho_max, "plain_qp_cap": self.plain_qp_cap, "plain_cap_run": self.plain_cap_run,
+                "change_rho": self._change_rho.mode, "change_rho_restore": self._change_rho.restore,
+                "change_rho_interval": self.change_rho_interval, "change_rho_tolerance": self.change_rho_tolerance,
                 "step_fractions": list(self._merit.fractions) if self._merit else [],
                 "trust_radii": list(self.trust_radii)}
 
@@ -869,6 +895,7 @@ class RtiOsqpSolver:
         self._prepared = None
         self._change_rest = None
         self._capped_run = 0
+        self._change_rho.forget()
         self._last_move, self._quiet_run, self._turned_before = None, 0, np.zeros(0, dtype=int)
         if self._ml is not None:
             self._ml.forget()
@@ -921,6 +948,9 @@ class RtiOsqpSolver:
         row coefficients among them)."""
         self._floor_a0 = Ax[self._A_floor_slots[:self.nz_stage]]
         Px = self._with_readiness(X, Px)
+        restored = self._change_rho.after_change() if self._change_rho.restore else None
+        if restored is not None:  # the first preparation after a change: the step size before it
+            self._core.rho_next_update(restored)
         if self.rho_reset is not None and self.rho_reset_on == "preparation":
             self._core.rho_next_update(self.rho_reset)
         elif self.rho_max is not None:
@@ -1027,6 +1057,7 @@ class RtiOsqpSolver:
         cold = self.X is None
         max_qps = max(self.sqp_max_iter, self.cold_start_qps) if cold else self.sqp_max_iter
         changed = self._prepared is not None and not same_values(self._prepared["ref"], ref)
+        old_ref = self._prepared["ref"] if changed else None
         if changed:
             max_qps = max(max_qps, self.reference_change_qps)
         started = False
@@ -1045,8 +1076,11 @@ class RtiOsqpSolver:
             return SolveResult(False, "forced failure", prep_time_s=prep,
                                feedback_time_s=time.perf_counter() - t0 - prep)
         nx = self.pb.nx
+        if changed and self._change_rho.active:  # (the value before the change noted before any reset)
+            start_rho = self._change_rho.at_change(self._core.rho, old_ref, ref)
+            prep += 0.0 if start_rho is None else self._reset_rho(start_rho)
         if changed and self.rho_reset is not None and self.rho_reset_on == "change":
-            prep += self._reset_rho()
+            prep += self._reset_rho(self.rho_reset)
         self.l[:nx] = self.u[:nx] = x0  # rows r_x0
         self.l[self._r_u_rows] = u_lo.ravel()
         self.u[self._r_u_rows] = u_hi.ravel()
@@ -1056,10 +1090,17 @@ class RtiOsqpSolver:
         rho = self._core.rho if split and self.split_keeps_rho else None
         # the step's state before the capped QPs, for finish_change to solve them again (split_replays_change only)
         saved = self._save_step() if split and self.split_replays_change else None
-        z, status, iterations, solves, qp_prep, inexact, fraction = self._solve_qps(
-            x0, u_prev, d, ref, w_y, u_lo, u_hi, max_qps, restart=changed and self.restart_duals_on_change,
-            t0=t0, time_limit_s=time_limit_s, cap=self._qp_cap(split, changed, cold), trust=not cold)
+        adaptation = self._change_adaptation() if changed and self.change_rho_interval else None
+        try:
+            z, status, iterations, solves, qp_prep, inexact, fraction = self._solve_qps(
+                x0, u_prev, d, ref, w_y, u_lo, u_hi, max_qps, restart=changed and self.restart_duals_on_change,
+                t0=t0, time_limit_s=time_limit_s, cap=self._qp_cap(split, changed, cold), trust=not cold)
+        finally:  # OSQP's own adaptation again for the steps after the change
+            if adaptation is not None:
+                self._core.set_rho_adaptation(*adaptation)
         prep += qp_prep
+        if changed and self._change_rho.active:
+            self._change_rho.close_change()
         plain = not (split or changed or cold)  # a change's or a cold start's QPs break the run
         if self._search_merit is not None:
             z = self._searched(z, x0, d, ref, w_y, u_prev, u_lo, u_hi, plain and max_qps == 1)
@@ -1094,6 +1135,9 @@ class RtiOsqpSolver:
         self.trust_taken = 1.0  # the QP's own plan until the trust region takes a radius
         for it in range(max_qps):
             if it > 0:
+                rho_next = self._change_rho.for_qp(it)
+                if rho_next is not None:  # taken in by the relinearisation's refactorisation
+                    self._core.rho_next_update(rho_next)
                 prep += self._relinearise(z, x0, d, ref, w_y, u_prev)
             q = self._q(ref, d, u_prev)
             self._floor_bounds(d, x0, u_lo, u_hi)
@@ -1116,6 +1160,8 @@ class RtiOsqpSolver:
             status_val, status, n_iter, x = self._core.solve_capped(cap) if capped else self._core.solve()
             solves += 1
             iterations += n_iter
+            if self._change_rho.mode != "off":
+                self._change_rho.note(it, self._core.rho)  # (a change's QPs only: nothing pending otherwise)
             self._reached_cap = self._reached_cap or (capped and n_iter >= cap)
             status = str(status)
             if status_val not in (self._accepted_capped if capped else self._accepted):
@@ -1237,11 +1283,18 @@ class RtiOsqpSolver:
             return 0
         return self.plain_qp_cap
 
-    def _reset_rho(self) -> float:
-        """OSQP's step size set to ``rho_reset`` for the QPs of a reference change: the matrices in OSQP written again
-        (the same values, one refactorisation more). Returns its wall time (s)."""
+    def _change_adaptation(self) -> tuple[int, float] | None:
+        """OSQP's step-size adaptation for a change's QPs (``change_rho_interval``, ``change_rho_tolerance``; the
+        generated solver only): the adaptation in force before, to set back after them (None: not changed)."""
+        before = self._core.rho_adaptation
+        tolerance = self.change_rho_tolerance or before[1]
+        return before if self._core.set_rho_adaptation(self.change_rho_interval, tolerance) else None
+
+    def _reset_rho(self, rho: float) -> float:
+        """OSQP's step size set to ``rho`` for the QPs of a reference change (``rho_reset`` or ``change_rho``'s): the
+        matrices in OSQP written again (the same values, one refactorisation more). Returns its wall time (s)."""
         t0 = time.perf_counter()
-        self._core.rho_next_update(self.rho_reset)
+        self._core.rho_next_update(rho)
         self._core.update_matrices(*self._written)
         return time.perf_counter() - t0
 
@@ -1461,6 +1514,17 @@ class _OsqpCore(osqp_embedded.TwoPassSolve):
     def rho(self) -> float:
         """OSQP's step size now (it adapts during solves and is kept from one QP to the next)."""
         return float((self.core or self.wrapper._solver).get_settings().rho)
+
+    @property
+    def rho_adaptation(self) -> tuple[int, float]:
+        """OSQP's step-size adaptation as set up: its interval (iterations) and tolerance (a factor)."""
+        st = (self.core or self.wrapper._solver).get_settings()
+        return int(st.adaptive_rho_interval), float(st.adaptive_rho_tolerance)
+
+    def set_rho_adaptation(self, interval: int, tolerance: float) -> bool:
+        """Not available here: OSQP's interface fixes the adaptation at set-up (its ``update_settings`` leaves both
+        as they are). Returns False (nothing changed); the generated solver's does it."""
+        return False
 
     def rho_next_update(self, rho: float) -> None:
         """OSQP's step size set to ``rho`` (OSQP's ``update_rho``: a factorisation of its own here, where the

@@ -2,37 +2,22 @@
 literal cooler (hvac_mpc.mismatch ``cooler_literal``): trapped_air_release's heater-limited 22 C held, then its step
 down to 15 C."""
 
-import dataclasses
-
 import numpy as np
 import pytest
 
-from hvac_mpc.benchmarks import scenarios
+from hvac_mpc.benchmarks.change_rho import HELD_S, step_down_scenario
 from hvac_mpc.benchmarks.simulate import DETERMINISTIC_DEADLINE_S, plant_seed
 from hvac_mpc.mismatch import make_plant
 from hvac_mpc.mpc import reserve
 from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
 from hvac_mpc.mpc.ocp import OcpSpec, Weights
 
-#: 22 C held this long before the step down (s): the length it has in trapped_air_release after the 12 C warm-up.
-HELD_S = 390
-#: The step down scored this long (s): the reading reaches 15 C in about 20 s.
-AFTER_S = 40
-
-
-def _step_down() -> scenarios.Scenario:
-    base = scenarios.trapped_air_release()
-    held, lower = base.segments
-    return dataclasses.replace(base, warmup=dataclasses.replace(base.warmup, duration_s=float(HELD_S),
-                                                                reference=held.reference),
-                               segments=(dataclasses.replace(lower, duration_s=float(AFTER_S)),))
-
 
 def _run() -> tuple[float, float, list[bool], list[bool]]:
     """The nominal MPC with the reserve (3e-4) on the literal-cooler box (noise seed 0): valve a's first command of
     the step down (%), the thermocouple IAE from the step on (C s), per step whether the reserve's rest and whether
     its step down counted."""
-    sc = _step_down()
+    sc = step_down_scenario()
     settings = MpcSettings(ocp=OcpSpec(weights=Weights(valve_a_reserve_per_pct2=3e-4)),
                            initial_command=sc.initial_command, deadline_s=DETERMINISTIC_DEADLINE_S)
     ctrl = MpcController(settings=settings)

@@ -1,0 +1,167 @@
+"""OSQP's step size at a reference change (``mpc/change_rho.py``; ``MpcSettings.osqp_change_rho``,
+``osqp_change_rho_restore``, ``osqp_change_rho_interval``, ``osqp_change_rho_tolerance``; all off by default): the
+remembered and restored step sizes as the rule states them, each QP's start on the solve-time loop's changes (the
+generated solver), the change's adaptation set and set back, the fields checked.
+
+Budget: about 25 s on a loaded two-core machine (closed loops of up to 215 steps)."""
+
+import numpy as np
+import pytest
+
+from hvac_mpc.benchmarks import change_rho as trace_module, solve_time
+from hvac_mpc.benchmarks.simulate import DETERMINISTIC_DEADLINE_S
+from hvac_mpc.mpc import codegen
+from hvac_mpc.mpc.change_rho import ChangeStepSize, change_kind
+from hvac_mpc.mpc.mpc_controller import InvalidSettings, MpcController, MpcSettings
+from hvac_mpc.mpc.osqp_embedded import EmbeddedOsqp
+from hvac_mpc.mpc.rti_osqp import RtiOsqpSolver
+
+UP, DOWN, FLOW = (np.array([16.0, 0.03]), np.array([20.0, 0.03])), (np.array([20.0, 0.03]), np.array([15.0, 0.03])), \
+    (np.array([15.0, 0.03]), np.array([15.0, 0.05]))
+
+
+@pytest.fixture(scope="module")
+def cache():
+    """The code generation switched on while this module's loops run (the generated solver is what they check)."""
+    mp = pytest.MonkeyPatch()
+    mp.setenv(codegen.SWITCH_ENV, "1")
+    yield
+    mp.undo()
+
+
+def test_a_change_kind_is_the_sign_of_the_temperature_step():
+    assert [change_kind(*pair) for pair in (UP, DOWN, FLOW)] == [1, -1, 0]
+
+
+def test_the_remembered_step_size_is_the_last_first_qps_of_the_same_kind():
+    rule = ChangeStepSize("kind")
+    assert rule.at_change(1e-3, *UP) is None  # the first change up: OSQP's own
+    rule.note(0, 0.02)
+    rule.note(1, 0.5)  # a later QP's end is not remembered without "_each"
+    rule.close_change()
+    assert rule.at_change(4e-3, *DOWN) is None  # another kind
+    rule.note(0, 3e-4)
+    rule.close_change()
+    assert rule.at_change(5e-3, *UP) == 0.02 and rule.for_qp(1) is None
+    rule.close_change()
+    rule.note(0, 9.0)  # outside a change: nothing
+    assert rule.remembered == {(1, 0): 0.02, (-1, 0): 3e-4}
+
+
+def test_each_qp_remembers_its_own_and_last_ignores_the_kind():
+    rule = ChangeStepSize("last_each")
+    rule.at_change(1e-3, *UP)
+    rule.note(0, 0.02)
+    rule.note(1, 0.1)
+    rule.close_change()
+    assert rule.at_change(1e-3, *DOWN) == 0.02 and rule.for_qp(1) == 0.1 and rule.for_qp(2) is None
+
+
+def test_the_restore_gives_the_value_before_the_change_once_and_only_after_its_qps():
+    rule = ChangeStepSize("off", restore=True)
+    assert rule.at_change(2e-3, *UP) is None
+    assert rule.after_change() is None  # the change's own relinearisations keep the change's step size
+    rule.close_change()
+    assert rule.after_change() == 2e-3 and rule.after_change() is None
+    rule.at_change(2e-3, *UP)
+    rule.close_change()
+    rule.at_change(0.08, *DOWN)  # a second change before a preparation took the first's value in
+    rule.close_change()
+    assert rule.after_change() == 2e-3
+
+
+def _loop(steps: int, **fields):
+    ctrl, trace = trace_module._traced_controller(
+        MpcSettings(deadline_s=DETERMINISTIC_DEADLINE_S, **fields))
+    assert isinstance(trace.core, EmbeddedOsqp)  # the generated solver (the trace stands in front of it)
+    loop = solve_time.Loop(ctrl, seed=1)
+    for k in range(steps):
+        trace.step = k
+        assert loop.step(k).stats["fallback"] is None
+    return ctrl, trace
+
+
+def _first_qps(trace, step):
+    return [q for q in trace.qps if q["step"] == step]
+
+
+def test_on_the_loop_each_change_starts_where_the_last_change_of_its_kind_ended(cache):
+    """The loop's changes: 16 -> 13 C at 30 s (down), 20 C at 60 (up), 18 C at 90 (down), 24 C at 120 (up), 15 C at
+    150 (down), 22 C at 180 (up), 17 C at 210 (down)."""
+    _, trace = _loop(212, osqp_change_rho="kind")
+    changes = [30, 60, 90, 120, 150, 180, 210]
+    for later, earlier in zip(changes[2:], changes):
+        assert _first_qps(trace, later)[0]["rho_start"] == _first_qps(trace, earlier)[0]["rho_end"]
+    _, kept = _loop(212)
+    assert any(_first_qps(kept, c)[0]["rho_start"] != _first_qps(kept, p)[0]["rho_end"]
+               for c, p in zip(changes[2:], changes))
+
+
+def test_the_restore_starts_the_step_after_a_change_at_the_step_size_before_it(cache):
+    _, trace = _loop(64, osqp_change_rho_restore=True)
+    change = _first_qps(trace, 60)
+    assert change[-1]["rho_end"] > 10 * change[0]["rho_start"]  # the change's QPs raised it (0.0006 -> 0.1)
+    assert _first_qps(trace, 61)[0]["rho_start"] == pytest.approx(change[0]["rho_start"], rel=1e-12)
+    _, kept = _loop(64)
+    assert _first_qps(kept, 61)[0]["rho_start"] == _first_qps(kept, 60)[-1]["rho_end"]
+
+
+def test_the_changes_adaptation_is_set_for_its_qps_and_set_back_after(cache):
+    ctrl, trace = trace_module._traced_controller(MpcSettings(deadline_s=DETERMINISTIC_DEADLINE_S,
+                                                              osqp_change_rho_interval=10,
+                                                              osqp_change_rho_tolerance=2.0))
+    loop = solve_time.Loop(ctrl, seed=1)
+    for k in range(59):
+        loop.step(k)
+    core, seen = trace.core, []
+    assert core.rho_adaptation == (50, 5.0)  # OSQP's set-up: every 50 iterations, a factor of 5
+    solve = core.solve
+    core.solve = lambda: (seen.append(core.rho_adaptation), solve())[1]
+    for k in range(59, 62):  # the change at 60 s: two QPs
+        loop.step(k)
+    assert seen == [(50, 5.0), (10, 2.0), (10, 2.0), (50, 5.0)]  # 59 s, the change's two QPs, 61 s
+
+
+def _iterations(trace, steps):
+    return sum(q["iterations"] for q in trace.qps if q["step"] in steps)
+
+
+def test_the_last_changes_step_size_takes_the_change_at_90_s_in_fewer_iterations(cache):
+    """The loop (seed 1) to the change at 90 s (20 -> 18 C, a flow change): with the defaults its first QP starts at
+    the step size the change at 60 s's second QP raised (0.016, after the wake) and its QPs take 245 + 25 OSQP
+    iterations; with "last" at the step size the change at 60 s's first QP ended with (1e-4): 75 + 25 (measured).
+    The loops are the same to 89 s (the first change has nothing remembered)."""
+    _, last = _loop(91, osqp_change_rho="last")
+    _, kept = _loop(91)
+    assert _iterations(last, range(90)) == _iterations(kept, range(90))
+    assert _iterations(last, [90]) < 0.5 * _iterations(kept, [90])
+
+
+def test_the_restore_shortens_the_slowest_qp_after_the_change_at_60_s(cache):
+    """The change at 60 s's second QP raises OSQP's step size to 0.10; the QP at 62 s then takes 210 OSQP iterations
+    from it (the defaults); restored to the value before the change (6.5e-4) the steps 61-65 take at most 105
+    (measured)."""
+    _, restored = _loop(66, osqp_change_rho_restore=True)
+    _, kept = _loop(66)
+    wake = range(61, 66)
+    assert max(q["iterations"] for q in restored.qps if q["step"] in wake) < 0.7 * max(
+        q["iterations"] for q in kept.qps if q["step"] in wake)
+
+
+@pytest.mark.parametrize("fields, match", [
+    ({"osqp_change_rho": "first"}, r"osqp_change_rho = 'first', allowed: one of"),
+    ({"osqp_change_rho_restore": 1}, r"osqp_change_rho_restore = 1, allowed: True or False"),
+    ({"osqp_change_rho_interval": -1}, r"osqp_change_rho_interval = -1, allowed: an integer in \[0, 1000\]"),
+    ({"osqp_change_rho_interval": 2.5}, r"osqp_change_rho_interval = 2.5"),
+    ({"osqp_change_rho_tolerance": 1.0}, r"osqp_change_rho_tolerance = 1.0, allowed: 0 \(OSQP's\) or a factor"),
+    ({"osqp_change_rho": "last", "osqp_rho_reset": 1e-3, "osqp_rho_reset_on": "change"}, r"one of them"),
+])
+def test_the_fields_are_checked_naming_the_field(fields, match):
+    with pytest.raises(InvalidSettings, match=match):
+        MpcSettings(**fields)
+
+
+def test_the_solver_refuses_both_change_step_sizes():
+    pb = MpcController(settings=MpcSettings(codegen=False, osqp_codegen=False)).problem
+    with pytest.raises(ValueError, match=r"change_rho and rho_reset with rho_reset_on='change'"):
+        RtiOsqpSolver(pb, change_rho="kind", rho_reset=1e-3, rho_reset_on="change")
