@@ -25,14 +25,13 @@ the smallest fraction at least, so a plan the merit cannot rank (a flat cost) st
 
 from __future__ import annotations
 
-import hashlib
-
 import casadi as ca
 import numpy as np
 
 from hvac_mpc.models.box import INPUTS
 
 from .casadi_eval import BufferedFunction
+from .codegen import expression_key, kept
 from .ocp import STAGE_OUTPUTS, TrackingProblem
 
 #: Price of the flow floor's shortfall in the merit, as a multiple of the soft rows' L1 price per degC, per
@@ -47,12 +46,6 @@ FLOOR_PENALTY_PER_LS = 1.0
 MERIT_TOLERANCE = 0.05
 #: The merit function's arguments, in order.
 ARGUMENTS = ("x0", "U", "d", "SW", "ref", "u_prev", "p", "ready_floor", "ready_w")
-#: How many mapped merit functions :func:`_mapped` keeps for the controllers built after (a controller of the
-#: default settings holds three; a process building controllers of a few structures finds them all).
-MAPPED_KEPT = 32
-#: The mapped merit functions built in this process, by (structure key, plans, name), oldest first (:func:`_mapped`):
-#: a memo of immutable functions, the one state this module keeps.
-_KEPT: dict[tuple[str, int, str], ca.Function] = {}
 
 
 class PlanMerit:
@@ -71,7 +64,7 @@ class PlanMerit:
         if not self.fractions or any(not 0.0 < a < 1.0 for a in self.fractions):
             raise ValueError(f"step fractions {fractions!r} must be a non-empty sequence of numbers in (0, 1)")
         one = self.cost_function()
-        key = hashlib.sha256(one.serialize().encode()).hexdigest()  # the merit's structure (parameters symbolic)
+        key = expression_key(one)  # the merit's structure (the model parameters an input)
         self._pair = BufferedFunction(wrap(_mapped(one, 2, "hvac_plan_merit2", key)))
         self._damped = BufferedFunction(wrap(_mapped(one, len(self.fractions), f"hvac_plan_merit{len(fractions)}d",
                                                      key)))
@@ -175,20 +168,13 @@ def _mapped(fn: ca.Function, n: int, name: str, key: str | None = None) -> ca.Fu
     """``fn`` over ``n`` plans side by side (their inputs stacked along the columns of ``U``; the other
     arguments shared), the costs in a row.
 
-    ``key``: the hash of ``fn``'s serialised form (its structure; the model parameters are an argument). The
-    function built for a key is kept (:data:`_KEPT`, the :data:`MAPPED_KEPT` last) and returned as it is to the next
-    call with the same key, ``n`` and ``name``: the common subexpressions of a merit of the default horizon take
-    2-7 s to find (most of a controller's construction), the same expression gives the same function to the bit,
-    and a CasADi function is not changed by its calls (each :class:`.casadi_eval.BufferedFunction` evaluates into
-    buffers of its own), so controllers of one structure share it. Without a key it is built afresh."""
-    if key is not None and (key, n, name) in _KEPT:
-        return _KEPT[(key, n, name)]
-    out = _mapped_afresh(fn, n, name)
-    if key is not None:
-        while len(_KEPT) >= MAPPED_KEPT:
-            _KEPT.pop(next(iter(_KEPT)))  # the oldest first
-        _KEPT[(key, n, name)] = out
-    return out
+    ``key``: :func:`.codegen.expression_key` of ``fn`` (its structure; the model parameters are an argument): the
+    function built for a key, ``n`` and ``name`` is kept (:func:`.codegen.kept`) and returned as it is to the next
+    call with the same ones, since the common subexpressions of a merit of the default horizon take 2-7 s to find.
+    Without a key it is built afresh."""
+    if key is None:
+        return _mapped_afresh(fn, n, name)
+    return kept(f"plan merit {key} {n} {name}", lambda: _mapped_afresh(fn, n, name))
 
 
 def _mapped_afresh(fn: ca.Function, n: int, name: str) -> ca.Function:

@@ -194,7 +194,7 @@ def test_the_merit_takes_the_parameters_rows_from_its_parameter_input():
 
 
 def test_a_second_merit_of_the_same_structure_shares_the_first_ones_functions_and_prices_alike(controller):
-    """The mapped merits are kept by structure (plan_merit._mapped): a second PlanMerit of the same problem takes
+    """The mapped merits are kept by structure (plan_merit._mapped, codegen.kept): a second PlanMerit of the same problem takes
     the first one's functions (the same objects, not built again), a merit of another horizon builds its own, and
     the kept function prices plans to the bit as one built afresh without the memo."""
     from hvac_mpc.mpc import plan_merit
