@@ -153,9 +153,10 @@ def test_the_small_functions_of_the_step_run_compiled_with_the_interpreters_valu
                 assert np.array_equal(r_vm, r_c)
 
 
-def test_kept_builds_once_per_key_and_holds_the_last_ones():
+def test_kept_builds_once_per_key_and_holds_the_last_ones(monkeypatch):
     """codegen.kept: the first call with a key builds, the next ones return that function as it is; another key
-    builds its own; past KEPT_MAX keys the oldest is built again."""
+    builds its own; past KEPT_MAX keys the least recently asked for is built again, one asked for since is not."""
+    monkeypatch.setattr(codegen, "_KEPT", {})  # an empty memo, whatever the process built before
     x = ca.SX.sym("x")
     built = []
 
@@ -166,9 +167,13 @@ def test_kept_builds_once_per_key_and_holds_the_last_ones():
     first = codegen.kept("test kept 1", lambda: build(1))
     assert codegen.kept("test kept 1", lambda: build(1)) is first and built == [1]
     assert float(codegen.kept("test kept 2", lambda: build(2))(3.0)) == 6.0 and built == [1, 2]
-    for k in range(codegen.KEPT_MAX):
+    for k in range(codegen.KEPT_MAX - 2):
         codegen.kept(f"test kept fill {k}", lambda: ca.Function("g", [x], [x]))
-    assert codegen.kept("test kept 1", lambda: build(1)) is not first and built == [1, 2, 1]
+    assert codegen.kept("test kept 1", lambda: build(1)) is first  # asked for again: now the most recent
+    codegen.kept("test kept fill last", lambda: ca.Function("g", [x], [x]))  # one more: key 2, the least recent, goes
+    assert codegen.kept("test kept 1", lambda: build(1)) is first and built == [1, 2]
+    codegen.kept("test kept 2", lambda: build(2))
+    assert built == [1, 2, 2]
 
 
 def test_two_controllers_of_one_structure_share_their_stages_qp_data_and_another_structure_does_not():
