@@ -22,6 +22,7 @@ import shutil
 import subprocess
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -102,6 +103,37 @@ def shared(fn: ca.Function) -> ca.Function:
         return fn
     sym = fn.sx_in()
     return ca.Function(fn.name(), sym, ca.cse(fn.call(sym)), fn.name_in(), fn.name_out())
+
+
+#: How many functions :func:`kept` holds for the constructions after it (a default controller keeps six: its three
+#: stages' QP data and its three mapped plan merits, 10-20 MB; 24: the last four structures, so a process that builds
+#: many, such as a sweep over boxes of other model effects, holds at most some 80 MB beyond its live controllers).
+KEPT_MAX = 24
+#: The functions :func:`kept` built in this process, by key, the least recently asked for first: a memo of
+#: immutable functions.
+_KEPT: dict[str, ca.Function] = {}
+
+
+def kept(key: str, build: Callable[[], ca.Function]) -> ca.Function:
+    """The function built for ``key`` earlier in this process, else ``build()``, kept for the next call with that key
+    (the :data:`KEPT_MAX` last asked for). For functions whose common subexpressions take long to find
+    (``casadi.cse``: the stages' QP data and the mapped plan merits, 7 of 8 s of a default controller's construction):
+    ``key`` names the expression (:func:`expression_key` of it before the search), the same expression gives the same
+    function to the bit, and a CasADi function is not changed by its calls (each
+    :class:`.casadi_eval.BufferedFunction` evaluates into buffers of its own), so controllers of one structure share
+    it (docs/architecture.md 'The suite's time')."""
+    fn = _KEPT.pop(key, None)
+    if fn is None:
+        fn = build()
+        while len(_KEPT) >= KEPT_MAX:
+            _KEPT.pop(next(iter(_KEPT)))  # the least recently asked for
+    _KEPT[key] = fn  # last: the most recently asked for
+    return fn
+
+
+def expression_key(fn: ca.Function) -> str:
+    """sha256 of ``fn``'s serialised form: its whole expression graph, its name and its inputs' and outputs' names."""
+    return hashlib.sha256(fn.serialize().encode()).hexdigest()
 
 
 def compiled(fn: ca.Function, report: CodegenReport | None = None, link: tuple[Path, ...] = ()) -> ca.Function:

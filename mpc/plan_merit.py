@@ -31,6 +31,7 @@ import numpy as np
 from hvac_mpc.models.box import INPUTS
 
 from .casadi_eval import BufferedFunction
+from .codegen import expression_key, kept
 from .ocp import STAGE_OUTPUTS, TrackingProblem
 
 #: Price of the flow floor's shortfall in the merit, as a multiple of the soft rows' L1 price per degC, per
@@ -63,10 +64,13 @@ class PlanMerit:
         if not self.fractions or any(not 0.0 < a < 1.0 for a in self.fractions):
             raise ValueError(f"step fractions {fractions!r} must be a non-empty sequence of numbers in (0, 1)")
         one = self.cost_function()
-        self._pair = BufferedFunction(wrap(_mapped(one, 2, "hvac_plan_merit2")))
-        self._damped = BufferedFunction(wrap(_mapped(one, len(self.fractions), f"hvac_plan_merit{len(fractions)}d")))
+        key = expression_key(one)  # the merit's structure (the model parameters an input)
+        self._pair = BufferedFunction(wrap(_mapped(one, 2, "hvac_plan_merit2", key)))
+        self._damped = BufferedFunction(wrap(_mapped(one, len(self.fractions), f"hvac_plan_merit{len(fractions)}d",
+                                                     key)))
         # ``several`` plans priced in one call (:meth:`costs`; 0: none), built here, not in a control step
-        self._several = BufferedFunction(wrap(_mapped(one, several, f"hvac_plan_merit{several}s"))) if several else None
+        self._several = BufferedFunction(wrap(_mapped(one, several, f"hvac_plan_merit{several}s", key))) \
+            if several else None
         self.several = int(several)
 
     def cost_function(self) -> ca.Function:
@@ -160,9 +164,21 @@ class PlanMerit:
         return fraction
 
 
-def _mapped(fn: ca.Function, n: int, name: str) -> ca.Function:
+def _mapped(fn: ca.Function, n: int, name: str, key: str | None = None) -> ca.Function:
     """``fn`` over ``n`` plans side by side (their inputs stacked along the columns of ``U``; the other
-    arguments shared), the costs in a row."""
+    arguments shared), the costs in a row.
+
+    ``key``: :func:`.codegen.expression_key` of ``fn`` (its structure; the model parameters are an argument): the
+    function built for a key, ``n`` and ``name`` is kept (:func:`.codegen.kept`) and returned as it is to the next
+    call with the same ones, since the common subexpressions of a merit of the default horizon take 2-7 s to find.
+    Without a key it is built afresh."""
+    if key is None:
+        return _mapped_afresh(fn, n, name)
+    return kept(f"plan merit {key} {n} {name}", lambda: _mapped_afresh(fn, n, name))
+
+
+def _mapped_afresh(fn: ca.Function, n: int, name: str) -> ca.Function:
+    """:func:`_mapped` without the memo."""
     args = fn.sx_in()
     x0, U, *rest = args
     nu, N = U.shape

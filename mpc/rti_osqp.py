@@ -41,7 +41,7 @@ from . import osqp_embedded
 from .arrays import all_finite, all_reduce, sum_reduce
 from .casadi_eval import BufferedFunction
 from .change_rho import ChangeStepSize, check_adaptation, check_change_rho
-from .codegen import CodegenReport, compiled
+from .codegen import CodegenReport, compiled, expression_key, kept
 from .multilevel import MultiLevel, vector_function
 from .ocp import STAGE_OUTPUTS, TRACKED, TrackingProblem, check_flag, shift_maps, shift_nodes
 from .osqp_embedded import FIRST_PASS_EPS_RATIO  # noqa: F401 - the first pass's tolerance, named here too
@@ -733,8 +733,10 @@ class RtiOsqpSolver:
         if self._ml is not None:
             outs.append(ca.vec(G))
         # common subexpressions computed once (the Jacobians repeat much of the model): about
-        # 40 % fewer operations, the same values
-        return ca.Function(f"qp_{stage.name()}", [x, u, d, dt, sw, p], ca.cse(outs))
+        # 40 % fewer operations, the same values; found once per expression in a process (codegen.kept)
+        args = [x, u, d, dt, sw, p]
+        plain = ca.Function(f"qp_{stage.name()}", args, outs)
+        return kept(f"stage qp {expression_key(plain)}", lambda: ca.Function(plain.name(), args, ca.cse(outs)))
 
     def _stage_weights(self, w_y: np.ndarray) -> np.ndarray:
         """Weights of the residuals per stage (N + 1, ny + 1): dt_k w_y / s^2, the terminal

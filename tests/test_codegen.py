@@ -151,3 +151,38 @@ def test_the_small_functions_of_the_step_run_compiled_with_the_interpreters_valu
         for (vm, c), a in zip(pairs, args):
             for r_vm, r_c in zip(vm(*a), c(*a)):
                 assert np.array_equal(r_vm, r_c)
+
+
+def test_kept_builds_once_per_key_and_holds_the_last_ones(monkeypatch):
+    """codegen.kept: the first call with a key builds, the next ones return that function as it is; another key
+    builds its own; past KEPT_MAX keys the least recently asked for is built again, one asked for since is not."""
+    monkeypatch.setattr(codegen, "_KEPT", {})  # an empty memo, whatever the process built before
+    x = ca.SX.sym("x")
+    built = []
+
+    def build(k):
+        built.append(k)
+        return ca.Function(f"f{k}", [x], [x * k])
+
+    first = codegen.kept("test kept 1", lambda: build(1))
+    assert codegen.kept("test kept 1", lambda: build(1)) is first and built == [1]
+    assert float(codegen.kept("test kept 2", lambda: build(2))(3.0)) == 6.0 and built == [1, 2]
+    for k in range(codegen.KEPT_MAX - 2):
+        codegen.kept(f"test kept fill {k}", lambda: ca.Function("g", [x], [x]))
+    assert codegen.kept("test kept 1", lambda: build(1)) is first  # asked for again: now the most recent
+    codegen.kept("test kept fill last", lambda: ca.Function("g", [x], [x]))  # one more: key 2, the least recent, goes
+    assert codegen.kept("test kept 1", lambda: build(1)) is first and built == [1, 2]
+    codegen.kept("test kept 2", lambda: build(2))
+    assert built == [1, 2, 2]
+
+
+def test_two_controllers_of_one_structure_share_their_stages_qp_data_and_another_structure_does_not():
+    """The stages' QP data (rti_osqp._stage_qp_function, common subexpressions found once per expression): a second
+    controller of the same structure takes the first one's functions, one of other model effects builds its own."""
+    one, two = (MpcController(settings=MpcSettings(codegen=False)).solver for _ in range(2))
+    other = MpcController(settings=MpcSettings(codegen=False, ocp=OcpSpec(
+        model_effects=("fan_curve", "valve_leakage")))).solver
+    for n, stage in one.pb.stages_p.items():
+        assert one._stage_qp_function(stage) is two._stage_qp_function(two.pb.stages_p[n])
+        assert one._stage_qp_function(stage) is not other._stage_qp_function(other.pb.stages_p[n])
+    assert codegen.structure_key(one.qp_data) == codegen.structure_key(two.qp_data)

@@ -191,3 +191,28 @@ def test_the_merit_takes_the_parameters_rows_from_its_parameter_input():
     assert pb_b.ptc_row_bound == float(other.ptc_zero_c - pb_b.u_off[ih] / slope_w_per_k - xh)
     assert pb_b.body_heat_coef == pytest.approx(
         -price_per_j * other.heater_mass_kg * other.heater_c_j_per_kgk * pb_b.x_sc[pb_b.i_heater], rel=1e-12)
+
+
+def test_a_second_merit_of_the_same_structure_shares_the_first_ones_functions_and_prices_alike(controller):
+    """The mapped merits are kept by structure (plan_merit._mapped, codegen.kept): a second PlanMerit of the same problem takes
+    the first one's functions (the same objects, not built again), a merit of another horizon builds its own, and
+    the kept function prices plans to the bit as one built afresh without the memo."""
+    from hvac_mpc.mpc import plan_merit
+    from hvac_mpc.mpc.casadi_eval import BufferedFunction
+
+    pb, first = controller.problem, controller.solver._merit
+    second = PlanMerit(pb, first.fractions)
+    assert second._pair.fn is first._pair.fn and second._damped.fn is first._damped.fn
+    from hvac_mpc.mpc.ocp import OcpSpec, TrackingProblem
+
+    longer = OcpSpec(stage_durations_s=(*OcpSpec().stage_durations_s, 5.0))  # one stage more
+    other = PlanMerit(TrackingProblem(Parameters(), longer), first.fractions)
+    assert other._pair.fn is not first._pair.fn and other._pair.fn.size_in(1) != first._pair.fn.size_in(1)
+    afresh = BufferedFunction(plan_merit._mapped_afresh(first.cost_function(), 2, "fresh"))
+    x0, d = pb.scale_x(pb.placeholder_state()), np.array([5.0, 5.0, 0.3, 0.0])
+    sw = controller.solver._stage_weights(pb.heating_weights(pb.w_y_full.copy(), heating=True))
+    args = (x0, np.concatenate([_plan(pb, 100.0, 30.0), _plan(pb, 160.0, 60.0)]), d, sw,
+            pb.reference_vector(_reference()), pb.scale_u(np.array([120.0, 80.0, 20.0, 50.0, 50.0, 50.0])),
+            pb.model.p_default, 0.0, np.zeros(pb.N))
+    kept = np.asarray(second._pair(*args)[0]).ravel()
+    assert np.array_equal(kept, np.asarray(afresh(*args)[0]).ravel()) and kept[0] != kept[1]
