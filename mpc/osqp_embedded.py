@@ -19,6 +19,10 @@ its norm), and :class:`.rti_osqp.RtiOsqpSolver` sets OSQP up with a zero gradien
 the key holds no values, an assumption held by ``tests/test_osqp_embedded.py`` (other model parameters, the
 cached solver, the Python interface's commands exactly).
 
+Left out of OSQP's solve (:data:`SOLVE_EDITS`): work whose results no answer reads (the first iteration's
+residuals, the objective computed a second time after the loop, the final step size estimate); the matrix update's
+Ruiz passes sweep P and A once each (``hq_update_mat_fused``). The workspace and the answers stay OSQP's to the bit.
+
 One thing only the generated code can do: update the matrices without equilibrating again
 (``scaling_interval``), the new values scaled with the equilibration in force.
 

@@ -1,6 +1,7 @@
 """OSQP's generated C for the RTI's QP (mpc/osqp_embedded.py): the Python interface's answers, built once per
 structure into the cache, the Python interface where it cannot be built, a workspace per solver, the time
-limit, the kept equilibration between updates.
+limit, the kept equilibration between updates, the edits of OSQP's solve and the fused matrix update to the bit
+(docs/architecture.md "The step's glue, second pass").
 
 Budget: about 15 s on a loaded two-core machine (one build of the generated solver, about 3 s, and short
 closed loops with CasADi's interpreter).
