@@ -19,6 +19,10 @@ its norm), and :class:`.rti_osqp.RtiOsqpSolver` sets OSQP up with a zero gradien
 the key holds no values, an assumption held by ``tests/test_osqp_embedded.py`` (other model parameters, the
 cached solver, the Python interface's commands exactly).
 
+Left out of OSQP's solve (:data:`SOLVE_EDITS`): work whose results no answer reads (the first iteration's
+residuals, the objective computed a second time after the loop, the final step size estimate); the matrix update's
+Ruiz passes sweep P and A once each (``hq_update_mat_fused``). The workspace and the answers stay OSQP's to the bit.
+
 One thing only the generated code can do: update the matrices without equilibrating again
 (``scaling_interval``), the new values scaled with the equilibration in force.
 
@@ -50,8 +54,12 @@ from .codegen import SWITCH_ENV, CodegenReport, _ensure, cache_dir, compile_shar
 #: Compiler flags of the generated solver. No fast-math and no contraction into fused multiply-adds:
 #: the arithmetic stays that of OSQP's own build, so the answers are the Python interface's.
 #: Built for this machine's processor (``-march=native``, the processor in the cache key): 3 % less time per
-#: QP than without it, measured (``benchmarks/osqp_generated.py``).
-CFLAGS = ("-O3", "-march=native", "-ffp-contract=off", "-fPIC", "-shared", "-fvisibility=hidden", "-Wl,-Bsymbolic")
+#: QP than without it, measured (``benchmarks/osqp_generated.py``). ``-fno-math-errno`` (``sqrt`` sets no
+#: ``errno``, so the Ruiz passes' square roots vectorise) and ``-funroll-loops`` change no floating-point operation
+#: nor its order: the matrix update 0.83x and then 0.94-0.95x, the solve 0.97-1.0x and 0.97-0.98x, the same answers
+#: to the bit (docs/architecture.md, 'The step's glue, second pass'); ``-fno-trapping-math`` was slower (1.01-1.02x).
+CFLAGS = ("-O3", "-march=native", "-ffp-contract=off", "-fno-math-errno", "-funroll-loops", "-fPIC", "-shared",
+          "-fvisibility=hidden", "-Wl,-Bsymbolic")
 #: Prefix of the generated workspace's names.
 PREFIX = "hvac_"
 #: OSQP's status values (osqp_api_constants.h) and messages, as its Python interface reports them.
@@ -62,6 +70,7 @@ STATUS = {1: "solved", 2: "solved inaccurate", 3: "primal infeasible", 4: "prima
 #: The C interface compiled with the generated workspace: one function per call of the RTI, and OSQP's
 #: interrupt check used as its time limit.
 GLUE = r"""
+#include <stdlib.h>
 #include <string.h>
 #include <time.h>
 #include "osqp.h"
@@ -103,33 +112,40 @@ static void limit_inv_sqrt(OSQPFloat* v, OSQPInt n) {  /* limit_scaling_vector, 
   }
 }
 
-/* the inf-norms of A's columns (max'ed into d, which holds P's) and rows (into e) */
-static void norms_a(const OSQPCscMatrix* A, OSQPFloat* d, OSQPFloat* da, OSQPFloat* e) {
+/* the inf-norms of A's columns (into ca) and rows (into ra), after scaling A's values by E (e) and D (d) when
+   e is not null: one sweep over A for a pass's scaling and the next pass's norms. A maximum does not depend on the
+   order its values come in (none is nan: the maximum of |a| ignores a nan the same way in any order), so these are
+   the norms OSQP's separate sweep takes of the same values */
+static OSQPFloat *col_a = OSQP_NULL, *row_a = OSQP_NULL;
+static void scale_norms_a(OSQPCscMatrix* A, const OSQPFloat* e, const OSQPFloat* d, OSQPFloat* ca, OSQPFloat* ra) {
   OSQPInt j, k;
-  for (k = 0; k < A->m; k++) e[k] = 0.0;
+  for (k = 0; k < A->m; k++) ra[k] = 0.0;
   for (j = 0; j < A->n; j++) {
     OSQPFloat cj = 0.0;
     for (k = A->p[j]; k < A->p[j + 1]; k++) {
-      OSQPFloat a = c_absval(A->x[k]);
+      OSQPFloat a;
+      if (e) { A->x[k] *= e[A->i[k]]; A->x[k] *= d[j]; }
+      a = c_absval(A->x[k]);
       cj = c_max(a, cj);
-      e[A->i[k]] = c_max(a, e[A->i[k]]);
+      ra[A->i[k]] = c_max(a, ra[A->i[k]]);
     }
-    da[j] = cj;
-    d[j] = c_max(d[j], cj);
+    ca[j] = cj;
   }
 }
 
 /* OSQP's matrix update with its equilibration (osqp_update_data_mat: unscale_data, the new values,
    scale_data, the refactorisation) with the passes over P and A fused: every value and vector entry
    goes through the same operations in the same order as in OSQP's functions, so the results are the
-   same to the bit, with two sweeps over P and one over A a Ruiz pass instead of five each */
+   same to the bit, with one sweep over P and one over A a Ruiz pass instead of five each (the sweep that scales
+   A takes the next pass's norms of A: scale_norms_a; the sweep that scales P by D applies the pass before's cost
+   scaling c first) */
 API int hq_update_mat_fused(const double* Px, const double* Ax) {
   OSQPWorkspace* w = S->work;
   OSQPScaling* sc;
   OSQPCscMatrix *P, *A;
   OSQPInt n, m, nnzP, nnzA, i, j, k, pass;
   OSQPFloat *q, *l, *u, *D, *E, *Dinv, *Einv, *dt, *da, *et;
-  OSQPFloat c_temp, norm_q;
+  OSQPFloat c_temp, norm_q, c_last = 1.0;
   if (!S->settings->scaling) return (int)osqp_update_data_mat(S, Px, OSQP_NULL, 0, Ax, OSQP_NULL, 0);
   sc = w->scaling;
   P = w->data->P->csc;
@@ -152,15 +168,20 @@ API int hq_update_mat_fused(const double* Px, const double* Ax) {
     for (k = P->p[j]; k < P->p[j + 1]; k++) cj = c_max(c_absval(P->x[k]), cj);
     dt[j] = cj;
   }
+  if (!col_a) col_a = (OSQPFloat*)malloc(sizeof(OSQPFloat) * (size_t)n);
+  if (!row_a) row_a = (OSQPFloat*)malloc(sizeof(OSQPFloat) * (size_t)m);
+  if (!col_a || !row_a) return -1;
+  scale_norms_a(A, OSQP_NULL, OSQP_NULL, col_a, row_a);  /* the first pass's norms of A */
   for (pass = 0; pass < S->settings->scaling; pass++) {
-    norms_a(A, dt, da, et);
+    for (j = 0; j < n; j++) dt[j] = c_max(dt[j], col_a[j]);  /* the columns' norms of P and A */
+    memcpy(et, row_a, sizeof(OSQPFloat) * (size_t)m);
     limit_inv_sqrt(dt, n);
     limit_inv_sqrt(et, m);
-    for (j = 0; j < n; j++)                           /* A <- E A D */
-      for (k = A->p[j]; k < A->p[j + 1]; k++) { A->x[k] *= et[A->i[k]]; A->x[k] *= dt[j]; }
-    for (j = 0; j < n; j++) {                         /* P <- D P D, its columns' norms into da */
+    scale_norms_a(A, et, dt, col_a, row_a);           /* A <- E A D, the next pass's norms of A */
+    for (j = 0; j < n; j++) {                         /* P <- D (c P) D, its columns' norms into da */
       OSQPFloat cj = 0.0;
       for (k = P->p[j]; k < P->p[j + 1]; k++) {
+        if (pass > 0) P->x[k] *= c_last;              /* the last pass's P <- c P, as its own sweep did it */
         P->x[k] *= dt[P->i[k]];
         P->x[k] *= dt[j];
         cj = c_max(c_absval(P->x[k]), cj);
@@ -179,17 +200,16 @@ API int hq_update_mat_fused(const double* Px, const double* Ax) {
     c_temp = c_max(c_temp, norm_q);
     c_temp = limit_scaling_scalar(c_temp);
     c_temp = 1. / c_temp;
-    for (j = 0; j < n; j++) {                         /* P <- c P, the next pass's norms of its columns */
-      OSQPFloat cj = 0.0;
-      for (k = P->p[j]; k < P->p[j + 1]; k++) {
-        P->x[k] *= c_temp;
-        cj = c_max(c_absval(P->x[k]), cj);
-      }
-      dt[j] = cj;
-    }
+    /* P <- c P is left to the next pass's sweep (or the sweep after the passes); the next pass's norms of P's
+       columns are those of c P: c is positive and finite (limit_scaling_scalar bounds its reciprocal) and rounding
+       is monotone and symmetric, so max_k |fl(c x_k)| = fl(c max_k |x_k|), the same value to the bit */
+    for (j = 0; j < n; j++) dt[j] = da[j] * c_temp;
+    c_last = c_temp;
     for (i = 0; i < n; i++) q[i] *= c_temp;
     sc->c *= c_temp;
   }
+  if (S->settings->scaling > 0)
+    for (k = 0; k < nnzP; k++) P->x[k] *= c_last;    /* the last pass's P <- c P */
   sc->cinv = 1. / sc->c;
   for (i = 0; i < n; i++) Dinv[i] = (OSQPFloat)1.0 / D[i];
   for (i = 0; i < m; i++) Einv[i] = (OSQPFloat)1.0 / E[i];
@@ -328,6 +348,45 @@ API int hq_solve(double* x, long long* info) {
 }
 """
 
+#: Edits of OSQP's generated ``src/osqp_api.c`` (``osqp_solve``), each ``(what, OSQP's text, ours)``: work whose
+#: results no answer reads, left out. An edit whose text is not found fails the build (the Python interface then
+#: solves, ``load``'s report says why), so another OSQP version is never built half edited. Every value the
+#: iterations, the termination, the step size's adaptation and the solution read is computed as before, so the
+#: solution, the status and the iterations are OSQP's to the bit (``tests/test_osqp_embedded.py``).
+SOLVE_EDITS = (
+    # update_info at the first iteration: its residuals, objective and gap are computed again, from the iterate they
+    # are read for, at every iteration that reads them (a termination check, a step size adaptation, the end of the
+    # loop); only the iteration count it records is read in between (a solve interrupted by the time limit reports
+    # it), so only that is kept
+    ("the first iteration's residuals",
+     "    if(can_check_termination || can_print || can_adapt_rho || iter == 1) {",
+     "    if (iter == 1 && !(can_check_termination || can_print || can_adapt_rho)) solver->info->iter = iter;\n"
+     "    if(can_check_termination || can_print || can_adapt_rho) {"),
+    # the objective and gap after the loop: the last update_info computed them from the same x, y, P x, q, l and u
+    # (nothing between writes those), into the same fields, so the call repeats the same values
+    ("the objective computed again after the loop",
+     "  if (has_solution(solver->info)){\n"
+     "    compute_obj_val_dual_gap(solver, work->x, work->y,",
+     "  if (0){\n"
+     "    compute_obj_val_dual_gap(solver, work->x, work->y,"),
+    # the step size OSQP would suggest, for its info only (the adaptation computes its own when it adapts)
+    ("the final step size estimate",
+     "  solver->info->rho_estimate = compute_rho_estimate(solver);",
+     "  /* info->rho_estimate not computed: no answer reads it */"),
+)
+
+
+def edit_solve(source: str) -> str:
+    """``osqp_api.c``'s text with :data:`SOLVE_EDITS` made; ``ValueError`` naming the edit whose text is not found
+    once."""
+    for what, old, new in SOLVE_EDITS:
+        if source.count(old) != 1:
+            raise ValueError(f"OSQP's osqp_api.c: the text of the edit {what!r} found {source.count(old)} times, "
+                             f"expected once (another OSQP version?)")
+        source = source.replace(old, new)
+    return source
+
+
 #: OSQP's interrupt hooks as its sources declare them (the header is not among its generated sources).
 INTERRUPT_H = """#ifndef INTERRUPT_H
 #define INTERRUPT_H
@@ -354,6 +413,7 @@ def structure_key(wrapper: osqp.OSQP, P_pattern: tuple, A_pattern: tuple) -> str
     h.update(osqp.__version__.encode())
     h.update(" ".join(CFLAGS).encode())
     h.update(GLUE.encode())
+    h.update(repr(SOLVE_EDITS).encode())
     h.update(platform.machine().encode())
     h.update(processor().encode())
     return h.hexdigest()[:20]
@@ -392,6 +452,8 @@ def _build(wrapper: osqp.OSQP, lib: Path) -> None:
         folder = Path(tmp) / "osqp"
         wrapper.codegen(str(folder), parameters="matrices", extension_name=None, force_rewrite=True,
                         prefix=PREFIX, interrupt_enable=True)
+        api = folder / "src" / "osqp_api.c"
+        api.write_text(edit_solve(api.read_text()))
         (folder / "interrupt.h").write_text(INTERRUPT_H)
         (folder / "hvac_glue.c").write_text(GLUE)
         one = folder / "all.c"  # one translation unit: compile_shared takes one source

@@ -1,6 +1,7 @@
 """OSQP's generated C for the RTI's QP (mpc/osqp_embedded.py): the Python interface's answers, built once per
 structure into the cache, the Python interface where it cannot be built, a workspace per solver, the time
-limit, the kept equilibration between updates.
+limit, the kept equilibration between updates, the edits of OSQP's solve and the fused matrix update to the bit
+(docs/architecture.md "The step's glue, second pass").
 
 Budget: about 15 s on a loaded two-core machine (one build of the generated solver, about 3 s, and short
 closed loops with CasADi's interpreter).
@@ -230,3 +231,43 @@ def test_a_reset_never_compiles_it_loads_from_the_cache_or_keeps_the_python_inte
     assert osqp_embedded.load(_setup(lay, qps[0]), lay.P_pattern, lay.A_pattern, report=report) is not None
     assert osqp_embedded.load(_setup(lay, qps[0]), lay.P_pattern, lay.A_pattern, report=report, build=False) is not None
     assert report.outcomes["osqp"] == "cached"
+
+
+def test_the_edits_of_osqps_solve_apply_once_to_the_installed_sources_and_refuse_other_text():
+    """:data:`~hvac_mpc.mpc.osqp_embedded.SOLVE_EDITS` on the installed OSQP's ``osqp_api.c``: each text found once and
+    replaced (the build would fail otherwise); a source without one of them is refused with the edit's name."""
+    import pathlib
+
+    source = (pathlib.Path(osqp.__file__).parent / "codegen" / "codegen_src" / "src" / "osqp_api.c").read_text()
+    edited = osqp_embedded.edit_solve(source)
+    for what, old, new in osqp_embedded.SOLVE_EDITS:
+        assert source.count(old) == 1 and old not in edited and new in edited, what
+    what, old, _ = osqp_embedded.SOLVE_EDITS[1]
+    with pytest.raises(ValueError, match=what):
+        osqp_embedded.edit_solve(source.replace(old, ""))
+
+
+def test_the_fused_matrix_update_leaves_osqps_own_workspace_and_the_edited_solve_its_answers(cache, recorded):
+    """The fused matrix update (one sweep over A and one over P a Ruiz pass) against OSQP's own
+    ``osqp_update_data_mat`` (``hq_update_mat``) in two generated solvers: after every QP of the recorded loop the saved
+    workspaces (scaled P and A, D, E, their inverses, the cost scaling, the multipliers, the step size) are equal to
+    the bit; the edited solve's answers, statuses and iterations are the Python interface's, also when capped at 1 to 7
+    iterations (the loop ended without a termination check, the first iteration's residuals not computed)."""
+    qps, lay = recorded
+    fused = osqp_embedded.load(_setup(lay, qps[0]), lay.P_pattern, lay.A_pattern)
+    own = osqp_embedded.load(_setup(lay, qps[0]), lay.P_pattern, lay.A_pattern)
+    python = _OsqpCore(_setup(lay, qps[0]))
+    for i, qp in enumerate(qps):
+        fused.update_matrices(qp["Px"], qp["Ax"])
+        own._check(own._lib.hq_update_mat(own._p(qp["Px"], own._nnz_p), own._p(qp["Ax"], own._nnz_a)), "update")
+        python.update_matrices(qp["Px"], qp["Ax"])
+        assert fused.save_state()["buf"].tobytes() == own.save_state()["buf"].tobytes(), i
+        answers = []
+        for core in (fused, own, python):
+            core.update_vectors(qp["q"], qp["l"], qp["u"])
+            core.warm_start(qp["warm"])
+            answers.append(core.solve_capped(1 + i % 7) if i % 3 == 2 else core.solve())
+        (s1, t1, n1, x1), (s2, t2, n2, x2), (s3, t3, n3, x3) = answers
+        assert (s1, t1, n1) == (s2, t2, n2) == (s3, t3, n3), i
+        assert x1.tobytes() == x2.tobytes() == np.asarray(x3).tobytes(), i
+    assert fused.rho == own.rho
