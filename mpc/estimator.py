@@ -155,14 +155,14 @@ class EkfSettings:
     independent simulator's variants. ``dead_time_lead_reach_s``: a candidate ahead of the estimate continues the
     lead's count (:data:`~.dead_time.LEAD_SAMPLES` samples in a row switch the estimate) while it moves by at most
     this from one sample to the next (s in [0, ``dead_time_max_s``]; 0: only the same candidate, as before; 0.5 at
-    1 s samples: the neighbouring half sample of the same minimum, which otherwise restarts the count; a setting, off;
-    docs/robustness.md sec. 2.38). ``dead_time_lead_count_quiet``: samples whose window holds too little response to
+    1 s samples: the neighbouring half sample of the same minimum, which otherwise restarts the count; the default
+    since 28 November 2026, docs/robustness.md sec. 2.38, 2.39). ``dead_time_lead_count_quiet``: samples whose window holds too little response to
     rank the candidates (below ``dead_time_excitation_c``) count for a candidate that stands ahead, instead of neither
-    counting nor breaking the row; the switch still waits for a ranked sample with it ahead (a setting, off; sec. 2.38).
+    counting nor breaking the row; the switch still waits for a ranked sample with it ahead (the default; sec. 2.38).
     ASSUMPTION: nothing in a quiet window argues against the lead it left standing. ``dead_time_lead_tie_hold``: a
     dead time the lead rule switched to gives way only to a clearly better candidate, another lead, or a tie within
     ``dead_time_lead_reach_s`` (the same minimum's bottom), not to a shorter tie farther away (the tie rule took a
-    lead's 3.5 s back to 0 s within 4 s on a flat ranking; a setting, off; sec. 2.38).
+    lead's 3.5 s back to 0 s within 4 s on a flat ranking; the default; sec. 2.38).
 
     ``q_mix_offset_c``: random walk (degC per sample) of the mixed-air offset. 0.015 (0.03 before): with
     the faster valve and the reading-heavy tracked temperature (``OcpSpec``) the offset's sample-to-sample
@@ -435,9 +435,9 @@ class EkfSettings:
     dead_time_min_s: float = 1.5
     dead_time_initial_s: float = 0.0
     dead_time_prior_s: float = 0.0
-    dead_time_lead_reach_s: float = 0.0
-    dead_time_lead_count_quiet: bool = False
-    dead_time_lead_tie_hold: bool = False
+    dead_time_lead_reach_s: float = 0.5
+    dead_time_lead_count_quiet: bool = True
+    dead_time_lead_tie_hold: bool = True
     q_heater_outlet_offset_c: float = 0.01
     q_cooler_offset_c: float = 0.0
     q_heater_air_offset_c: float = 0.0
