@@ -21,6 +21,7 @@ import platform
 import shutil
 import subprocess
 import tempfile
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -112,6 +113,8 @@ KEPT_MAX = 24
 #: The functions :func:`kept` built in this process, by key, the least recently asked for first: a memo of
 #: immutable functions.
 _KEPT: dict[str, ca.Function] = {}
+#: Guards :data:`_KEPT`'s reads and writes (not the builds).
+_KEPT_LOCK = threading.Lock()
 
 
 def kept(key: str, build: Callable[[], ca.Function]) -> ca.Function:
@@ -122,12 +125,15 @@ def kept(key: str, build: Callable[[], ca.Function]) -> ca.Function:
     function to the bit, and a CasADi function is not changed by its calls (each
     :class:`.casadi_eval.BufferedFunction` evaluates into buffers of its own), so controllers of one structure share
     it (docs/architecture.md 'The suite's time')."""
-    fn = _KEPT.pop(key, None)
+    with _KEPT_LOCK:
+        fn = _KEPT.pop(key, None)
     if fn is None:
-        fn = build()
+        fn = build()  # outside the lock: two threads may build one key, both get an equal function
+    with _KEPT_LOCK:  # the daemon's API threads build controllers while its loop runs
+        _KEPT.pop(key, None)
         while len(_KEPT) >= KEPT_MAX:
-            _KEPT.pop(next(iter(_KEPT)))  # the least recently asked for
-    _KEPT[key] = fn  # last: the most recently asked for
+            _KEPT.pop(next(iter(_KEPT)), None)  # the least recently asked for
+        _KEPT[key] = fn  # last: the most recently asked for
     return fn
 
 

@@ -382,9 +382,11 @@ class MpcSettings:
             "last_each" / "kind_each": so each QP of the change. Not
             with ``osqp_rho_reset`` on "change". ``osqp_change_rho_restore`` (off by default): the first preparation
             after a change sets the step size back to the value before the change. ``osqp_change_rho_interval``
-            (iterations, 0 the default: off) and ``osqp_change_rho_tolerance`` (a factor, 0 the default: OSQP's 5):
-            OSQP's step size adapted so often (where its estimate differs by more than that factor) in a change's
-            QPs; the generated solver only (``osqp_codegen``). Measured in
+            (iterations in [0, 1000], 0 the default: off) and ``osqp_change_rho_tolerance`` (a factor in (1, 100],
+            0 the default: OSQP's 5; only with an interval): OSQP's step size adapted so often (where its estimate
+            differs by more than that factor) in a change's QPs; the generated solver only (``osqp_codegen``; with the
+            Python interface, or after a fallback to it, the interval does nothing). None of the four with
+            ``change_split_iter``. Measured in
             docs/architecture.md, 'The change's step size'.
         valve_a_reversal_share: the share of a move of valve a that reverses its last applied move (both at least
             ``valve_a_reversal_min_pct`` (% of travel)) applied, in (0, 1], 1 off (:mod:`~.reversal_damping`: the
@@ -542,6 +544,14 @@ class MpcSettings:
                              self.osqp_change_rho_tolerance)
         except ValueError as exc:
             raise InvalidSettings(str(exc)) from None
+        if self.osqp_change_rho_tolerance and not self.osqp_change_rho_interval:
+            raise InvalidSettings(f"{p}.osqp_change_rho_tolerance = {self.osqp_change_rho_tolerance!r} needs "
+                                  f"{p}.osqp_change_rho_interval in [1, 1000] (the adaptation it tunes)")
+        if self.change_split_iter and (self.osqp_change_rho != "off" or self.osqp_change_rho_restore
+                                       or self.osqp_change_rho_interval):
+            raise InvalidSettings(f"{p}.osqp_change_rho / osqp_change_rho_restore / osqp_change_rho_interval with "
+                                  f"{p}.change_split_iter = {self.change_split_iter}: not supported (a split change's "
+                                  "rest runs after the change is closed); allowed: change_split_iter 0 with them")
         if self.osqp_change_rho != "off" and self.osqp_rho_reset is not None and self.osqp_rho_reset_on == "change":
             raise InvalidSettings(f"{p}.osqp_change_rho = {self.osqp_change_rho!r} and {p}.osqp_rho_reset with "
                                   "osqp_rho_reset_on 'change' both set a change's step size; allowed: one of them")

@@ -117,6 +117,8 @@ static void limit_inv_sqrt(OSQPFloat* v, OSQPInt n) {  /* limit_scaling_vector, 
    order its values come in (none is nan: the maximum of |a| ignores a nan the same way in any order), so these are
    the norms OSQP's separate sweep takes of the same values */
 static OSQPFloat *col_a = OSQP_NULL, *row_a = OSQP_NULL;
+/* the two norm vectors freed when the private copy is unloaded (dlclose runs the destructors) */
+__attribute__((destructor)) static void release_norms(void) { free(col_a); free(row_a); col_a = row_a = OSQP_NULL; }
 static void scale_norms_a(OSQPCscMatrix* A, const OSQPFloat* e, const OSQPFloat* d, OSQPFloat* ca, OSQPFloat* ra) {
   OSQPInt j, k;
   for (k = 0; k < A->m; k++) ra[k] = 0.0;
@@ -148,9 +150,13 @@ API int hq_update_mat_fused(const double* Px, const double* Ax) {
   OSQPFloat c_temp, norm_q, c_last = 1.0;
   if (!S->settings->scaling) return (int)osqp_update_data_mat(S, Px, OSQP_NULL, 0, Ax, OSQP_NULL, 0);
   sc = w->scaling;
+  n = w->data->n; m = w->data->m;
+  if (!col_a) col_a = (OSQPFloat*)malloc(sizeof(OSQPFloat) * (size_t)n);  /* before the workspace is touched */
+  if (!row_a) row_a = (OSQPFloat*)malloc(sizeof(OSQPFloat) * (size_t)m);
+  if (!col_a || !row_a) return -1;
   P = w->data->P->csc;
   A = w->data->A->csc;
-  n = w->data->n; m = w->data->m; nnzP = P->p[n]; nnzA = A->p[n];
+  nnzP = P->p[n]; nnzA = A->p[n];
   q = w->data->q->values; l = w->data->l->values; u = w->data->u->values;
   D = sc->D->values; E = sc->E->values; Dinv = sc->Dinv->values; Einv = sc->Einv->values;
   dt = w->D_temp->values; da = w->D_temp_A->values; et = w->E_temp->values;
@@ -168,9 +174,6 @@ API int hq_update_mat_fused(const double* Px, const double* Ax) {
     for (k = P->p[j]; k < P->p[j + 1]; k++) cj = c_max(c_absval(P->x[k]), cj);
     dt[j] = cj;
   }
-  if (!col_a) col_a = (OSQPFloat*)malloc(sizeof(OSQPFloat) * (size_t)n);
-  if (!row_a) row_a = (OSQPFloat*)malloc(sizeof(OSQPFloat) * (size_t)m);
-  if (!col_a || !row_a) return -1;
   scale_norms_a(A, OSQP_NULL, OSQP_NULL, col_a, row_a);  /* the first pass's norms of A */
   for (pass = 0; pass < S->settings->scaling; pass++) {
     for (j = 0; j < n; j++) dt[j] = c_max(dt[j], col_a[j]);  /* the columns' norms of P and A */

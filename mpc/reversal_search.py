@@ -104,12 +104,14 @@ BOUND_SHARE = 0.02
 def at_bound(u_lin: np.ndarray, u_lo: np.ndarray, u_hi: np.ndarray, i: int, span: float,
              share: float = BOUND_SHARE) -> bool:
     """True where input ``i``'s profile in ``u_lin`` (N x nu, scaled; the linearisation point's plan) starts at
-    its first stage's lower or upper bound (``u_lo``, ``u_hi``, N x nu, the QP's bounds), within ``share`` x
-    ``span`` (the input's scaled range): an end of the input's stroke, where a two-cycle of the real-time
-    iteration rests (``MpcSettings.rti_reversal_bound_only``)."""
+    an end of the input's stroke, within ``share`` x ``span`` (the input's scaled range) of its lower or upper
+    bound: where a two-cycle of the real-time iteration rests (``MpcSettings.rti_reversal_bound_only``). The
+    stroke's ends are the last stage's bounds (``u_lo``, ``u_hi``, N x nu, the QP's bounds): the first stage's
+    carry the rate window around the applied input, which would count every profile at a bound where the window
+    is narrower than the share."""
     tol = share * float(span)
     first = float(u_lin[0, i])
-    return bool(abs(first - float(u_hi[0, i])) <= tol or abs(first - float(u_lo[0, i])) <= tol)
+    return bool(abs(first - float(u_hi[-1, i])) <= tol or abs(first - float(u_lo[-1, i])) <= tol)
 
 
 def rate_limited(profile: np.ndarray, lo: np.ndarray, hi: np.ndarray, rate: np.ndarray | None) -> np.ndarray:

@@ -344,6 +344,9 @@ class RtiOsqpSolver:
         self._change_rho = ChangeStepSize(change_rho, change_rho_restore)
         self.change_rho_interval, self.change_rho_tolerance = check_adaptation(
             "RtiOsqpSolver: change_rho_interval", change_rho_interval, change_rho_tolerance)
+        if self.change_split_iter and (change_rho != "off" or change_rho_restore or self.change_rho_interval):
+            raise ValueError("RtiOsqpSolver: change_rho / change_rho_restore / change_rho_interval with "
+                             "change_split_iter: not supported; allowed: change_split_iter 0 with them")
         self.steady_start_on = check_steady_start_on("RtiOsqpSolver: steady_start_on", steady_start_on)
         if isinstance(relinearise_every, bool) or int(relinearise_every) != relinearise_every or relinearise_every < 1:
             raise ValueError(f"RtiOsqpSolver: relinearise_every = {relinearise_every!r}, allowed: an integer >= 1")

@@ -155,6 +155,9 @@ def test_the_restore_shortens_the_slowest_qp_after_the_change_at_60_s(cache):
     ({"osqp_change_rho_interval": 2.5}, r"osqp_change_rho_interval = 2.5"),
     ({"osqp_change_rho_tolerance": 1.0}, r"osqp_change_rho_tolerance = 1.0, allowed: 0 \(OSQP's\) or a factor"),
     ({"osqp_change_rho": "last", "osqp_rho_reset": 1e-3, "osqp_rho_reset_on": "change"}, r"one of them"),
+    ({"osqp_change_rho_tolerance": 2.0}, r"osqp_change_rho_tolerance = 2.0 needs .*osqp_change_rho_interval"),
+    ({"osqp_change_rho": "last", "change_split_iter": 50}, r"change_split_iter = 50: not supported"),
+    ({"osqp_change_rho_restore": True, "change_split_iter": 50}, r"change_split_iter = 50: not supported"),
 ])
 def test_the_fields_are_checked_naming_the_field(fields, match):
     with pytest.raises(InvalidSettings, match=match):
@@ -165,3 +168,5 @@ def test_the_solver_refuses_both_change_step_sizes():
     pb = MpcController(settings=MpcSettings(codegen=False, osqp_codegen=False)).problem
     with pytest.raises(ValueError, match=r"change_rho and rho_reset with rho_reset_on='change'"):
         RtiOsqpSolver(pb, change_rho="kind", rho_reset=1e-3, rho_reset_on="change")
+    with pytest.raises(ValueError, match=r"with change_split_iter: not supported"):
+        RtiOsqpSolver(pb, change_rho_restore=True, change_split_iter=50)

@@ -176,10 +176,17 @@ def test_kept_builds_once_per_key_and_holds_the_last_ones(monkeypatch):
     assert built == [1, 2, 2]
 
 
-def test_two_controllers_of_one_structure_share_their_stages_qp_data_and_another_structure_does_not():
+def test_two_controllers_of_one_structure_share_their_stages_qp_data_and_another_structure_does_not(monkeypatch):
     """The stages' QP data (rti_osqp._stage_qp_function, common subexpressions found once per expression): a second
     controller of the same structure takes the first one's functions, one of other model effects builds its own."""
-    one, two = (MpcController(settings=MpcSettings(codegen=False)).solver for _ in range(2))
+    from hvac_mpc.mpc import rti_osqp
+    built = []
+    real = rti_osqp.kept
+    monkeypatch.setattr(rti_osqp, "kept", lambda key, build: real(key, lambda: built.append(key) or build()))
+    one = MpcController(settings=MpcSettings(codegen=False)).solver
+    n_one = len(built)  # 0 where an earlier test of this process built the structure
+    two = MpcController(settings=MpcSettings(codegen=False)).solver
+    assert len(built) == n_one  # the second controller built none of the stages' QP data
     other = MpcController(settings=MpcSettings(codegen=False, ocp=OcpSpec(
         model_effects=("fan_curve", "valve_leakage")))).solver
     for n, stage in one.pb.stages_p.items():

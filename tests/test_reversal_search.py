@@ -207,13 +207,14 @@ def test_candidates_follow_the_rate_limits_from_the_first_stage():
     assert candidates(u_qp, u_qp, u_lo, u_hi, 1)[1][1, 1] == 1.0  # no rates: the bound at once
 
 
-def test_a_profile_is_at_a_bound_where_its_first_stage_is_within_two_percent_of_the_range():
+def test_a_profile_is_at_a_bound_where_its_first_stage_is_within_two_percent_of_an_end_of_the_stroke():
     lo, hi = np.full((3, 2), -1.0), np.full((3, 2), 1.0)
-    hi[0, 0] = 0.6  # the first stage's bound (a cap or a rate limit), not the range's
+    hi[:, 0] = 0.6  # a cap over the horizon: an end of input 0's stroke
     u_lin = np.array([[0.59, -0.97], [0.0, 0.0], [0.0, 0.0]])
-    assert at_bound(u_lin, lo, hi, 0, span=2.0)  # 0.01 from the first stage's upper bound
-    assert at_bound(u_lin, lo, hi, 1, span=2.0)  # 0.03 from the lower one, within 0.02 x 2.0
+    assert at_bound(u_lin, lo, hi, 0, span=2.0)  # 0.01 from the cap
+    assert at_bound(u_lin, lo, hi, 1, span=2.0)  # 0.03 from the lower end, within 0.02 x 2.0
     u_lin[0] = [0.5, -0.9]
+    lo[0, 1], hi[0, 1] = -0.91, -0.89  # the first stage's narrow rate window around the applied input: no end
     assert not at_bound(u_lin, lo, hi, 0, span=2.0) and not at_bound(u_lin, lo, hi, 1, span=2.0)  # mid-stroke
 
 
@@ -222,8 +223,6 @@ def test_the_bound_only_rule_is_off_by_default_and_checked():
     assert MpcSettings(rti_reversal_bound_only=True).rti_reversal_bound_only is True
     with pytest.raises(InvalidSettings, match="rti_reversal_bound_only"):
         MpcSettings(rti_reversal_bound_only=1)
-    with pytest.raises(InvalidSettings, match="reversal_bound_only"):  # the solver's own check
-        check_flag("RtiOsqpSolver: reversal_bound_only", "yes")
 
 
 def _winter_on_recirculating_box(end_s: int, **fields) -> dict:
