@@ -156,8 +156,8 @@ class EkfSettings:
     lead's count (:data:`~.dead_time.LEAD_SAMPLES` samples in a row switch the estimate) while it moves by at most
     this from one sample to the next (s in [0, ``dead_time_max_s``]; 0: only the same candidate, as before; 0.5 at
     1 s samples: the neighbouring half sample of the same minimum, which otherwise restarts the count; the default
-    since 28 November 2026, docs/robustness.md sec. 2.38, 2.39). ``dead_time_lead_count_quiet``: samples whose window holds too little response to
-    rank the candidates (below ``dead_time_excitation_c``) count for a candidate that stands ahead, instead of neither
+    since 28 November 2026, docs/robustness.md sec. 2.38, 2.39). ``dead_time_lead_count_quiet``: samples whose
+    window holds too little response to rank the candidates (below ``dead_time_excitation_c``) count for a candidate that stands ahead, instead of neither
     counting nor breaking the row; the switch still waits for a ranked sample with it ahead (the default; sec. 2.38).
     ASSUMPTION: nothing in a quiet window argues against the lead it left standing. ``dead_time_lead_tie_hold``: a
     dead time the lead rule switched to gives way only to a clearly better candidate, another lead, or a tie within

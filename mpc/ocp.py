@@ -54,7 +54,7 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass, field, fields
-from typing import Any, Callable
+from typing import Any, Callable, NamedTuple
 
 import casadi as ca
 import numpy as np
@@ -432,6 +432,15 @@ class HeaterOffBound:
         return min(float(heater_est_c), self.bound_c)
 
 
+class ParameterRows(NamedTuple):
+    """The constants of the soft rows and of the body's heat that follow from the model parameters
+    (:meth:`TrackingProblem.parameter_rows`; floats, or CasADi expressions of a symbolic ``p``)."""
+    heater_bound_c: Any  # the heater row's bound (degC, scaled state's offset removed)
+    ptc_coef_u: Any  # the PTC row's coefficient of the scaled heater command (degC per scaled unit)
+    ptc_bound_c: Any  # the PTC row's bound (degC)
+    body_heat_coef: Any  # :meth:`TrackingProblem.body_heat_coefficient`
+
+
 class TrackingProblem:
     """The scaled discrete OCP data shared by all solvers (built once per controller).
 
@@ -543,7 +552,7 @@ class TrackingProblem:
         self.terminal_s = w.terminal_s
         self._build_functions()
 
-    def parameter_rows(self, p) -> tuple:
+    def parameter_rows(self, p) -> ParameterRows:
         """The constants of the soft rows and of the body's heat that follow from the model parameters ``p``
         (:attr:`HvacModel.p_default` order; numpy or CasADi, the same operations): the heater row's bound (degC;
         :attr:`OcpSpec.heater_temp_max_c` where set), the PTC row's coefficient of the scaled heater command and its
@@ -556,9 +565,9 @@ class TrackingProblem:
         ih = self.i_heater_cmd
         hmax = self.spec.heater_temp_max_c if self.spec.heater_temp_max_c is not None else at("heater_temp_max_c")
         slope_w_per_k = at("heater_power_max_w") / (at("ptc_zero_c") - at("ptc_knee_c"))
-        return (hmax - self.x_off[self.i_heater], self.u_sc[ih] / slope_w_per_k,
-                at("ptc_zero_c") - self.u_off[ih] / slope_w_per_k - self.x_off[self.i_heater],
-                self.body_heat_coefficient(at("heater_mass_kg") * at("heater_c_j_per_kgk")))
+        return ParameterRows(hmax - self.x_off[self.i_heater], self.u_sc[ih] / slope_w_per_k,
+                             at("ptc_zero_c") - self.u_off[ih] / slope_w_per_k - self.x_off[self.i_heater],
+                             self.body_heat_coefficient(at("heater_mass_kg") * at("heater_c_j_per_kgk")))
 
     def body_heat_coefficient(self, capacity_j_per_k=None):
         """Cost per unit of the scaled terminal heater-body state (:attr:`Weights.body_heat_power_w`): the
@@ -674,7 +683,10 @@ class TrackingProblem:
         ``heater_x`` and scaled heater command ``heater_u`` of the same stage (CasADi or numpy; the
         QP of ``rti_osqp`` holds the same coefficients); ``rows``: :meth:`parameter_rows` of other (e.g.
         symbolic) parameters, by default this problem's."""
-        coef_u, bound = (self.ptc_row_coef_u, self.ptc_row_bound) if rows is None else rows[1:3]
+        if rows is None:
+            coef_u, bound = self.ptc_row_coef_u, self.ptc_row_bound
+        else:
+            coef_u, bound = rows.ptc_coef_u, rows.ptc_bound_c
         return self.heater_row_coef * heater_x + coef_u * heater_u - bound
 
     def floor_row(self, flow_m3s, heater_cmd_w):

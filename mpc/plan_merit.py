@@ -91,7 +91,8 @@ class PlanMerit:
         ib, ip = INPUTS.index("blower_power_w"), STAGE_OUTPUTS.index("heater_power_w")
         i_flow = STAGE_OUTPUTS.index("volume_flow_m3s")
         x, prev, cost = x0, u_prev, 0
-        rows = pb.parameter_rows(p)  # the rows' constants from the parameters: one build serves every parameter set of the same structure
+        # the rows' constants from the parameters: one build serves every parameter set of the same structure
+        rows = pb.parameter_rows(p)
         # the flaps' target (OcpSpec.flap_target_from_split: from the reference's split where its weights are on)
         flap_target = pb.flap_target_for(ref, SW[STAGE_OUTPUTS.index("flow_m_m3s"), 0] > 0.0)
         for k in range(N + 1):
@@ -112,7 +113,7 @@ class PlanMerit:
                     row = pb.floor_row(y[i_flow], pb.u_off[ih] + pb.u_sc[ih] * u[ih])
                     cost += FLOOR_PENALTY_PER_LS * pb.slack_l1 * pb.dt[k] * ca.fmax(0.0, -row)
                 prev, x = u, x_next
-        cost += pb.body_heat_cost(x0, x, u_prev, rows[3])  # x: the last node's state
+        cost += pb.body_heat_cost(x0, x, u_prev, rows.body_heat_coef)  # x: the last node's state
         return ca.Function("hvac_plan_merit", [x0, U, d, SW, ref, u_prev, p, ready_floor, ready_w], [cost],
                            list(ARGUMENTS), ["cost"])
 
@@ -121,7 +122,7 @@ class PlanMerit:
         row, stages 1..N-1; :meth:`.ocp.TrackingProblem.ptc_row`), at the QP's L1 and L2 prices over the stage
         before; ``rows``: :meth:`.ocp.TrackingProblem.parameter_rows` of the merit's parameters."""
         pb = self.pb
-        excess = pb.heater_row_coef * x[pb.i_heater] - rows[0]
+        excess = pb.heater_row_coef * x[pb.i_heater] - rows.heater_bound_c
         if pb.ptc_limit and k < pb.N:
             excess = ca.fmax(excess, pb.ptc_row(x[pb.i_heater], u[pb.i_heater_cmd], rows))
         s = ca.fmax(0.0, excess)
@@ -164,16 +165,13 @@ class PlanMerit:
         return fraction
 
 
-def _mapped(fn: ca.Function, n: int, name: str, key: str | None = None) -> ca.Function:
+def _mapped(fn: ca.Function, n: int, name: str, key: str) -> ca.Function:
     """``fn`` over ``n`` plans side by side (their inputs stacked along the columns of ``U``; the other
     arguments shared), the costs in a row.
 
     ``key``: :func:`.codegen.expression_key` of ``fn`` (its structure; the model parameters are an argument): the
     function built for a key, ``n`` and ``name`` is kept (:func:`.codegen.kept`) and returned as it is to the next
-    call with the same ones, since the common subexpressions of a merit of the default horizon take 2-7 s to find.
-    Without a key it is built afresh."""
-    if key is None:
-        return _mapped_afresh(fn, n, name)
+    call with the same ones, since the common subexpressions of a merit of the default horizon take 2-7 s to find."""
     return kept(f"plan merit {key} {n} {name}", lambda: _mapped_afresh(fn, n, name))
 
 
