@@ -477,6 +477,10 @@ class TwoPassSolve:
     """The RTI's solve in one pass or two (``first_pass_iter > 0``, :class:`.rti_osqp._OsqpCore`): OSQP's
     settings of both passes from its set-up, switched by :meth:`_apply` (of the subclass) only on a change."""
 
+    #: True where :meth:`_solve_once` returns a new array of its own for each solve (nothing else holds it, so the
+    #: caller may keep it without a copy); False where it may be a view of the solver's memory.
+    fresh_solution = False
+
     def _passes(self, st, first_pass_iter: int) -> None:
         self.first_pass_iter = int(first_pass_iter)
         # the continuation's cap leaves room for the pass's iterations: ``max_iter`` bounds the whole QP
@@ -532,6 +536,8 @@ class EmbeddedOsqp(TwoPassSolve):
     :class:`.rti_osqp._OsqpCore` does (the settings of both passes taken from ``wrapper``).
     ``scaling_interval``: OSQP's equilibration on every this many matrix updates (1: on each, as OSQP
     does); the others keep the last one's, which saves its Ruiz passes and changes the ADMM iterates."""
+
+    fresh_solution = True  # _solve_once: a new array per solve
 
     def __init__(self, lib: Path, wrapper: osqp.OSQP, first_pass_iter: int = 0, scaling_interval: int = 1):
         if int(scaling_interval) < 1:
