@@ -84,8 +84,8 @@ def turned_inputs(last_move: np.ndarray | None, move: np.ndarray, span: np.ndarr
 def turns_and_moves(last_move: np.ndarray | None, move: np.ndarray, span: np.ndarray,
                     share: float) -> tuple[np.ndarray, np.ndarray]:
     """:func:`turned_inputs` and :func:`last_moves` of one ``move`` (1-D) together: the same two arrays, to the bit,
-    in one pass over the few inputs in plain Python (a step's two calls cost some 8 us in a dozen numpy calls on six
-    values; this about 2 us). The same operations on the same values: the share of each span as numpy multiplies it
+    in one pass over the few inputs in plain Python (the two calls cost 6-8 us in a dozen numpy calls on six
+    values; this 2-3 us). The same operations on the same values: the share of each span as numpy multiplies it
     (``share * span``), then comparisons and a choice, which are exact; a sign product below 0 is a pair of opposite
     nonzero signs (``np.sign`` of nan is nan, of a zero a zero: neither turns, as neither does here)."""
     bigs = (share * np.asarray(span, float)).tolist()

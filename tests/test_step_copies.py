@@ -2,7 +2,8 @@
 replaces to the bit. ``BufferedFunction.views`` is ``f(*args)`` without the copies; the reversal search's first move
 taken once (:func:`~hvac_mpc.mpc.reversal_search.turns_and_moves`) is the two functions it replaces; and closed loops
 with the buffers handed back, the generated solver's answer kept without a copy and the move taken once give the
-commands, iterations and plans of the same loops with every copy and the two calls put back."""
+commands, iterations and plans of the same loops with every copy and the two calls put back; the generated solver
+takes the address of an array it is handed again only when the array is another."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import numpy as np
 import pytest
 
 from hvac_mpc.benchmarks import solve_time
-from hvac_mpc.mpc import osqp_embedded, rti_osqp
+from hvac_mpc.mpc import codegen, osqp_embedded, rti_osqp
 from hvac_mpc.mpc.casadi_eval import BufferedFunction
 from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
 from hvac_mpc.mpc.reversal_search import last_moves, turned_inputs, turns_and_moves
@@ -18,6 +19,23 @@ from hvac_mpc.mpc.reversal_search import last_moves, turned_inputs, turns_and_mo
 
 def _bits(a) -> np.ndarray:
     return np.asarray(a, np.float64).view(np.int64)
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    """A cache folder of this module's own (the generated OSQP built once in it)."""
+    return tmp_path_factory.mktemp("cache")
+
+
+@pytest.fixture
+def route(cache, monkeypatch):
+    """OSQP's generated solver switched on where a test asks for it (the suite runs with code generation off; the QP
+    data stay interpreted, ``codegen=False``), else OSQP's Python interface."""
+    def on(generated: bool) -> None:
+        if generated:
+            monkeypatch.setenv(codegen.CACHE_ENV, str(cache))
+            monkeypatch.setenv(codegen.SWITCH_ENV, "1")
+    return on
 
 
 def test_views_are_the_calls_values_in_the_buffers_themselves():
@@ -37,6 +55,29 @@ def test_views_are_the_calls_values_in_the_buffers_themselves():
     expected = f(copied[0], 1.5)  # (the same inputs: the buffers written with the same values again)
     assert again[0] is first and np.array_equal(_bits(again[0]), _bits(expected[0]))
     assert not np.array_equal(_bits(first), _bits(copied[0]))  # overwritten by the call after
+
+
+def test_a_held_address_is_the_arrays_own_and_taken_again_for_another_array(route):
+    """The generated solver's held addresses (P's and A's values, the gradient): the array's own data address while
+    the same array comes back, a new array's at once, and a wrong array refused as before."""
+    route(True)
+    ctrl = MpcController(settings=MpcSettings(codegen=False))
+    loop = solve_time.Loop(ctrl, 1)
+    for k in range(3):
+        loop.step(k)
+    core = ctrl.solver._core
+    if not isinstance(core, osqp_embedded.EmbeddedOsqp):
+        ctrl.close()
+        pytest.skip("no compiler: the generated OSQP is not available")
+    q = np.zeros(core.n)
+    first = core._held_address(2, q, core.n)
+    assert first == osqp_embedded.data_address(q) and core._held[2][0] is q
+    assert core._held_address(2, q, core.n) == first
+    other = np.ones(core.n)
+    assert core._held_address(2, other, core.n) == osqp_embedded.data_address(other) and core._held[2][0] is other
+    with pytest.raises(ValueError):
+        core._held_address(2, np.zeros(core.n + 1), core.n)
+    ctrl.close()
 
 
 def _draws(rng: np.random.Generator, count: int):
@@ -81,12 +122,13 @@ def _loop(steps: int, settings: dict, copies: bool, monkeypatch) -> dict:
         if copies:
             m.setattr(BufferedFunction, "views", lambda self, *args: self(*args))
             m.setattr(osqp_embedded.EmbeddedOsqp, "fresh_solution", False)
+            m.setattr(osqp_embedded.EmbeddedOsqp, "_held_address", lambda self, slot, a, size: self._p(a, size))
             m.setattr(rti_osqp, "turns_and_moves",
                       lambda last, move, span, share: (turned_inputs(last, move, span, share),
                                                        last_moves(last, move, span, share)))
-        ctrl = MpcController(settings=MpcSettings(**settings))
+        ctrl = MpcController(settings=MpcSettings(codegen=False, **settings))
         loop = solve_time.Loop(ctrl, 1)
-        out = {"commands": [], "plans": [], "iterations": [], "searched": 0, "taken": 0}
+        out = {"commands": [], "plans": [], "iterations": [], "searched": 0, "taken": 0, "generated": False}
         for k in range(steps):
             res = loop.step(k)
             out["commands"].append(res.command.vector())
@@ -94,18 +136,24 @@ def _loop(steps: int, settings: dict, copies: bool, monkeypatch) -> dict:
             out["plans"].append(None if ctrl.solver.U is None else ctrl.solver.U.copy())
             out["searched"] += bool(res.stats.get("reversal_searched"))
             out["taken"] += bool(res.stats.get("reversal_taken"))
+        out["generated"] = isinstance(ctrl.solver._core, osqp_embedded.EmbeddedOsqp)
         ctrl.close()
     return out
 
 
+@pytest.mark.parametrize("generated", [True, False], ids=["generated OSQP", "OSQP's Python interface"])
 @pytest.mark.parametrize("settings", [{}, {"rti_reversal_wait_steps": 0, "rti_reversal_margin": 0.0}],
                          ids=["defaults", "search_every_step"])
-def test_a_closed_loop_with_the_cuts_is_the_loop_with_the_copies_to_the_bit(settings, monkeypatch):
+def test_a_closed_loop_with_the_cuts_is_the_loop_with_the_copies_to_the_bit(settings, generated, route, monkeypatch):
     """70 steps of the solve-time loop (reference changes at 30 and 60 s and their wakes included), with the
-    defaults and with the reversal search acting on every step it turns (so candidates are taken): the commands and
+    defaults and with the reversal search acting on every step it turns (so candidates are taken), through OSQP's
+    generated solver (its answer kept without a copy, its addresses held) and its Python interface: the commands and
     the plans equal in every bit, the same OSQP iterations, searches and takes."""
+    route(generated)
     cut = _loop(70, settings, copies=False, monkeypatch=monkeypatch)
     full = _loop(70, settings, copies=True, monkeypatch=monkeypatch)
+    if generated:
+        assert cut["generated"] and full["generated"], "the generated OSQP did not load"
     assert np.array_equal(_bits(cut["commands"]), _bits(full["commands"]))
     assert all((a is None and b is None) or np.array_equal(_bits(a), _bits(b))
                for a, b in zip(cut["plans"], full["plans"]))
