@@ -62,6 +62,7 @@ PARTS = (
     (mpc_controller.MpcController, "_trap_cap", "trapped-air cap"),
     (mpc_controller.MpcController, "_check_valve_sign", "valve a sign check (with its predicted air changes)"),
     (casadi_eval.BufferedFunction, "__call__", "  generated calls through buffers (all of them, within the parts above)"),
+    (casadi_eval.BufferedFunction, "views", "  generated calls through buffers (all of them, within the parts above)"),
     (mpc_controller.MpcController, "_stats", "statistics"),
 )
 

@@ -56,3 +56,13 @@ class BufferedFunction:
             buf[...] = value
         self._eval()
         return [r.copy() for r in self._res]
+
+    def views(self, *args) -> list[np.ndarray]:
+        """As ``f(*args)``, the same values, but the result buffers themselves, not copies: each is overwritten by
+        the next call (either form), so a caller copies what it keeps beyond that (a copy of a result costs about
+        0.5 us; the fused prediction has 14). The arguments are copied in before the evaluation, so a result of
+        the last call may be handed back as an argument."""
+        for buf, value in zip(self._free, args):
+            buf[...] = value
+        self._eval()
+        return self._res

@@ -477,6 +477,10 @@ class TwoPassSolve:
     """The RTI's solve in one pass or two (``first_pass_iter > 0``, :class:`.rti_osqp._OsqpCore`): OSQP's
     settings of both passes from its set-up, switched by :meth:`_apply` (of the subclass) only on a change."""
 
+    #: True where :meth:`_solve_once` returns a new array of its own for each solve (nothing else holds it, so the
+    #: caller may keep it without a copy); False where it may be a view of the solver's memory.
+    fresh_solution = False
+
     def _passes(self, st, first_pass_iter: int) -> None:
         self.first_pass_iter = int(first_pass_iter)
         # the continuation's cap leaves room for the pass's iterations: ``max_iter`` bounds the whole QP
@@ -533,6 +537,8 @@ class EmbeddedOsqp(TwoPassSolve):
     ``scaling_interval``: OSQP's equilibration on every this many matrix updates (1: on each, as OSQP
     does); the others keep the last one's, which saves its Ruiz passes and changes the ADMM iterates."""
 
+    fresh_solution = True  # _solve_once: a new array per solve
+
     def __init__(self, lib: Path, wrapper: osqp.OSQP, first_pass_iter: int = 0, scaling_interval: int = 1):
         if int(scaling_interval) < 1:
             raise ValueError(f"EmbeddedOsqp: scaling_interval = {scaling_interval!r}, allowed: an integer >= 1")
@@ -565,6 +571,7 @@ class EmbeddedOsqp(TwoPassSolve):
         self._info = np.zeros(2, np.int64)
         self._info_p = self._info.ctypes.data
         self._bounds: tuple | None = None  # the bound arrays last handed over and their addresses (update_vectors)
+        self._held: list[tuple | None] = [None, None, None]  # P's and A's values and q last handed over, addresses
         self._passes(wrapper.settings, first_pass_iter)
 
     @staticmethod
@@ -585,7 +592,7 @@ class EmbeddedOsqp(TwoPassSolve):
         """The values of P (upper triangle) and A in OSQP's CSC order, then the numeric refactorisation.
         OSQP's equilibration runs again on every ``scaling_interval``-th update (the first included); the
         updates between scale the new values with the equilibration in force."""
-        Px_p, Ax_p = self._p(Px, self._nnz_p), self._p(Ax, self._nnz_a)
+        Px_p, Ax_p = self._held_address(0, Px, self._nnz_p), self._held_address(1, Ax, self._nnz_a)
         if self._updates % self.scaling_interval == 0:
             self._check(self._lib.hq_update_mat_fused(Px_p, Ax_p), "matrix update")
         else:
@@ -601,7 +608,16 @@ class EmbeddedOsqp(TwoPassSolve):
             self._bounds = (l, u, self._p(l, m), self._p(u, m))
         # its exit flag (e.g. a lower bound above an upper one) is not raised, as OSQP's Python interface does not:
         # the solve then reports the problem infeasible, which the RTI treats as a failed QP
-        self._lib.hq_update_vec(self._p(q, n), self._bounds[2], self._bounds[3])
+        self._lib.hq_update_vec(self._held_address(2, q, n), self._bounds[2], self._bounds[3])
+
+    def _held_address(self, slot: int, a: np.ndarray, size: int) -> int:
+        """:meth:`_p` of ``a``, taken (and checked) once while the same array comes back in ``slot`` (0: P's values,
+        1: A's, 2: the gradient) and the array held meanwhile, so it cannot be freed or moved: the step hands over the
+        buffers of its generated calls (``BufferedFunction.views``), the same arrays every step."""
+        held = self._held[slot]
+        if held is None or held[0] is not a:
+            held = self._held[slot] = (a, self._p(a, size))
+        return held[1]
 
     def warm_start(self, x: np.ndarray, y: np.ndarray | None = None) -> None:
         """Primal warm start; the multipliers stay those of the last solve unless ``y`` is given."""

@@ -223,7 +223,7 @@ class ReachableFlow:
         """The model's flows a step reads (:class:`Flows`) at the estimate ``x``, the command ``u`` and the
         disturbances ``d`` (physical), ``step`` each input's largest move in a sample: one call, where
         :meth:`check` and :meth:`transient_flow_error` alone make two each (the same values)."""
-        now, full, up = self._flows(x, u, d, self._p, step)
+        now, full, up = self._flows.views(x, u, d, self._p, step)  # read at once: no copies
         return Flows(float(now[0]), float(full[0]), float(up[0]))
 
     def set_parameters(self, p: np.ndarray) -> None:

@@ -83,7 +83,7 @@ class OpenLoopShadow:
 
     def air(self, x: np.ndarray, u: np.ndarray, d: np.ndarray, p: np.ndarray) -> tuple[float, float]:
         """The model's mixed air without the offset and its heater outlet air (degC) at state ``x``."""
-        a, o = self._air(x, u, d, p)
+        a, o = self._air.views(x, u, d, p)  # read at once: no copies
         return float(a[0]), float(o[0])
 
 

@@ -81,6 +81,24 @@ def turned_inputs(last_move: np.ndarray | None, move: np.ndarray, span: np.ndarr
     return np.flatnonzero(turned)
 
 
+def turns_and_moves(last_move: np.ndarray | None, move: np.ndarray, span: np.ndarray,
+                    share: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`turned_inputs` and :func:`last_moves` of one ``move`` (1-D) together: the same two arrays, to the bit,
+    in one pass over the few inputs in plain Python (the two calls cost 6-8 us in a dozen numpy calls on six
+    values; this 2-3 us). The same operations on the same values: the share of each span as numpy multiplies it
+    (``share * span``), then comparisons and a choice, which are exact; a sign product below 0 is a pair of opposite
+    nonzero signs (``np.sign`` of nan is nan, of a zero a zero: neither turns, as neither does here)."""
+    bigs = (share * np.asarray(span, float)).tolist()
+    moves = move.tolist()
+    kept = [0.0] * len(moves) if last_move is None else last_move.tolist()
+    out = np.array([m if abs(m) > b else k for m, b, k in zip(moves, bigs, kept)], dtype=float)
+    if last_move is None or share <= 0.0:
+        return np.zeros(0, dtype=int), out
+    turned = [i for i, (m, k, b) in enumerate(zip(moves, kept, bigs))
+              if ((m < 0.0 < k) or (k < 0.0 < m)) and abs(m) > b and abs(k) > b]
+    return np.array(turned, dtype=np.intp), out
+
+
 def candidates(u_qp: np.ndarray, u_lin: np.ndarray, u_lo: np.ndarray, u_hi: np.ndarray, i: int,
                rate: np.ndarray | None = None) -> list[np.ndarray]:
     """The QP's plan ``u_qp`` (N x nu, scaled) with input ``i``'s profile replaced by the linearisation point's

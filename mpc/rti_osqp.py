@@ -46,7 +46,7 @@ from .multilevel import MultiLevel, vector_function
 from .ocp import STAGE_OUTPUTS, TRACKED, TrackingProblem, check_flag, shift_maps, shift_nodes
 from .osqp_embedded import FIRST_PASS_EPS_RATIO  # noqa: F401 - the first pass's tolerance, named here too
 from .plan_merit import MERIT_TOLERANCE, PlanMerit
-from .reversal_search import at_bound, candidates, check_share, check_wait, eligible_inputs, last_moves, turned_inputs
+from .reversal_search import at_bound, candidates, check_share, check_wait, eligible_inputs, last_moves, turns_and_moves
 from .steady_target import SteadyStart, check_steady_start_on, starts_at_target
 from .trust_region import check_radii, region_bounds
 
@@ -865,8 +865,15 @@ class RtiOsqpSolver:
             self._prepare_vectors(u_cmd, setpoint_c, u_prev, ref, w_y)
             return time.perf_counter() - t0
         ekf = self._ekf
-        zn, Pt, air, flow, X, U, d, *data = self._predict_qp(
+        # the buffers themselves (without multi-level steps, whose kept linearisation copies its own): the filter's
+        # state and the plan are kept and copied here; the rest is read before the next call (the air and flow at
+        # once, d copied by _write) or held only until the next preparation replaces it (P and A's values, the
+        # stage data), the one that overwrites the buffers
+        call = self._predict_qp.views if self._ml is None else self._predict_qp
+        zn, Pt, air, flow, X, U, d, *data = call(
             ekf.z, ekf.P, u_cmd, setpoint_c, float(ekf.learning), self.X, self.U, u_prev, self._weights(w_y))
+        if self._ml is None:
+            zn, Pt, X, U = zn.copy(), Pt.copy(), X.copy(), U.copy()
         ekf.accept_prediction(zn, Pt, air, flow)
         S = self.S[self._j_slack]
         self.X, self.U, self.S = X, U, S
@@ -1172,7 +1179,7 @@ class RtiOsqpSolver:
             if status_val not in (self._accepted_capped if capped else self._accepted):
                 z = None
                 break
-            z = np.array(x)
+            z = x if self._core.fresh_solution else np.array(x)  # the generated solver's is the step's own already
             inexact = status_val == 7  # taken at the cap without meeting even OSQP's inaccurate tolerance
             if not all_finite(z):
                 status = "non-finite solution"
@@ -1375,7 +1382,9 @@ class RtiOsqpSolver:
             return z
         nu, N = self.pb.nu, self.pb.N
         span = self.pb.u_hi - self.pb.u_lo
-        turned = turned_inputs(self._last_move, z[self.iu0:self.iu0 + nu] - u_prev, span, self.reversal_search)
+        # the plan's first move once for both: the inputs it turns and, unless a candidate is taken, the moves kept
+        turned, moves = turns_and_moves(self._last_move, z[self.iu0:self.iu0 + nu] - u_prev, span,
+                                        self.reversal_search)
         self._quiet_run = self._quiet_run + 1 if plain else 0
         searched = eligible_inputs(turned, self._turned_before if self.reversal_repeat else None,
                                    self._quiet_run, self.reversal_wait_steps) if plain else turned[:0]
@@ -1400,7 +1409,8 @@ class RtiOsqpSolver:
             if self.reversal_taken:
                 z = z.copy()
                 z[self.iu0:self.is0] = U_best.ravel()
-        self._last_move = last_moves(self._last_move, z[self.iu0:self.iu0 + nu] - u_prev, span, self.reversal_search)
+                moves = last_moves(self._last_move, z[self.iu0:self.iu0 + nu] - u_prev, span, self.reversal_search)
+        self._last_move = moves
         return z
 
     def _limit_time(self, remaining_s: float, budget_s: float) -> None:
@@ -1434,7 +1444,8 @@ class RtiOsqpSolver:
         self._qp_gradient.set_fixed(7, self._q_heating if self._q_body_on else self._q_const)
 
     def _q(self, ref: np.ndarray, d: np.ndarray, u_prev: np.ndarray) -> np.ndarray:
-        """Gradient for the current reference, disturbance estimates and last input."""
+        """Gradient for the current reference, disturbance estimates and last input: valid until the next call (the
+        gradient function's buffer where the readiness is off)."""
         pr = self._prepared
         data = pr["data"]
         dd = d[_D_OFFSETS_IDX] - pr["d"][_D_OFFSETS_IDX]
@@ -1444,8 +1455,10 @@ class RtiOsqpSolver:
             self._q_body_on = on
         if self.pb.flap_split_target is not None:
             self._flap_gradient_for(ref, pr["w_y"])
-        q = self._qp_gradient(data["gw2"], data["c_base"], data["y"], ref, dd,
-                              self._z_lin[self.iu0:self.is0], u_prev)[0]
+        # the call's buffer itself: every caller hands it to OSQP at once (which copies it into its workspace) before
+        # the next call; a copy where the readiness adds to it
+        q = self._qp_gradient.views(data["gw2"], data["c_base"], data["y"], ref, dd,
+                                    self._z_lin[self.iu0:self.is0], u_prev)[0]
         if self._ready_q is not None:
             q = np.array(q, float)
             q[self._i_body] += self._ready_q

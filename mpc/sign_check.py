@@ -129,7 +129,7 @@ class HeldAirChange:
         ekf = self.ekf
         if not ekf.initialised:
             return math.nan
-        after, before = self._call(ekf.z, u_before, u_after, setpoint_c, ekf.p)
+        after, before = self._call.views(ekf.z, u_before, u_after, setpoint_c, ekf.p)  # read at once
         return float(after[0]) - float(before[0])
 
 
