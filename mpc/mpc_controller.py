@@ -73,7 +73,7 @@ from .arrays import all_finite
 from .background import BackgroundCall, BackgroundWorker
 from .ring_gate import RingGate
 from .start_caution import SCOPES as START_CAUTION_SCOPES, VALVE_A_AND_HEATER, StartCaution, known_delay_s, opening_bound
-from .rti_osqp import RHO_RESET_ON, RtiOsqpSolver, SolveResult
+from .rti_osqp import RHO_RESET_ON, RtiOsqpSolver, SolveResult, check_cap_retry
 from .steady_target import check_steady_start_on
 from .change_rho import check_adaptation, check_change_rho
 from .trust_region import check_radii
@@ -388,6 +388,14 @@ class MpcSettings:
             Python interface, or after a fallback to it, the interval does nothing). None of the four with
             ``change_split_iter``. Measured in
             docs/architecture.md, 'The change's step size'.
+        osqp_cap_retry_rho: a QP that reaches ``osqp_max_iter`` OSQP iterations (``rti``/``sqp``; not a split
+            change's or a plain step's own cap) is solved once more with OSQP's step size ``rho`` (dimensionless) set
+            to this value (0, the default: off; else in [1e-6, 1e6]), or with ``osqp_cap_retry_share`` (0, the
+            default: off; else a factor in (0, 1]) times the step size that QP started from (not both); the matrices
+            written again (one refactorisation) and the retry warm-started from the capped iterate with its
+            multipliers, or with ``osqp_cap_retry_cold`` (off) from the linearisation point with zero multipliers.
+            The retry's answer is taken unless it is none and the capped one is; within the step's deadline. Only
+            steps whose QP reaches the cap change. Measured in docs/robustness.md sec. 2.40.
         valve_a_reversal_share: the share of a move of valve a that reverses its last applied move (both at least
             ``valve_a_reversal_min_pct`` (% of travel)) applied, in (0, 1], 1 off (:mod:`~.reversal_damping`: the
             Gauss-Newton iteration's two-cycle where valve a's pull depends on valve a, the plan alternating between
@@ -488,6 +496,9 @@ class MpcSettings:
     osqp_change_rho_restore: bool = False
     osqp_change_rho_interval: int = 0
     osqp_change_rho_tolerance: float = 0.0
+    osqp_cap_retry_rho: float = 0.0
+    osqp_cap_retry_share: float = 0.0
+    osqp_cap_retry_cold: bool = False
     valve_a_reversal_share: float = 0.3
     valve_a_reversal_min_pct: float = 5.0
     valve_a_hold_shortfall_c: float = 0.0
@@ -542,6 +553,11 @@ class MpcSettings:
             check_change_rho(f"{p}.osqp_change_rho", self.osqp_change_rho, self.osqp_change_rho_restore)
             check_adaptation(f"{p}.osqp_change_rho_interval", self.osqp_change_rho_interval,
                              self.osqp_change_rho_tolerance)
+        except ValueError as exc:
+            raise InvalidSettings(str(exc)) from None
+        try:
+            check_cap_retry(f"{p}.osqp_cap_retry", self.osqp_cap_retry_rho, self.osqp_cap_retry_share,
+                            self.osqp_cap_retry_cold)
         except ValueError as exc:
             raise InvalidSettings(str(exc)) from None
         if self.osqp_change_rho_tolerance and not self.osqp_change_rho_interval:
@@ -877,7 +893,9 @@ class MpcController:
                              reversal_bound_only=bool(s.rti_reversal_bound_only), change_rho=s.osqp_change_rho,
                              change_rho_restore=s.osqp_change_rho_restore,
                              change_rho_interval=int(s.osqp_change_rho_interval),
-                             change_rho_tolerance=float(s.osqp_change_rho_tolerance))
+                             change_rho_tolerance=float(s.osqp_change_rho_tolerance),
+                             cap_retry_rho=float(s.osqp_cap_retry_rho), cap_retry_share=float(s.osqp_cap_retry_share),
+                             cap_retry_cold=s.osqp_cap_retry_cold)
 
     # ------------------------------------------------------------------ protocol
     def reset(self, command: Command | None = None) -> None:

@@ -300,7 +300,8 @@ class RtiOsqpSolver:
                  plain_cap_run: int = 0, reversal_search: float = 0.0, reversal_wait_steps: int = 0,
                  reversal_repeat: bool = False, reversal_margin: float = 0.0, reversal_bound_only: bool = False,
                  change_rho: str = "off", change_rho_restore: bool = False, change_rho_interval: int = 0,
-                 change_rho_tolerance: float = 0.0):
+                 change_rho_tolerance: float = 0.0, cap_retry_rho: float = 0.0, cap_retry_share: float = 0.0,
+                 cap_retry_cold: bool = False):
         self.pb = pb = problem
         self.reversal_search = check_share("RtiOsqpSolver: reversal_search", reversal_search)
         self.reversal_wait_steps = check_wait("RtiOsqpSolver: reversal_wait_steps", reversal_wait_steps)
@@ -347,6 +348,10 @@ class RtiOsqpSolver:
         if self.change_split_iter and (change_rho != "off" or change_rho_restore or self.change_rho_interval):
             raise ValueError("RtiOsqpSolver: change_rho / change_rho_restore / change_rho_interval with "
                              "change_split_iter: not supported; allowed: change_split_iter 0 with them")
+        self.cap_retry_rho, self.cap_retry_share, self.cap_retry_cold = check_cap_retry(
+            "RtiOsqpSolver: cap_retry", cap_retry_rho, cap_retry_share, cap_retry_cold)
+        self.qps_at_cap = 0  # QPs that reached OSQP's max_iter (not a split change's or a plain step's own cap)
+        self.cap_retries: list[dict] = []  # the last QPs' retries at the cap: both solves' iterations, status, rho
         self.steady_start_on = check_steady_start_on("RtiOsqpSolver: steady_start_on", steady_start_on)
         if isinstance(relinearise_every, bool) or int(relinearise_every) != relinearise_every or relinearise_every < 1:
             raise ValueError(f"RtiOsqpSolver: relinearise_every = {relinearise_every!r}, allowed: an integer >= 1")
@@ -442,6 +447,8 @@ class RtiOsqpSolver:
                 "rho_max": self.rho_max, "plain_qp_cap": self.plain_qp_cap, "plain_cap_run": self.plain_cap_run,
                 "change_rho": self._change_rho.mode, "change_rho_restore": self._change_rho.restore,
                 "change_rho_interval": self.change_rho_interval, "change_rho_tolerance": self.change_rho_tolerance,
+                "cap_retry_rho": self.cap_retry_rho, "cap_retry_share": self.cap_retry_share,
+                "cap_retry_cold": self.cap_retry_cold,
                 "step_fractions": list(self._merit.fractions) if self._merit else [],
                 "trust_radii": list(self.trust_radii)}
 
@@ -1144,6 +1151,7 @@ class RtiOsqpSolver:
         fraction = 1.0
         prep = 0.0
         self._reached_cap = False
+        self.cap_retries = []
         self.trust_taken = 1.0  # the QP's own plan until the trust region takes a radius
         for it in range(max_qps):
             if it > 0:
@@ -1169,9 +1177,19 @@ class RtiOsqpSolver:
                     break
                 self._limit_time(remaining, time_limit_s)
             capped = cap > 0
+            retry = not capped and (self.cap_retry_rho > 0 or self.cap_retry_share > 0)
+            rho_start = self._core.rho if retry else 0.0
             status_val, status, n_iter, x = self._core.solve_capped(cap) if capped else self._core.solve()
             solves += 1
             iterations += n_iter
+            if not capped and n_iter >= self._osqp_settings["max_iter"]:
+                self.qps_at_cap += 1
+                if retry:
+                    (status_val, status, n_iter, x), again, retry_prep = self._retry_at_cap(
+                        (status_val, status, n_iter, x), rho_start, t0, time_limit_s)
+                    solves += again > 0
+                    iterations += again
+                    prep += retry_prep
             if self._change_rho.mode != "off":
                 self._change_rho.note(it, self._core.rho)  # (a change's QPs only: nothing pending otherwise)
             self._reached_cap = self._reached_cap or (capped and n_iter >= cap)
@@ -1194,6 +1212,31 @@ class RtiOsqpSolver:
             if it + 1 < max_qps and float(np.abs(z - self._z_lin).max()) < self.sqp_tol:
                 break
         return z, status, iterations, solves, prep, inexact, fraction
+
+    def _retry_at_cap(self, first: tuple, rho_start: float, t0: float, time_limit_s: float) -> tuple[tuple, int, float]:
+        """A QP that reached OSQP's ``max_iter`` solved once more (``cap_retry_rho`` / ``cap_retry_share``): OSQP's step
+        size set to ``cap_retry_rho``, or to ``cap_retry_share`` times ``rho_start`` (the value the QP started from),
+        the matrices written again with it (one refactorisation), and OSQP warm-started from the capped iterate (its
+        multipliers kept) or, with ``cap_retry_cold``, from the linearisation point with zero multipliers. ``first``:
+        the capped solve's (status value, status, iterations, primal iterate). Returns the solve taken (the retry's,
+        unless it is no answer and the capped one is), the retry's iterations (0: none, no time left) and its
+        refactorisation's wall time (s). Within the step's time limit where one is set."""
+        if time_limit_s > 0:
+            remaining = time_limit_s - (time.perf_counter() - t0)
+            if remaining <= 0:
+                return first, 0, 0.0
+            self._limit_time(remaining, time_limit_s)
+        rho = self.cap_retry_rho if self.cap_retry_rho > 0 else self.cap_retry_share * rho_start
+        prep = self._reset_rho(rho)
+        if self.cap_retry_cold:
+            self._core.warm_start(self._z_lin, self._zero_duals)
+        else:
+            self._core.warm_start(np.array(first[3], float))
+        again = self._core.solve()
+        self.cap_retries.append({"iterations": (first[2], again[2]), "status": (str(first[1]), str(again[1])),
+                                 "rho": (rho_start, rho)})
+        taken = again if again[0] in self._accepted or first[0] not in self._accepted else first
+        return taken, again[2], prep
 
     def _result(self, z, status, iterations, solves, prep, feedback, cold, inexact, fraction) -> SolveResult:
         """The answer ``z`` as the solver's plan and a :class:`SolveResult` (a failure where ``z`` is None)."""
@@ -1578,6 +1621,21 @@ def _checked_step_size(name: str, rho: float | None) -> float | None:
     if rho is not None and (isinstance(rho, bool) or not isinstance(rho, (int, float)) or not 1e-6 <= rho <= 1e6):
         raise ValueError(f"RtiOsqpSolver: {name} = {rho!r}, allowed: None or a number in [1e-6, 1e6]")
     return None if rho is None else float(rho)
+
+
+def check_cap_retry(name: str, rho: float, share: float, cold: bool) -> tuple[float, float, bool]:
+    """The retry at OSQP's cap (``RtiOsqpSolver``'s ``cap_retry_rho``, ``cap_retry_share``, ``cap_retry_cold``):
+    ``rho`` 0 (off) or a step size in [1e-6, 1e6], ``share`` 0 (off) or a factor in (0, 1], not both set; ``cold`` a
+    flag. Returns them as floats and a bool; ValueError naming the field otherwise."""
+    for field_name, value, hi in (("rho", rho, 1e6), ("share", share, 1.0)):
+        number = not isinstance(value, bool) and isinstance(value, (int, float, np.floating))
+        if not number or not (value == 0 or (1e-6 <= value <= hi if field_name == "rho" else 0 < value <= hi)):
+            allowed = "0 (off) or a step size in [1e-6, 1e6]" if field_name == "rho" else "0 (off) or a factor in (0, 1]"
+            raise ValueError(f"{name}_{field_name} = {value!r}, allowed: {allowed}")
+    if rho and share:
+        raise ValueError(f"{name}_rho = {rho!r} and {name}_share = {share!r} both set; allowed: one of them")
+    check_flag(f"{name}_cold", cold)
+    return float(rho), float(share), cold
 
 
 def _checked_cap(name: str, cap: int, max_iter: int) -> int:
