@@ -21,9 +21,12 @@ change again from OSQP's workspace as the change step found it, ``split_replays_
 (``osqp_plain_qp_cap``: each QP of a step that is not a change at most N OSQP iterations, the iterate taken), and
 "split_replay_30_rho_max_R" / "split_replay_30_plain_cap_N" (each with the change split at 30 and replayed) and
 "split_replay_30_plain_cap_60_run_R" (and at most R plain steps in a row at the cap, ``osqp_plain_cap_run``); a
-change's step size (``osqp_change_rho``: "change_rho_M"; ``osqp_change_rho_restore``: "change_rho_restore"; OSQP's
+change's step size (``osqp_change_rho``: "change_rho_M"; ``osqp_change_rho_restore``: "change_rho_restore", with "last"
+"change_rho_last_restore"; OSQP's
 step size R at each change, ``osqp_rho_reset_on`` "change": "rho_reset_change_R", "..._restore" with the restore;
-the change's adaptation every N iterations at a factor T: "change_adapt_N_T"). Per
+the change's adaptation every N iterations at a factor T: "change_adapt_N_T"; the change's later QPs held at the
+first's step size at its end or start, ``osqp_change_rho_hold`` H: "change_hold_H", with "last" / "kind"
+"change_hold_H_last" / "change_hold_H_kind", each with the restore "..._restore"). Per
 seed the loops run in
 lockstep in one process, one step of each in turn (the order rotates from step to step), so that the load of other
 processes falls on all alike.
@@ -92,12 +95,17 @@ VARIANTS = {"shifted": {"steady_start": False},
             # a change's step size (docs/architecture.md, 'The change's step size')
             **{f"change_rho_{m}": {"osqp_change_rho": m} for m in ("last", "kind", "last_each", "kind_each")},
             "change_rho_restore": {"osqp_change_rho_restore": True},
+            "change_rho_last_restore": {"osqp_change_rho": "last", "osqp_change_rho_restore": True},
             **{f"rho_reset_change_{r}": {"osqp_rho_reset": float(r), "osqp_rho_reset_on": "change"}
                for r in ("3e-4", "1e-3", "3e-3")},
             **{f"rho_reset_change_{r}_restore": {"osqp_rho_reset": float(r), "osqp_rho_reset_on": "change",
                                                  "osqp_change_rho_restore": True} for r in ("3e-4", "1e-3")},
             **{f"change_adapt_{n}_{t}": {"osqp_change_rho_interval": n, "osqp_change_rho_tolerance": float(t)}
-               for n in (10, 25) for t in (2, 5)}}
+               for n in (10, 25) for t in (2, 5)},
+            # a change's second QP held at the first's step size (docs/architecture.md, 'The change's second QP held')
+            **{f"change_hold_{h}{m}{r}": {"osqp_change_rho_hold": h, **mode, **restore} for h in ("end", "start")
+               for m, mode in (("", {}), ("_last", {"osqp_change_rho": "last"}), ("_kind", {"osqp_change_rho": "kind"}))
+               for r, restore in (("", {}), ("_restore", {"osqp_change_rho_restore": True}))}}
 #: The variants run unless ``--variant`` names others.
 DEFAULT_VARIANTS = ("shifted", "steady", "temperature")
 #: Steps after a change counted as its wake (the single QPs that follow it).

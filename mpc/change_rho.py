@@ -15,8 +15,11 @@ default (:class:`ChangeStepSize`):
 - *restored* (``restore``): the first preparation after a change sets the step size back to the value it had before
   the change, so the plain steps after it start from the quiet seconds' step size, not the change's.
 
-And a third, in :class:`.rti_osqp.RtiOsqpSolver` (``change_rho_interval``, ``change_rho_tolerance``, checked by
-:func:`check_adaptation`): OSQP's own step-size estimate taken more often (and at a smaller ratio) in a change's QPs.
+And two in :class:`.rti_osqp.RtiOsqpSolver`: OSQP's own step-size estimate taken more often (and at a smaller ratio)
+in a change's QPs (``change_rho_interval``, ``change_rho_tolerance``, checked by :func:`check_adaptation`); a change's
+QPs after the first held at the step size the first ended (or started) with, OSQP's adaptation off in them
+(``change_rho_hold``, :data:`HOLD_INTERVAL`, checked by :func:`check_hold`; docs/architecture.md, 'The change's
+second QP held').
 
 ASSUMPTION: one change's first QP is like the next's (of the same kind) in its balance of primal and dual residual;
 the remembered value is a start only, OSQP still adapts it within each QP.
@@ -29,6 +32,24 @@ import numpy as np
 #: :class:`ChangeStepSize`'s modes: "off" (OSQP's step size kept at a change), "last" (the last change's first QP's),
 #: "kind" (the last change's of the same kind), "last_each" / "kind_each" (so for each QP of the change).
 CHANGE_RHO = ("off", "last", "kind", "last_each", "kind_each")
+
+
+#: OSQP's adaptation interval (iterations) that holds the step size: beyond any QP's iterations (OSQP's ``max_iter`` is
+#: at most 100 000, ``MpcSettings``), so its adaptation check (every interval-th iteration) never comes.
+HOLD_INTERVAL = 1_000_000
+
+
+#: ``change_rho_hold``'s modes: "off" (OSQP adapts the change's later QPs' step size as set up), "end" (they run at
+#: the step size the change's first QP ended with), "start" (at the one it started with: the value before the change,
+#: or the one ``change_rho`` / ``rho_reset`` set at the change).
+CHANGE_RHO_HOLD = ("off", "end", "start")
+
+
+def check_hold(name: str, hold: str) -> str:
+    """``hold`` (:data:`CHANGE_RHO_HOLD`) as given; ValueError naming ``name`` otherwise."""
+    if hold not in CHANGE_RHO_HOLD:
+        raise ValueError(f"{name} = {hold!r}, allowed: one of {list(CHANGE_RHO_HOLD)}")
+    return hold
 
 
 def change_kind(old_ref: np.ndarray, new_ref: np.ndarray) -> int:

@@ -75,7 +75,7 @@ from .ring_gate import RingGate
 from .start_caution import SCOPES as START_CAUTION_SCOPES, VALVE_A_AND_HEATER, StartCaution, known_delay_s, opening_bound
 from .rti_osqp import RHO_RESET_ON, RtiOsqpSolver, SolveResult, check_cap_retry
 from .steady_target import check_steady_start_on
-from .change_rho import check_adaptation, check_change_rho
+from .change_rho import check_adaptation, check_change_rho, check_hold
 from .trust_region import check_radii
 from .temperature_reach import SaturatedTemperature
 
@@ -396,6 +396,16 @@ class MpcSettings:
             multipliers, or with ``osqp_cap_retry_cold`` (off) from the linearisation point with zero multipliers.
             The retry's answer is taken unless it is none and the capped one is; within the step's deadline. Only
             steps whose QP reaches the cap change. Measured in docs/robustness.md sec. 2.40.
+        osqp_change_rho_hold: a reference change's QPs after the first run at a held OSQP step size ``rho``
+            (dimensionless), OSQP's adaptation off in them: "end" the value the first QP ended with, "start" the value
+            it started with ("off", the default: OSQP adapts them as set up), so the second QP's late raise (1e-4 ->
+            0.03-0.10) is not made and the steps after the change start from the held value (with
+            ``osqp_change_rho_restore``: the value before the change). The
+            adaptation is switched off in the generated solver only (``osqp_codegen``; with the Python interface
+            "start" only sets the second QP's start and "end" does nothing). Not with
+            ``change_split_iter``. Measured slower (the change's later QPs want the raise: 1200 -> 3025-4935 OSQP
+            iterations on the solve-time loop's seeds 1-3; "end" falls back) in docs/architecture.md, 'The change's
+            second QP held'.
         valve_a_reversal_share: the share of a move of valve a that reverses its last applied move (both at least
             ``valve_a_reversal_min_pct`` (% of travel)) applied, in (0, 1], 1 off (:mod:`~.reversal_damping`: the
             Gauss-Newton iteration's two-cycle where valve a's pull depends on valve a, the plan alternating between
@@ -499,6 +509,7 @@ class MpcSettings:
     osqp_cap_retry_rho: float = 0.0
     osqp_cap_retry_share: float = 0.0
     osqp_cap_retry_cold: bool = False
+    osqp_change_rho_hold: str = "off"
     valve_a_reversal_share: float = 0.3
     valve_a_reversal_min_pct: float = 5.0
     valve_a_hold_shortfall_c: float = 0.0
@@ -553,6 +564,7 @@ class MpcSettings:
             check_change_rho(f"{p}.osqp_change_rho", self.osqp_change_rho, self.osqp_change_rho_restore)
             check_adaptation(f"{p}.osqp_change_rho_interval", self.osqp_change_rho_interval,
                              self.osqp_change_rho_tolerance)
+            check_hold(f"{p}.osqp_change_rho_hold", self.osqp_change_rho_hold)
         except ValueError as exc:
             raise InvalidSettings(str(exc)) from None
         try:
@@ -564,8 +576,9 @@ class MpcSettings:
             raise InvalidSettings(f"{p}.osqp_change_rho_tolerance = {self.osqp_change_rho_tolerance!r} needs "
                                   f"{p}.osqp_change_rho_interval in [1, 1000] (the adaptation it tunes)")
         if self.change_split_iter and (self.osqp_change_rho != "off" or self.osqp_change_rho_restore
-                                       or self.osqp_change_rho_interval):
-            raise InvalidSettings(f"{p}.osqp_change_rho / osqp_change_rho_restore / osqp_change_rho_interval with "
+                                       or self.osqp_change_rho_interval or self.osqp_change_rho_hold != "off"):
+            raise InvalidSettings(f"{p}.osqp_change_rho / osqp_change_rho_restore / osqp_change_rho_interval / "
+                                  f"osqp_change_rho_hold with "
                                   f"{p}.change_split_iter = {self.change_split_iter}: not supported (a split change's "
                                   "rest runs after the change is closed); allowed: change_split_iter 0 with them")
         if self.osqp_change_rho != "off" and self.osqp_rho_reset is not None and self.osqp_rho_reset_on == "change":
@@ -895,7 +908,8 @@ class MpcController:
                              change_rho_interval=int(s.osqp_change_rho_interval),
                              change_rho_tolerance=float(s.osqp_change_rho_tolerance),
                              cap_retry_rho=float(s.osqp_cap_retry_rho), cap_retry_share=float(s.osqp_cap_retry_share),
-                             cap_retry_cold=s.osqp_cap_retry_cold)
+                             cap_retry_cold=s.osqp_cap_retry_cold,
+                             change_rho_hold=s.osqp_change_rho_hold)
 
     # ------------------------------------------------------------------ protocol
     def reset(self, command: Command | None = None) -> None:

@@ -40,7 +40,7 @@ from hvac_mpc.models.box import DISTURBANCES, INPUTS
 from . import osqp_embedded
 from .arrays import all_finite, all_reduce, sum_reduce
 from .casadi_eval import BufferedFunction
-from .change_rho import ChangeStepSize, check_adaptation, check_change_rho
+from .change_rho import HOLD_INTERVAL, ChangeStepSize, check_adaptation, check_change_rho, check_hold
 from .codegen import CodegenReport, compiled, expression_key, kept
 from .multilevel import MultiLevel, vector_function
 from .ocp import STAGE_OUTPUTS, TRACKED, TrackingProblem, check_flag, shift_maps, shift_nodes
@@ -284,6 +284,13 @@ class RtiOsqpSolver:
             before the change (in the refactorisation the update makes anyway), so the steps after the change do not
             inherit the step size the change's QPs adapted to. Measured in docs/architecture.md, 'The change's step
             size'.
+        change_rho_hold: a reference change's QPs after the first held, OSQP's adaptation off in them
+            (:data:`.change_rho.HOLD_INTERVAL`; set back for the steps after the change), at the step size the first
+            QP ended with ("end") or started with ("start", set in the second QP's relinearisation's refactorisation);
+            "off": OSQP adapts them as set up. So the second QP's late raise is not made and the steps after the change
+            start from the held value. The adaptation is switched off in the generated solver only (OSQP's interface
+            fixes it at set-up: there "start" only sets the second QP's start, "end" does nothing). Measured in
+            docs/architecture.md, 'The change's second QP held'.
     """
 
     def __init__(self, problem: TrackingProblem, *, eps: float = 1e-4, max_iter: int = 400,
@@ -301,7 +308,7 @@ class RtiOsqpSolver:
                  reversal_repeat: bool = False, reversal_margin: float = 0.0, reversal_bound_only: bool = False,
                  change_rho: str = "off", change_rho_restore: bool = False, change_rho_interval: int = 0,
                  change_rho_tolerance: float = 0.0, cap_retry_rho: float = 0.0, cap_retry_share: float = 0.0,
-                 cap_retry_cold: bool = False):
+                 cap_retry_cold: bool = False, change_rho_hold: str = "off"):
         self.pb = pb = problem
         self.reversal_search = check_share("RtiOsqpSolver: reversal_search", reversal_search)
         self.reversal_wait_steps = check_wait("RtiOsqpSolver: reversal_wait_steps", reversal_wait_steps)
@@ -330,6 +337,7 @@ class RtiOsqpSolver:
             raise ValueError("RtiOsqpSolver: split_replays_change and split_keeps_rho both True; allowed: one of them "
                              "(the replay restores the step size with the whole workspace)")
         self.split_replays_change = split_replays_change
+        self._held_adaptation: tuple[int, float] | None = None  # OSQP's adaptation while change_rho_hold holds it
         self._change_rest: dict | None = None  # what finish_change needs of a split change (None: none pending)
         if not isinstance(reweigh_in_place, bool):
             raise ValueError(f"RtiOsqpSolver: reweigh_in_place = {reweigh_in_place!r}, allowed: True or False")
@@ -345,9 +353,11 @@ class RtiOsqpSolver:
         self._change_rho = ChangeStepSize(change_rho, change_rho_restore)
         self.change_rho_interval, self.change_rho_tolerance = check_adaptation(
             "RtiOsqpSolver: change_rho_interval", change_rho_interval, change_rho_tolerance)
-        if self.change_split_iter and (change_rho != "off" or change_rho_restore or self.change_rho_interval):
-            raise ValueError("RtiOsqpSolver: change_rho / change_rho_restore / change_rho_interval with "
-                             "change_split_iter: not supported; allowed: change_split_iter 0 with them")
+        self.change_rho_hold = check_hold("RtiOsqpSolver: change_rho_hold", change_rho_hold)
+        if self.change_split_iter and (change_rho != "off" or change_rho_restore or self.change_rho_interval
+                                       or change_rho_hold != "off"):
+            raise ValueError("RtiOsqpSolver: change_rho / change_rho_restore / change_rho_interval / change_rho_hold "
+                             "with change_split_iter: not supported; allowed: change_split_iter 0 with them")
         self.cap_retry_rho, self.cap_retry_share, self.cap_retry_cold = check_cap_retry(
             "RtiOsqpSolver: cap_retry", cap_retry_rho, cap_retry_share, cap_retry_cold)
         self.qps_at_cap = 0  # QPs that reached OSQP's max_iter (not a split change's or a plain step's own cap)
@@ -1113,7 +1123,8 @@ class RtiOsqpSolver:
         try:
             z, status, iterations, solves, qp_prep, inexact, fraction = self._solve_qps(
                 x0, u_prev, d, ref, w_y, u_lo, u_hi, max_qps, restart=changed and self.restart_duals_on_change,
-                t0=t0, time_limit_s=time_limit_s, cap=self._qp_cap(split, changed, cold), trust=not cold)
+                t0=t0, time_limit_s=time_limit_s, cap=self._qp_cap(split, changed, cold), trust=not cold,
+                hold=self.change_rho_hold if changed else "off")
         finally:  # OSQP's own adaptation again for the steps after the change
             if adaptation is not None:
                 self._core.set_rho_adaptation(*adaptation)
@@ -1136,13 +1147,35 @@ class RtiOsqpSolver:
         return result
 
     def _solve_qps(self, x0, u_prev, d, ref, w_y, u_lo, u_hi, max_qps: int, *, restart: bool = False, t0: float = 0.0,
-                   time_limit_s: float = 0.0, cap: int = 0, start: np.ndarray | None = None, trust: bool = True):
+                   time_limit_s: float = 0.0, cap: int = 0, start: np.ndarray | None = None, trust: bool = True,
+                   hold: str = "off"):
         """Up to ``max_qps`` QPs (Gauss-Newton SQP to ``sqp_tol``) with the prepared data: the first warm-started from
         ``start`` (default: the linearisation point; the multipliers OSQP's, zero with ``restart``); with ``cap`` > 0,
         each QP at most ``cap`` OSQP iterations, its iterate at the cap taken; ``trust``: the trust region applies (where
         radii are set; not on a cold start). Returns the answer (None: failed), status,
         iterations, QP solves, the relinearisations' time (s), whether the answer is an iterate at a cap, and the
-        smallest globalised step fraction."""
+        smallest globalised step fraction. ``hold``: the QPs after the first without OSQP's step-size adaptation,
+        at the first QP's step size at its end or start (``change_rho_hold``'s mode; the adaptation in force set back
+        after them)."""
+        try:
+            return self._qp_run(x0, u_prev, d, ref, w_y, u_lo, u_hi, max_qps, restart, t0, time_limit_s, cap, start,
+                                trust, hold)
+        finally:  # OSQP's own adaptation again for the steps after
+            if self._held_adaptation is not None:
+                self._core.set_rho_adaptation(*self._held_adaptation)
+                self._held_adaptation = None
+
+    def _hold_rho(self) -> None:
+        """OSQP's step-size adaptation off from the next QP on (``change_rho_hold``: the interval beyond any QP's
+        iterations), the adaptation in force kept in ``_held_adaptation`` for :meth:`_solve_qps` to set back."""
+        before = self._core.rho_adaptation
+        if self._core.set_rho_adaptation(HOLD_INTERVAL, before[1]):
+            self._held_adaptation = before
+
+    def _qp_run(self, x0, u_prev, d, ref, w_y, u_lo, u_hi, max_qps, restart, t0, time_limit_s, cap, start, trust,
+                hold):
+        """:meth:`_solve_qps`'s QPs (its arguments; ``hold``: :meth:`_hold_rho` before the second QP)."""
+        rho_first = self._core.rho if hold == "start" else None  # the step size the first QP starts from
         iterations = 0
         solves = 0
         status = "unsolved"
@@ -1155,7 +1188,9 @@ class RtiOsqpSolver:
         self.trust_taken = 1.0  # the QP's own plan until the trust region takes a radius
         for it in range(max_qps):
             if it > 0:
-                rho_next = self._change_rho.for_qp(it)
+                if hold != "off" and it == 1:
+                    self._hold_rho()
+                rho_next = self._change_rho.for_qp(it) if rho_first is None else rho_first
                 if rho_next is not None:  # taken in by the relinearisation's refactorisation
                     self._core.rho_next_update(rho_next)
                 prep += self._relinearise(z, x0, d, ref, w_y, u_prev)
