@@ -25,6 +25,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from hvac_mpc.contract import INPUTS
+from hvac_mpc.models import Parameters
 
 from . import bench, mismatch_suite, scenarios as scenario_defs
 from .box_sweep import mpc_factory_with
@@ -69,6 +70,35 @@ def run_trace(box: str, scenario_name: str, quick: bool = False, plant_seed: int
             "baseline": traces[scenario.name]["baseline"], "stats": rows,
             "ratio": sc["ratios"].get("temp_iae_cs"),
             "iae": {c: sc[c]["figures"]["temp_iae_cs"] for c in ("mpc", "baseline")}}
+
+
+#: A move of valve a counted by :func:`reversals` (% of travel): the search's share, 5 % of the range.
+REVERSAL_MOVE_PCT = 5.0
+
+
+def reversals(values: np.ndarray, min_move: float = REVERSAL_MOVE_PCT) -> np.ndarray:
+    """Indices ``k`` of the samples whose move ``values[k] - values[k-1]`` (beyond ``min_move``) turns against the
+    last move beyond ``min_move`` (a sample held between two such moves does not hide the second): the turns of an
+    actuator's two-cycle, counted as :func:`hvac_mpc.mpc.reversal_search.turned_inputs` names them in a plan."""
+    out, last = [], 0.0
+    v = np.asarray(values, float)
+    for k in range(1, v.size):
+        move = v[k] - v[k - 1]
+        if abs(move) > min_move:
+            if move * last < 0.0:
+                out.append(k)
+            last = move
+    return np.asarray(out, dtype=int)
+
+
+def reversals_at_heater_bound(applied: np.ndarray, heater_max_w: float, share: float = 0.02) -> tuple[int, int]:
+    """Valve a's :func:`reversals` in the applied commands ``applied`` (T x 6, :data:`hvac_mpc.contract.INPUTS`): all
+    of them, and those with the heater command within ``share`` of ``heater_max_w`` (W) at the sample and the one
+    before (the heater at its bound)."""
+    u = np.asarray(applied, float)
+    k = reversals(u[:, VALVE_A])
+    at = (u[:, HEATER] >= (1.0 - share) * heater_max_w)
+    return int(k.size), int(np.sum(at[k] & at[k - 1])) if k.size else 0
 
 
 def abs_error(trace, start_s: float) -> np.ndarray:
@@ -129,6 +159,9 @@ def text(run: Mapping, window_s: float, start_s: float | None, end_s: float | No
              "MPC, baseline IAE C s"]
     lines += [f"  {s['start_s']:.0f} {s['supply_c']:.2f} {s['flow_m3h']:.0f}: {s['mpc']:.1f} {s['baseline']:.1f}"
               for s in segment_iae(run)]
+    total, at_bound = reversals_at_heater_bound(run["mpc"].applied, Parameters().heater_power_max_w)
+    lines.append(f"MPC valve a reversals (moves beyond {REVERSAL_MOVE_PCT:.0f} %): {total}, with the heater at its "
+                 f"bound: {at_bound}")
     lines.append(f"windows of {window_s:.0f} s (start: MPC, baseline; difference above 1 C s marked *)")
     lines += [f"  {w['start_s']:.0f}: {w['mpc']:.1f} {w['baseline']:.1f}" + (" *" if w["mpc"] - w["baseline"] > 1.0
                                                                             else "")

@@ -67,7 +67,7 @@ from .sign_check import HeldAirChange, ValveSignCheck
 from .readiness import HeaterReadiness
 from .reserve import HeaterReserve
 from .reversal_damping import damped_move
-from .reversal_search import check_share, check_wait
+from .reversal_search import check_second_qp, check_share, check_wait
 from .valve_a_hold import heater_limited, held_opening
 from .arrays import all_finite
 from .background import BackgroundCall, BackgroundWorker
@@ -175,6 +175,12 @@ class MpcSettings:
             on every step the QP's plan is dearer, and on the recirculating box's refined model that held valve a
             at 43 % through winter heating's first heater-limited rise (docs/identification.md, "Recirculation's
             refined winter, traced").
+        rti_reversal_second_qp: with ``rti_reversal_search`` (its share names a reversal), a second Gauss-Newton QP
+            linearised at the first QP's plan on a plain step whose plan turns an input against its last first move:
+            ``"reversal"`` on every such step, ``"heater_bound"`` only where the plan's heater command starts at its
+            upper bound (within 2 % of its range); ``"off"`` (the default): none. Measured on valve a's two-cycle at
+            the heater's bound in the box sweep's heating cells (docs/robustness.md sec. 2.41): it breaks the
+            cycle, and costs the cells where the box's valve a answers less than the model's near closed.
         ipopt_tol, ipopt_max_iter: IPOPT tolerance and iteration cap.
         deadline_s: longest feedback time (measurement to command); beyond it the solution is
             discarded and the fallback chain used.
@@ -442,6 +448,7 @@ class MpcSettings:
     rti_reversal_repeat: bool = False
     rti_reversal_margin: float = 0.1
     rti_reversal_bound_only: bool = False
+    rti_reversal_second_qp: str = "off"
     ipopt_tol: float = 1e-6
     ipopt_max_iter: int = 300
     deadline_s: float = 0.5
@@ -602,6 +609,10 @@ class MpcSettings:
             check_flag(f"{p}.rti_reversal_repeat", self.rti_reversal_repeat)
             check_share(f"{p}.rti_reversal_margin", self.rti_reversal_margin, "the QP plan's cost")
             check_flag(f"{p}.rti_reversal_bound_only", self.rti_reversal_bound_only)
+            check_second_qp(f"{p}.rti_reversal_second_qp", self.rti_reversal_second_qp)
+            if self.rti_reversal_second_qp != "off" and not self.rti_reversal_search:
+                raise ValueError(f"{p}.rti_reversal_second_qp = {self.rti_reversal_second_qp!r} needs "
+                                 f"rti_reversal_search > 0 (the reversal's share of each input's range)")
         except ValueError as exc:
             raise InvalidSettings(str(exc)) from None
         if not isinstance(self.rti_step_fractions, tuple) or len(self.rti_step_fractions) > 8:
@@ -903,7 +914,8 @@ class MpcController:
                              reversal_wait_steps=int(s.rti_reversal_wait_steps),
                              reversal_repeat=bool(s.rti_reversal_repeat),
                              reversal_margin=float(s.rti_reversal_margin),
-                             reversal_bound_only=bool(s.rti_reversal_bound_only), change_rho=s.osqp_change_rho,
+                             reversal_bound_only=bool(s.rti_reversal_bound_only),
+                             reversal_second_qp=s.rti_reversal_second_qp, change_rho=s.osqp_change_rho,
                              change_rho_restore=s.osqp_change_rho_restore,
                              change_rho_interval=int(s.osqp_change_rho_interval),
                              change_rho_tolerance=float(s.osqp_change_rho_tolerance),

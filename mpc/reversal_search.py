@@ -24,7 +24,9 @@ steps in a row (:func:`eligible_inputs`) and taking a candidate only where it co
 (docs/identification.md, "The guarded search as the default": the built-in bench today's in every scenario, the
 refined MPC's IAE on both recirculating boxes lower). ``MpcSettings.rti_reversal_bound_only`` (off) prices the
 linearisation point's profile only where it starts at the input's bound (:func:`at_bound`; docs/identification.md,
-"Recirculation's refined winter, traced").
+"Recirculation's refined winter, traced"). ``MpcSettings.rti_reversal_second_qp`` (off) takes one more Gauss-Newton QP,
+linearised at the first QP's plan, on a step whose plan reverses (:func:`at_upper_bound` for its heater rule;
+docs/robustness.md sec. 2.41).
 """
 
 from __future__ import annotations
@@ -130,6 +132,23 @@ def at_bound(u_lin: np.ndarray, u_lo: np.ndarray, u_hi: np.ndarray, i: int, span
     tol = share * float(span)
     first = float(u_lin[0, i])
     return bool(abs(first - float(u_hi[-1, i])) <= tol or abs(first - float(u_lo[-1, i])) <= tol)
+
+
+def at_upper_bound(U: np.ndarray, u_hi: np.ndarray, i: int, span: float, share: float = BOUND_SHARE) -> bool:
+    """True where input ``i``'s first stage in ``U`` (N x nu, scaled) is within ``share`` x ``span`` of its range's
+    upper end ``u_hi`` (nu, scaled): the input held at its bound (the heater at its full power)."""
+    return bool(float(U[0, i]) >= float(u_hi[i]) - share * float(span))
+
+
+#: The rules of a second Gauss-Newton QP on a reversing step (``MpcSettings.rti_reversal_second_qp``).
+SECOND_QP_RULES = ("off", "reversal", "heater_bound")
+
+
+def check_second_qp(name: str, rule) -> str:
+    """``rule`` if it is one of :data:`SECOND_QP_RULES`; ValueError naming ``name`` and the choices otherwise."""
+    if rule not in SECOND_QP_RULES:
+        raise ValueError(f"{name} = {rule!r}, allowed: one of {list(SECOND_QP_RULES)} ('off': no second QP)")
+    return str(rule)
 
 
 def rate_limited(profile: np.ndarray, lo: np.ndarray, hi: np.ndarray, rate: np.ndarray | None) -> np.ndarray:

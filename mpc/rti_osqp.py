@@ -46,7 +46,8 @@ from .multilevel import MultiLevel, vector_function
 from .ocp import STAGE_OUTPUTS, TRACKED, TrackingProblem, check_flag, shift_maps, shift_nodes
 from .osqp_embedded import FIRST_PASS_EPS_RATIO  # noqa: F401 - the first pass's tolerance, named here too
 from .plan_merit import MERIT_TOLERANCE, PlanMerit
-from .reversal_search import at_bound, candidates, check_share, check_wait, eligible_inputs, last_moves, turns_and_moves
+from .reversal_search import (at_bound, at_upper_bound, candidates, check_second_qp, check_share, check_wait,
+                              eligible_inputs, last_moves, turned_inputs, turns_and_moves)
 from .steady_target import SteadyStart, check_steady_start_on, starts_at_target
 from .trust_region import check_radii, region_bounds
 
@@ -205,6 +206,12 @@ class RtiOsqpSolver:
         reversal_bound_only: the linearisation point's profile of a reversing input is a candidate only where its
             first stage is at that input's bound (:func:`.reversal_search.at_bound`); the two bounds' profiles are
             candidates as before.
+        reversal_second_qp: a second Gauss-Newton QP, linearised at the first QP's plan, on a plain step whose plan
+            turns an input against its last first move (beyond ``reversal_search``'s share; needs it > 0):
+            ``"reversal"`` on every such step, ``"heater_bound"`` only where the plan's heater command starts at its
+            upper bound (:func:`.reversal_search.at_upper_bound`); ``"off"`` (the default): none. The search then
+            prices the second QP's plan against the candidates of the step's own linearisation point
+            (``reversal_relinearised`` says when it ran).
         codegen: evaluate the QP data as generated C (:func:`.codegen.compiled`, cached on disk);
             otherwise (or without a compiler) CasADi's interpreter runs the same functions.
             ``self.codegen`` reports what happened.
@@ -306,6 +313,7 @@ class RtiOsqpSolver:
                  rho_max: float | None = None, plain_qp_cap: int = 0, trust_radii: tuple[float, ...] = (),
                  plain_cap_run: int = 0, reversal_search: float = 0.0, reversal_wait_steps: int = 0,
                  reversal_repeat: bool = False, reversal_margin: float = 0.0, reversal_bound_only: bool = False,
+                 reversal_second_qp: str = "off",
                  change_rho: str = "off", change_rho_restore: bool = False, change_rho_interval: int = 0,
                  change_rho_tolerance: float = 0.0, cap_retry_rho: float = 0.0, cap_retry_share: float = 0.0,
                  cap_retry_cold: bool = False, change_rho_hold: str = "off"):
@@ -317,6 +325,10 @@ class RtiOsqpSolver:
         self.reversal_margin = check_share("RtiOsqpSolver: reversal_margin", reversal_margin, "the QP plan's cost")
         check_flag("RtiOsqpSolver: reversal_bound_only", reversal_bound_only)
         self.reversal_bound_only = reversal_bound_only
+        self.reversal_second_qp = check_second_qp("RtiOsqpSolver: reversal_second_qp", reversal_second_qp)
+        if self.reversal_second_qp != "off" and not self.reversal_search:
+            raise ValueError("RtiOsqpSolver: reversal_second_qp needs reversal_search > 0 (its reversal's share)")
+        self.reversal_relinearised = False  # the last step took a second QP on a reversal
         self._quiet_run = 0  # plain one-QP steps in a row, the last included
         self._turned_before = np.zeros(0, dtype=int)  # the inputs the last step's plan turned
         self._last_move: np.ndarray | None = None  # the last steps' first moves beyond the share (scaled inputs)
@@ -1099,7 +1111,7 @@ class RtiOsqpSolver:
             prep += self.prepare(x0, u_prev, d, ref, w_y)
         elif not started and changed and self._vector_prepared:  # a change linearises in full at the prepared point
             prep += self._relinearise(self._z_lin, self._z_lin[:self.pb.nx], self._prepared["d"], ref, w_y, u_prev)
-        self.reversal_searched = self.reversal_taken = False
+        self.reversal_searched = self.reversal_taken = self.reversal_relinearised = False
         if self.fail_next > 0:
             self.fail_next -= 1
             return SolveResult(False, "forced failure", prep_time_s=prep,
@@ -1132,6 +1144,17 @@ class RtiOsqpSolver:
         if changed and self._change_rho.active:
             self._change_rho.close_change()
         plain = not (split or changed or cold)  # a change's or a cold start's QPs break the run
+        if plain and max_qps == 1 and z is not None and self._reverses_at_bound(z, u_prev):
+            z_lin = self._z_lin.copy()  # the search's linearisation point stays the step's own
+            reached = self._reached_cap
+            z2, status2, it2, solves2, prep2, inexact2, fraction2 = self._solve_qps(
+                x0, u_prev, d, ref, w_y, u_lo, u_hi, 1, t0=t0, time_limit_s=time_limit_s,
+                cap=self._qp_cap(split, changed, cold), trust=True, at=z)
+            iterations, solves, prep = iterations + it2, solves + solves2, prep + prep2
+            if z2 is not None and z2 is not z:  # (``z`` back: the deadline came before the second QP)
+                z, status, inexact, fraction = z2, status2, inexact2, min(fraction, fraction2)
+                self.reversal_relinearised = True
+            self._z_lin, self._reached_cap = z_lin, reached or self._reached_cap
         if self._search_merit is not None:
             z = self._searched(z, x0, d, ref, w_y, u_prev, u_lo, u_hi, plain and max_qps == 1)
         feedback = time.perf_counter() - t0 - prep
@@ -1148,7 +1171,7 @@ class RtiOsqpSolver:
 
     def _solve_qps(self, x0, u_prev, d, ref, w_y, u_lo, u_hi, max_qps: int, *, restart: bool = False, t0: float = 0.0,
                    time_limit_s: float = 0.0, cap: int = 0, start: np.ndarray | None = None, trust: bool = True,
-                   hold: str = "off"):
+                   hold: str = "off", at: np.ndarray | None = None):
         """Up to ``max_qps`` QPs (Gauss-Newton SQP to ``sqp_tol``) with the prepared data: the first warm-started from
         ``start`` (default: the linearisation point; the multipliers OSQP's, zero with ``restart``); with ``cap`` > 0,
         each QP at most ``cap`` OSQP iterations, its iterate at the cap taken; ``trust``: the trust region applies (where
@@ -1156,10 +1179,10 @@ class RtiOsqpSolver:
         iterations, QP solves, the relinearisations' time (s), whether the answer is an iterate at a cap, and the
         smallest globalised step fraction. ``hold``: the QPs after the first without OSQP's step-size adaptation,
         at the first QP's step size at its end or start (``change_rho_hold``'s mode; the adaptation in force set back
-        after them)."""
+        after them). ``at``: the first QP linearised at that plan (a further Gauss-Newton QP)."""
         try:
             return self._qp_run(x0, u_prev, d, ref, w_y, u_lo, u_hi, max_qps, restart, t0, time_limit_s, cap, start,
-                                trust, hold)
+                                trust, hold, at)
         finally:  # OSQP's own adaptation again for the steps after
             if self._held_adaptation is not None:
                 self._core.set_rho_adaptation(*self._held_adaptation)
@@ -1173,21 +1196,21 @@ class RtiOsqpSolver:
             self._held_adaptation = before
 
     def _qp_run(self, x0, u_prev, d, ref, w_y, u_lo, u_hi, max_qps, restart, t0, time_limit_s, cap, start, trust,
-                hold):
+                hold, at):
         """:meth:`_solve_qps`'s QPs (its arguments; ``hold``: :meth:`_hold_rho` before the second QP)."""
         rho_first = self._core.rho if hold == "start" else None  # the step size the first QP starts from
         iterations = 0
         solves = 0
         status = "unsolved"
-        z = None
         inexact = False
         fraction = 1.0
         prep = 0.0
         self._reached_cap = False
         self.cap_retries = []
         self.trust_taken = 1.0  # the QP's own plan until the trust region takes a radius
+        z = at  # with ``at``: the first QP linearised at that plan (a further Gauss-Newton QP)
         for it in range(max_qps):
-            if it > 0:
+            if it > 0 or at is not None:
                 if hold != "off" and it == 1:
                     self._hold_rho()
                 rho_next = self._change_rho.for_qp(it) if rho_first is None else rho_first
@@ -1446,6 +1469,23 @@ class RtiOsqpSolver:
         self.l[self._r_u_rows], self.u[self._r_u_rows] = u_lo.ravel(), u_hi.ravel()
         self._core.update_vectors(self._q(ref, d, u_prev), self.l, self.u)
         return best, solved
+
+    def _reverses_at_bound(self, z: np.ndarray, u_prev: np.ndarray) -> bool:
+        """True where ``reversal_second_qp`` asks for a second QP on this plain step's plan ``z``: an input's first
+        move turns against its last (:func:`.reversal_search.turned_inputs` at ``reversal_search``'s share) and,
+        with ``"heater_bound"``, the plan's heater command starts at its upper bound
+        (:func:`.reversal_search.at_upper_bound`)."""
+        if self.reversal_second_qp == "off":
+            return False
+        nu = self.pb.nu
+        span = self.pb.u_hi - self.pb.u_lo
+        if not turned_inputs(self._last_move, z[self.iu0:self.iu0 + nu] - u_prev, span, self.reversal_search).size:
+            return False
+        if self.reversal_second_qp == "reversal":
+            return True
+        ih = self.pb.i_heater_cmd
+        U = z[self.iu0:self.is0].reshape(self.pb.N, nu)
+        return at_upper_bound(U, self.pb.u_hi, ih, float(span[ih]))
 
     def _searched(self, z, x0, d, ref, w_y, u_prev, u_lo, u_hi, plain: bool):
         """On a plain step (``plain``: one QP) whose plan ``z`` reverses an input's last first move
