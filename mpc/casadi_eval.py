@@ -36,6 +36,7 @@ class BufferedFunction:
             self._buf.set_arg(i, memoryview(arr))
         for i, arr in enumerate(self._res):
             self._buf.set_res(i, memoryview(arr))
+        self._views = tuple(self._res)  # views' answer: the buffers, in a tuple the caller cannot reorder or extend
         fixed = fixed or {}
         for i, value in fixed.items():
             self._args[i][...] = value
@@ -57,12 +58,12 @@ class BufferedFunction:
         self._eval()
         return [r.copy() for r in self._res]
 
-    def views(self, *args) -> list[np.ndarray]:
+    def views(self, *args) -> tuple[np.ndarray, ...]:
         """As ``f(*args)``, the same values, but the result buffers themselves, not copies: each is overwritten by
         the next call (either form), so a caller copies what it keeps beyond that (a copy of a result costs about
         0.5 us; the fused prediction has 14). The arguments are copied in before the evaluation, so a result of
-        the last call may be handed back as an argument."""
+        the last call may be handed back as an argument. A tuple: the buffers' list itself stays the object's."""
         for buf, value in zip(self._free, args):
             buf[...] = value
         self._eval()
-        return self._res
+        return self._views

@@ -73,7 +73,7 @@ from .arrays import all_finite
 from .background import BackgroundCall, BackgroundWorker
 from .ring_gate import RingGate
 from .start_caution import SCOPES as START_CAUTION_SCOPES, VALVE_A_AND_HEATER, StartCaution, known_delay_s, opening_bound
-from .rti_osqp import RHO_RESET_ON, RtiOsqpSolver, SolveResult, check_cap_retry
+from .rti_osqp import RHO_RESET_ON, RtiOsqpSolver, SolveResult, check_cap_retry, check_hold_with
 from .steady_target import check_steady_start_on
 from .change_rho import check_adaptation, check_change_rho, check_hold
 from .trust_region import check_radii
@@ -180,7 +180,8 @@ class MpcSettings:
             ``"reversal"`` on every such step, ``"heater_bound"`` only where the plan's heater command starts at its
             upper bound (within 2 % of its range); ``"off"`` (the default): none. Measured on valve a's two-cycle at
             the heater's bound in the box sweep's heating cells (docs/robustness.md sec. 2.41): it breaks the
-            cycle, and costs the cells where the box's valve a answers less than the model's near closed.
+            cycle, and costs the cells where the box's valve a answers less than the model's near closed. Only with
+            ``solver="rti"`` and without ``split_every_step`` (it never fires otherwise).
         ipopt_tol, ipopt_max_iter: IPOPT tolerance and iteration cap.
         deadline_s: longest feedback time (measurement to command); beyond it the solution is
             discarded and the fallback chain used.
@@ -400,16 +401,19 @@ class MpcSettings:
             default: off; else a factor in (0, 1]) times the step size that QP started from (not both); the matrices
             written again (one refactorisation) and the retry warm-started from the capped iterate with its
             multipliers, or with ``osqp_cap_retry_cold`` (off) from the linearisation point with zero multipliers.
-            The retry's answer is taken unless it is none and the capped one is; within the step's deadline. Only
-            steps whose QP reaches the cap change. Measured in docs/robustness.md sec. 2.40.
+            Only a QP whose answer at the cap is not accepted is retried; the retry's answer is taken where it is
+            one, else OSQP's workspace is set back to its state before the retry; within the step's deadline (checked
+            before and after the refactorisation). The step's retries: ``SolveResult.extra["cap_retries"]``. Not
+            with ``solver="ipopt"``. Only steps whose QP reaches the cap change. Measured in docs/robustness.md sec. 2.40.
         osqp_change_rho_hold: a reference change's QPs after the first run at a held OSQP step size ``rho``
             (dimensionless), OSQP's adaptation off in them: "end" the value the first QP ended with, "start" the value
             it started with ("off", the default: OSQP adapts them as set up), so the second QP's late raise (1e-4 ->
             0.03-0.10) is not made and the steps after the change start from the held value (with
             ``osqp_change_rho_restore``: the value before the change). The
             adaptation is switched off in the generated solver only (``osqp_codegen``; with the Python interface
-            "start" only sets the second QP's start and "end" does nothing). Not with
-            ``change_split_iter``. Measured slower (the change's later QPs want the raise: 1200 -> 3025-4935 OSQP
+            "start" only sets the second QP's start; "end" is refused there). Not with
+            ``change_split_iter``, with ``osqp_rho_reset`` on "preparation" or with ``osqp_change_rho``'s "_each"
+            modes (each overrides the held value). Measured slower (the change's later QPs want the raise: 1200 -> 3025-4935 OSQP
             iterations on the solve-time loop's seeds 1-3; "end" falls back) in docs/architecture.md, 'The change's
             second QP held'.
         valve_a_reversal_share: the share of a move of valve a that reverses its last applied move (both at least
@@ -572,6 +576,8 @@ class MpcSettings:
             check_adaptation(f"{p}.osqp_change_rho_interval", self.osqp_change_rho_interval,
                              self.osqp_change_rho_tolerance)
             check_hold(f"{p}.osqp_change_rho_hold", self.osqp_change_rho_hold)
+            check_hold_with(f"{p}.osqp_change_rho_hold", self.osqp_change_rho_hold, self.osqp_change_rho,
+                            self.osqp_rho_reset, self.osqp_rho_reset_on, self.osqp_codegen, prefix="osqp_")
         except ValueError as exc:
             raise InvalidSettings(str(exc)) from None
         try:
@@ -579,6 +585,11 @@ class MpcSettings:
                             self.osqp_cap_retry_cold)
         except ValueError as exc:
             raise InvalidSettings(str(exc)) from None
+        if self.solver not in ("rti", "sqp") and (self.osqp_cap_retry_rho or self.osqp_cap_retry_share
+                                                  or self.osqp_cap_retry_cold):
+            raise InvalidSettings(f"{p}.osqp_cap_retry_rho / osqp_cap_retry_share / osqp_cap_retry_cold with "
+                                  f"{p}.solver = {self.solver!r}: OSQP's retry at its cap; allowed: solver 'rti' or "
+                                  "'sqp' with them, or all three off (0, 0, False)")
         if self.osqp_change_rho_tolerance and not self.osqp_change_rho_interval:
             raise InvalidSettings(f"{p}.osqp_change_rho_tolerance = {self.osqp_change_rho_tolerance!r} needs "
                                   f"{p}.osqp_change_rho_interval in [1, 1000] (the adaptation it tunes)")
@@ -613,6 +624,10 @@ class MpcSettings:
             if self.rti_reversal_second_qp != "off" and not self.rti_reversal_search:
                 raise ValueError(f"{p}.rti_reversal_second_qp = {self.rti_reversal_second_qp!r} needs "
                                  f"rti_reversal_search > 0 (the reversal's share of each input's range)")
+            if self.rti_reversal_second_qp != "off" and (self.solver != "rti" or self.split_every_step):
+                raise ValueError(f"{p}.rti_reversal_second_qp = {self.rti_reversal_second_qp!r} with {p}.solver = "
+                                 f"{self.solver!r} / {p}.split_every_step = {self.split_every_step!r}: it never fires "
+                                 "there (a plain one-QP step's only); allowed: solver 'rti' and split_every_step False")
         except ValueError as exc:
             raise InvalidSettings(str(exc)) from None
         if not isinstance(self.rti_step_fractions, tuple) or len(self.rti_step_fractions) > 8:

@@ -211,7 +211,8 @@ class RtiOsqpSolver:
             ``"reversal"`` on every such step, ``"heater_bound"`` only where the plan's heater command starts at its
             upper bound (:func:`.reversal_search.at_upper_bound`); ``"off"`` (the default): none. The search then
             prices the second QP's plan against the candidates of the step's own linearisation point
-            (``reversal_relinearised`` says when it ran).
+            (``reversal_relinearised`` says when it ran). Refused with ``sqp_max_iter`` > 1 and with
+            ``split_every_step`` (with ``change_split_iter``): no step there is a plain one-QP step.
         codegen: evaluate the QP data as generated C (:func:`.codegen.compiled`, cached on disk);
             otherwise (or without a compiler) CasADi's interpreter runs the same functions.
             ``self.codegen`` reports what happened.
@@ -296,8 +297,9 @@ class RtiOsqpSolver:
             QP ended with ("end") or started with ("start", set in the second QP's relinearisation's refactorisation);
             "off": OSQP adapts them as set up. So the second QP's late raise is not made and the steps after the change
             start from the held value. The adaptation is switched off in the generated solver only (OSQP's interface
-            fixes it at set-up: there "start" only sets the second QP's start, "end" does nothing). Measured in
-            docs/architecture.md, 'The change's second QP held'.
+            fixes it at set-up: there "start" only sets the second QP's start, "end" is refused). Refused with
+            ``rho_reset`` on "preparation" and with ``change_rho``'s "_each" modes (each sets the held QPs' step size;
+            :func:`check_hold_with`). Measured in docs/architecture.md, 'The change's second QP held'.
     """
 
     def __init__(self, problem: TrackingProblem, *, eps: float = 1e-4, max_iter: int = 400,
@@ -328,6 +330,11 @@ class RtiOsqpSolver:
         self.reversal_second_qp = check_second_qp("RtiOsqpSolver: reversal_second_qp", reversal_second_qp)
         if self.reversal_second_qp != "off" and not self.reversal_search:
             raise ValueError("RtiOsqpSolver: reversal_second_qp needs reversal_search > 0 (its reversal's share)")
+        if self.reversal_second_qp != "off" and (int(sqp_max_iter) != 1 or (split_every_step and change_split_iter)):
+            raise ValueError(f"RtiOsqpSolver: reversal_second_qp = {reversal_second_qp!r} with sqp_max_iter = "
+                             f"{sqp_max_iter!r} / split_every_step = {split_every_step!r} (change_split_iter = "
+                             f"{change_split_iter!r}): it never fires there (a plain one-QP step's only); allowed: "
+                             "sqp_max_iter 1 and split_every_step False with it")
         self.reversal_relinearised = False  # the last step took a second QP on a reversal
         self._quiet_run = 0  # plain one-QP steps in a row, the last included
         self._turned_before = np.zeros(0, dtype=int)  # the inputs the last step's plan turned
@@ -370,10 +377,12 @@ class RtiOsqpSolver:
                                        or change_rho_hold != "off"):
             raise ValueError("RtiOsqpSolver: change_rho / change_rho_restore / change_rho_interval / change_rho_hold "
                              "with change_split_iter: not supported; allowed: change_split_iter 0 with them")
+        check_hold_with("RtiOsqpSolver: change_rho_hold", change_rho_hold, change_rho, rho_reset, rho_reset_on,
+                         osqp_codegen)
         self.cap_retry_rho, self.cap_retry_share, self.cap_retry_cold = check_cap_retry(
             "RtiOsqpSolver: cap_retry", cap_retry_rho, cap_retry_share, cap_retry_cold)
         self.qps_at_cap = 0  # QPs that reached OSQP's max_iter (not a split change's or a plain step's own cap)
-        self.cap_retries: list[dict] = []  # the last QPs' retries at the cap: both solves' iterations, status, rho
+        self.cap_retries: list[dict] = []  # the last step's retries at the cap: both solves' iterations, status, rho
         self.steady_start_on = check_steady_start_on("RtiOsqpSolver: steady_start_on", steady_start_on)
         if isinstance(relinearise_every, bool) or int(relinearise_every) != relinearise_every or relinearise_every < 1:
             raise ValueError(f"RtiOsqpSolver: relinearise_every = {relinearise_every!r}, allowed: an integer >= 1")
@@ -470,7 +479,8 @@ class RtiOsqpSolver:
                 "change_rho": self._change_rho.mode, "change_rho_restore": self._change_rho.restore,
                 "change_rho_interval": self.change_rho_interval, "change_rho_tolerance": self.change_rho_tolerance,
                 "cap_retry_rho": self.cap_retry_rho, "cap_retry_share": self.cap_retry_share,
-                "cap_retry_cold": self.cap_retry_cold,
+                "cap_retry_cold": self.cap_retry_cold, "change_rho_hold": self.change_rho_hold,
+                "reversal_second_qp": self.reversal_second_qp,
                 "step_fractions": list(self._merit.fractions) if self._merit else [],
                 "trust_radii": list(self.trust_radii)}
 
@@ -1096,6 +1106,7 @@ class RtiOsqpSolver:
         t0 = time.perf_counter()
         prep = 0.0
         cold = self.X is None
+        self.cap_retries = []  # this step's retries at the cap (all its QPs': a second QP's added to the first's)
         max_qps = max(self.sqp_max_iter, self.cold_start_qps) if cold else self.sqp_max_iter
         changed = self._prepared is not None and not same_values(self._prepared["ref"], ref)
         old_ref = self._prepared["ref"] if changed else None
@@ -1206,7 +1217,6 @@ class RtiOsqpSolver:
         fraction = 1.0
         prep = 0.0
         self._reached_cap = False
-        self.cap_retries = []
         self.trust_taken = 1.0  # the QP's own plan until the trust region takes a radius
         z = at  # with ``at``: the first QP linearised at that plan (a further Gauss-Newton QP)
         for it in range(max_qps):
@@ -1242,7 +1252,7 @@ class RtiOsqpSolver:
             iterations += n_iter
             if not capped and n_iter >= self._osqp_settings["max_iter"]:
                 self.qps_at_cap += 1
-                if retry:
+                if retry and status_val not in self._accepted:  # an answer taken at the cap is not solved again
                     (status_val, status, n_iter, x), again, retry_prep = self._retry_at_cap(
                         (status_val, status, n_iter, x), rho_start, t0, time_limit_s)
                     solves += again > 0
@@ -1276,39 +1286,53 @@ class RtiOsqpSolver:
         size set to ``cap_retry_rho``, or to ``cap_retry_share`` times ``rho_start`` (the value the QP started from),
         the matrices written again with it (one refactorisation), and OSQP warm-started from the capped iterate (its
         multipliers kept) or, with ``cap_retry_cold``, from the linearisation point with zero multipliers. ``first``:
-        the capped solve's (status value, status, iterations, primal iterate). Returns the solve taken (the retry's,
-        unless it is no answer and the capped one is), the retry's iterations (0: none, no time left) and its
-        refactorisation's wall time (s). Within the step's time limit where one is set."""
-        if time_limit_s > 0:
-            remaining = time_limit_s - (time.perf_counter() - t0)
-            if remaining <= 0:
-                return first, 0, 0.0
-            self._limit_time(remaining, time_limit_s)
+        the capped solve's (status value, status, iterations, primal iterate), not an accepted answer (the caller
+        retries only then). Returns the solve taken (the retry's where it is an answer, else the capped one's), the
+        retry's iterations (0: none, no time left before or after the refactorisation) and the wall time (s) of its
+        refactorisations. Within the step's time limit where one is set. Where the capped solve's is taken, OSQP's
+        workspace is set back to its state before the retry (``save_state`` / ``restore_state``: step size, matrices,
+        multipliers; one refactorisation more), so the steps after, and ``change_rho``'s note of the step size, find
+        OSQP as the capped solve left it."""
+        if time_limit_s > 0 and time_limit_s - (time.perf_counter() - t0) <= 0:
+            return first, 0, 0.0
+        saved = self._core.save_state()
         rho = self.cap_retry_rho if self.cap_retry_rho > 0 else self.cap_retry_share * rho_start
         prep = self._reset_rho(rho)
-        if self.cap_retry_cold:
-            self._core.warm_start(self._z_lin, self._zero_duals)
-        else:
-            self._core.warm_start(np.array(first[3], float))
-        again = self._core.solve()
-        self.cap_retries.append({"iterations": (first[2], again[2]), "status": (str(first[1]), str(again[1])),
+        again = None
+        if time_limit_s > 0:  # (the refactorisation's time counted: checked again after it)
+            remaining = time_limit_s - (time.perf_counter() - t0)
+            if remaining > 0:
+                self._limit_time(remaining, time_limit_s)
+        if time_limit_s <= 0 or remaining > 0:
+            if self.cap_retry_cold:
+                self._core.warm_start(self._z_lin, self._zero_duals)
+            else:
+                self._core.warm_start(np.array(first[3], float))
+            again = self._core.solve()
+        self.cap_retries.append({"iterations": (first[2], 0 if again is None else again[2]),
+                                 "status": (str(first[1]), "deadline" if again is None else str(again[1])),
                                  "rho": (rho_start, rho)})
-        taken = again if again[0] in self._accepted or first[0] not in self._accepted else first
-        return taken, again[2], prep
+        if again is not None and again[0] in self._accepted:
+            return again, again[2], prep
+        t1 = time.perf_counter()
+        self._core.restore_state(saved)
+        return first, 0 if again is None else again[2], prep + time.perf_counter() - t1
 
     def _result(self, z, status, iterations, solves, prep, feedback, cold, inexact, fraction) -> SolveResult:
-        """The answer ``z`` as the solver's plan and a :class:`SolveResult` (a failure where ``z`` is None)."""
+        """The answer ``z`` as the solver's plan and a :class:`SolveResult` (a failure where ``z`` is None); with the
+        retry at the cap set, ``extra["cap_retries"]``: the retries of the step (or of finish_change's rest)."""
         N, nx, nu = self.pb.N, self.pb.nx, self.pb.nu
+        retries = {"cap_retries": len(self.cap_retries)} if self.cap_retry_rho or self.cap_retry_share else {}
         if z is None:
             return SolveResult(False, status, iterations=iterations, qp_solves=solves, prep_time_s=prep,
-                               feedback_time_s=feedback, extra={"cold_start": cold})
+                               feedback_time_s=feedback, extra={"cold_start": cold, **retries})
         X = z[:(N + 1) * nx].reshape(N + 1, nx)
         U = z[self.iu0:self.is0].reshape(N, nu)
         S = z[self.is0:]
         self.X, self.U, self.S = X, U, S
         return SolveResult(True, status, X=X.copy(), U=U.copy(), S=S.copy(), iterations=iterations,
                            qp_solves=solves, prep_time_s=prep, feedback_time_s=feedback,
-                           extra={"cold_start": cold, "inexact": inexact, "step_fraction": fraction})
+                           extra={"cold_start": cold, "inexact": inexact, "step_fraction": fraction, **retries})
 
     @property
     def change_pending(self) -> bool:
@@ -1329,6 +1353,7 @@ class RtiOsqpSolver:
         where there is no change to finish or a QP fails: the caller then resets the solver)."""
         rest, self._change_rest = self._change_rest, None
         t0 = time.perf_counter()
+        self.cap_retries = []  # the rest's retries at the cap
         if rest is None:
             return SolveResult(False, "no change to finish")
         try:
@@ -1610,7 +1635,11 @@ class _OsqpCore(osqp_embedded.TwoPassSolve):
             self.wrapper.update(Px=Px, Ax=Ax)
         else:
             self.core.update_data_mat(P_x=Px, P_i=None, A_x=Ax, A_i=None)
-        self._matrices = (Px, Ax)  # for save_state (the caller's arrays, not changed after they are handed over)
+        # for save_state: the caller's arrays by reference, not copies. After a full preparation they are the fused
+        # prediction's result buffers, which its next evaluation overwrites; a saved state (``_save_step``, the retry at
+        # the cap) stays valid because it is restored before that evaluation: within the step's own QPs, or in
+        # finish_change, which the controller's ``_finish_change`` calls before ``prepare_predicted``
+        self._matrices = (Px, Ax)
 
     def save_state(self) -> dict:
         """What :meth:`restore_state` needs to bring OSQP back to now: the step size, the matrices last written and
@@ -1696,6 +1725,27 @@ def _checked_step_size(name: str, rho: float | None) -> float | None:
     if rho is not None and (isinstance(rho, bool) or not isinstance(rho, (int, float)) or not 1e-6 <= rho <= 1e6):
         raise ValueError(f"RtiOsqpSolver: {name} = {rho!r}, allowed: None or a number in [1e-6, 1e6]")
     return None if rho is None else float(rho)
+
+
+def check_hold_with(name: str, hold: str, change_rho: str, rho_reset, rho_reset_on: str, generated: bool,
+                    prefix: str = "") -> None:
+    """``change_rho_hold`` (``name``) refused where another setting overrides it silently: ``rho_reset`` on
+    "preparation" (set with every matrix update, the relinearisations between a change's QPs among them),
+    ``change_rho``'s "_each" modes (each QP's start set) and "end" without the generated solver (the Python interface
+    cannot switch the adaptation off: it does nothing). ValueError naming both fields (the others' names with
+    ``prefix``: "osqp_" for ``MpcSettings``') and what is allowed."""
+    if hold == "off":
+        return
+    if rho_reset is not None and rho_reset_on == "preparation":
+        raise ValueError(f"{name} = {hold!r} with {prefix}rho_reset = {rho_reset!r} on 'preparation': the reset sets "
+                         f"the step size at every matrix update, the held one among them; allowed: {prefix}rho_reset "
+                         f"None or {prefix}rho_reset_on 'change' with it")
+    if str(change_rho).endswith("_each"):
+        raise ValueError(f"{name} = {hold!r} with {prefix}change_rho = {change_rho!r}: each QP's start is set by it; "
+                         f"allowed: {prefix}change_rho 'off', 'last' or 'kind' with it")
+    if hold == "end" and not generated:
+        raise ValueError(f"{name} = 'end' with osqp_codegen = False: the Python interface cannot hold the step size "
+                         "(it does nothing); allowed: osqp_codegen True, or 'start' / 'off'")
 
 
 def check_cap_retry(name: str, rho: float, share: float, cold: bool) -> tuple[float, float, bool]:

@@ -3,9 +3,12 @@ docs/robustness.md sec. 2.40): the reserve's step down at 390 s on the independe
 (tests/test_reserve_step_down.py's run) with sec. 2.37's heat package F, whose change's first QP ends at OSQP's 1000
 iterations without an answer and so falls back to the shifted plan."""
 
+import numpy as np
 import pytest
 
+from hvac_mpc.benchmarks import solve_time
 from hvac_mpc.benchmarks.change_rho import reserve_run
+from hvac_mpc.mpc import codegen, osqp_embedded
 from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
 from hvac_mpc.mpc.ocp import InvalidSettings
 
@@ -38,3 +41,67 @@ def test_the_retry_settings_are_checked():
     assert (s.osqp_cap_retry_rho, s.osqp_cap_retry_share, s.osqp_cap_retry_cold) == (0.0, 0.0, False)
     solver = MpcController(settings=MpcSettings(osqp_cap_retry_share=0.3, osqp_cap_retry_cold=True)).solver
     assert (solver.settings["cap_retry_share"], solver.settings["cap_retry_cold"]) == (0.3, True)
+    for fields in (dict(osqp_cap_retry_rho=3e-3), dict(osqp_cap_retry_share=0.3), dict(osqp_cap_retry_cold=True)):
+        with pytest.raises(InvalidSettings, match=r"osqp_cap_retry_rho / osqp_cap_retry_share / osqp_cap_retry_cold "
+                                                  r"with .*solver = 'ipopt'.*allowed: solver 'rti' or 'sqp'"):
+            MpcSettings(solver="ipopt", **fields)
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    """A cache folder of this module's own (the generated OSQP built once in it)."""
+    return tmp_path_factory.mktemp("cache")
+
+
+@pytest.mark.parametrize("generated", [False, True])
+def test_a_retry_not_taken_leaves_osqps_workspace_as_the_capped_qp_left_it(generated, cache, monkeypatch):
+    """OSQP capped at 10 iterations: the cold first steps' QP ends at the cap without an answer, the retry at
+    rho 1e-3 (from OSQP's 0.1) too; the capped solve's status is the step's, and OSQP's step size is the one before
+    the retry again (the generated solver's whole workspace, multipliers and factorisation included, to the bit), so
+    the next step does not start from the retry's. Each step's retries in ``extra["cap_retries"]``."""
+    if generated:
+        monkeypatch.setenv(codegen.CACHE_ENV, str(cache))
+        monkeypatch.setenv(codegen.SWITCH_ENV, "1")
+    ctrl = MpcController(settings=MpcSettings(codegen=False, osqp_codegen=generated, osqp_max_iter=10,
+                                              osqp_cap_retry_rho=1e-3))
+    solver = ctrl.solver
+    core = solver._core
+    if generated and not isinstance(core, osqp_embedded.EmbeddedOsqp):
+        ctrl.close()
+        pytest.skip("OSQP's generated solver not built here")
+    retried, results, seen = solver._retry_at_cap, [], []
+    feedback = solver.feedback
+
+    def retry(first, *args):
+        before = (core.rho, core.save_state())
+        taken = retried(first, *args)
+        seen.append((first, taken, before, (core.rho, core.save_state())))
+        return taken
+
+    solver._retry_at_cap = retry
+    solver.feedback = lambda *a, **k: results.append(feedback(*a, **k)) or results[-1]
+    loop = solve_time.Loop(ctrl, 1)
+    for k in range(2):
+        loop.step(k)
+    ctrl.close()
+    assert len(seen) == 2 and [r.extra["cap_retries"] for r in results] == [1, 1]
+    for (first, taken, before, after), result in zip(seen, results):
+        # the capped solve's answer taken (none: the step fails), the retry's 10 iterations counted
+        assert taken[0] is first and taken[1] == 10 and not result.ok and result.status == str(first[1])
+        assert before[0] == after[0] == 0.1  # the retry ran at 1e-3, the step size set back
+        if generated:
+            assert np.array_equal(before[1]["buf"].view(np.int64), after[1]["buf"].view(np.int64))
+    assert solver.cap_retries[0]["rho"] == (0.1, 1e-3)
+
+
+def test_a_retry_is_counted_per_step_and_absent_when_off():
+    """``cap_retries`` holds the step's retries (reset at each step, not at each QP run) and the result's extra
+    has the count only with the retry set (the default step's extra as before)."""
+    ctrl = MpcController(settings=MpcSettings(codegen=False, osqp_codegen=False))
+    loop = solve_time.Loop(ctrl, 1)
+    results = []
+    feedback = ctrl.solver.feedback
+    ctrl.solver.feedback = lambda *a, **k: results.append(feedback(*a, **k)) or results[-1]
+    loop.step(0)
+    ctrl.close()
+    assert "cap_retries" not in results[0].extra and ctrl.solver.cap_retries == []

@@ -163,6 +163,15 @@ def test_the_restore_shortens_the_slowest_qp_after_the_change_at_60_s(cache):
     ({"osqp_change_rho_hold": "both"}, r"osqp_change_rho_hold = 'both', allowed: one of \['off', 'end', 'start'\]"),
     ({"osqp_change_rho_hold": True}, r"osqp_change_rho_hold = True, allowed: one of"),
     ({"osqp_change_rho_hold": "start", "change_split_iter": 50}, r"change_split_iter = 50: not supported"),
+    ({"osqp_change_rho_hold": "start", "osqp_rho_reset": 1e-3},
+     r"osqp_change_rho_hold = 'start' with osqp_rho_reset = 0.001 on 'preparation'.*allowed: osqp_rho_reset None or "
+     r"osqp_rho_reset_on 'change'"),
+    ({"osqp_change_rho_hold": "end", "osqp_change_rho": "kind_each"},
+     r"osqp_change_rho_hold = 'end' with osqp_change_rho = 'kind_each'.*allowed: osqp_change_rho 'off', 'last' or "
+     r"'kind'"),
+    ({"osqp_change_rho_hold": "start", "osqp_change_rho": "last_each"}, r"osqp_change_rho = 'last_each'"),
+    ({"osqp_change_rho_hold": "end", "osqp_codegen": False},
+     r"osqp_change_rho_hold = 'end' with osqp_codegen = False.*allowed: osqp_codegen True, or 'start' / 'off'"),
 ])
 def test_the_fields_are_checked_naming_the_field(fields, match):
     with pytest.raises(InvalidSettings, match=match):
@@ -179,6 +188,23 @@ def test_the_solver_refuses_both_change_step_sizes():
         RtiOsqpSolver(pb, change_rho_hold="late")
     with pytest.raises(ValueError, match=r"change_rho_hold with change_split_iter: not supported"):
         RtiOsqpSolver(pb, change_rho_hold="end", change_split_iter=50)
+    with pytest.raises(ValueError, match=r"change_rho_hold = 'start' with rho_reset = 0.001 on 'preparation'"):
+        RtiOsqpSolver(pb, change_rho_hold="start", rho_reset=1e-3)
+    with pytest.raises(ValueError, match=r"change_rho_hold = 'start' with change_rho = 'last_each'"):
+        RtiOsqpSolver(pb, change_rho_hold="start", change_rho="last_each")
+    with pytest.raises(ValueError, match=r"change_rho_hold = 'end' with osqp_codegen = False"):
+        RtiOsqpSolver(pb, change_rho_hold="end")
+
+
+def test_the_hold_is_taken_with_what_does_not_override_it_and_reported():
+    """The combinations left: "start" with ``rho_reset`` on "change", with ``change_rho`` "kind", and with the
+    Python interface; the mode in the solver's settings (reports tell the runs apart)."""
+    for fields in (dict(osqp_rho_reset=1e-3, osqp_rho_reset_on="change"), dict(osqp_change_rho="kind"),
+                   dict(osqp_codegen=False)):
+        assert MpcSettings(osqp_change_rho_hold="start", **fields).osqp_change_rho_hold == "start"
+    ctrl = MpcController(settings=MpcSettings(codegen=False, osqp_codegen=False, osqp_change_rho_hold="start"))
+    assert ctrl.solver.settings["change_rho_hold"] == "start"
+    ctrl.close()
 
 
 # a change's second QP held at the first's step size (osqp_change_rho_hold; docs/architecture.md, 'The change's

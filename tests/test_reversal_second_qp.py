@@ -10,9 +10,10 @@ import numpy as np
 import pytest
 
 from hvac_mpc.benchmarks import box_trace
-from hvac_mpc.mpc.mpc_controller import MpcSettings
+from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
 from hvac_mpc.mpc.ocp import InvalidSettings
 from hvac_mpc.mpc.reversal_search import at_upper_bound, check_second_qp
+from hvac_mpc.mpc.rti_osqp import RtiOsqpSolver
 
 #: Box S1-13 as ``python -m hvac_mpc.benchmarks.box_sweep --seed 1 --count 14 --list`` prints it.
 S1_13 = ("S1-13:transport_delay_s=4.24,duct_loss_ua_w_per_k=2.73,thermocouple_tau_scale=0.78,blower_gain_scale=1.15,"
@@ -45,6 +46,26 @@ def test_the_setting_is_checked_and_off_by_default():
         MpcSettings(rti_reversal_second_qp="always")
     with pytest.raises(InvalidSettings, match="rti_reversal_second_qp = 'reversal' needs rti_reversal_search"):
         MpcSettings(rti_reversal_second_qp="reversal", rti_reversal_search=0.0)
+
+
+def test_the_second_qp_is_refused_where_it_never_fires():
+    """Only a plain one-QP step takes it: refused with ``solver="sqp"`` and with ``split_every_step`` (every step
+    split), in the settings and in the solver; taken and reported with ``solver="rti"``."""
+    on = dict(rti_reversal_second_qp="reversal", rti_reversal_search=0.3)
+    with pytest.raises(InvalidSettings, match=r"rti_reversal_second_qp = 'reversal' with .*solver = 'sqp'.*allowed: "
+                                              r"solver 'rti' and split_every_step False"):
+        MpcSettings(solver="sqp", **on)
+    with pytest.raises(InvalidSettings, match=r"split_every_step = True: it never fires"):
+        MpcSettings(split_every_step=True, change_split_iter=50, **on)
+    ctrl = MpcController(settings=MpcSettings(codegen=False, osqp_codegen=False, **on))
+    assert ctrl.solver.settings["reversal_second_qp"] == "reversal"
+    pb = ctrl.problem
+    ctrl.close()
+    kept = dict(reversal_second_qp="reversal", reversal_search=0.3)
+    with pytest.raises(ValueError, match=r"reversal_second_qp = 'reversal' with sqp_max_iter = 2"):
+        RtiOsqpSolver(pb, sqp_max_iter=2, **kept)
+    with pytest.raises(ValueError, match=r"split_every_step = True \(change_split_iter = 50\): it never fires"):
+        RtiOsqpSolver(pb, split_every_step=True, change_split_iter=50, **kept)
 
 
 @pytest.mark.slow
