@@ -401,8 +401,9 @@ class MpcSettings:
             default: off; else a factor in (0, 1]) times the step size that QP started from (not both); the matrices
             written again (one refactorisation) and the retry warm-started from the capped iterate with its
             multipliers, or with ``osqp_cap_retry_cold`` (off) from the linearisation point with zero multipliers.
-            Only a QP whose answer at the cap is not accepted is retried; the retry's answer is taken where it is
-            one, else OSQP's workspace is set back to its state before the retry; within the step's deadline (checked
+            Only a QP not solved to OSQP's tolerance at the cap is retried; the retry's answer is taken where it is
+            solved, or where it is an answer and the capped one is not, else OSQP's workspace is set back to its
+            state before the retry; within the step's deadline (checked
             before and after the refactorisation). The step's retries: ``SolveResult.extra["cap_retries"]``. Not
             with ``solver="ipopt"``. Only steps whose QP reaches the cap change. Measured in docs/robustness.md sec. 2.40.
         osqp_change_rho_hold: a reference change's QPs after the first run at a held OSQP step size ``rho``

@@ -1252,7 +1252,7 @@ class RtiOsqpSolver:
             iterations += n_iter
             if not capped and n_iter >= self._osqp_settings["max_iter"]:
                 self.qps_at_cap += 1
-                if retry and status_val not in self._accepted:  # an answer taken at the cap is not solved again
+                if retry and status_val != 1:  # not solved to OSQP's tolerance: inexact or at the cap
                     (status_val, status, n_iter, x), again, retry_prep = self._retry_at_cap(
                         (status_val, status, n_iter, x), rho_start, t0, time_limit_s)
                     solves += again > 0
@@ -1286,8 +1286,9 @@ class RtiOsqpSolver:
         size set to ``cap_retry_rho``, or to ``cap_retry_share`` times ``rho_start`` (the value the QP started from),
         the matrices written again with it (one refactorisation), and OSQP warm-started from the capped iterate (its
         multipliers kept) or, with ``cap_retry_cold``, from the linearisation point with zero multipliers. ``first``:
-        the capped solve's (status value, status, iterations, primal iterate), not an accepted answer (the caller
-        retries only then). Returns the solve taken (the retry's where it is an answer, else the capped one's), the
+        the capped solve's (status value, status, iterations, primal iterate), not solved to OSQP's tolerance (the
+        caller retries only then: "solved inaccurate" or "maximum iterations reached"). Returns the solve taken: the
+        retry's where it is solved, or where it is an answer and the capped one is not; else the capped one's; the
         retry's iterations (0: none, no time left before or after the refactorisation) and the wall time (s) of its
         refactorisations. Within the step's time limit where one is set. Where the capped solve's is taken, OSQP's
         workspace is set back to its state before the retry (``save_state`` / ``restore_state``: step size, matrices,
@@ -1312,7 +1313,7 @@ class RtiOsqpSolver:
         self.cap_retries.append({"iterations": (first[2], 0 if again is None else again[2]),
                                  "status": (str(first[1]), "deadline" if again is None else str(again[1])),
                                  "rho": (rho_start, rho)})
-        if again is not None and again[0] in self._accepted:
+        if again is not None and (again[0] == 1 or (again[0] in self._accepted and first[0] not in self._accepted)):
             return again, again[2], prep
         t1 = time.perf_counter()
         self._core.restore_state(saved)
