@@ -67,7 +67,7 @@ from .sign_check import HeldAirChange, ValveSignCheck
 from .readiness import HeaterReadiness
 from .reserve import HeaterReserve
 from .reversal_damping import damped_move
-from .reversal_search import check_second_qp, check_share, check_wait
+from .reversal_search import check_second_qp, check_second_qp_with, check_share, check_wait
 from .valve_a_hold import heater_limited, held_opening
 from .arrays import all_finite
 from .background import BackgroundCall, BackgroundWorker
@@ -579,9 +579,6 @@ class MpcSettings:
             check_hold(f"{p}.osqp_change_rho_hold", self.osqp_change_rho_hold)
             check_hold_with(f"{p}.osqp_change_rho_hold", self.osqp_change_rho_hold, self.osqp_change_rho,
                             self.osqp_rho_reset, self.osqp_rho_reset_on, self.osqp_codegen, prefix="osqp_")
-        except ValueError as exc:
-            raise InvalidSettings(str(exc)) from None
-        try:
             check_cap_retry(f"{p}.osqp_cap_retry", self.osqp_cap_retry_rho, self.osqp_cap_retry_share,
                             self.osqp_cap_retry_cold)
         except ValueError as exc:
@@ -622,13 +619,10 @@ class MpcSettings:
             check_share(f"{p}.rti_reversal_margin", self.rti_reversal_margin, "the QP plan's cost")
             check_flag(f"{p}.rti_reversal_bound_only", self.rti_reversal_bound_only)
             check_second_qp(f"{p}.rti_reversal_second_qp", self.rti_reversal_second_qp)
-            if self.rti_reversal_second_qp != "off" and not self.rti_reversal_search:
-                raise ValueError(f"{p}.rti_reversal_second_qp = {self.rti_reversal_second_qp!r} needs "
-                                 f"rti_reversal_search > 0 (the reversal's share of each input's range)")
-            if self.rti_reversal_second_qp != "off" and (self.solver != "rti" or self.split_every_step):
-                raise ValueError(f"{p}.rti_reversal_second_qp = {self.rti_reversal_second_qp!r} with {p}.solver = "
-                                 f"{self.solver!r} / {p}.split_every_step = {self.split_every_step!r}: it never fires "
-                                 "there (a plain one-QP step's only); allowed: solver 'rti' and split_every_step False")
+            check_second_qp_with(f"{p}.rti_reversal_second_qp", self.rti_reversal_second_qp, "rti_reversal_search",
+                                 self.rti_reversal_search, self.solver == "rti" and not self.split_every_step,
+                                 f"{p}.solver = {self.solver!r} / {p}.split_every_step = {self.split_every_step!r}",
+                                 "solver 'rti' and split_every_step False")
         except ValueError as exc:
             raise InvalidSettings(str(exc)) from None
         if not isinstance(self.rti_step_fractions, tuple) or len(self.rti_step_fractions) > 8:

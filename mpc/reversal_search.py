@@ -151,6 +151,21 @@ def check_second_qp(name: str, rule) -> str:
     return str(rule)
 
 
+def check_second_qp_with(name: str, rule: str, search_name: str, search: float, one_qp_steps: bool, conflict: str,
+                         allowed: str) -> None:
+    """``rule`` (:data:`SECOND_QP_RULES`, the field ``name``) refused where it cannot act: without the search's share
+    (``search``, the field ``search_name``: it names the reversal) and where no step is a plain one-QP step
+    (``one_qp_steps`` False; ``conflict`` names the settings that make it so, ``allowed`` what may be set instead).
+    ValueError naming the fields."""
+    if rule == "off":
+        return
+    if not search:
+        raise ValueError(f"{name} = {rule!r} needs {search_name} > 0 (the reversal's share of each input's range)")
+    if not one_qp_steps:
+        raise ValueError(f"{name} = {rule!r} with {conflict}: it never fires there (a plain one-QP step's only); "
+                         f"allowed: {allowed}")
+
+
 def rate_limited(profile: np.ndarray, lo: np.ndarray, hi: np.ndarray, rate: np.ndarray | None) -> np.ndarray:
     """``profile`` (N, scaled) clipped to ``[lo, hi]`` stage by stage and, with ``rate`` (N-1), each stage to
     within ``rate[k-1]`` of the stage before it (forward, from the clipped first stage)."""

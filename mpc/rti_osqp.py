@@ -46,8 +46,8 @@ from .multilevel import MultiLevel, vector_function
 from .ocp import STAGE_OUTPUTS, TRACKED, TrackingProblem, check_flag, shift_maps, shift_nodes
 from .osqp_embedded import FIRST_PASS_EPS_RATIO  # noqa: F401 - the first pass's tolerance, named here too
 from .plan_merit import MERIT_TOLERANCE, PlanMerit
-from .reversal_search import (at_bound, at_upper_bound, candidates, check_second_qp, check_share, check_wait,
-                              eligible_inputs, last_moves, turned_inputs, turns_and_moves)
+from .reversal_search import (at_bound, at_upper_bound, candidates, check_second_qp, check_second_qp_with, check_share,
+                              check_wait, eligible_inputs, last_moves, turned_inputs, turns_and_moves)
 from .steady_target import SteadyStart, check_steady_start_on, starts_at_target
 from .trust_region import check_radii, region_bounds
 
@@ -328,12 +328,11 @@ class RtiOsqpSolver:
         check_flag("RtiOsqpSolver: reversal_bound_only", reversal_bound_only)
         self.reversal_bound_only = reversal_bound_only
         self.reversal_second_qp = check_second_qp("RtiOsqpSolver: reversal_second_qp", reversal_second_qp)
-        if self.reversal_second_qp != "off" and not self.reversal_search:
-            raise ValueError("RtiOsqpSolver: reversal_second_qp needs reversal_search > 0 (its reversal's share)")
-        if self.reversal_second_qp != "off" and (int(sqp_max_iter) != 1 or (split_every_step and change_split_iter)):
-            raise ValueError(f"RtiOsqpSolver: reversal_second_qp = {reversal_second_qp!r} with sqp_max_iter = "
-                             f"{sqp_max_iter!r} / split_every_step = {split_every_step!r} (change_split_iter = "
-                             f"{change_split_iter!r}): it never fires there (a plain one-QP step's only); allowed: "
+        check_second_qp_with("RtiOsqpSolver: reversal_second_qp", self.reversal_second_qp, "reversal_search",
+                             self.reversal_search,
+                             int(sqp_max_iter) == 1 and not (split_every_step and change_split_iter),
+                             f"sqp_max_iter = {sqp_max_iter!r} / split_every_step = {split_every_step!r} "
+                             f"(change_split_iter = {change_split_iter!r})",
                              "sqp_max_iter 1 and split_every_step False with it")
         self.reversal_relinearised = False  # the last step took a second QP on a reversal
         self._quiet_run = 0  # plain one-QP steps in a row, the last included
@@ -381,7 +380,6 @@ class RtiOsqpSolver:
                          osqp_codegen)
         self.cap_retry_rho, self.cap_retry_share, self.cap_retry_cold = check_cap_retry(
             "RtiOsqpSolver: cap_retry", cap_retry_rho, cap_retry_share, cap_retry_cold)
-        self.qps_at_cap = 0  # QPs that reached OSQP's max_iter (not a split change's or a plain step's own cap)
         self.cap_retries: list[dict] = []  # the last step's retries at the cap: both solves' iterations, status, rho
         self.steady_start_on = check_steady_start_on("RtiOsqpSolver: steady_start_on", steady_start_on)
         if isinstance(relinearise_every, bool) or int(relinearise_every) != relinearise_every or relinearise_every < 1:
@@ -1238,26 +1236,22 @@ class RtiOsqpSolver:
             first = it == 0 and start is not None
             self._core.warm_start(start if first else self._z_lin,
                                   self._zero_duals if (it == 0 and restart) else None)
-            if time_limit_s > 0:
-                remaining = time_limit_s - (time.perf_counter() - t0)
-                if remaining <= 0:
-                    status = "deadline"
-                    break
-                self._limit_time(remaining, time_limit_s)
+            if not self._time_left(t0, time_limit_s):
+                status = "deadline"
+                break
             capped = cap > 0
             retry = not capped and (self.cap_retry_rho > 0 or self.cap_retry_share > 0)
             rho_start = self._core.rho if retry else 0.0
             status_val, status, n_iter, x = self._core.solve_capped(cap) if capped else self._core.solve()
             solves += 1
             iterations += n_iter
-            if not capped and n_iter >= self._osqp_settings["max_iter"]:
-                self.qps_at_cap += 1
-                if retry and status_val != 1:  # not solved to OSQP's tolerance: inexact or at the cap
-                    (status_val, status, n_iter, x), again, retry_prep = self._retry_at_cap(
-                        (status_val, status, n_iter, x), rho_start, t0, time_limit_s)
-                    solves += again > 0
-                    iterations += again
-                    prep += retry_prep
+            # at OSQP's cap and not solved to its tolerance (inexact or at the cap)
+            if retry and status_val != 1 and n_iter >= self._osqp_settings["max_iter"]:
+                (status_val, status, n_iter, x), again, retry_prep = self._retry_at_cap(
+                    (status_val, status, n_iter, x), rho_start, t0, time_limit_s)
+                solves += again > 0
+                iterations += again
+                prep += retry_prep
             if self._change_rho.mode != "off":
                 self._change_rho.note(it, self._core.rho)  # (a change's QPs only: nothing pending otherwise)
             self._reached_cap = self._reached_cap or (capped and n_iter >= cap)
@@ -1294,17 +1288,13 @@ class RtiOsqpSolver:
         workspace is set back to its state before the retry (``save_state`` / ``restore_state``: step size, matrices,
         multipliers; one refactorisation more), so the steps after, and ``change_rho``'s note of the step size, find
         OSQP as the capped solve left it."""
-        if time_limit_s > 0 and time_limit_s - (time.perf_counter() - t0) <= 0:
+        if not self._time_left(t0, time_limit_s):
             return first, 0, 0.0
         saved = self._core.save_state()
         rho = self.cap_retry_rho if self.cap_retry_rho > 0 else self.cap_retry_share * rho_start
         prep = self._reset_rho(rho)
         again = None
-        if time_limit_s > 0:  # (the refactorisation's time counted: checked again after it)
-            remaining = time_limit_s - (time.perf_counter() - t0)
-            if remaining > 0:
-                self._limit_time(remaining, time_limit_s)
-        if time_limit_s <= 0 or remaining > 0:
+        if self._time_left(t0, time_limit_s):  # (the refactorisation's time counted: checked again after it)
             if self.cap_retry_cold:
                 self._core.warm_start(self._z_lin, self._zero_duals)
             else:
@@ -1556,6 +1546,17 @@ class RtiOsqpSolver:
                 moves = last_moves(self._last_move, z[self.iu0:self.iu0 + nu] - u_prev, span, self.reversal_search)
         self._last_move = moves
         return z
+
+    def _time_left(self, t0: float, time_limit_s: float) -> bool:
+        """False where the step's time limit ``time_limit_s`` (s, from ``t0``; 0: none) is spent; else True, OSQP's
+        time limit set to what is left (:meth:`_limit_time`)."""
+        if time_limit_s <= 0:
+            return True
+        remaining = time_limit_s - (time.perf_counter() - t0)
+        if remaining <= 0:
+            return False
+        self._limit_time(remaining, time_limit_s)
+        return True
 
     def _limit_time(self, remaining_s: float, budget_s: float) -> None:
         """OSQP's time limit: what remains of the feedback budget, set again only when it has shrunk
