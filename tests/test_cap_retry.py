@@ -96,12 +96,14 @@ def test_a_retry_not_taken_leaves_osqps_workspace_as_the_capped_qp_left_it(gener
 
 def test_a_retry_is_counted_per_step_and_absent_when_off():
     """``cap_retries`` holds the step's retries (reset at each step, not at each QP run) and the result's extra
-    has the count only with the retry set (the default step's extra as before)."""
-    ctrl = MpcController(settings=MpcSettings(codegen=False, osqp_codegen=False))
-    loop = solve_time.Loop(ctrl, 1)
-    results = []
-    feedback = ctrl.solver.feedback
-    ctrl.solver.feedback = lambda *a, **k: results.append(feedback(*a, **k)) or results[-1]
-    loop.step(0)
-    ctrl.close()
-    assert "cap_retries" not in results[0].extra and ctrl.solver.cap_retries == []
+    has the count only with the retry set (with ``osqp_cap_retry_rho`` 0 the step's extra as before the retry)."""
+    for rho, extra in ((0.0, {}), (3e-3, {"cap_retries": 0})):
+        ctrl = MpcController(settings=MpcSettings(codegen=False, osqp_codegen=False, osqp_cap_retry_rho=rho))
+        loop = solve_time.Loop(ctrl, 1)
+        results = []
+        feedback = ctrl.solver.feedback
+        ctrl.solver.feedback = lambda *a, _f=feedback, _r=results, **k: _r.append(_f(*a, **k)) or _r[-1]
+        loop.step(0)
+        ctrl.close()
+        assert {k: v for k, v in results[0].extra.items() if k == "cap_retries"} == extra, results[0].extra
+        assert ctrl.solver.cap_retries == []

@@ -17,14 +17,17 @@ def _loop(settings: MpcSettings, steps: int = 34):
 
 
 def test_capped_qps_answer_within_the_cap_and_without_the_flag_they_fall_back():
+    """OSQP capped at 20 iterations on purpose, so that QPs end at the cap; the retry at the cap
+    (``osqp_cap_retry_rho``, on by default) off, because it solves such a QP once more and adds its own iterations, so
+    a step's iterations would no longer be bounded by the cap this test measures."""
     cap = 20
-    accepted = _loop(MpcSettings(codegen=False, osqp_max_iter=cap, osqp_accept_max_iter=True))
+    accepted = _loop(MpcSettings(codegen=False, osqp_max_iter=cap, osqp_accept_max_iter=True, osqp_cap_retry_rho=0.0))
     assert all(fallback is None for _, _, fallback, _ in accepted)
     assert all(its <= qps * cap for its, qps, _, _ in accepted)
     capped = [k for k, (its, qps, _, _) in enumerate(accepted) if its == qps * cap]
     assert len(capped) >= 2 and any("maximum iterations" in accepted[k][3] for k in capped)
     # the same cap without the flag: a QP at the cap is a failure and the fallback chain answers
-    refused = _loop(MpcSettings(codegen=False, osqp_max_iter=cap, osqp_accept_max_iter=False))
+    refused = _loop(MpcSettings(codegen=False, osqp_max_iter=cap, osqp_accept_max_iter=False, osqp_cap_retry_rho=0.0))
     assert any(fallback is not None for _, _, fallback, _ in refused)
 
 
