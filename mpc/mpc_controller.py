@@ -73,7 +73,7 @@ from .arrays import all_finite
 from .background import BackgroundCall, BackgroundWorker
 from .ring_gate import RingGate
 from .start_caution import SCOPES as START_CAUTION_SCOPES, VALVE_A_AND_HEATER, StartCaution, known_delay_s, opening_bound
-from .rti_osqp import RHO_RESET_ON, RtiOsqpSolver, SolveResult, check_cap_retry, check_hold_with
+from .rti_osqp import RHO_RESET_ON, RtiOsqpSolver, SolveResult, check_cap_retry, check_hold_with, check_prox
 from .steady_target import check_steady_start_on
 from .change_rho import check_adaptation, check_change_rho, check_hold
 from .trust_region import check_radii
@@ -182,6 +182,16 @@ class MpcSettings:
             the heater's bound in the box sweep's heating cells (docs/robustness.md sec. 2.41): it breaks the
             cycle, and costs the cells where the box's valve a answers less than the model's near closed. Only with
             ``solver="rti"`` and without ``split_every_step`` (it never fires otherwise).
+        rti_valve_a_prox: a proximal (Levenberg-Marquardt) weight on valve a's deviation from the linearisation
+            point's plan, per scaled unit squared (1 = 50 % of valve a's travel; 0.1 % of the travel squared costs
+            ``4e-6`` of it), added to ``levenberg_marquardt`` at every stage only where the linearisation point's
+            heater command starts at its upper bound (within 2 % of its range). There the QP's curvature along valve
+            a is about 2-3 per scaled unit squared, a tenth of it the supply temperature's at mid-travel, against a
+            linear pull of 5-15 that asks 1-4 times valve a's travel: the plan goes from end to end; the nonlinear cost's
+            curvature there is 4-30 times the QP's at 18-55 % of travel (docs/robustness.md sec. 2.43). Measured at 30:
+            the two-cycle broken in the sweep's heating cells (S1-13 0.951 -> 0.822), S1-11 1.009 -> 1.029 (the cycle's
+            strokes had let its dead-time estimate find the box's), so not the default. A value in [0, 1e4]; 0 (the
+            default): off. The OSQP solvers only (``rti``, ``sqp``).
         ipopt_tol, ipopt_max_iter: IPOPT tolerance and iteration cap.
         deadline_s: longest feedback time (measurement to command); beyond it the solution is
             discarded and the fallback chain used.
@@ -454,6 +464,7 @@ class MpcSettings:
     rti_reversal_margin: float = 0.1
     rti_reversal_bound_only: bool = False
     rti_reversal_second_qp: str = "off"
+    rti_valve_a_prox: float = 0.0
     ipopt_tol: float = 1e-6
     ipopt_max_iter: int = 300
     deadline_s: float = 0.5
@@ -588,6 +599,10 @@ class MpcSettings:
             raise InvalidSettings(f"{p}.osqp_cap_retry_rho / osqp_cap_retry_share / osqp_cap_retry_cold with "
                                   f"{p}.solver = {self.solver!r}: OSQP's retry at its cap; allowed: solver 'rti' or "
                                   "'sqp' with them, or all three off (0, 0, False)")
+        if self.solver not in ("rti", "sqp") and self.rti_valve_a_prox:
+            raise InvalidSettings(f"{p}.rti_valve_a_prox = {self.rti_valve_a_prox!r} with {p}.solver = "
+                                  f"{self.solver!r}: a term of the OSQP solvers' QP; allowed: solver 'rti' or 'sqp' "
+                                  "with it, or 0 (off)")
         if self.osqp_change_rho_tolerance and not self.osqp_change_rho_interval:
             raise InvalidSettings(f"{p}.osqp_change_rho_tolerance = {self.osqp_change_rho_tolerance!r} needs "
                                   f"{p}.osqp_change_rho_interval in [1, 1000] (the adaptation it tunes)")
@@ -623,6 +638,7 @@ class MpcSettings:
                                  self.rti_reversal_search, self.solver == "rti" and not self.split_every_step,
                                  f"{p}.solver = {self.solver!r} / {p}.split_every_step = {self.split_every_step!r}",
                                  "solver 'rti' and split_every_step False")
+            check_prox(f"{p}.rti_valve_a_prox", self.rti_valve_a_prox)
         except ValueError as exc:
             raise InvalidSettings(str(exc)) from None
         if not isinstance(self.rti_step_fractions, tuple) or len(self.rti_step_fractions) > 8:
@@ -931,7 +947,8 @@ class MpcController:
                              change_rho_tolerance=float(s.osqp_change_rho_tolerance),
                              cap_retry_rho=float(s.osqp_cap_retry_rho), cap_retry_share=float(s.osqp_cap_retry_share),
                              cap_retry_cold=s.osqp_cap_retry_cold,
-                             change_rho_hold=s.osqp_change_rho_hold)
+                             change_rho_hold=s.osqp_change_rho_hold,
+                             valve_a_prox=float(s.rti_valve_a_prox))
 
     # ------------------------------------------------------------------ protocol
     def reset(self, command: Command | None = None) -> None:

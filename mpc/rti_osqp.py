@@ -213,6 +213,13 @@ class RtiOsqpSolver:
             prices the second QP's plan against the candidates of the step's own linearisation point
             (``reversal_relinearised`` says when it ran). Refused with ``sqp_max_iter`` > 1 and with
             ``split_every_step`` (with ``change_split_iter``): no step there is a plain one-QP step.
+        valve_a_prox: a proximal (Levenberg-Marquardt) weight on valve a's deviation from the linearisation point's
+            plan (per scaled unit squared, 1 = 50 % of valve a's travel; every stage), added to ``lm_inputs``' only
+            where the linearisation point's heater command starts at its upper bound
+            (:func:`.reversal_search.at_upper_bound`): there the QP's curvature along valve a is the move and
+            Levenberg-Marquardt terms' and the flow's, the supply temperature's a tenth of it at mid-travel, against a
+            linear pull that asks 1-4 times valve a's travel (docs/robustness.md sec. 2.43). 0 (the default): off.
+            ``valve_a_prox_on`` says whether the last linearisation had it.
         codegen: evaluate the QP data as generated C (:func:`.codegen.compiled`, cached on disk);
             otherwise (or without a compiler) CasADi's interpreter runs the same functions.
             ``self.codegen`` reports what happened.
@@ -318,8 +325,10 @@ class RtiOsqpSolver:
                  reversal_second_qp: str = "off",
                  change_rho: str = "off", change_rho_restore: bool = False, change_rho_interval: int = 0,
                  change_rho_tolerance: float = 0.0, cap_retry_rho: float = 0.0, cap_retry_share: float = 0.0,
-                 cap_retry_cold: bool = False, change_rho_hold: str = "off"):
+                 cap_retry_cold: bool = False, change_rho_hold: str = "off", valve_a_prox: float = 0.0):
         self.pb = pb = problem
+        self.valve_a_prox = check_prox("RtiOsqpSolver: valve_a_prox", valve_a_prox)
+        self.valve_a_prox_on = False  # the last linearisation added the proximal term on valve a
         self.reversal_search = check_share("RtiOsqpSolver: reversal_search", reversal_search)
         self.reversal_wait_steps = check_wait("RtiOsqpSolver: reversal_wait_steps", reversal_wait_steps)
         check_flag("RtiOsqpSolver: reversal_repeat", reversal_repeat)  # the settings' one flag check
@@ -478,7 +487,7 @@ class RtiOsqpSolver:
                 "change_rho_interval": self.change_rho_interval, "change_rho_tolerance": self.change_rho_tolerance,
                 "cap_retry_rho": self.cap_retry_rho, "cap_retry_share": self.cap_retry_share,
                 "cap_retry_cold": self.cap_retry_cold, "change_rho_hold": self.change_rho_hold,
-                "reversal_second_qp": self.reversal_second_qp,
+                "reversal_second_qp": self.reversal_second_qp, "valve_a_prox": self.valve_a_prox,
                 "step_fractions": list(self._merit.fractions) if self._merit else [],
                 "trust_radii": list(self.trust_radii)}
 
@@ -522,6 +531,11 @@ class RtiOsqpSolver:
         j_body = int(np.flatnonzero((iu[0] == pb.i_heater) & (iu[1] == pb.i_heater))[0])
         self._P_body_slots = P.slot[self._P_var[1:, j_body]]
         self._i_body = (np.arange(1, N + 1) * nx + pb.i_heater)
+        # valve a's diagonal entries of stages 0..N-1 (valve_a_prox; the terminal stage's block is u_{N-1}'s) and
+        # their columns of the decision vector
+        j_a = int(np.flatnonzero((iu[0] == nx + pb.i_valve_a) & (iu[1] == nx + pb.i_valve_a))[0])
+        self._P_valve_a_slots = P.slot[self._P_var[:N, j_a]]
+        self._i_valve_a = self.iu0 + np.arange(N) * nu + pb.i_valve_a
         self.readiness_target = None  # (scaled floor, weights of stages 1..N) while the readiness counts
         self._ready_q = None
 
@@ -996,7 +1010,7 @@ class RtiOsqpSolver:
         """Put a linearisation's values into OSQP and keep what the feedback needs (stage 0's flow-floor
         row coefficients among them)."""
         self._floor_a0 = Ax[self._A_floor_slots[:self.nz_stage]]
-        Px = self._with_readiness(X, Px)
+        Px = self._with_valve_a_prox(U, self._with_readiness(X, Px))
         restored = self._change_rho.after_change() if self._change_rho.restore else None
         if restored is not None:  # the first preparation after a change: the step size before it
             self._core.rho_next_update(restored)
@@ -1029,6 +1043,19 @@ class RtiOsqpSolver:
         Px = np.array(Px, float)
         Px[self._P_body_slots] += 2.0 * active
         self._ready_q = -2.0 * active * self.readiness_target[0]
+        return Px
+
+    def _with_valve_a_prox(self, U, Px):
+        """``Px`` with ``valve_a_prox`` on valve a's diagonal (Hessian ``2 w`` at every stage; the gradient's
+        ``-2 w u_lin`` added in :meth:`_q`) where the plan ``U`` linearised at starts with the heater command at its
+        upper bound; ``Px`` itself otherwise (and when off)."""
+        ih = self.pb.i_heater_cmd
+        self.valve_a_prox_on = bool(self.valve_a_prox) and at_upper_bound(
+            U, self.pb.u_hi, ih, float(self.pb.u_hi[ih] - self.pb.u_lo[ih]))
+        if not self.valve_a_prox_on:
+            return Px
+        Px = np.array(Px, float)
+        Px[self._P_valve_a_slots] += 2.0 * self.valve_a_prox
         return Px
 
     def _readiness_weights(self, X) -> np.ndarray | None:
@@ -1607,6 +1634,9 @@ class RtiOsqpSolver:
         if self._ready_q is not None:
             q = np.array(q, float)
             q[self._i_body] += self._ready_q
+        if self.valve_a_prox_on:
+            q = np.array(q, float)
+            q[self._i_valve_a] -= 2.0 * self.valve_a_prox * self._z_lin[self._i_valve_a]
         return q
 
 
@@ -1719,6 +1749,16 @@ class _OsqpCore(osqp_embedded.TwoPassSolve):
             res = self.core
         self._last = res
         return info.status_val, info.status, int(info.iter), x
+
+
+def check_prox(name: str, weight) -> float:
+    """``weight`` (``valve_a_prox``) as a float in [0, 1e4] (0: off); ValueError naming ``name`` and the range
+    otherwise."""
+    if isinstance(weight, bool) or not isinstance(weight, (int, float)) or not np.isfinite(weight) \
+            or not 0.0 <= weight <= 1e4:
+        raise ValueError(f"{name} = {weight!r}, allowed: a weight per scaled unit squared of valve a in [0, 1e4] "
+                         "(0: off)")
+    return float(weight)
 
 
 def _checked_step_size(name: str, rho: float | None) -> float | None:
