@@ -798,7 +798,8 @@ def _heater_reserve(problem: TrackingProblem, dt_s: float) -> HeaterReserve | No
     w = problem.spec.weights
     if w.valve_a_reserve_per_pct2 <= 0:
         return None
-    return HeaterReserve(w.valve_a_reserve_per_pct2, w.valve_a_heating_per_pct2, dt_s)
+    return HeaterReserve(w.valve_a_reserve_per_pct2, w.valve_a_heating_per_pct2, dt_s,
+                         ramp_s=w.valve_a_reserve_ramp_s, short_c=w.valve_a_reserve_short_c)
 
 
 class MpcController:

@@ -93,6 +93,12 @@ HEATING_CMD_W = 1.0
 #: target weighs like 1.4 L/s of outlet-flow error (weight 0.5 per (L/s)^2), beyond which the term is no longer small
 #: beside the tracking.
 FLAP_CLOSURE_MAX = 1e-2
+#: The longest ramp of the heater reserve's weight (s, ``Weights.valve_a_reserve_ramp_s``): ten minutes, longer than
+#: any rest of the scenarios.
+RESERVE_RAMP_MAX_S = 600.0
+#: The largest shortfall threshold of the reserve's withholding rule (K, ``Weights.valve_a_reserve_short_c``): the
+#: rest's own band (``reserve.LEAVE_BAND_C``), beyond which the rest has ended anyway.
+RESERVE_SHORT_MAX_C = 1.0
 
 #: Offsets and scales of the states (degC): scaled value = (physical - offset) / scale.
 STATE_SCALING = {"motor_rise_c": (1.0, 1.0), "water_temp_c": (5.0, 5.0), "heater_temp_c": (40.0, 40.0),
@@ -180,6 +186,12 @@ class Weights:
     ``valve_a_heating_per_pct2`` while heating at rest on the reference with the heater not limiting and the flow
     priority untouched (:mod:`hvac_mpc.mpc.reserve`): the free direction at rest leaned on harder, so the heater body
     keeps heat for a step up. Off by default (measured, docs/identification.md 'A heater reserve at rest').
+    ``valve_a_reserve_ramp_s`` (s; 0: at once, the default): the reserve's entry, its weight rising in a straight
+    line from ``valve_a_heating_per_pct2`` over this many seconds of the rest. ``valve_a_reserve_short_c`` (K; 0: the
+    rule off, the default): the reserve's weight withheld at a step of the rest where the heater is at its limit (the
+    command in force within the reserve's headroom of the power at the body's estimate) and the supply reading more
+    than this below its reference; a withheld step does not count towards the ramp. Both act only with the reserve on
+    (docs/identification.md 'The reserve's entry').
 
     ``flap_closure_per_pct2`` (per %^2 of opening per s; 0: off): the flat direction of the outlet flaps priced. Four
     actuators (the blower and the openings of flaps m, f, w) set three outlet flows, so "blower power down, all flaps
@@ -215,6 +227,8 @@ class Weights:
     body_heat_power_w: float = 0.0
     heater_ready_per_c2: float = 0.0
     valve_a_reserve_per_pct2: float = 0.0
+    valve_a_reserve_ramp_s: float = 0.0
+    valve_a_reserve_short_c: float = 0.0
     flap_closure_per_pct2: float = 0.0
 
     def validate(self, prefix: str = "weights") -> None:
@@ -222,6 +236,8 @@ class Weights:
             check_number(f"{prefix}.{f.name}", getattr(self, f.name), 0.0, 1e6)
         check_number(f"{prefix}.body_heat_power_w", self.body_heat_power_w, 0.0, 2000.0)
         check_number(f"{prefix}.flap_closure_per_pct2", self.flap_closure_per_pct2, 0.0, FLAP_CLOSURE_MAX)
+        check_number(f"{prefix}.valve_a_reserve_ramp_s", self.valve_a_reserve_ramp_s, 0.0, RESERVE_RAMP_MAX_S)
+        check_number(f"{prefix}.valve_a_reserve_short_c", self.valve_a_reserve_short_c, 0.0, RESERVE_SHORT_MAX_C)
         if self.supply_temp <= 0 or self.volume_flow <= 0:
             raise InvalidSettings(f"{prefix}.supply_temp and {prefix}.volume_flow must be > 0 (range (0, 1e6])")
 

@@ -38,6 +38,12 @@ the built-in bench's trapped_air_release the QP with the heavy valve-a weight re
 (the shifted plan applied, valve a at 2.5 %, the heater at 30 W, then the baseline's fallback), the step began late
 (trapped air 0.508 -> 0.68).
 
+The rest's entry (settings, off by default): ``Weights.valve_a_reserve_ramp_s`` lets the weight rise over some
+seconds of the rest (:func:`ramped_weight`) and ``Weights.valve_a_reserve_short_c`` withholds it while the heater is
+at its limit with the reading short of the reference (:func:`withholding`): with the full weight at once a right
+model's MPC closes valve a at the rest's start faster than the heater's extra power warms the body, and the reading
+falls short where the heater limits (docs/identification.md 'The reserve re-measured', 'The reserve's entry').
+
 ASSUMPTION: a heating reference held for :data:`REST_HOLD_S` may be followed by a step up the horizon does not see
 (the comfort algorithm's steps of 3-4 K, the bench's winter scenario), and keeping the heat for it in the body is
 worth the weight on valve a's opening.
@@ -81,6 +87,26 @@ def descending(heating: bool, lowered: bool, was_descending: bool, excess_c: flo
     return bool(heating and (lowered or was_descending) and excess_c > REST_BAND_C)
 
 
+def withholding(short_c: float, limiting: bool, error_c: float) -> bool:
+    """Whether the rest's weight is withheld at this step: the rule on (``short_c`` > 0, K), the heater at its limit
+    (``limiting``: the command in force within :data:`HEADROOM_W` of the power at the body's estimate) and the reading
+    more than ``short_c`` below the reference (``error_c``: reading minus reference, K; NaN: not withheld).
+
+    At the limit valve a is the last lever on the supply temperature: the reserve's weight closing it puts the
+    heater's power into the body and leaves the air short, so a right model's rest start costs tracking where the
+    heater limits (docs/identification.md 'The reserve re-measured', 'The reserve's entry')."""
+    return bool(short_c > 0.0 and limiting and error_c < -short_c)
+
+
+def ramped_weight(heating_per_pct2: float, reserve_per_pct2: float, on_s: float, ramp_s: float) -> float:
+    """Valve a's weight (per %^2 per s) ``on_s`` seconds into the rest: from the heating weight to the reserve's in a
+    straight line over ``ramp_s`` (s; 0: the reserve's at once), so valve a closes as the heater's power goes into
+    the body, not before it (the entry's dip, docs/identification.md 'The reserve's entry')."""
+    if ramp_s <= 0.0 or on_s >= ramp_s:
+        return reserve_per_pct2
+    return heating_per_pct2 + (reserve_per_pct2 - heating_per_pct2) * max(on_s, 0.0) / ramp_s
+
+
 @dataclass
 class HeaterReserve:
     """The reserve's gate: call :meth:`weight` once per controller step; it returns the valve-a weight of that
@@ -89,13 +115,23 @@ class HeaterReserve:
     reserve_per_pct2: float
     heating_per_pct2: float
     dt_s: float
+    ramp_s: float = 0.0
+    short_c: float = 0.0
     _rest_s: float = 0.0
     _ref: tuple[float, float] | None = None
     _on: bool = False
     _descent: bool = False
+    _on_s: float = 0.0
+    _withheld: bool = False
 
     def reset(self) -> None:
         self._rest_s, self._ref, self._on, self._descent = 0.0, None, False, False
+        self._on_s, self._withheld = 0.0, False
+
+    @property
+    def withheld(self) -> bool:
+        """Whether the last step was at rest with the reserve's weight withheld (:func:`withholding`)."""
+        return self._withheld
 
     @property
     def on(self) -> bool:
@@ -133,6 +169,17 @@ class HeaterReserve:
         # while the body takes up heat, and the PTC row prices a body above the knee in the plan
         room = self._on or heater_cmd_w <= available_w - HEADROOM_W
         self._on = self._rest_s >= REST_HOLD_S and room and flow_factor >= 1.0
+        limiting = heater_cmd_w > available_w - HEADROOM_W
+        self._withheld = self._on and withholding(self.short_c, limiting, reading_c - ref[0])
+        # the ramp counts the rest's seconds with the weight in force; a withheld step does not count
+        if not self._on:
+            self._on_s = 0.0
+        elif not self._withheld:
+            self._on_s += self.dt_s
         if not heating:
             return 0.0
-        return self.reserve_per_pct2 if self._on or self._descent else self.heating_per_pct2
+        if self._descent:
+            return self.reserve_per_pct2
+        if not self._on or self._withheld:
+            return self.heating_per_pct2
+        return ramped_weight(self.heating_per_pct2, self.reserve_per_pct2, self._on_s, self.ramp_s)

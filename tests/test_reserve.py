@@ -92,11 +92,52 @@ def test_the_reserve_ends_at_the_ptc_knee_and_starts_again_below_it():
     assert gate.on
 
 
+def test_the_entry_ramps_the_weight_in_over_the_rest_and_starts_again_at_the_next_rest():
+    """``ramp_s``: the reserve's weight rises in a straight line from the heating weight over the rest's first
+    seconds; a reference change ends the rest and the next rest ramps again."""
+    gate = HeaterReserve(RESERVE, HEATING, 1.0, ramp_s=10.0)
+    weights = [_step(gate) for _ in range(int(REST_HOLD_S) + 12)]
+    ramp = [w for w in weights if w != HEATING]
+    assert gate.on and ramp[-1] == RESERVE
+    assert ramp[0] == pytest.approx(HEATING + (RESERVE - HEATING) / 10.0)  # the first second of the rest
+    assert all(b > a for a, b in zip(ramp[:10], ramp[1:10]))  # rising, the full weight after 10 s
+    assert ramp[9] == pytest.approx(RESERVE)
+    _step(gate, ref_c=15.0, reading_c=15.0)
+    again = [_step(gate, ref_c=15.0, reading_c=15.0) for _ in range(int(REST_HOLD_S) + 1)]
+    assert again[-2:] == pytest.approx([HEATING + (RESERVE - HEATING) * k / 10.0 for k in (1, 2)])
+
+
+def test_the_entry_withholds_the_weight_while_the_heater_limits_and_the_reading_is_short():
+    """``short_c``: at rest, the heater within HEADROOM_W of its available power and the reading more than
+    ``short_c`` below the reference, valve a gets the heating weight (the rest goes on, the ramp waits)."""
+    gate = HeaterReserve(RESERVE, HEATING, 1.0, ramp_s=4.0, short_c=0.05)
+    for _ in range(int(REST_HOLD_S) + 1):
+        _step(gate)
+    first = _step(gate, cmd_w=240.0)
+    assert HEATING < first < RESERVE
+    assert _step(gate, cmd_w=240.0, reading_c=11.9) == HEATING and gate.on and gate.withheld
+    assert _step(gate, cmd_w=200.0, reading_c=11.9) > first  # not limiting: counted, the ramp goes on
+    assert _step(gate, cmd_w=240.0, reading_c=11.97) > first and not gate.withheld  # within the threshold
+    off = HeaterReserve(RESERVE, HEATING, 1.0)  # the rule off: the weight whatever the reading
+    for _ in range(int(REST_HOLD_S) + 1):
+        _step(off)
+    assert _step(off, cmd_w=240.0, reading_c=11.6) == RESERVE and not off.withheld
+
+
 def test_the_weight_is_a_checked_setting_off_by_default():
     assert Weights().valve_a_reserve_per_pct2 == 0.0
     assert MpcController().reserve is None
     with pytest.raises(InvalidSettings, match="valve_a_reserve_per_pct2"):
         OcpSpec(weights=Weights(valve_a_reserve_per_pct2=-1.0)).validate()
+    assert Weights().valve_a_reserve_ramp_s == 0.0 and Weights().valve_a_reserve_short_c == 0.0
+    with pytest.raises(InvalidSettings, match="valve_a_reserve_ramp_s"):
+        OcpSpec(weights=Weights(valve_a_reserve_ramp_s=601.0)).validate()
+    with pytest.raises(InvalidSettings, match="valve_a_reserve_short_c"):
+        OcpSpec(weights=Weights(valve_a_reserve_short_c=-0.1)).validate()
+    mpc = MpcController(settings=MpcSettings(ocp=OcpSpec(weights=Weights(valve_a_reserve_per_pct2=RESERVE,
+                                                                valve_a_reserve_ramp_s=20.0,
+                                                                valve_a_reserve_short_c=0.1))))
+    assert (mpc.reserve.ramp_s, mpc.reserve.short_c) == (20.0, 0.1)
 
 
 def _literal_cooler_model() -> RefinedModel:
