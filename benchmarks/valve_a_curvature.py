@@ -1,7 +1,7 @@
 """The stage QP's curvature along valve a, captured on a box of the sweep (docs/robustness.md sec. 2.43).
 
     python -m hvac_mpc.benchmarks.valve_a_curvature --box LABEL:FIELD=VALUE,... [--scenario NAME] [--quick]
-        [--from S] [--to S] [--settings JSON]
+        [--from S] [--to S] [--settings JSON] [--second-order]
 
 Both controllers run the scenario on the box as :mod:`.box_trace` runs them; the MPC's solver
 (:class:`~hvac_mpc.mpc.rti_osqp.RtiOsqpSolver`) is wrapped to keep each plain step's first QP from ``--from`` to
@@ -14,7 +14,7 @@ term's share (:func:`term_curvatures`), the smallest and largest eigenvalues, th
 answer and at the linearisation point (:func:`valve_a_pull`; per scaled unit, 1 = 50 % of valve a's travel), and the
 problem's nonlinear cost differenced along each stage's valve a entry at both (:func:`exact_curvature`): the
 curvature the Gauss-Newton Hessian keeps against the one the cost has. :class:`SecondOrderDiagonal` puts the
-difference on the QP's diagonal at the heater's bound (a measurement, not a setting). Measured in
+difference on the QP's diagonal at the heater's bound (a measurement, not a setting; ``--second-order``). Measured in
 docs/robustness.md sec. 2.43.
 """
 
@@ -28,6 +28,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 import scipy.sparse as sp
 
+from hvac_mpc.models.parameters import Parameters
 from hvac_mpc.mpc.ocp import STAGE_OUTPUTS
 from hvac_mpc.mpc.reversal_search import at_upper_bound
 from hvac_mpc.mpc.rti_osqp import RtiOsqpSolver
@@ -99,6 +100,12 @@ class QpRecorder:
     def close(self) -> None:
         for n, f in self._saved.items():
             setattr(RtiOsqpSolver, n, f)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
 
 def full_p(solver: RtiOsqpSolver, Px: np.ndarray) -> np.ndarray:
@@ -230,6 +237,7 @@ def analyse(solver: RtiOsqpSolver, rec: Mapping, stages: int = 6) -> dict[str, A
     terms = term_curvatures(solver, rec, T)
     g_sol, g_lin = valve_a_pull(solver, rec, P, T)
     ia, ih = pb.i_valve_a, pb.i_heater_cmd
+    others = [i for i in range(pb.nu) if i not in (ia, ih)]  # blower and the three outlet valves
     pct = lambda v: pb.u_off[ia] + pb.u_sc[ia] * v  # noqa: E731
     U_lin = rec["z_lin"][solver.iu0:solver.is0].reshape(pb.N, pb.nu)
     U = rec["z"][solver.iu0:solver.is0].reshape(pb.N, pb.nu)
@@ -240,7 +248,7 @@ def analyse(solver: RtiOsqpSolver, rec: Mapping, stages: int = 6) -> dict[str, A
     return {
         "t": rec["t"], "exact_diag": exact_curvature(solver, rec, stages),
         "exact_lin": exact_curvature(solver, rec, stages, at="z_lin"), "a_lin_pct": pct(U_lin[s, ia]), "a_qp_pct": pct(U[s, ia]),
-        "heater_w": pb.u_off[ih] + pb.u_sc[ih] * U[s, ih], "free_others": int(free[:, [0, 3, 4, 5]].sum()),
+        "heater_w": pb.u_off[ih] + pb.u_sc[ih] * U[s, ih], "free_others": int(free[:, others].sum()),
         "diag_fixed": np.diag(h_fixed)[s], "diag_free": np.diag(h_free)[s], "diag_heater_free": np.diag(h_heater)[s],
         "terms_diag": {k: np.diag(v)[s] for k, v in terms.items()},
         "eig_fixed": (float(ev_fixed[0]), float(ev_fixed[-1])), "eig_free": (float(ev_free[0]), float(ev_free[-1])),
@@ -276,9 +284,10 @@ class SecondOrderDiagonal:
 
         def gradient(solver, ref, d, u_prev):
             q = meas._saved["_q"](solver, ref, d, u_prev)
-            extra = getattr(solver, "_so_extra", None)
-            if extra is None:
-                return q
+            held = getattr(solver, "_so_extra", None)
+            if held is None or solver._written is not held[1]:
+                return q  # no extra, or a relinearisation since wrote a P without it
+            extra = held[0]
             q = np.array(q, float)
             ia = solver._i_valve_a[:extra.size]
             q[ia] -= extra * solver._z_lin[ia]
@@ -287,7 +296,8 @@ class SecondOrderDiagonal:
         RtiOsqpSolver._solve_qps = solve_qps
         RtiOsqpSolver._q = gradient
 
-    def _extra(self, solver, x0, u_prev, d, ref, w_y) -> np.ndarray | None:
+    def _extra(self, solver, x0, u_prev, d, ref, w_y) -> tuple[np.ndarray, tuple] | None:
+        """The added diagonal and the P data (``solver._written``) it was added to, or None off the bound."""
         pb = solver.pb
         U_lin = solver._z_lin[solver.iu0:solver.is0].reshape(pb.N, pb.nu)
         ih = pb.i_heater_cmd
@@ -306,22 +316,33 @@ class SecondOrderDiagonal:
         Px2 = np.array(Px, float)
         Px2[solver._P_valve_a_slots[:self.stages]] += extra
         solver._core.update_matrices(Px2, np.asarray(Ax, float))
-        return extra
+        return extra, solver._written
 
     def close(self) -> None:
         for n, f in self._saved.items():
             setattr(RtiOsqpSolver, n, f)
 
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
 
 def capture(box: str, scenario: str = "winter_heating_steps", quick: bool = True, start_s: float = 90.0,
             end_s: float = 140.0, settings: Mapping[str, Any] | None = None) -> tuple[dict, QpRecorder]:
     """:func:`.box_trace.run_trace` with the solver's first QP of each plain step kept from ``start_s`` to ``end_s``."""
-    rec = QpRecorder(start_s, end_s)
-    try:
+    with QpRecorder(start_s, end_s) as rec:
         run = box_trace.run_trace(box, scenario, quick, 0, settings)
-    finally:
-        rec.close()
     return run, rec
+
+
+def second_order_run(box: str, scenario: str = "winter_heating_steps", quick: bool = True,
+                     settings: Mapping[str, Any] | None = None, stages: int = 8) -> tuple[dict, SecondOrderDiagonal]:
+    """:func:`.box_trace.run_trace` with :class:`SecondOrderDiagonal` open over the whole run."""
+    with SecondOrderDiagonal(stages) as meas:
+        run = box_trace.run_trace(box, scenario, quick, 0, settings)
+    return run, meas
 
 
 def _fmt(v) -> str:
@@ -337,7 +358,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--from", dest="start_s", type=float, default=90.0)
     p.add_argument("--to", dest="end_s", type=float, default=140.0)
     p.add_argument("--settings", type=json.loads, default=None)
+    p.add_argument("--second-order", action="store_true",
+                   help="run with the dropped curvature on valve a's diagonal at the heater's bound and print the "
+                        "ratio and valve a's reversals there (SecondOrderDiagonal)")
     args = p.parse_args(argv)
+    if args.second_order:
+        run, meas = second_order_run(args.box, args.scenario, args.quick, args.settings)
+        turns = box_trace.reversals_at_heater_bound(run["mpc"].applied, Parameters().heater_power_max_w)[1]
+        print(f"{run['label']} / {args.scenario}: ratio {run['ratio']:.3f}, valve a reversals at the heater's bound "
+              f"{turns}, steps with the diagonal {len(meas.added)}")
+        return 0
     run, rec = capture(args.box, args.scenario, args.quick, args.start_s, args.end_s, args.settings)
     print(f"{run['label']} / {args.scenario}: ratio {run['ratio']:.3f}")
     for r in rec.records:

@@ -188,7 +188,9 @@ class MpcSettings:
             heater command starts at its upper bound (within 2 % of its range). There the QP's curvature along valve
             a is about 2-3 per scaled unit squared, a tenth of it the supply temperature's at mid-travel, against a
             linear pull of 5-15 that asks 1-4 times valve a's travel: the plan goes from end to end; the nonlinear cost's
-            curvature there is 4-30 times the QP's at 18-55 % of travel (docs/robustness.md sec. 2.43). Measured at 30:
+            curvature there is 4-30 times the QP's at 18-55 % of travel (docs/robustness.md sec. 2.43). The term adds
+            ``2 * rti_valve_a_prox`` to that curvature (the cost is ``w * (a - a_lin)**2``). Measured at 30 (60 on the
+            curvature):
             the two-cycle broken in the sweep's heating cells (S1-13 0.951 -> 0.822), S1-11 1.009 -> 1.029 (the cycle's
             strokes had let its dead-time estimate find the box's), so not the default. A value in [0, 1e4]; 0 (the
             default): off. The OSQP solvers only (``rti``, ``sqp``).

@@ -43,7 +43,7 @@ from .casadi_eval import BufferedFunction
 from .change_rho import HOLD_INTERVAL, ChangeStepSize, check_adaptation, check_change_rho, check_hold
 from .codegen import CodegenReport, compiled, expression_key, kept
 from .multilevel import MultiLevel, vector_function
-from .ocp import STAGE_OUTPUTS, TRACKED, TrackingProblem, check_flag, shift_maps, shift_nodes
+from .ocp import STAGE_OUTPUTS, TRACKED, TrackingProblem, check_flag, check_number, shift_maps, shift_nodes
 from .osqp_embedded import FIRST_PASS_EPS_RATIO  # noqa: F401 - the first pass's tolerance, named here too
 from .plan_merit import MERIT_TOLERANCE, PlanMerit
 from .reversal_search import (at_bound, at_upper_bound, candidates, check_second_qp, check_second_qp_with, check_share,
@@ -214,12 +214,13 @@ class RtiOsqpSolver:
             (``reversal_relinearised`` says when it ran). Refused with ``sqp_max_iter`` > 1 and with
             ``split_every_step`` (with ``change_split_iter``): no step there is a plain one-QP step.
         valve_a_prox: a proximal (Levenberg-Marquardt) weight on valve a's deviation from the linearisation point's
-            plan (per scaled unit squared, 1 = 50 % of valve a's travel; every stage), added to ``lm_inputs``' only
+            plan (per scaled unit squared, 1 = 50 % of valve a's travel; every stage), added to ``lm_inputs`` only
             where the linearisation point's heater command starts at its upper bound
             (:func:`.reversal_search.at_upper_bound`): there the QP's curvature along valve a is the move and
             Levenberg-Marquardt terms' and the flow's, the supply temperature's a tenth of it at mid-travel, against a
             linear pull that asks 1-4 times valve a's travel (docs/robustness.md sec. 2.43). 0 (the default): off.
-            ``valve_a_prox_on`` says whether the last linearisation had it.
+            ``valve_a_prox_on`` says whether the last linearisation had it; a multi-level vector step
+            (``relinearise_every`` > 1) keeps the full linearisation's P and so its term, as it keeps its matrices.
         codegen: evaluate the QP data as generated C (:func:`.codegen.compiled`, cached on disk);
             otherwise (or without a compiler) CasADi's interpreter runs the same functions.
             ``self.codegen`` reports what happened.
@@ -1407,18 +1408,23 @@ class RtiOsqpSolver:
         return {"core": self._core.save_state(), "l": self.l.copy(), "u": self.u.copy(),
                 "prepared": self._prepared, "z_lin": self._z_lin, "floor_a0": self._floor_a0,
                 "written": self._written, "ready_q": self._ready_q, "vector_prepared": self._vector_prepared,
-                "ml": copy.deepcopy(self._ml)}
+                "valve_a_prox_on": self.valve_a_prox_on, "ml": copy.deepcopy(self._ml)}
 
-    def _replay(self, rest: dict, args: tuple, t0: float) -> SolveResult:
-        """:meth:`finish_change` with ``split_replays_change``: the step's state before its capped QPs restored, then
-        its QPs solved as the unsplit feedback solves them (the same calls, no cap, no time limit)."""
-        saved = rest["saved"]
+    def _restore_step(self, saved: dict) -> None:
+        """The state :meth:`_save_step` saved, put back (OSQP's workspace, the prepared QP, its bounds, and whether
+        its P carries the proximal term on valve a, so the gradient :meth:`_q` builds agrees with it)."""
         self._core.restore_state(saved["core"])
         self.l[...] = saved["l"]
         self.u[...] = saved["u"]
         self._prepared, self._z_lin, self._floor_a0 = saved["prepared"], saved["z_lin"], saved["floor_a0"]
         self._written, self._ready_q = saved["written"], saved["ready_q"]
+        self.valve_a_prox_on = saved["valve_a_prox_on"]
         self._vector_prepared, self._ml = saved["vector_prepared"], saved["ml"]
+
+    def _replay(self, rest: dict, args: tuple, t0: float) -> SolveResult:
+        """:meth:`finish_change` with ``split_replays_change``: the step's state before its capped QPs restored, then
+        its QPs solved as the unsplit feedback solves them (the same calls, no cap, no time limit)."""
+        self._restore_step(rest["saved"])
         z, status, iterations, solves, prep, inexact, fraction = self._solve_qps(
             *args, rest["max_qps"], restart=rest["restart"])
         return self._result(z, status, iterations, solves, prep, time.perf_counter() - t0 - prep, False, inexact,
@@ -1752,12 +1758,9 @@ class _OsqpCore(osqp_embedded.TwoPassSolve):
 
 
 def check_prox(name: str, weight) -> float:
-    """``weight`` (``valve_a_prox``) as a float in [0, 1e4] (0: off); ValueError naming ``name`` and the range
-    otherwise."""
-    if isinstance(weight, bool) or not isinstance(weight, (int, float)) or not np.isfinite(weight) \
-            or not 0.0 <= weight <= 1e4:
-        raise ValueError(f"{name} = {weight!r}, allowed: a weight per scaled unit squared of valve a in [0, 1e4] "
-                         "(0: off)")
+    """``weight`` (``valve_a_prox``, per scaled unit squared of valve a) as a float in [0, 1e4] (0: off);
+    :class:`.ocp.InvalidSettings` (a ValueError) naming ``name`` and the range otherwise."""
+    check_number(name, weight, 0.0, 1e4)
     return float(weight)
 
 

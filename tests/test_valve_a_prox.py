@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from hvac_mpc.benchmarks import box_trace, valve_a_curvature as vac
-from hvac_mpc.mpc.mpc_controller import MpcSettings
+from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
 from hvac_mpc.mpc.ocp import InvalidSettings, OcpSpec, TrackingProblem
 from hvac_mpc.mpc.rti_osqp import RtiOsqpSolver, check_prox
 
@@ -40,7 +40,7 @@ def test_the_setting_is_checked_and_off_by_default():
     assert MpcSettings().rti_valve_a_prox == 0.0
     assert check_prox("x", 3) == 3.0
     for bad in (-1.0, True, float("nan"), 2e4, "3"):
-        with pytest.raises(ValueError, match="x = .*allowed: a weight per scaled unit squared of valve a in"):
+        with pytest.raises(ValueError, match=r"x.*\[0\.0, 10000\.0\]"):
             check_prox("x", bad)
     with pytest.raises(InvalidSettings, match=r"rti_valve_a_prox = -0.5"):
         MpcSettings(rti_valve_a_prox=-0.5)
@@ -67,6 +67,26 @@ def test_the_proximal_term_is_on_valve_a_only_at_the_heater_bound(problem):
     off_below, P_off_below, q_off_below, _, _ = _prepared(pb, 0.0, 120.0)
     assert not below.valve_a_prox_on
     assert np.array_equal(P_below, P_off_below) and np.array_equal(q_below, q_off_below)
+
+
+def test_a_restored_step_keeps_its_proximal_term_with_its_p(problem):
+    """A step saved at the heater's bound (the term on) and restored after a relinearisation below it (the term off),
+    as a replayed change does: the restored P carries the term, so the gradient built after it does too."""
+    pb = problem
+    solver, P_bound, q_bound, _, (x0, u, d, ref) = _prepared(pb, 5.0, 240.0)
+    saved = solver._save_step()
+    u_below = pb.scale_u(np.array([100.0, 120.0, 40.0, 100.0, 100.0, 100.0]))
+    solver.prepare(x0, u_below, d, ref, pb.w_y_full)
+    assert not solver.valve_a_prox_on
+    solver._restore_step(saved)
+    assert solver.valve_a_prox_on
+    assert np.array_equal(np.array(solver._written[0], float), P_bound)
+    assert np.array_equal(np.array(solver._q(ref, d, u), float), q_bound)
+
+
+def test_the_settings_report_names_the_weight():
+    ctrl = MpcController(settings=MpcSettings(codegen=False, osqp_codegen=False, rti_valve_a_prox=3.0))
+    assert ctrl.solver.settings["valve_a_prox"] == 3.0
 
 
 def test_valve_a_curvature_by_term_adds_up_to_the_reduced_hessian(problem):
@@ -102,3 +122,17 @@ def test_the_proximal_term_breaks_valve_a_two_cycle_at_the_heater_bound_on_s1_13
     assert counts[0.0] >= 20  # the two-cycle
     assert counts[30.0] <= counts[0.0] / 5
     assert iae[30.0] < 0.92 * iae[0.0]
+
+
+def test_the_second_order_diagonal_leaves_a_relinearised_qp_alone(problem):
+    """The measurement's gradient part goes with the P it was added to: once a relinearisation writes a new P (a
+    change's second QP, the cold start's QPs), the gradient is the plain one again."""
+    pb = problem
+    solver, _, q_plain, _, (x0, u, d, ref) = _prepared(pb, 0.0, 240.0)
+    with vac.SecondOrderDiagonal():
+        solver._so_extra = (np.full(8, 2.0), solver._written)
+        assert not np.array_equal(np.array(solver._q(ref, d, u), float), q_plain)
+        solver.prepare(x0, u, d, ref, pb.w_y_full)
+        q_stale = np.array(solver._q(ref, d, u), float)  # the extra still held, its P gone
+        solver._so_extra = None
+        assert np.array_equal(q_stale, np.array(solver._q(ref, d, u), float))
