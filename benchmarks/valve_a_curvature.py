@@ -41,7 +41,28 @@ RESIDUALS = STAGE_OUTPUTS + ("energy",)
 BOUND_TOL = 1e-3
 
 
-class QpRecorder:
+class _SolverPatch:
+    """Methods of :class:`RtiOsqpSolver` replaced on the class while open (a measurement's wrapping); :meth:`close`
+    (or leaving a ``with`` block) puts the originals back, which ``_saved`` keeps by name."""
+
+    def __init__(self, names: Sequence[str]):
+        self._saved = {n: getattr(RtiOsqpSolver, n) for n in names}
+
+    def _install(self, **methods) -> None:
+        for n, f in methods.items():
+            setattr(RtiOsqpSolver, n, f)
+
+    def close(self) -> None:
+        self._install(**self._saved)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class QpRecorder(_SolverPatch):
     """Wraps :class:`RtiOsqpSolver`'s methods (class-level, undone by :meth:`close`) to keep each step's first QP
     between ``start_s`` and ``end_s`` (the feedback calls counted from 0, one a second)."""
 
@@ -51,7 +72,7 @@ class QpRecorder:
         self.solver: RtiOsqpSolver | None = None
         self._step = -1
         self._current: dict | None = None
-        self._saved = {n: getattr(RtiOsqpSolver, n) for n in ("feedback", "_floor_bounds", "_solve_qps", "_q")}
+        super().__init__(("feedback", "_floor_bounds", "_solve_qps", "_q"))
         rec = self
 
         def feedback(solver, *args, **kwargs):
@@ -92,20 +113,8 @@ class QpRecorder:
                 cur["z"] = np.array(out[0], float)
             return out
 
-        RtiOsqpSolver.feedback = feedback
-        RtiOsqpSolver._floor_bounds = floor_bounds
-        RtiOsqpSolver._solve_qps = solve_qps
-        RtiOsqpSolver._q = gradient
+        self._install(feedback=feedback, _floor_bounds=floor_bounds, _solve_qps=solve_qps, _q=gradient)
 
-    def close(self) -> None:
-        for n, f in self._saved.items():
-            setattr(RtiOsqpSolver, n, f)
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
 
 def full_p(solver: RtiOsqpSolver, Px: np.ndarray) -> np.ndarray:
@@ -257,7 +266,7 @@ def analyse(solver: RtiOsqpSolver, rec: Mapping, stages: int = 6) -> dict[str, A
     }
 
 
-class SecondOrderDiagonal:
+class SecondOrderDiagonal(_SolverPatch):
     """A measurement, not a controller setting: while open, each step's first QP with the linearisation point's
     heater command at its upper bound gets ``max(0, c_k - g_k)`` more on valve a's diagonal at each of the first
     ``stages`` stages (and the matching gradient, a proximal term around the linearisation point), ``c_k`` the nonlinear
@@ -269,7 +278,7 @@ class SecondOrderDiagonal:
     def __init__(self, stages: int = 8):
         self.stages = stages
         self.added: list[np.ndarray] = []
-        self._saved = {n: getattr(RtiOsqpSolver, n) for n in ("_solve_qps", "_q")}
+        super().__init__(("_solve_qps", "_q"))
         meas = self
 
         def solve_qps(solver, x0, u_prev, d, ref, w_y, *args, **kwargs):
@@ -293,8 +302,7 @@ class SecondOrderDiagonal:
             q[ia] -= extra * solver._z_lin[ia]
             return q
 
-        RtiOsqpSolver._solve_qps = solve_qps
-        RtiOsqpSolver._q = gradient
+        self._install(_solve_qps=solve_qps, _q=gradient)
 
     def _extra(self, solver, x0, u_prev, d, ref, w_y) -> tuple[np.ndarray, tuple] | None:
         """The added diagonal and the P data (``solver._written``) it was added to, or None off the bound."""
@@ -318,15 +326,6 @@ class SecondOrderDiagonal:
         solver._core.update_matrices(Px2, np.asarray(Ax, float))
         return extra, solver._written
 
-    def close(self) -> None:
-        for n, f in self._saved.items():
-            setattr(RtiOsqpSolver, n, f)
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
 
 def capture(box: str, scenario: str = "winter_heating_steps", quick: bool = True, start_s: float = 90.0,

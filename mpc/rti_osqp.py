@@ -390,6 +390,7 @@ class RtiOsqpSolver:
                          osqp_codegen)
         self.cap_retry_rho, self.cap_retry_share, self.cap_retry_cold = check_cap_retry(
             "RtiOsqpSolver: cap_retry", cap_retry_rho, cap_retry_share, cap_retry_cold)
+        self._cap_retry_on = bool(self.cap_retry_rho or self.cap_retry_share)  # either form set
         self.cap_retries: list[dict] = []  # the last step's retries at the cap: both solves' iterations, status, rho
         self.steady_start_on = check_steady_start_on("RtiOsqpSolver: steady_start_on", steady_start_on)
         if isinstance(relinearise_every, bool) or int(relinearise_every) != relinearise_every or relinearise_every < 1:
@@ -1050,9 +1051,11 @@ class RtiOsqpSolver:
         """``Px`` with ``valve_a_prox`` on valve a's diagonal (Hessian ``2 w`` at every stage; the gradient's
         ``-2 w u_lin`` added in :meth:`_q`) where the plan ``U`` linearised at starts with the heater command at its
         upper bound; ``Px`` itself otherwise (and when off)."""
+        self.valve_a_prox_on = False
+        if not self.valve_a_prox:
+            return Px
         ih = self.pb.i_heater_cmd
-        self.valve_a_prox_on = bool(self.valve_a_prox) and at_upper_bound(
-            U, self.pb.u_hi, ih, float(self.pb.u_hi[ih] - self.pb.u_lo[ih]))
+        self.valve_a_prox_on = at_upper_bound(U, self.pb.u_hi, ih, float(self.pb.u_hi[ih] - self.pb.u_lo[ih]))
         if not self.valve_a_prox_on:
             return Px
         Px = np.array(Px, float)
@@ -1268,7 +1271,7 @@ class RtiOsqpSolver:
                 status = "deadline"
                 break
             capped = cap > 0
-            retry = not capped and (self.cap_retry_rho > 0 or self.cap_retry_share > 0)
+            retry = not capped and self._cap_retry_on
             rho_start = self._core.rho if retry else 0.0
             status_val, status, n_iter, x = self._core.solve_capped(cap) if capped else self._core.solve()
             solves += 1
@@ -1341,7 +1344,7 @@ class RtiOsqpSolver:
         """The answer ``z`` as the solver's plan and a :class:`SolveResult` (a failure where ``z`` is None); with the
         retry at the cap set, ``extra["cap_retries"]``: the retries of the step (or of finish_change's rest)."""
         N, nx, nu = self.pb.N, self.pb.nx, self.pb.nu
-        retries = {"cap_retries": len(self.cap_retries)} if self.cap_retry_rho or self.cap_retry_share else {}
+        retries = {"cap_retries": len(self.cap_retries)} if self._cap_retry_on else {}
         if z is None:
             return SolveResult(False, status, iterations=iterations, qp_solves=solves, prep_time_s=prep,
                                feedback_time_s=feedback, extra={"cold_start": cold, **retries})
