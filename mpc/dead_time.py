@@ -21,7 +21,9 @@ tie only within that reach, else to a clearly better candidate or another lead);
 it is. Of
 separate minima that explain the reading about equally (within ``TIE_RATIO``) the shortest is taken, of one minimum
 its bottom
-(:func:`shortest_tied_minimum`; docs/robustness.md sec. 2.11). A starting value (``initial_steps``, or
+(:func:`shortest_tied_minimum`; docs/robustness.md sec. 2.11); with ``prefer_longest`` (set by the filter for
+``EkfSettings.dead_time_step_longest_s`` after a change of the reference) the longest, where it is longer than the
+estimate (:func:`longest_tied_minimum`; sec. 2.46). A starting value (``initial_steps``, or
 ``prior_steps`` where none is given) gives way only to a clearly better candidate, not to a tie.
 Pure numpy, no model code: the estimator feeds it.
 """
@@ -48,6 +50,16 @@ TIE_RATIO = 1.1
 SSS, SSY = 0, 1
 
 
+def tied_minima(res: np.ndarray) -> np.ndarray:
+    """Which candidates are local minima of the residuals ``res`` within TIE_RATIO of the least one (bool array)."""
+    res = np.maximum(res, 0.0)  # a least-squares residual, >= 0 but for round-off
+    tied = res <= TIE_RATIO * min_reduce(res)
+    right, left = res[1:], res[:-1]
+    tied[1:] &= right <= left  # lower than (or as low as) the left neighbour; the first has none
+    tied[:-1] &= left <= right  # ... and the right one; the last has none
+    return tied
+
+
 def shortest_tied_minimum(res: np.ndarray) -> int:
     """Index of the shortest local minimum of the residuals within TIE_RATIO of the least one.
 
@@ -56,15 +68,21 @@ def shortest_tied_minimum(res: np.ndarray) -> int:
     taken, not its shorter flank: a response the model's air explains poorly (a gain or shape error)
     flattens the residuals around the true dead time, and the flank's shorter delays are the ones
     that make the loop ring."""
-    res = np.maximum(res, 0.0)  # a least-squares residual, >= 0 but for round-off
-    tied = res <= TIE_RATIO * min_reduce(res)
-    right, left = res[1:], res[:-1]
-    tied[1:] &= right <= left  # lower than (or as low as) the left neighbour; the first has none
-    tied[:-1] &= left <= right  # ... and the right one; the last has none
+    tied = tied_minima(res)
     first = int(tied.argmax())  # the first True: there is one (the least residual's) unless a residual is nan
     if not tied[first]:
         raise IndexError("shortest_tied_minimum: no minimum among non-finite residuals")
     return first
+
+
+def longest_tied_minimum(res: np.ndarray) -> int:
+    """Index of the longest local minimum of the residuals within TIE_RATIO of the least one (of one minimum its
+    bottom, as :func:`shortest_tied_minimum`): the rule while :attr:`DeadTimeEstimator.prefer_longest` is set."""
+    tied = tied_minima(res)
+    last = tied.size - 1 - int(tied[::-1].argmax())  # the last True
+    if not tied[last]:
+        raise IndexError("longest_tied_minimum: no minimum among non-finite residuals")
+    return last
 
 
 class DeadTimeEstimator:
@@ -134,6 +152,9 @@ class DeadTimeEstimator:
         self._lead = None  # a candidate ahead of the estimate by LEAD_RATIO ...
         self._lead_samples = 0  # ... for this many samples in a row
         self._by_lead = False  # the estimate is one the lead rule moved to (not a clearly better one)
+        #: set by the filter for each sample within ``EkfSettings.dead_time_step_longest_s`` after a change of the
+        #: reference: a longer tied minimum than the estimate is moved to (:meth:`_rank`)
+        self.prefer_longest = False
 
     @property
     def steps(self) -> float:
@@ -213,16 +234,33 @@ class DeadTimeEstimator:
         self.residuals = res / w
         return self._rank(res)
 
+    def _take_longest_tie(self, res: np.ndarray) -> bool:
+        """Move the estimate to the longest tied minimum where that is longer than the estimate (held against a
+        shorter tie afterwards, as a lead-made estimate: ``lead_tie_hold``; while ``prefer_longest`` is set a shorter
+        tie moves no estimate down, :meth:`_rank`); whether it moved. ASSUMPTION: right
+        after a change of the reference the controller's own moves are the response; where separate minima explain
+        it equally, the longer dead time is the loop's safe side (a plan on too short a one rings, docs/robustness.md
+        sec. 2.3-2.4; on too long a one it is slower). docs/robustness.md sec. 2.46."""
+        longest = longest_tied_minimum(res)
+        if longest <= self._best:
+            return False
+        self._best, self._by_lead, self._at_start = longest, True, False
+        self._lead, self._lead_samples = None, 0
+        return True
+
     def _rank(self, res: np.ndarray) -> float:
         """Move the estimate on the candidates' residuals ``res`` of a ranked sample (the switch, the tie and the lead
         rules); returns the estimate (samples)."""
+        if self.prefer_longest and self._take_longest_tie(res):
+            return self.steps
         best = shortest_tied_minimum(res)
         cur = self._best
         r_best, r_cur = float(res[best]), float(res[cur])
         # a starting value (initial_steps) gives way only to a clearly better candidate, not to a tie
         lead_held = self.lead_tie_hold and self._by_lead and not self._within_reach(best, cur)
         held_against_tie = self._at_start or lead_held
-        tie_moves = best < cur and r_best <= r_cur and not held_against_tie
+        # after a change of the reference (prefer_longest) a shorter tie does not move the estimate down
+        tie_moves = best < cur and r_best <= r_cur and not held_against_tie and not self.prefer_longest
         lead = best if best != cur and r_best < LEAD_RATIO * r_cur else None
         self._lead_samples = self._lead_samples + 1 if self._continues_lead(lead) else 0
         self._lead = lead

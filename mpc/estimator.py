@@ -96,7 +96,8 @@ OWN_RANGES = {"bypass_flow_after_s": (0.0, 3600.0), "motor_sd_after_response_c":
               "response_wait_rearm_s": (0.0, 3600.0), "q_mix_offset_per_air_change": (0.0, 1.0),
               "q_supply_heat_w": (0.0, 100.0), "supply_heat_sd0_w": (1.0, 1000.0),
               "supply_heat_flow_gate_s": (0.0, 3600.0), "supply_heat_walk_flow_m3h": (0.0, 1000.0),
-              "supply_heat_release_hold_s": (0.0, 3600.0), "supply_heat_step_hold_s": (0.0, 3600.0)}
+              "supply_heat_release_hold_s": (0.0, 3600.0), "supply_heat_step_hold_s": (0.0, 3600.0),
+              "dead_time_step_longest_s": (0.0, 3600.0)}
 #: Settings that shape the learning of the bypass-flow exponent and do nothing without ``learn_bypass_flow``
 #: (field -> its value that leaves learning as it is).
 BYPASS_FLOW_LEARNING_GATES = {"bypass_flow_anchored": False, "bypass_flow_after_response": False,
@@ -163,7 +164,11 @@ class EkfSettings:
     ASSUMPTION: nothing in a quiet window argues against the lead it left standing. ``dead_time_lead_tie_hold``: a
     dead time the lead rule switched to gives way only to a clearly better candidate, another lead, or a tie within
     ``dead_time_lead_reach_s`` (the same minimum's bottom), not to a shorter tie farther away (the tie rule took a
-    lead's 3.5 s back to 0 s within 4 s on a flat ranking; the default; sec. 2.38).
+    lead's 3.5 s back to 0 s within 4 s on a flat ranking; the default; sec. 2.38). ``dead_time_step_longest_s``:
+    for this long (s, in [0, 3600]; 0: off, the default) after a change of the reference (:meth:`note_reference`),
+    of separate minima of the ranking within :data:`~.dead_time.TIE_RATIO` the longest is taken where it is longer
+    than the estimate (instead of the shortest), and held against shorter ties as a lead-made estimate
+    (docs/robustness.md sec. 2.46).
 
     ``q_mix_offset_c``: random walk (degC per sample) of the mixed-air offset. 0.015 (0.03 before): with
     the faster valve and the reading-heavy tracked temperature (``OcpSpec``) the offset's sample-to-sample
@@ -449,6 +454,7 @@ class EkfSettings:
     dead_time_lead_reach_s: float = 0.5
     dead_time_lead_count_quiet: bool = True
     dead_time_lead_tie_hold: bool = True
+    dead_time_step_longest_s: float = 0.0
     q_heater_outlet_offset_c: float = 0.01
     q_cooler_offset_c: float = 0.0
     q_heater_air_offset_c: float = 0.0
@@ -1345,6 +1351,8 @@ class DisturbanceEkf:
         while no dead time of at least ``dead_time_min_s`` is found)."""
         if not (self.n_hist and used):
             return self.c_now
+        since_step_s = self._age_s - self._reference_moved_at_s
+        self.dead_time.prefer_longest = since_step_s < self.settings.dead_time_step_longest_s
         lag = self.dead_time.observe(supply_c)
         if not self._honours(lag * self.dt_s):
             return self.c_now
