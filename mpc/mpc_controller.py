@@ -418,6 +418,12 @@ class MpcSettings:
             state before the retry; within the step's deadline (checked
             before and after the refactorisation). The step's retries: ``SolveResult.extra["cap_retries"]``. Not
             with ``solver="ipopt"``. Only steps whose QP reaches the cap change. Measured in docs/robustness.md sec. 2.40.
+        osqp_cap_retry_on_cold_start: with the retry set (``osqp_cap_retry_rho`` / ``osqp_cap_retry_share``), a cold
+            start's QPs (the first step after the controller is built or reset, or after a failed step, whose reset
+            the next step starts cold from) retried at the cap as any later step's (True, the default), or not (False:
+            the capped answer taken, or the step failing, as without the retry; the steps after retry again). A cold
+            start's QPs iterate from a guess, and an exact answer there can put the run on another operating point
+            (the PTC-line step down: docs/robustness.md sec. 2.44). Without a retry set it does nothing.
         osqp_change_rho_hold: a reference change's QPs after the first run at a held OSQP step size ``rho``
             (dimensionless), OSQP's adaptation off in them: "end" the value the first QP ended with, "start" the value
             it started with ("off", the default: OSQP adapts them as set up), so the second QP's late raise (1e-4 ->
@@ -534,6 +540,7 @@ class MpcSettings:
     osqp_cap_retry_rho: float = 0.0
     osqp_cap_retry_share: float = 0.0
     osqp_cap_retry_cold: bool = False
+    osqp_cap_retry_on_cold_start: bool = True
     osqp_change_rho_hold: str = "off"
     valve_a_reversal_share: float = 0.3
     valve_a_reversal_min_pct: float = 5.0
@@ -596,6 +603,7 @@ class MpcSettings:
                             self.osqp_cap_retry_cold)
         except ValueError as exc:
             raise InvalidSettings(str(exc)) from None
+        check_flag(f"{p}.osqp_cap_retry_on_cold_start", self.osqp_cap_retry_on_cold_start)
         if self.solver not in ("rti", "sqp") and (self.osqp_cap_retry_rho or self.osqp_cap_retry_share
                                                   or self.osqp_cap_retry_cold):
             raise InvalidSettings(f"{p}.osqp_cap_retry_rho / osqp_cap_retry_share / osqp_cap_retry_cold with "
@@ -950,6 +958,7 @@ class MpcController:
                              change_rho_tolerance=float(s.osqp_change_rho_tolerance),
                              cap_retry_rho=float(s.osqp_cap_retry_rho), cap_retry_share=float(s.osqp_cap_retry_share),
                              cap_retry_cold=s.osqp_cap_retry_cold,
+                             cap_retry_on_cold_start=s.osqp_cap_retry_on_cold_start,
                              change_rho_hold=s.osqp_change_rho_hold,
                              valve_a_prox=float(s.rti_valve_a_prox))
 

@@ -308,6 +308,12 @@ class RtiOsqpSolver:
             fixes it at set-up: there "start" only sets the second QP's start, "end" is refused). Refused with
             ``rho_reset`` on "preparation" and with ``change_rho``'s "_each" modes (each sets the held QPs' step size;
             :func:`check_hold_with`). Measured in docs/architecture.md, 'The change's second QP held'.
+        cap_retry_on_cold_start: with ``cap_retry_rho`` / ``cap_retry_share`` set, the QPs of a cold start (the first
+            step after the solver is built or :meth:`reset`, which the controller calls after a failure too) are
+            retried at the cap as the later steps' are (True); False: not retried there, the capped answer taken
+            or failing as without the retry; the next step retries again. A cold start's QPs iterate from a guess
+            (the command held over the horizon), and its retried answer can move the run to another operating point
+            (docs/robustness.md sec. 2.44). Without a retry set it does nothing.
     """
 
     def __init__(self, problem: TrackingProblem, *, eps: float = 1e-4, max_iter: int = 400,
@@ -326,7 +332,8 @@ class RtiOsqpSolver:
                  reversal_second_qp: str = "off",
                  change_rho: str = "off", change_rho_restore: bool = False, change_rho_interval: int = 0,
                  change_rho_tolerance: float = 0.0, cap_retry_rho: float = 0.0, cap_retry_share: float = 0.0,
-                 cap_retry_cold: bool = False, change_rho_hold: str = "off", valve_a_prox: float = 0.0):
+                 cap_retry_cold: bool = False, change_rho_hold: str = "off", valve_a_prox: float = 0.0,
+                 cap_retry_on_cold_start: bool = True):
         self.pb = pb = problem
         self.valve_a_prox = check_prox("RtiOsqpSolver: valve_a_prox", valve_a_prox)
         self.valve_a_prox_on = False  # the last linearisation added the proximal term on valve a
@@ -391,6 +398,8 @@ class RtiOsqpSolver:
         self.cap_retry_rho, self.cap_retry_share, self.cap_retry_cold = check_cap_retry(
             "RtiOsqpSolver: cap_retry", cap_retry_rho, cap_retry_share, cap_retry_cold)
         self._cap_retry_on = bool(self.cap_retry_rho or self.cap_retry_share)  # either form set
+        check_flag("RtiOsqpSolver: cap_retry_on_cold_start", cap_retry_on_cold_start)
+        self.cap_retry_on_cold_start = cap_retry_on_cold_start
         self.cap_retries: list[dict] = []  # the last step's retries at the cap: both solves' iterations, status, rho
         self.steady_start_on = check_steady_start_on("RtiOsqpSolver: steady_start_on", steady_start_on)
         if isinstance(relinearise_every, bool) or int(relinearise_every) != relinearise_every or relinearise_every < 1:
@@ -488,7 +497,8 @@ class RtiOsqpSolver:
                 "change_rho": self._change_rho.mode, "change_rho_restore": self._change_rho.restore,
                 "change_rho_interval": self.change_rho_interval, "change_rho_tolerance": self.change_rho_tolerance,
                 "cap_retry_rho": self.cap_retry_rho, "cap_retry_share": self.cap_retry_share,
-                "cap_retry_cold": self.cap_retry_cold, "change_rho_hold": self.change_rho_hold,
+                "cap_retry_cold": self.cap_retry_cold, "cap_retry_on_cold_start": self.cap_retry_on_cold_start,
+                "change_rho_hold": self.change_rho_hold,
                 "reversal_second_qp": self.reversal_second_qp, "valve_a_prox": self.valve_a_prox,
                 "step_fractions": list(self._merit.fractions) if self._merit else [],
                 "trust_radii": list(self.trust_radii)}
@@ -1176,7 +1186,7 @@ class RtiOsqpSolver:
             z, status, iterations, solves, qp_prep, inexact, fraction = self._solve_qps(
                 x0, u_prev, d, ref, w_y, u_lo, u_hi, max_qps, restart=changed and self.restart_duals_on_change,
                 t0=t0, time_limit_s=time_limit_s, cap=self._qp_cap(split, changed, cold), trust=not cold,
-                hold=self.change_rho_hold if changed else "off")
+                hold=self.change_rho_hold if changed else "off", retry=self.cap_retry_on_cold_start or not cold)
         finally:  # OSQP's own adaptation again for the steps after the change
             if adaptation is not None:
                 self._core.set_rho_adaptation(*adaptation)
@@ -1211,7 +1221,7 @@ class RtiOsqpSolver:
 
     def _solve_qps(self, x0, u_prev, d, ref, w_y, u_lo, u_hi, max_qps: int, *, restart: bool = False, t0: float = 0.0,
                    time_limit_s: float = 0.0, cap: int = 0, start: np.ndarray | None = None, trust: bool = True,
-                   hold: str = "off", at: np.ndarray | None = None):
+                   hold: str = "off", at: np.ndarray | None = None, retry: bool = True):
         """Up to ``max_qps`` QPs (Gauss-Newton SQP to ``sqp_tol``) with the prepared data: the first warm-started from
         ``start`` (default: the linearisation point; the multipliers OSQP's, zero with ``restart``); with ``cap`` > 0,
         each QP at most ``cap`` OSQP iterations, its iterate at the cap taken; ``trust``: the trust region applies (where
@@ -1219,10 +1229,11 @@ class RtiOsqpSolver:
         iterations, QP solves, the relinearisations' time (s), whether the answer is an iterate at a cap, and the
         smallest globalised step fraction. ``hold``: the QPs after the first without OSQP's step-size adaptation,
         at the first QP's step size at its end or start (``change_rho_hold``'s mode; the adaptation in force set back
-        after them). ``at``: the first QP linearised at that plan (a further Gauss-Newton QP)."""
+        after them). ``at``: the first QP linearised at that plan (a further Gauss-Newton QP). ``retry``: a QP at
+        OSQP's cap is retried where a retry is set (False: not, ``cap_retry_on_cold_start`` off on a cold start)."""
         try:
             return self._qp_run(x0, u_prev, d, ref, w_y, u_lo, u_hi, max_qps, restart, t0, time_limit_s, cap, start,
-                                trust, hold, at)
+                                trust, hold, at, retry)
         finally:  # OSQP's own adaptation again for the steps after
             if self._held_adaptation is not None:
                 self._core.set_rho_adaptation(*self._held_adaptation)
@@ -1236,7 +1247,7 @@ class RtiOsqpSolver:
             self._held_adaptation = before
 
     def _qp_run(self, x0, u_prev, d, ref, w_y, u_lo, u_hi, max_qps, restart, t0, time_limit_s, cap, start, trust,
-                hold, at):
+                hold, at, retry_set):
         """:meth:`_solve_qps`'s QPs (its arguments; ``hold``: :meth:`_hold_rho` before the second QP)."""
         rho_first = self._core.rho if hold == "start" else None  # the step size the first QP starts from
         iterations = 0
@@ -1271,7 +1282,7 @@ class RtiOsqpSolver:
                 status = "deadline"
                 break
             capped = cap > 0
-            retry = not capped and self._cap_retry_on
+            retry = not capped and self._cap_retry_on and retry_set
             rho_start = self._core.rho if retry else 0.0
             status_val, status, n_iter, x = self._core.solve_capped(cap) if capped else self._core.solve()
             solves += 1

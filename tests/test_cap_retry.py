@@ -38,7 +38,8 @@ def test_the_retry_settings_are_checked():
         with pytest.raises(InvalidSettings, match=named):
             MpcSettings(**fields)
     s = MpcSettings()
-    assert (s.osqp_cap_retry_rho, s.osqp_cap_retry_share, s.osqp_cap_retry_cold) == (0.0, 0.0, False)
+    assert (s.osqp_cap_retry_rho, s.osqp_cap_retry_share, s.osqp_cap_retry_cold,
+            s.osqp_cap_retry_on_cold_start) == (0.0, 0.0, False, True)
     solver = MpcController(settings=MpcSettings(osqp_cap_retry_share=0.3, osqp_cap_retry_cold=True)).solver
     assert (solver.settings["cap_retry_share"], solver.settings["cap_retry_cold"]) == (0.3, True)
     for fields in (dict(osqp_cap_retry_rho=3e-3), dict(osqp_cap_retry_share=0.3), dict(osqp_cap_retry_cold=True)):
@@ -58,12 +59,13 @@ def test_a_retry_not_taken_leaves_osqps_workspace_as_the_capped_qp_left_it(gener
     """OSQP capped at 10 iterations: the cold first steps' QP ends at the cap without an answer, the retry at
     rho 1e-3 (from OSQP's 0.1) too; the capped solve's status is the step's, and OSQP's step size is the one before
     the retry again (the generated solver's whole workspace, multipliers and factorisation included, to the bit), so
-    the next step does not start from the retry's. Each step's retries in ``extra["cap_retries"]``."""
+    the next step does not start from the retry's. Each step's retries in ``extra["cap_retries"]``. Both
+    steps fail, so both are cold starts: the retry is set on them (``osqp_cap_retry_on_cold_start`` True)."""
     if generated:
         monkeypatch.setenv(codegen.CACHE_ENV, str(cache))
         monkeypatch.setenv(codegen.SWITCH_ENV, "1")
     ctrl = MpcController(settings=MpcSettings(codegen=False, osqp_codegen=generated, osqp_max_iter=10,
-                                              osqp_cap_retry_rho=1e-3))
+                                              osqp_cap_retry_rho=1e-3, osqp_cap_retry_on_cold_start=True))
     solver = ctrl.solver
     core = solver._core
     if generated and not isinstance(core, osqp_embedded.EmbeddedOsqp):
@@ -107,3 +109,43 @@ def test_a_retry_is_counted_per_step_and_absent_when_off():
         ctrl.close()
         assert {k: v for k, v in results[0].extra.items() if k == "cap_retries"} == extra, results[0].extra
         assert ctrl.solver.cap_retries == []
+
+
+def _retries_per_step(on_cold_start: bool, steps: int, reset_at: int) -> list[tuple[bool, int]]:
+    """OSQP capped at 10 iterations (its iterate at the cap taken, ``osqp_accept_max_iter``), the retry at 3e-3 with
+    ``osqp_cap_retry_on_cold_start`` as given, the solve-time loop: per step (the controller reset before step
+    ``reset_at``), whether the step was a cold start and how many of its QPs were retried at the cap."""
+    ctrl = MpcController(settings=MpcSettings(codegen=False, osqp_codegen=False, osqp_max_iter=10,
+                                              osqp_accept_max_iter=True, osqp_cap_retry_rho=3e-3,
+                                              osqp_cap_retry_on_cold_start=on_cold_start))
+    loop = solve_time.Loop(ctrl, 1)
+    results = []
+    feedback = ctrl.solver.feedback
+    ctrl.solver.feedback = lambda *a, **k: results.append(feedback(*a, **k)) or results[-1]
+    for k in range(steps):
+        if k == reset_at:
+            ctrl.reset(loop.plant.command)
+        loop.step(k)
+    ctrl.close()
+    return [(r.extra["cold_start"], r.extra["cap_retries"]) for r in results]
+
+
+def test_a_cold_starts_qps_are_retried_only_with_the_setting_and_a_reset_arms_the_skip_again():
+    """With ``osqp_cap_retry_on_cold_start`` False the first step's QPs at the cap (a cold start: measured 10 QPs
+    at the cap of 10 iterations, all retried with True) are not retried, the next step's (one QP at the cap) is; the
+    step after a reset is a cold start again and not retried, the one after it is. With True every step's QPs at the
+    cap are retried (the retry as in docs/robustness.md sec. 2.40)."""
+    skipped = _retries_per_step(False, 4, reset_at=2)
+    retried = _retries_per_step(True, 4, reset_at=2)
+    assert [cold for cold, _ in skipped] == [cold for cold, _ in retried] == [True, False, True, False], skipped
+    assert [n for _, n in skipped][0::2] == [0, 0], skipped  # the cold starts (start, after the reset)
+    assert all(n > 0 for _, n in skipped[1::2]), skipped  # the steps after them
+    assert all(n > 0 for _, n in retried) and retried[0][1] > 1, retried
+
+
+def test_the_cold_start_setting_is_checked_and_reported():
+    with pytest.raises(InvalidSettings, match="osqp_cap_retry_on_cold_start"):
+        MpcSettings(osqp_cap_retry_on_cold_start=0)
+    solver = MpcController(settings=MpcSettings(osqp_cap_retry_rho=3e-3, osqp_cap_retry_on_cold_start=False)).solver
+    assert solver.settings["cap_retry_on_cold_start"] is False
+    assert MpcSettings(solver="ipopt", osqp_cap_retry_on_cold_start=False).osqp_cap_retry_on_cold_start is False
