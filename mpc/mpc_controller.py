@@ -283,7 +283,10 @@ class MpcSettings:
             ``stats["start_caution_solved_again"]``, its QP count both passes'): a step where the bound does not bind
             is the plain start's to the bit, a step where it binds the bound-in-the-QP step's (to the bit with the
             generated OSQP; through OSQP's Python interface, whose restore rescales the multipliers, within its
-            tolerance). With IPOPT's reference (``solver="ipopt"``) the bound is in the QP as with True.
+            tolerance). With IPOPT's reference (``solver="ipopt"``) the bound is in the QP as with True. Measured
+            (sec. 2.45): the literal-cooler check 0.990 (in the QP 1.002), the quick sweeps of seeds 1 / 2 the
+            command-only form's figures (S1-8's heating 1.051, in the QP 0.949; S2-9's 1.017, in the QP 1.240), the
+            reserve's step-down test failing (the change's QP at OSQP's cap, a fallback): not the default.
         steady_start: the QPs of a reference change (``rti``/``sqp``) start from the plan toward the new
             reference's steady-state target on the model with the estimator's disturbances (the inputs that hold
             it at rest, ramped to at the rate limits; :mod:`hvac_mpc.mpc.steady_target`) instead of the plan
