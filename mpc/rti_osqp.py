@@ -1140,8 +1140,20 @@ class RtiOsqpSolver:
         self.S = np.zeros(pb.N)
 
     def feedback(self, x0: np.ndarray, u_prev: np.ndarray, d: np.ndarray, ref: np.ndarray, w_y: np.ndarray,
-                 u_lo: np.ndarray, u_hi: np.ndarray, time_limit_s: float = 0.0) -> SolveResult:
-        """Feedback phase: insert the estimate and bounds, solve (and iterate in SQP mode)."""
+                 u_lo: np.ndarray, u_hi: np.ndarray, time_limit_s: float = 0.0,
+                 u_hi_binding: np.ndarray | None = None) -> SolveResult:
+        """Feedback phase: insert the estimate and bounds, solve (and iterate in SQP mode).
+
+        ``u_hi_binding`` (scaled, the shape of ``u_hi``; None: not used): tighter upper bounds that enter the QPs
+        only where they bind. The step's QPs are solved with ``u_hi``; only where the answer's first stage exceeds
+        ``u_hi_binding`` by more than OSQP's absolute tolerance in some input it bounds tighter than ``u_hi``, the
+        solver's state is set back to what the step's QPs started from (:meth:`_save_step`, the reversal search's
+        memory, the step-size schedule) and the QPs are solved again with ``u_hi_binding`` (``extra["binding_solved_again"]`` True; the iterations and QP solves of
+        both passes counted). So a step where they do not bind is the step without them to the bit, and a step
+        where they bind is the step with them from the start (the generated OSQP's restore is exact; OSQP's
+        Python interface restores the multipliers rescaled, :meth:`_Core.save_state`). ASSUMPTION: a first move
+        beyond the bound by less than ``eps`` (scaled) is what the QP with the bound may answer as well, so not
+        solved again (the caller's projection cuts it)."""
         t0 = time.perf_counter()
         prep = 0.0
         cold = self.X is None
@@ -1166,12 +1178,65 @@ class RtiOsqpSolver:
             self.fail_next -= 1
             return SolveResult(False, "forced failure", prep_time_s=prep,
                                feedback_time_s=time.perf_counter() - t0 - prep)
-        nx = self.pb.nx
         if changed and self._change_rho.active:  # (the value before the change noted before any reset)
             start_rho = self._change_rho.at_change(self._core.rho, old_ref, ref)
             prep += 0.0 if start_rho is None else self._reset_rho(start_rho)
         if changed and self.rho_reset is not None and self.rho_reset_on == "change":
             prep += self._reset_rho(self.rho_reset)
+        args = (x0, u_prev, d, ref, w_y, u_lo, u_hi, t0, time_limit_s, changed, cold, max_qps)
+        before = self._save_pass() if u_hi_binding is not None else None
+        z, status, iterations, solves, qp_prep, inexact, fraction, split, rho, saved = self._feedback_qps(*args)
+        bound = before is not None and z is not None and self._exceeds(z, u_hi, u_hi_binding)
+        if bound:  # the pass without the tighter bounds set aside: the QPs again with them from the same state
+            self._restore_pass(before)
+            z, status, it2, solves2, qp_prep2, inexact, fraction, split, rho, saved = self._feedback_qps(
+                *args[:6], u_hi_binding, *args[7:])
+            iterations, solves, qp_prep = iterations + it2, solves + solves2, qp_prep + qp_prep2
+            u_hi = u_hi_binding
+        prep += qp_prep
+        feedback = time.perf_counter() - t0 - prep
+        result = self._result(z, status, iterations, solves, prep, feedback, cold, inexact, fraction)
+        if u_hi_binding is not None:
+            result.extra["binding_solved_again"] = bound
+        plain = not (split or changed or cold)
+        self._capped_run = self._capped_run + 1 if plain and self._reached_cap else 0
+        if split and result.ok and (changed or inexact):
+            self._change_rest = dict(x0=x0.copy(), u_prev=u_prev.copy(), d=d.copy(), ref=np.array(ref, float),
+                                     w_y=w_y.copy(), u_lo=u_lo.copy(), u_hi=u_hi.copy(), z=z.copy(),
+                                     qps=max(self.sqp_max_iter, self.reference_change_qps), solved=not inexact,
+                                     rho=rho, saved=saved, max_qps=max_qps,
+                                     restart=changed and self.restart_duals_on_change)
+            result.extra["change_split"] = True
+        return result
+
+    def _exceeds(self, z: np.ndarray, u_hi: np.ndarray, u_hi_binding: np.ndarray) -> bool:
+        """True where the answer ``z``'s first stage exceeds the scaled upper bounds ``u_hi_binding``'s first row by more
+        than OSQP's absolute tolerance in some input where that bound is below the QP's own (``u_hi``; where they are
+        the same the QP had the bound already)."""
+        first, tighter = z[self.iu0:self.iu0 + self.pb.nu], u_hi_binding[0] < u_hi[0]
+        return bool(np.any(tighter & (first > u_hi_binding[0] + self._osqp_settings["eps_abs"])))
+
+    def _save_pass(self) -> dict:
+        """What :meth:`_feedback_qps` changes, for :meth:`_restore_pass`: :meth:`_save_step`'s state, the reversal
+        search's memory and the step-size schedule of a change."""
+        return {"step": self._save_step(), "search": (self._last_move, self._quiet_run, self._turned_before),
+                "change_rho": copy.deepcopy(self._change_rho)}
+
+    def _restore_pass(self, saved: dict) -> None:
+        """The state :meth:`_save_pass` saved, put back (the retries at the cap of the pass set aside kept in the
+        step's list: they were made)."""
+        self._restore_step(saved["step"])
+        self._last_move, self._quiet_run, self._turned_before = saved["search"]
+        self._change_rho = copy.deepcopy(saved["change_rho"])
+        self.reversal_searched = self.reversal_taken = self.reversal_relinearised = False
+
+    def _feedback_qps(self, x0, u_prev, d, ref, w_y, u_lo, u_hi, t0, time_limit_s, changed, cold, max_qps):
+        """:meth:`feedback`'s QPs with the bounds ``u_lo``, ``u_hi`` (its arguments; ``changed``, ``cold``: a
+        reference change's, a cold start's step; ``max_qps`` the QPs allowed): the answer, status, iterations, QP
+        solves, the relinearisations' time (s), whether inexact, the globalised fraction, and for a split change
+        whether split, the step size before it and the state saved for its replay."""
+        nx = self.pb.nx
+        prep = 0.0
         self.l[:nx] = self.u[:nx] = x0  # rows r_x0
         self.l[self._r_u_rows] = u_lo.ravel()
         self.u[self._r_u_rows] = u_hi.ravel()
@@ -1207,17 +1272,7 @@ class RtiOsqpSolver:
             self._z_lin, self._reached_cap = z_lin, reached or self._reached_cap
         if self._search_merit is not None:
             z = self._searched(z, x0, d, ref, w_y, u_prev, u_lo, u_hi, plain and max_qps == 1)
-        feedback = time.perf_counter() - t0 - prep
-        result = self._result(z, status, iterations, solves, prep, feedback, cold, inexact, fraction)
-        self._capped_run = self._capped_run + 1 if plain and self._reached_cap else 0
-        if split and result.ok and (changed or inexact):
-            self._change_rest = dict(x0=x0.copy(), u_prev=u_prev.copy(), d=d.copy(), ref=np.array(ref, float),
-                                     w_y=w_y.copy(), u_lo=u_lo.copy(), u_hi=u_hi.copy(), z=z.copy(),
-                                     qps=max(self.sqp_max_iter, self.reference_change_qps), solved=not inexact,
-                                     rho=rho, saved=saved, max_qps=max_qps,
-                                     restart=changed and self.restart_duals_on_change)
-            result.extra["change_split"] = True
-        return result
+        return z, status, iterations, solves, prep, inexact, fraction, split, rho, saved
 
     def _solve_qps(self, x0, u_prev, d, ref, w_y, u_lo, u_hi, max_qps: int, *, restart: bool = False, t0: float = 0.0,
                    time_limit_s: float = 0.0, cap: int = 0, start: np.ndarray | None = None, trust: bool = True,

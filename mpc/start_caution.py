@@ -57,6 +57,12 @@ VALVE_A_OPENING = "valve_a_opening"
 VALVE_A_AND_HEATER = "valve_a_and_heater"
 SCOPES = (VALVE_A_OPENING, VALVE_A_AND_HEATER)
 
+#: Where the scope ``valve_a_opening``'s bound goes (``MpcSettings.start_caution_in_qp``): True a bound of the QP,
+#: False the command's only, ``"when_binding"`` the QP's only in the steps where the QP without it opens valve a beyond
+#: it (the QP solved again with it; docs/robustness.md sec. 2.45).
+START_CAUTION_WHEN_BINDING = "when_binding"
+START_CAUTION_IN_QP = (True, False, START_CAUTION_WHEN_BINDING)
+
 
 def known_delay_s(transport_delay_s: float, initial_dead_time_s: float) -> float:
     """The dead time (s) a controller knows from its start: the transport delay its prediction carries (a lag chain,

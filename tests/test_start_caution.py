@@ -23,11 +23,13 @@ from hvac_mpc.benchmarks.box_sweep import draw_boxes
 from hvac_mpc.benchmarks.plant_seam import build_plant
 from hvac_mpc.models import Parameters
 from hvac_mpc.models.box import INPUTS
+from hvac_mpc.mpc import codegen
 from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
 from hvac_mpc.mpc.ocp import InvalidSettings, OcpSpec
 from hvac_mpc.models.model_file import RefinedModel
 from hvac_mpc.mpc.estimator import EkfSettings
-from hvac_mpc.mpc.start_caution import VALVE_A_AND_HEATER, VALVE_A_OPENING, StartCaution, known_delay_s, opening_bound
+from hvac_mpc.mpc.start_caution import (START_CAUTION_WHEN_BINDING, VALVE_A_AND_HEATER, VALVE_A_OPENING, StartCaution,
+                                        known_delay_s, opening_bound)
 
 VALVE_A = INPUTS.index("valve_a_pct")
 
@@ -125,8 +127,10 @@ def test_settings_are_checked_and_on_by_default_with_the_opening_scope():
     assert MpcSettings(start_rate_share=1.0).start_rate_share == 1.0  # off
     assert MpcSettings().start_caution_scope == VALVE_A_OPENING
     assert MpcSettings(start_caution_scope=VALVE_A_AND_HEATER).start_caution_scope == VALVE_A_AND_HEATER
-    for bad in (0, 1, "no", None):
-        with pytest.raises(InvalidSettings, match=r"start_caution_in_qp"):
+    assert MpcSettings().start_caution_in_qp is True
+    assert MpcSettings(start_caution_in_qp=START_CAUTION_WHEN_BINDING).start_caution_in_qp == "when_binding"
+    for bad in (0, 1, "no", None, "When_binding", ""):
+        with pytest.raises(InvalidSettings, match=r"start_caution_in_qp.*True, False, 'when_binding'"):
             MpcSettings(start_caution_in_qp=bad)
     for bad in ("heater", "", None):
         with pytest.raises(InvalidSettings, match=r"start_caution_scope.*valve_a_opening.*valve_a_and_heater"):
@@ -270,3 +274,84 @@ def test_a_caution_on_the_command_only_still_caps_valve_as_first_opening():
                               [tr.time_s >= sc.metrics_start_s].sum() * tr.dt_s)
     assert scored(on_command) < 0.5 * scored(plain)
     assert not any(on_command.fallback)
+
+
+def on_box_stepped(index: int, sc, draw: int = 0, **settings):
+    """:func:`on_box`'s run, and per sample the step's statistics (``StepResult.stats``)."""
+    stats = []
+    label, variant = draw_boxes(draw, index + 1)[index]
+    ctrl = MpcController(Parameters(), MpcSettings(initial_command=sc.initial_command,
+                                                   deadline_s=bench.DETERMINISTIC_DEADLINE_S, **settings))
+    step = ctrl.step
+
+    def stepped(measurement, reference):
+        result = step(measurement, reference)
+        stats.append(result.stats)
+        return result
+
+    ctrl.step = stepped
+    plant = build_plant(mismatch_suite.variant_factory(variant), simulate.plant_seed(0, sc.seed), bench.DT_S,
+                        name=label)
+    trace, _ = recorded_run(sc, ctrl, plant, lambda c: None)
+    return trace, stats
+
+
+@pytest.mark.slow
+def test_a_caution_in_the_qp_only_where_it_binds_leaves_a_start_it_does_not_bind_as_the_plain_one():
+    """S2-5's quick flow out of reach (docs/robustness.md sec. 2.32, 2.45): the caution's bound never binds, so with
+    ``start_caution_in_qp`` ``"when_binding"`` no step is solved again and the run is the plain start's sample for
+    sample (the bound in the QP moves it, :func:`test_a_caution_on_the_command_only_leaves_a_start_it_does_not_bind_as_the_plain_one`),
+    each step with the plain start's QP count."""
+    sc = scenarios.flow_out_of_reach().quick()
+    plain, plain_stats = on_box_stepped(5, sc, draw=2, start_rate_share=1.0)
+    binding, stats = on_box_stepped(5, sc, draw=2, start_rate_share=0.4, start_caution_in_qp=START_CAUTION_WHEN_BINDING)
+    assert np.array_equal(binding.applied, plain.applied)
+    checked = [st["start_caution_solved_again"] for st in stats if "start_caution_solved_again" in st]
+    assert checked and not any(checked)  # the caution lasted some steps, none solved again
+    assert [st["qp_solves"] for st in stats] == [st["qp_solves"] for st in plain_stats]
+
+
+@pytest.fixture(scope="module")
+def osqp_cache(tmp_path_factory):
+    """A cache folder of this module's own (the generated OSQP built once in it)."""
+    return tmp_path_factory.mktemp("cache")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("generated", [True, False], ids=["generated OSQP", "OSQP's Python interface"])
+def test_a_caution_in_the_qp_only_where_it_binds_is_the_qps_bound_in_the_steps_it_binds(generated, osqp_cache,
+                                                                                         monkeypatch):
+    """S0-3's quick flow out of reach (as :func:`test_the_caution_caps_valve_as_first_opening_on_another_boxs_flow_jump`):
+    the plain start strokes valve a 55 -> 93 % in the first sample, beyond the caution's 75 %. With
+    ``"when_binding"`` that first step's QPs are solved again with the bound from the state they started from: its
+    command is the command with the bound in the QP (to the bit with the generated OSQP, whose workspace restores
+    exactly; within OSQP's tolerance through its Python interface, which restores the multipliers rescaled), and
+    its QP count the plain step's and the bound step's together; valve a opens by at most the share of its rate, and
+    the scored IAE is below half the plain start's. The QP data interpreted (``codegen`` False) as in the suite."""
+    if generated:  # the suite runs with code generation off (tests/conftest.py); OSQP's generated for this case
+        monkeypatch.setenv(codegen.CACHE_ENV, str(osqp_cache))
+        monkeypatch.setenv(codegen.SWITCH_ENV, "1")
+    sc = scenarios.flow_out_of_reach().quick()
+    route = {"codegen": False, "osqp_codegen": generated}
+    plain, plain_stats = on_box_stepped(3, sc, start_rate_share=1.0, **route)
+    in_qp, in_qp_stats = on_box_stepped(3, sc, start_rate_share=0.4, **route)
+    binding, stats = on_box_stepped(3, sc, start_rate_share=0.4, start_caution_in_qp=START_CAUTION_WHEN_BINDING,
+                                    **route)
+    assert stats[0]["start_caution_solved_again"]
+    if generated:
+        assert np.array_equal(binding.applied[0], in_qp.applied[0])
+        assert stats[0]["qp_solves"] == plain_stats[0]["qp_solves"] + in_qp_stats[0]["qp_solves"]
+    else:
+        assert np.allclose(binding.applied[0], in_qp.applied[0], atol=0.05)  # W and %
+        assert stats[0]["qp_solves"] > plain_stats[0]["qp_solves"]
+    assert not np.allclose(binding.applied[0], plain.applied[0], atol=1.0)
+    again = [k for k, st in enumerate(stats) if st.get("start_caution_solved_again")]
+    assert all(stats[k]["qp_solves"] >= 2 for k in again)
+    start = sc.initial_command.vector()[VALVE_A]
+    openings = np.diff(np.r_[start, binding.applied[:5, VALVE_A]])
+    share_pct = 0.4 * OcpSpec().rate_valve_pct_per_s  # the caution's opening in one sample (%)
+    assert share_pct - 0.1 <= openings[0] and openings.max() <= share_pct + 1e-6 < plain.applied[0, VALVE_A] - start
+    scored = lambda tr: float(np.abs(tr.truth["supply_temp_c"] - tr.reference["supply_temp_c"])  # noqa: E731
+                              [tr.time_s >= sc.metrics_start_s].sum() * tr.dt_s)
+    assert scored(binding) < 0.5 * scored(plain)
+    assert not any(binding.fallback)
