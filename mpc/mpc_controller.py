@@ -823,7 +823,8 @@ def _heater_reserve(problem: TrackingProblem, dt_s: float) -> HeaterReserve | No
     if w.valve_a_reserve_per_pct2 <= 0:
         return None
     return HeaterReserve(w.valve_a_reserve_per_pct2, w.valve_a_heating_per_pct2, dt_s,
-                         ramp_s=w.valve_a_reserve_ramp_s, short_c=w.valve_a_reserve_short_c)
+                         ramp_s=w.valve_a_reserve_ramp_s, short_c=w.valve_a_reserve_short_c,
+                         ptc_hold_s=w.valve_a_reserve_ptc_hold_s)
 
 
 class MpcController:

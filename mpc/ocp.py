@@ -99,6 +99,9 @@ RESERVE_RAMP_MAX_S = 600.0
 #: The largest shortfall threshold of the reserve's withholding rule (K, ``Weights.valve_a_reserve_short_c``): the
 #: rest's own band (``reserve.LEAVE_BAND_C``), beyond which the rest has ended anyway.
 RESERVE_SHORT_MAX_C = 1.0
+#: The longest hold of the heater reserve after the box's heater drew less than its command (s,
+#: ``Weights.valve_a_reserve_ptc_hold_s``): ten minutes, as the ramp.
+RESERVE_PTC_HOLD_MAX_S = 600.0
 
 #: Offsets and scales of the states (degC): scaled value = (physical - offset) / scale.
 STATE_SCALING = {"motor_rise_c": (1.0, 1.0), "water_temp_c": (5.0, 5.0), "heater_temp_c": (40.0, 40.0),
@@ -191,7 +194,10 @@ class Weights:
     rule off, the default): the reserve's weight withheld at a step of the rest where the heater is at its limit (the
     command in force within the reserve's headroom of the power at the body's estimate) and the supply reading more
     than this below its reference; a withheld step does not count towards the ramp. Both act only with the reserve on
-    (docs/identification.md 'The reserve's entry').
+    (docs/identification.md 'The reserve's entry'). ``valve_a_reserve_ptc_hold_s`` (s; 0: off, the default): after
+    a step where the box's heater drew measurably less than its command (its body past the PTC knee), the reserve
+    stays out for this many seconds, not only while the shortfall lasts (docs/identification.md 'The reserve's
+    winter cost').
 
     ``flap_closure_per_pct2`` (per %^2 of opening per s; 0: off): the flat direction of the outlet flaps priced. Four
     actuators (the blower and the openings of flaps m, f, w) set three outlet flows, so "blower power down, all flaps
@@ -229,6 +235,7 @@ class Weights:
     valve_a_reserve_per_pct2: float = 0.0
     valve_a_reserve_ramp_s: float = 0.0
     valve_a_reserve_short_c: float = 0.0
+    valve_a_reserve_ptc_hold_s: float = 0.0
     flap_closure_per_pct2: float = 0.0
 
     def validate(self, prefix: str = "weights") -> None:
@@ -238,6 +245,8 @@ class Weights:
         check_number(f"{prefix}.flap_closure_per_pct2", self.flap_closure_per_pct2, 0.0, FLAP_CLOSURE_MAX)
         check_number(f"{prefix}.valve_a_reserve_ramp_s", self.valve_a_reserve_ramp_s, 0.0, RESERVE_RAMP_MAX_S)
         check_number(f"{prefix}.valve_a_reserve_short_c", self.valve_a_reserve_short_c, 0.0, RESERVE_SHORT_MAX_C)
+        check_number(f"{prefix}.valve_a_reserve_ptc_hold_s", self.valve_a_reserve_ptc_hold_s, 0.0,
+                     RESERVE_PTC_HOLD_MAX_S)
         if self.supply_temp <= 0 or self.volume_flow <= 0:
             raise InvalidSettings(f"{prefix}.supply_temp and {prefix}.volume_flow must be > 0 (range (0, 1e6])")
 

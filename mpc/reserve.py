@@ -43,6 +43,10 @@ seconds of the rest (:func:`ramped_weight`) and ``Weights.valve_a_reserve_short_
 at its limit with the reading short of the reference (:func:`withholding`): with the full weight at once a right
 model's MPC closes valve a at the rest's start faster than the heater's extra power warms the body, and the reading
 falls short where the heater limits (docs/identification.md 'The reserve re-measured', 'The reserve's entry').
+``Weights.valve_a_reserve_ptc_hold_s`` (a setting, off by default) keeps the reserve out for some seconds after the
+box's heater drew less than its command (:func:`past_knee_held`): past the knee the rest otherwise counts again as soon
+as the command falls below the PTC line, and the reserve's weight flickers on and off with the body still past the
+knee (docs/identification.md 'The reserve's winter cost').
 
 ASSUMPTION: a heating reference held for :data:`REST_HOLD_S` may be followed by a step up the horizon does not see
 (the comfort algorithm's steps of 3-4 K, the bench's winter scenario), and keeping the heat for it in the body is
@@ -98,6 +102,15 @@ def withholding(short_c: float, limiting: bool, error_c: float) -> bool:
     return bool(short_c > 0.0 and limiting and error_c < -short_c)
 
 
+def past_knee_held(since_short_s: float, hold_s: float) -> bool:
+    """Whether the box's heater counts as past the PTC knee ``since_short_s`` seconds after the last step where it
+    drew measurably less than its command (0: at this step; inf: never): at that step, and with the hold on
+    (``hold_s`` > 0, s) for ``hold_s`` after it. ASSUMPTION: the body past the knee cools no faster than the air
+    through it takes its heat (tens of seconds to minutes at rest), whatever the command; the shortfall itself ends
+    as soon as the command falls below the PTC line (docs/identification.md 'The reserve's winter cost')."""
+    return bool(since_short_s <= 0.0 or since_short_s < hold_s)
+
+
 def ramped_weight(heating_per_pct2: float, reserve_per_pct2: float, on_s: float, ramp_s: float) -> float:
     """Valve a's weight (per %^2 per s) ``on_s`` seconds into the rest: from the heating weight to the reserve's in a
     straight line over ``ramp_s`` (s; 0: the reserve's at once), so valve a closes as the heater's power goes into
@@ -117,16 +130,18 @@ class HeaterReserve:
     dt_s: float
     ramp_s: float = 0.0
     short_c: float = 0.0
+    ptc_hold_s: float = 0.0
     _rest_s: float = 0.0
     _ref: tuple[float, float] | None = None
     _on: bool = False
     _descent: bool = False
     _on_s: float = 0.0
     _withheld: bool = False
+    _since_short_s: float = math.inf
 
     def reset(self) -> None:
         self._rest_s, self._ref, self._on, self._descent = 0.0, None, False, False
-        self._on_s, self._withheld = 0.0, False
+        self._on_s, self._withheld, self._since_short_s = 0.0, False, math.inf
 
     @property
     def withheld(self) -> bool:
@@ -158,7 +173,11 @@ class HeaterReserve:
         self._descent = descending(heating, lowered, self._descent and not changed, reading_c - ref[0])
         band = LEAVE_BAND_C if self._on else REST_BAND_C
         # the box's heater draws less than its command: its body is past the PTC knee, as hot as is of use
-        ptc_binding = math.isfinite(heater_power_w) and heater_power_w < heater_cmd_w - PTC_SHORTFALL_W
+        short = math.isfinite(heater_power_w) and heater_power_w < heater_cmd_w - PTC_SHORTFALL_W
+        self._since_short_s = 0.0 if short else self._since_short_s + self.dt_s
+        # ... and stays so for ptc_hold_s after it: a command lowered below the PTC line ends the shortfall, not
+        # the body's heat (the rest would count again after REST_HOLD_S with the body still past the knee)
+        ptc_binding = past_knee_held(self._since_short_s, self.ptc_hold_s)
         # the body's estimate at the knee: as hot as is of use (hysteresis: the reserve starts KNEE_MARGIN_C below it)
         ptc_binding = ptc_binding or body_c > knee_c - (0.0 if self._on else KNEE_MARGIN_C)
         if changed or not heating or error > band or ptc_binding:

@@ -72,6 +72,33 @@ def test_the_reserve_ends_where_the_box_heater_draws_less_than_its_command():
     assert w == HEATING and not gate.on
 
 
+def _ptc_step(gate: HeaterReserve, power_w: float) -> float:
+    return gate.weight(supply_ref_c=15.0, flow_ref_m3s=0.011, reading_c=15.0, heating=True, heater_cmd_w=190.0,
+                       available_w=240.0, flow_factor=1.0, heater_power_w=power_w)
+
+
+def test_the_ptc_hold_keeps_the_reserve_out_after_the_box_heater_drew_less_than_its_command():
+    """``ptc_hold_s``: after a step with the measured shortfall the rest does not count for that many seconds (the
+    command lowered below the PTC line ends the shortfall, not the body's heat); without it (the default) the rest
+    counts again at once and the reserve is back after REST_HOLD_S."""
+    short_w = 190.0 - PTC_SHORTFALL_W - 1.0
+    hold = int(REST_HOLD_S)
+    plain, held = _gate(), HeaterReserve(RESERVE, HEATING, 1.0, ptc_hold_s=30.0)
+    for gate in (plain, held):
+        for _ in range(hold + 1):
+            _ptc_step(gate, 190.0)
+        assert gate.on
+        assert _ptc_step(gate, short_w) == HEATING and not gate.on
+    plain_w = [_ptc_step(plain, 190.0) for _ in range(hold + 1)]
+    assert plain_w[-1] == RESERVE  # back after the rest's hold
+    held_w = [_ptc_step(held, 190.0) for _ in range(29 + hold + 1)]
+    assert set(held_w[:29 + hold - 1]) == {HEATING}  # 29 s more of the hold, then the rest's own hold
+    assert held_w[-1] == RESERVE and held.on
+    assert _ptc_step(held, short_w) == HEATING
+    held.reset()
+    assert [_ptc_step(held, 190.0) for _ in range(hold + 1)][-1] == RESERVE  # a reset forgets the shortfall
+
+
 def test_the_reserve_ends_at_the_ptc_knee_and_starts_again_below_it():
     """A body estimated past the PTC knee is as hot as is of use; the reserve starts again KNEE_MARGIN_C below it."""
     def step(gate, body_c):
@@ -136,10 +163,14 @@ def test_the_weight_is_a_checked_setting_off_by_default():
         OcpSpec(weights=Weights(valve_a_reserve_ramp_s=601.0)).validate()
     with pytest.raises(InvalidSettings, match="valve_a_reserve_short_c"):
         OcpSpec(weights=Weights(valve_a_reserve_short_c=-0.1)).validate()
+    assert Weights().valve_a_reserve_ptc_hold_s == 0.0
+    with pytest.raises(InvalidSettings, match="valve_a_reserve_ptc_hold_s"):
+        OcpSpec(weights=Weights(valve_a_reserve_ptc_hold_s=601.0)).validate()
     mpc = MpcController(settings=MpcSettings(ocp=OcpSpec(weights=Weights(valve_a_reserve_per_pct2=RESERVE,
                                                                 valve_a_reserve_ramp_s=20.0,
-                                                                valve_a_reserve_short_c=0.1))))
-    assert (mpc.reserve.ramp_s, mpc.reserve.short_c) == (20.0, 0.1)
+                                                                valve_a_reserve_short_c=0.1,
+                                                                valve_a_reserve_ptc_hold_s=60.0))))
+    assert (mpc.reserve.ramp_s, mpc.reserve.short_c, mpc.reserve.ptc_hold_s) == (20.0, 0.1, 60.0)
 
 
 def _literal_cooler_model() -> RefinedModel:
