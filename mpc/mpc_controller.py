@@ -420,18 +420,21 @@ class MpcSettings:
             docs/architecture.md, 'The change's step size'.
         osqp_cap_retry_rho: a QP that reaches ``osqp_max_iter`` OSQP iterations (``rti``/``sqp``; not a split
             change's or a plain step's own cap) is solved once more with OSQP's step size ``rho`` (dimensionless) set
-            to this value (0, the default: off; else in [1e-6, 1e6]), or with ``osqp_cap_retry_share`` (0, the
-            default: off; else a factor in (0, 1]) times the step size that QP started from (not both); the matrices
+            to this value (3e-3, the default since docs/robustness.md sec. 2.44; 0: off; else in [1e-6, 1e6]), or
+            with ``osqp_cap_retry_share`` (0, the
+            default: off; else a factor in (0, 1]; set, it replaces the step size) times the step size that QP
+            started from; the matrices
             written again (one refactorisation) and the retry warm-started from the capped iterate with its
             multipliers, or with ``osqp_cap_retry_cold`` (off) from the linearisation point with zero multipliers.
             Only a QP not solved to OSQP's tolerance at the cap is retried; the retry's answer is taken where it is
             solved, or where it is an answer and the capped one is not, else OSQP's workspace is set back to its
             state before the retry; within the step's deadline (checked
-            before and after the refactorisation). The step's retries: ``SolveResult.extra["cap_retries"]``. Not
-            with ``solver="ipopt"``. Only steps whose QP reaches the cap change. Measured in docs/robustness.md sec. 2.40.
+            before and after the refactorisation). The step's retries: ``SolveResult.extra["cap_retries"]``. With
+            ``solver="ipopt"`` the step size does nothing (as ``osqp_max_iter``); the share and the cold retry are
+            refused there. Only steps whose QP reaches the cap change. Measured in docs/robustness.md sec. 2.40.
         osqp_cap_retry_on_cold_start: with the retry set (``osqp_cap_retry_rho`` / ``osqp_cap_retry_share``), a cold
             start's QPs (the first step after the controller is built or reset, or after a failed step, whose reset
-            the next step starts cold from) retried at the cap as any later step's (True, the default), or not (False:
+            the next step starts cold from) retried at the cap as any later step's (True), or not (False, the default:
             the capped answer taken, or the step failing, as without the retry; the steps after retry again). A cold
             start's QPs iterate from a guess, and an exact answer there can put the run on another operating point
             (the PTC-line step down: docs/robustness.md sec. 2.44). Without a retry set it does nothing.
@@ -548,14 +551,20 @@ class MpcSettings:
     osqp_change_rho_restore: bool = False
     osqp_change_rho_interval: int = 0
     osqp_change_rho_tolerance: float = 0.0
-    osqp_cap_retry_rho: float = 0.0
+    osqp_cap_retry_rho: float = 3e-3
     osqp_cap_retry_share: float = 0.0
     osqp_cap_retry_cold: bool = False
-    osqp_cap_retry_on_cold_start: bool = True
+    osqp_cap_retry_on_cold_start: bool = False
     osqp_change_rho_hold: str = "off"
     valve_a_reversal_share: float = 0.3
     valve_a_reversal_min_pct: float = 5.0
     valve_a_hold_shortfall_c: float = 0.0
+
+    @property
+    def cap_retry_rho_used(self) -> float:
+        """The retry's step size the solver gets: ``osqp_cap_retry_rho``, or 0 where ``osqp_cap_retry_share`` is
+        set (the share replaces it)."""
+        return 0.0 if self.osqp_cap_retry_share else float(self.osqp_cap_retry_rho)
 
     def __post_init__(self) -> None:
         p = "MpcSettings"
@@ -610,16 +619,16 @@ class MpcSettings:
             check_hold(f"{p}.osqp_change_rho_hold", self.osqp_change_rho_hold)
             check_hold_with(f"{p}.osqp_change_rho_hold", self.osqp_change_rho_hold, self.osqp_change_rho,
                             self.osqp_rho_reset, self.osqp_rho_reset_on, self.osqp_codegen, prefix="osqp_")
-            check_cap_retry(f"{p}.osqp_cap_retry", self.osqp_cap_retry_rho, self.osqp_cap_retry_share,
+            check_cap_retry(f"{p}.osqp_cap_retry", self.cap_retry_rho_used, self.osqp_cap_retry_share,
                             self.osqp_cap_retry_cold)
+            check_cap_retry(f"{p}.osqp_cap_retry", self.osqp_cap_retry_rho, 0.0, False)
         except ValueError as exc:
             raise InvalidSettings(str(exc)) from None
         check_flag(f"{p}.osqp_cap_retry_on_cold_start", self.osqp_cap_retry_on_cold_start)
-        if self.solver not in ("rti", "sqp") and (self.osqp_cap_retry_rho or self.osqp_cap_retry_share
-                                                  or self.osqp_cap_retry_cold):
-            raise InvalidSettings(f"{p}.osqp_cap_retry_rho / osqp_cap_retry_share / osqp_cap_retry_cold with "
+        if self.solver not in ("rti", "sqp") and (self.osqp_cap_retry_share or self.osqp_cap_retry_cold):
+            raise InvalidSettings(f"{p}.osqp_cap_retry_share / osqp_cap_retry_cold with "
                                   f"{p}.solver = {self.solver!r}: OSQP's retry at its cap; allowed: solver 'rti' or "
-                                  "'sqp' with them, or all three off (0, 0, False)")
+                                  "'sqp' with them, or both off (0, False)")
         if self.solver not in ("rti", "sqp") and self.rti_valve_a_prox:
             raise InvalidSettings(f"{p}.rti_valve_a_prox = {self.rti_valve_a_prox!r} with {p}.solver = "
                                   f"{self.solver!r}: a term of the OSQP solvers' QP; allowed: solver 'rti' or 'sqp' "
@@ -971,7 +980,7 @@ class MpcController:
                              change_rho_restore=s.osqp_change_rho_restore,
                              change_rho_interval=int(s.osqp_change_rho_interval),
                              change_rho_tolerance=float(s.osqp_change_rho_tolerance),
-                             cap_retry_rho=float(s.osqp_cap_retry_rho), cap_retry_share=float(s.osqp_cap_retry_share),
+                             cap_retry_rho=s.cap_retry_rho_used, cap_retry_share=float(s.osqp_cap_retry_share),
                              cap_retry_cold=s.osqp_cap_retry_cold,
                              cap_retry_on_cold_start=s.osqp_cap_retry_on_cold_start,
                              change_rho_hold=s.osqp_change_rho_hold,

@@ -479,7 +479,15 @@ def test_mpc_with_a_heater_body_term_tracks_the_box_with_the_wall_loss_better():
     the shifted plan for 5 s and the run scores 393.7 C s (docs/robustness.md sec. 2.27). The same edge without the
     caution: the term's coefficient -0.2817 -> -0.28 W/K, one fallback, 356.8; with the caution at -0.2816 or
     -0.2818 W/K no fallback, 345.9 / 346.0. The nominal MPC falls back there for 4 s with either setting. With the
-    caution (0.4) the refined run stays below the nominal's."""
+    caution (0.4) the refined run stays below the nominal's.
+
+    These runs with OSQP's retry at its cap off (``osqp_cap_retry_rho`` 0): the contrast above is measured on the
+    solver that leaves the QP of 30 s at the cap. With the retry (3e-3, not on a cold start; the default since
+    docs/robustness.md sec. 2.44) the nominal MPC's QPs of 30 s are answered (the first "maximum iterations reached",
+    which fell back for 4 s, retried: 1000, solved inaccurate, taken; the second retried: 35, solved) and it scores
+    363.1 C s (404.5 without), the term's MPC 345.6 (346.4 without): both lower, the term's gain 10 % -> 5 %, its
+    nominal's solver failure no longer counted. Asserted with the retry: the term's MPC below 0.96 x the nominal's
+    (measured 0.952) and neither run above its own without the retry."""
     from hvac_mpc.benchmarks import scenarios
     from hvac_mpc.benchmarks.refined_model import closed_loop_iae
     from hvac_mpc.benchmarks.simulate import DETERMINISTIC_DEADLINE_S
@@ -492,7 +500,7 @@ def test_mpc_with_a_heater_body_term_tracks_the_box_with_the_wall_loss_better():
                            absent=("bypass_flow",))
     sc = scenarios.select(["trapped_air_release"], quick=True)[0]
     settings = MpcSettings(initial_command=sc.initial_command, deadline_s=DETERMINISTIC_DEADLINE_S,
-                           ekf=EkfSettings(r_supply_rest_c=0.0))
+                           ekf=EkfSettings(r_supply_rest_c=0.0), osqp_cap_retry_rho=0.0)
     nominal = closed_loop_iae(sc, MpcController(settings=settings), "heater_wall_loss", seed=0)
     uncautious = dataclasses.replace(settings, start_rate_share=1.0)
     better = closed_loop_iae(sc, MpcController(settings=uncautious, model=refined), "heater_wall_loss", seed=0)
@@ -500,6 +508,13 @@ def test_mpc_with_a_heater_body_term_tracks_the_box_with_the_wall_loss_better():
     assert better["flow_iae_m3"] < 1.05 * nominal["flow_iae_m3"], (better, nominal)  # not bought with flow
     cautious = closed_loop_iae(sc, MpcController(settings=dataclasses.replace(settings, start_rate_share=0.4), model=refined), "heater_wall_loss", seed=0)
     assert cautious["temp_iae_cs"] < nominal["temp_iae_cs"], (cautious, nominal)
+    retry = {"osqp_cap_retry_rho": 3e-3, "osqp_cap_retry_on_cold_start": False}
+    nominal_r = closed_loop_iae(sc, MpcController(settings=dataclasses.replace(settings, **retry)), "heater_wall_loss",
+                                seed=0)
+    better_r = closed_loop_iae(sc, MpcController(settings=dataclasses.replace(uncautious, **retry), model=refined),
+                               "heater_wall_loss", seed=0)
+    assert better_r["temp_iae_cs"] < 0.96 * nominal_r["temp_iae_cs"], (better_r, nominal_r)
+    assert nominal_r["temp_iae_cs"] <= nominal["temp_iae_cs"] and better_r["temp_iae_cs"] <= better["temp_iae_cs"]
 
 
 class _DeadTimeRecorder:
