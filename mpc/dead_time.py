@@ -235,8 +235,9 @@ class DeadTimeEstimator:
         return self._rank(res)
 
     def _take_longest_tie(self, res: np.ndarray) -> bool:
-        """Move the estimate to the longest tied minimum where that is longer than the estimate (held against a
-        shorter tie afterwards, as a lead-made estimate: ``lead_tie_hold``; while ``prefer_longest`` is set a shorter
+        """Move the estimate to the longest tied minimum where that is longer than the estimate (a starting value
+        included: it then no longer holds as one; held against a shorter tie afterwards as a lead-made estimate, with
+        ``lead_tie_hold`` only; while ``prefer_longest`` is set a shorter
         tie moves no estimate down, :meth:`_rank`); whether it moved. ASSUMPTION: right
         after a change of the reference the controller's own moves are the response; where separate minima explain
         it equally, the longer dead time is the loop's safe side (a plan on too short a one rings, docs/robustness.md

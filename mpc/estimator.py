@@ -167,8 +167,10 @@ class EkfSettings:
     lead's 3.5 s back to 0 s within 4 s on a flat ranking; the default; sec. 2.38). ``dead_time_step_longest_s``:
     for this long (s, in [0, 3600]; 0: off, the default) after a change of the reference (:meth:`note_reference`),
     of separate minima of the ranking within :data:`~.dead_time.TIE_RATIO` the longest is taken where it is longer
-    than the estimate (instead of the shortest), and held against shorter ties as a lead-made estimate
-    (docs/robustness.md sec. 2.46).
+    than the estimate (instead of the shortest); within that time no shorter tie moves it down, after it it is held
+    against a shorter tie beyond ``dead_time_lead_reach_s`` only with ``dead_time_lead_tie_hold`` (as a lead-made
+    estimate; it leaves a starting value's hold). The reference compared exactly: a ramped reference re-arms it every
+    step (docs/robustness.md sec. 2.46).
 
     ``q_mix_offset_c``: random walk (degC per sample) of the mixed-air offset. 0.015 (0.03 before): with
     the faster valve and the reading-heavy tracked temperature (``OcpSpec``) the offset's sample-to-sample

@@ -99,6 +99,10 @@ OUT_OF_REACH_FLOW_WEIGHT = 0.01
 INEXACT_HEATER_OFF_W = 10.0
 
 
+#: OSQP's step size for the retry of a QP at its cap, the default since docs/robustness.md sec. 2.44 (dimensionless).
+DEFAULT_CAP_RETRY_RHO = 3e-3
+
+
 @dataclass(frozen=True)
 class MpcSettings:
     """Settings of :class:`MpcController` (validated on construction; errors name the field).
@@ -422,8 +426,8 @@ class MpcSettings:
             change's or a plain step's own cap) is solved once more with OSQP's step size ``rho`` (dimensionless) set
             to this value (3e-3, the default since docs/robustness.md sec. 2.44; 0: off; else in [1e-6, 1e6]), or
             with ``osqp_cap_retry_share`` (0, the
-            default: off; else a factor in (0, 1]; set, it replaces the step size) times the step size that QP
-            started from; the matrices
+            default: off; else a factor in (0, 1]; set, it replaces the default step size; with a step size other
+            than 0 or the default, refused as both set) times the step size that QP started from; the matrices
             written again (one refactorisation) and the retry warm-started from the capped iterate with its
             multipliers, or with ``osqp_cap_retry_cold`` (off) from the linearisation point with zero multipliers.
             Only a QP not solved to OSQP's tolerance at the cap is retried; the retry's answer is taken where it is
@@ -551,7 +555,7 @@ class MpcSettings:
     osqp_change_rho_restore: bool = False
     osqp_change_rho_interval: int = 0
     osqp_change_rho_tolerance: float = 0.0
-    osqp_cap_retry_rho: float = 3e-3
+    osqp_cap_retry_rho: float = DEFAULT_CAP_RETRY_RHO
     osqp_cap_retry_share: float = 0.0
     osqp_cap_retry_cold: bool = False
     osqp_cap_retry_on_cold_start: bool = False
@@ -563,8 +567,8 @@ class MpcSettings:
     @property
     def cap_retry_rho_used(self) -> float:
         """The retry's step size the solver gets: ``osqp_cap_retry_rho``, or 0 where ``osqp_cap_retry_share`` is
-        set (the share replaces it)."""
-        return 0.0 if self.osqp_cap_retry_share else float(self.osqp_cap_retry_rho)
+        set (the share replaces the default step size; another step size with it is refused as both set)."""
+        return 0.0 if self.osqp_cap_retry_share else self.osqp_cap_retry_rho
 
     def __post_init__(self) -> None:
         p = "MpcSettings"
@@ -619,9 +623,10 @@ class MpcSettings:
             check_hold(f"{p}.osqp_change_rho_hold", self.osqp_change_rho_hold)
             check_hold_with(f"{p}.osqp_change_rho_hold", self.osqp_change_rho_hold, self.osqp_change_rho,
                             self.osqp_rho_reset, self.osqp_rho_reset_on, self.osqp_codegen, prefix="osqp_")
-            check_cap_retry(f"{p}.osqp_cap_retry", self.cap_retry_rho_used, self.osqp_cap_retry_share,
-                            self.osqp_cap_retry_cold)
             check_cap_retry(f"{p}.osqp_cap_retry", self.osqp_cap_retry_rho, 0.0, False)
+            explicit_rho = self.osqp_cap_retry_rho not in (0.0, DEFAULT_CAP_RETRY_RHO)
+            check_cap_retry(f"{p}.osqp_cap_retry", self.osqp_cap_retry_rho if explicit_rho else 0.0,
+                            self.osqp_cap_retry_share, self.osqp_cap_retry_cold)
         except ValueError as exc:
             raise InvalidSettings(str(exc)) from None
         check_flag(f"{p}.osqp_cap_retry_on_cold_start", self.osqp_cap_retry_on_cold_start)

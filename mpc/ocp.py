@@ -239,14 +239,15 @@ class Weights:
     flap_closure_per_pct2: float = 0.0
 
     def validate(self, prefix: str = "weights") -> None:
-        for f in fields(self):
-            check_number(f"{prefix}.{f.name}", getattr(self, f.name), 0.0, 1e6)
+        # the fields with a narrower range first, so that the error names their own range
         check_number(f"{prefix}.body_heat_power_w", self.body_heat_power_w, 0.0, 2000.0)
         check_number(f"{prefix}.flap_closure_per_pct2", self.flap_closure_per_pct2, 0.0, FLAP_CLOSURE_MAX)
         check_number(f"{prefix}.valve_a_reserve_ramp_s", self.valve_a_reserve_ramp_s, 0.0, RESERVE_RAMP_MAX_S)
         check_number(f"{prefix}.valve_a_reserve_short_c", self.valve_a_reserve_short_c, 0.0, RESERVE_SHORT_MAX_C)
         check_number(f"{prefix}.valve_a_reserve_ptc_hold_s", self.valve_a_reserve_ptc_hold_s, 0.0,
                      RESERVE_PTC_HOLD_MAX_S)
+        for f in fields(self):
+            check_number(f"{prefix}.{f.name}", getattr(self, f.name), 0.0, 1e6)
         if self.supply_temp <= 0 or self.volume_flow <= 0:
             raise InvalidSettings(f"{prefix}.supply_temp and {prefix}.volume_flow must be > 0 (range (0, 1e6])")
 

@@ -313,7 +313,9 @@ class RtiOsqpSolver:
             retried at the cap as the later steps' are (True); False: not retried there, the capped answer taken
             or failing as without the retry; the next step retries again. A cold start's QPs iterate from a guess
             (the command held over the horizon), and its retried answer can move the run to another operating point
-            (docs/robustness.md sec. 2.44). Without a retry set it does nothing.
+            (docs/robustness.md sec. 2.44). Without a retry set it does nothing. The solver's own defaults keep the
+            retry off (``cap_retry_rho`` 0, ``cap_retry_on_cold_start`` True); ``MpcController`` passes
+            ``MpcSettings``' (3e-3, False since sec. 2.44).
     """
 
     def __init__(self, problem: TrackingProblem, *, eps: float = 1e-4, max_iter: int = 400,
@@ -1757,15 +1759,18 @@ class _OsqpCore(osqp_embedded.TwoPassSolve):
         y = None
         if self._last is not None:  # no solve since it: its multipliers are still the last solve's
             y = np.array(self._last.solution.y if self.core is not None else self._last.y, float)
-        return {"rho": self.rho, "matrices": self._matrices, "y": y}
+        return {"rho": self.rho, "matrices": self._matrices, "y": y, "fresh": self._last is None}
 
     def restore_state(self, state: dict) -> None:
         """OSQP set back to :meth:`save_state`'s step size, matrices (equilibrated and factorised again) and
-        multipliers."""
+        multipliers (zero where it was saved before any solve, as a fresh workspace's)."""
         self.rho_next_update(state["rho"])
         self.update_matrices(*state["matrices"])
         if state["y"] is not None:
             self.wrapper.warm_start(y=state["y"])
+        elif state.get("fresh") and self._last is not None:  # saved before any solve: a fresh workspace's zeros
+            last_y = self._last.solution.y if self.core is not None else self._last.y
+            self.wrapper.warm_start(y=np.zeros(np.shape(last_y)))
 
     def update_vectors(self, q: np.ndarray, l: np.ndarray, u: np.ndarray) -> None:
         """``l``, ``u`` already within OSQP's infinity."""

@@ -33,6 +33,9 @@ def test_the_retry_settings_are_checked():
     for fields, named in ((dict(osqp_cap_retry_rho=-1.0), "osqp_cap_retry_rho"),
                           (dict(osqp_cap_retry_rho=1e7), "osqp_cap_retry_rho"),
                           (dict(osqp_cap_retry_share=1.5), "osqp_cap_retry_share"),
+                          (dict(osqp_cap_retry_rho=1e-2, osqp_cap_retry_share=0.3), "both set"),
+                          (dict(osqp_cap_retry_rho=None), "osqp_cap_retry_rho"),
+                          (dict(osqp_cap_retry_rho="abc"), "osqp_cap_retry_rho"),
                           (dict(osqp_cap_retry_cold=1), "osqp_cap_retry_cold")):
         with pytest.raises(InvalidSettings, match=named):
             MpcSettings(**fields)
@@ -150,4 +153,6 @@ def test_the_cold_start_setting_is_checked_and_reported():
         MpcSettings(osqp_cap_retry_on_cold_start=0)
     solver = MpcController(settings=MpcSettings(osqp_cap_retry_rho=3e-3, osqp_cap_retry_on_cold_start=False)).solver
     assert solver.settings["cap_retry_on_cold_start"] is False
-    assert MpcSettings(solver="ipopt", osqp_cap_retry_on_cold_start=False).osqp_cap_retry_on_cold_start is False
+    assert MpcSettings(solver="ipopt", osqp_cap_retry_on_cold_start=True).osqp_cap_retry_on_cold_start is True
+    assert MpcSettings(osqp_cap_retry_share=0.3).cap_retry_rho_used == 0.0  # the share replaces the default
+    assert MpcSettings(osqp_cap_retry_rho=0.0).cap_retry_rho_used == 0.0  # off

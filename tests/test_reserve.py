@@ -166,6 +166,8 @@ def test_the_weight_is_a_checked_setting_off_by_default():
     assert Weights().valve_a_reserve_ptc_hold_s == 0.0
     with pytest.raises(InvalidSettings, match="valve_a_reserve_ptc_hold_s"):
         OcpSpec(weights=Weights(valve_a_reserve_ptc_hold_s=601.0)).validate()
+    with pytest.raises(InvalidSettings, match=r"valve_a_reserve_ptc_hold_s.*600"):  # its own range named
+        OcpSpec(weights=Weights(valve_a_reserve_ptc_hold_s=-1.0)).validate()
     mpc = MpcController(settings=MpcSettings(ocp=OcpSpec(weights=Weights(valve_a_reserve_per_pct2=RESERVE,
                                                                 valve_a_reserve_ramp_s=20.0,
                                                                 valve_a_reserve_short_c=0.1,

@@ -50,8 +50,8 @@ def test_on_the_literal_cooler_box_the_step_down_closes_valve_a_sooner_with_the_
     40.9 C s).
 
     The contrast is that of the change's first QP ending at OSQP's 1000 iterations (solved inaccurate, its iterate
-    taken), so both runs here have OSQP's retry at its cap off (``osqp_cap_retry_rho`` 0). With the retry (3e-3, a setting, off
-    by default, measured as a candidate default in docs/robustness.md sec. 2.40's 'The retry as the default') that QP is answered and valve a closes
+    taken), so both runs here have OSQP's retry at its cap off (``osqp_cap_retry_rho`` 0). With the retry (3e-3, the
+    default since docs/robustness.md sec. 2.44; measured in sec. 2.40's 'The retry as the default') that QP is answered and valve a closes
     at once with or without the reserve's weight (traced: 0.0 % both at 390 s; IAE from the step 39.80 against 39.81
     C s; the steps at the cap 390 s (two QPs) and 391 s): the weight's contrast lives in the inexact answer only.
     So the retry's run is checked on its own: no fallback, valve a closed, and the IAE below the weight's without

@@ -18,7 +18,7 @@ def _loop(settings: MpcSettings, steps: int = 34):
 
 def test_capped_qps_answer_within_the_cap_and_without_the_flag_they_fall_back():
     """OSQP capped at 20 iterations on purpose, so that QPs end at the cap; the retry at the cap
-    (``osqp_cap_retry_rho``, a setting, off by default; 3e-3 measured as a candidate default in docs/robustness.md
+    (``osqp_cap_retry_rho``, 3e-3 and not on a cold start by default since docs/robustness.md sec. 2.44, measured in
     sec. 2.40) set off explicitly, because it solves such a QP once more and adds its own iterations, so
     a step's iterations would no longer be bounded by the cap this test measures."""
     cap = 20
