@@ -1185,14 +1185,15 @@ class RtiOsqpSolver:
             prep += 0.0 if start_rho is None else self._reset_rho(start_rho)
         if changed and self.rho_reset is not None and self.rho_reset_on == "change":
             prep += self._reset_rho(self.rho_reset)
-        args = (x0, u_prev, d, ref, w_y, u_lo, u_hi, t0, time_limit_s, changed, cold, max_qps)
+        def run(hi: np.ndarray):  # the step's QPs with the upper bounds hi
+            return self._feedback_qps(x0, u_prev, d, ref, w_y, u_lo, hi, t0, time_limit_s, changed, cold, max_qps)
+
         before = self._save_pass() if u_hi_binding is not None else None
-        z, status, iterations, solves, qp_prep, inexact, fraction, split, rho, saved = self._feedback_qps(*args)
+        z, status, iterations, solves, qp_prep, inexact, fraction, split, rho, saved = run(u_hi)
         bound = before is not None and z is not None and self._exceeds(z, u_hi, u_hi_binding)
         if bound:  # the pass without the tighter bounds set aside: the QPs again with them from the same state
             self._restore_pass(before)
-            z, status, it2, solves2, qp_prep2, inexact, fraction, split, rho, saved = self._feedback_qps(
-                *args[:6], u_hi_binding, *args[7:])
+            z, status, it2, solves2, qp_prep2, inexact, fraction, split, rho, saved = run(u_hi_binding)
             iterations, solves, qp_prep = iterations + it2, solves + solves2, qp_prep + qp_prep2
             u_hi = u_hi_binding
         prep += qp_prep
@@ -1756,10 +1757,12 @@ class _OsqpCore(osqp_embedded.TwoPassSolve):
         workspace holds them scaled with the equilibration of the restored matrices, not with the one they were found
         with: the next solve's iterates close to, not the same as, those it would have taken now (the generated
         solver's :meth:`~.osqp_embedded.EmbeddedOsqp.save_state` keeps the workspace itself)."""
-        y = None
-        if self._last is not None:  # no solve since it: its multipliers are still the last solve's
-            y = np.array(self._last.solution.y if self.core is not None else self._last.y, float)
-        return {"rho": self.rho, "matrices": self._matrices, "y": y, "fresh": self._last is None}
+        y = None if self._last is None else np.array(self._last_y(), float)  # None: saved before any solve
+        return {"rho": self.rho, "matrices": self._matrices, "y": y}
+
+    def _last_y(self) -> np.ndarray:
+        """The last solve's multipliers (unscaled), as OSQP's Python interface or its core hands them out."""
+        return self._last.solution.y if self.core is not None else self._last.y
 
     def restore_state(self, state: dict) -> None:
         """OSQP set back to :meth:`save_state`'s step size, matrices (equilibrated and factorised again) and
@@ -1768,9 +1771,8 @@ class _OsqpCore(osqp_embedded.TwoPassSolve):
         self.update_matrices(*state["matrices"])
         if state["y"] is not None:
             self.wrapper.warm_start(y=state["y"])
-        elif state.get("fresh") and self._last is not None:  # saved before any solve: a fresh workspace's zeros
-            last_y = self._last.solution.y if self.core is not None else self._last.y
-            self.wrapper.warm_start(y=np.zeros(np.shape(last_y)))
+        elif self._last is not None:  # saved before any solve, solved since: a fresh workspace's zeros
+            self.wrapper.warm_start(y=np.zeros(np.shape(self._last_y())))
 
     def update_vectors(self, q: np.ndarray, l: np.ndarray, u: np.ndarray) -> None:
         """``l``, ``u`` already within OSQP's infinity."""
