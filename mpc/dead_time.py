@@ -100,7 +100,7 @@ class DeadTimeEstimator:
     def __init__(self, max_steps: int, sensor_tau_s: float, dt_s: float = 1.0, window_s: float = 60.0,
                  min_excitation_c: float = 0.05, switch_ratio: float = 0.7, initial_steps: float = 0.0,
                  prior_steps: float = 0.0, lead_reach_steps: float = 0.0, count_quiet: bool = False,
-                 lead_tie_hold: bool = False):
+                 lead_tie_hold: bool = False, first_settle_steps: float = 0.0):
         """``initial_steps``: the estimate before the readings move it (samples; e.g. a delay identified from
         a log, docs/identification.md), rounded to the nearest candidate; it gives way only to a clearly
         better candidate, not to a tie. ``prior_steps``: the same for a dead time assumed, not identified,
@@ -112,7 +112,12 @@ class DeadTimeEstimator:
         which that candidate is ahead. ``lead_tie_hold``: an estimate the lead rule switched to gives way only to a
         clearly better candidate, another lead, or a tie within ``lead_reach_steps`` (its minimum's bottom moving to
         the neighbour), not to a shorter tie farther away, another minimum (False: to any tie, the rule before): on a
-        flat ranking the tie rule otherwise takes the estimate back to 0 within samples."""
+        flat ranking the tie rule otherwise takes the estimate back to 0 within samples. ``first_settle_steps``
+        (samples; 0: off, the rule before): for this many ranked samples after the first one (the window's first
+        response), the least residual's minimum (of tied separate minima the shortest, as the tie rule) is taken
+        wherever it explains the reading better than the estimate, longer or shorter (:meth:`_settle`;
+        docs/robustness.md sec. 2.47)."""
+        self.first_settle_steps = float(first_settle_steps)
         self.lead_reach_steps = float(lead_reach_steps)
         self.count_quiet = bool(count_quiet)
         self.lead_tie_hold = bool(lead_tie_hold)
@@ -152,6 +157,7 @@ class DeadTimeEstimator:
         self._lead = None  # a candidate ahead of the estimate by LEAD_RATIO ...
         self._lead_samples = 0  # ... for this many samples in a row
         self._by_lead = False  # the estimate is one the lead rule moved to (not a clearly better one)
+        self._ranked = 0  # ranked samples so far (the first_settle_steps' count)
         #: set by the filter for each sample within ``EkfSettings.dead_time_step_longest_s`` after a change of the
         #: reference: a longer tied minimum than the estimate is moved to (:meth:`_rank`)
         self.prefer_longest = False
@@ -249,10 +255,30 @@ class DeadTimeEstimator:
         self._lead, self._lead_samples = None, 0
         return True
 
+    def _settle(self, res: np.ndarray) -> bool:
+        """Within ``first_settle_steps`` ranked samples after the first (a starting value aside: it gives way only to a
+        clearly better candidate), move the estimate to the least residual's minimum (the tie rule's, of separate
+        tied minima the shortest) where its residual is below the estimate's, longer or shorter; whether it did.
+        ASSUMPTION: the window's first ranked samples hold the onset of the first response only, whose least residual
+        moves over the next samples (a sensor lag or a valve gain the model's air lacks shapes an onset more than a
+        whole response): the first switch is the clearly better rule's on the onset, and the lead rule's 20 samples
+        would otherwise keep an onset's estimate through the next stroke (docs/robustness.md sec. 2.47)."""
+        if self._ranked > self.first_settle_steps + 1e-9 or self._ranked <= 1 or self._at_start:
+            return False
+        best = shortest_tied_minimum(res)
+        if best == self._best or not float(res[best]) < float(res[self._best]):
+            return False
+        self._best, self._by_lead = best, False
+        self._lead, self._lead_samples = None, 0
+        return True
+
     def _rank(self, res: np.ndarray) -> float:
         """Move the estimate on the candidates' residuals ``res`` of a ranked sample (the switch, the tie and the lead
         rules); returns the estimate (samples)."""
+        self._ranked += 1
         if self.prefer_longest and self._take_longest_tie(res):
+            return self.steps
+        if self._settle(res):
             return self.steps
         best = shortest_tied_minimum(res)
         cur = self._best

@@ -97,7 +97,7 @@ OWN_RANGES = {"bypass_flow_after_s": (0.0, 3600.0), "motor_sd_after_response_c":
               "q_supply_heat_w": (0.0, 100.0), "supply_heat_sd0_w": (1.0, 1000.0),
               "supply_heat_flow_gate_s": (0.0, 3600.0), "supply_heat_walk_flow_m3h": (0.0, 1000.0),
               "supply_heat_release_hold_s": (0.0, 3600.0), "supply_heat_step_hold_s": (0.0, 3600.0),
-              "dead_time_step_longest_s": (0.0, 3600.0)}
+              "dead_time_step_longest_s": (0.0, 3600.0), "dead_time_first_settle_s": (0.0, 3600.0)}
 #: Settings that shape the learning of the bypass-flow exponent and do nothing without ``learn_bypass_flow``
 #: (field -> its value that leaves learning as it is).
 BYPASS_FLOW_LEARNING_GATES = {"bypass_flow_anchored": False, "bypass_flow_after_response": False,
@@ -170,7 +170,14 @@ class EkfSettings:
     than the estimate (instead of the shortest); within that time no shorter tie moves it down, after it it is held
     against a shorter tie beyond ``dead_time_lead_reach_s`` only with ``dead_time_lead_tie_hold`` (as a lead-made
     estimate; it leaves a starting value's hold). The reference compared exactly: a ramped reference re-arms it every
-    step (docs/robustness.md sec. 2.46).
+    step (docs/robustness.md sec. 2.46). ``dead_time_first_settle_s``: for this long (s, in [0, 3600]; 0: off, the
+    default) of ranked samples after the estimate's first ranked one (the window's first response), the least
+    residual's minimum (of separate tied minima the shortest, as the tie rule) is taken wherever its residual is below
+    the estimate's, longer or shorter; then the switch, tie and lead rules as before. A starting value
+    (``dead_time_initial_s``, ``dead_time_prior_s``) is not moved by it. ASSUMPTION: the first ranked samples hold
+    a response's onset only, on which a shorter dead time than the box's can rank clearly best (the box's sensor lag
+    and gains shape an onset); measured with 15 s, about 2.6 of the model's thermocouple lag (10 s gives S1-8 the same
+    figure), not tuned (docs/robustness.md sec. 2.47).
 
     ``q_mix_offset_c``: random walk (degC per sample) of the mixed-air offset. 0.015 (0.03 before): with
     the faster valve and the reading-heavy tracked temperature (``OcpSpec``) the offset's sample-to-sample
@@ -457,6 +464,7 @@ class EkfSettings:
     dead_time_lead_count_quiet: bool = True
     dead_time_lead_tie_hold: bool = True
     dead_time_step_longest_s: float = 0.0
+    dead_time_first_settle_s: float = 0.0
     q_heater_outlet_offset_c: float = 0.01
     q_cooler_offset_c: float = 0.0
     q_heater_air_offset_c: float = 0.0
@@ -628,7 +636,8 @@ class DisturbanceEkf:
                                            prior_steps=self.dead_time_prior_s / self.dt_s,
                                            lead_reach_steps=s.dead_time_lead_reach_s / self.dt_s,
                                            count_quiet=s.dead_time_lead_count_quiet,
-                                           lead_tie_hold=s.dead_time_lead_tie_hold)
+                                           lead_tie_hold=s.dead_time_lead_tie_hold,
+                                           first_settle_steps=s.dead_time_first_settle_s / self.dt_s)
         self.R_diag = np.square([s.r_supply_c, s.r_flow_m3s, s.r_water_c, s.r_inlet_c, s.r_heater_outlet_c])
         # the supply reading's deviation at rest (EkfSettings.r_supply_rest_c): the rest gate and the variances there
         self.rest_gate = self._new_rest_gate() if s.r_supply_rest_c > 0.0 else None

@@ -291,6 +291,11 @@ class MpcSettings:
             (sec. 2.45): the literal-cooler check 0.990 (in the QP 1.002), the quick sweeps of seeds 1 / 2 the
             command-only form's figures (S1-8's heating 1.051, in the QP 0.949; S2-9's 1.017, in the QP 1.240), the
             reserve's step-down test failing (the change's QP at OSQP's cap, a fallback): not the default.
+            Re-measured with OSQP's cap retry the default (sec. 2.47): the same sweep cells, the literal-cooler check
+            over noise seeds 0-3 0.9873 (in the QP 0.9897), the step-down test's contrast gone through OSQP's Python
+            interface (every run closes valve a at once, no fallback); S1-8's heating traced to the dead-time
+            estimate (``EkfSettings.dead_time_first_settle_s``, which lowers it to 0.856 but raises S1-5's proband
+            above 1.0): still not the default.
         steady_start: the QPs of a reference change (``rti``/``sqp``) start from the plan toward the new
             reference's steady-state target on the model with the estimator's disturbances (the inputs that hold
             it at rest, ramped to at the rate limits; :mod:`hvac_mpc.mpc.steady_target`) instead of the plan
