@@ -792,11 +792,16 @@ class TrackingProblem:
             w[2:5] = 0.0
         return w
 
-    @staticmethod
-    def reference_vector(reference: Reference) -> np.ndarray:
-        """Reference of the stage outputs (physical units; 0 where not tracked, valve a's 0 % included)."""
+    def reference_vector(self, reference: Reference) -> np.ndarray:
+        """Reference of the stage outputs (physical units; 0 where not tracked). Valve a's row is the command at
+        which the model reads its curve shut (``valve_a_shift_pct``, %; 0 for the unshifted curve): its weight
+        while heating (:attr:`Weights.valve_a_heating_per_pct2`, and the reserve's in its place) is on the valve's
+        opening as the model reads it, the command less the shift, as the trapped-air cap is
+        (:func:`trap_cap_pct`); on the command itself a shifted curve's shut valve would be weighed as open by the
+        shift (docs/identification.md, "The variants that still lose, traced")."""
         split = reference.split or (0.0, 0.0, 0.0)
-        return np.array([reference.supply_temp_c, reference.volume_flow_m3s, *split, 0.0, 0.0])
+        return np.array([reference.supply_temp_c, reference.volume_flow_m3s, *split, 0.0,
+                         float(self.params.valve_a_shift_pct)])
 
     def heating(self, u_phys: np.ndarray) -> bool:
         """Whether the command ``u_phys`` (physical) has the heater on (above :data:`HEATING_CMD_W`)."""
