@@ -100,7 +100,8 @@ class DeadTimeEstimator:
     def __init__(self, max_steps: int, sensor_tau_s: float, dt_s: float = 1.0, window_s: float = 60.0,
                  min_excitation_c: float = 0.05, switch_ratio: float = 0.7, initial_steps: float = 0.0,
                  prior_steps: float = 0.0, lead_reach_steps: float = 0.0, count_quiet: bool = False,
-                 lead_tie_hold: bool = False, first_settle_steps: float = 0.0):
+                 lead_tie_hold: bool = False, first_settle_steps: float = 0.0,
+                 longest_reach_moves: bool = False):
         """``initial_steps``: the estimate before the readings move it (samples; e.g. a delay identified from
         a log, docs/identification.md), rounded to the nearest candidate; it gives way only to a clearly
         better candidate, not to a tie. ``prior_steps``: the same for a dead time assumed, not identified,
@@ -116,11 +117,14 @@ class DeadTimeEstimator:
         (samples; 0: off, the rule before): for this many ranked samples after the first one (the window's first
         response), the least residual's minimum (of tied separate minima the shortest, as the tie rule) is taken
         wherever it explains the reading better than the estimate, longer or shorter (:meth:`_settle`;
-        docs/robustness.md sec. 2.47)."""
+        docs/robustness.md sec. 2.47). ``longest_reach_moves``: while
+        ``prefer_longest`` is set a shorter tie within ``lead_reach_steps`` (the same minimum's bottom) still moves the
+        estimate down (False: none does, sec. 2.46; docs/robustness.md sec. 2.48)."""
         self.first_settle_steps = float(first_settle_steps)
         self.lead_reach_steps = float(lead_reach_steps)
         self.count_quiet = bool(count_quiet)
         self.lead_tie_hold = bool(lead_tie_hold)
+        self.longest_reach_moves = bool(longest_reach_moves)
         self.initial_steps = float(initial_steps)
         self.prior_steps = float(prior_steps)
         self.max_steps = int(max_steps)
@@ -287,7 +291,9 @@ class DeadTimeEstimator:
         lead_held = self.lead_tie_hold and self._by_lead and not self._within_reach(best, cur)
         held_against_tie = self._at_start or lead_held
         # after a change of the reference (prefer_longest) a shorter tie does not move the estimate down
-        tie_moves = best < cur and r_best <= r_cur and not held_against_tie and not self.prefer_longest
+        # (with longest_reach_moves, one within lead_reach_steps still does: the same minimum's bottom)
+        longest_blocks = self.prefer_longest and not (self.longest_reach_moves and self._within_reach(best, cur))
+        tie_moves = best < cur and r_best <= r_cur and not held_against_tie and not longest_blocks
         lead = best if best != cur and r_best < LEAD_RATIO * r_cur else None
         self._lead_samples = self._lead_samples + 1 if self._continues_lead(lead) else 0
         self._lead = lead

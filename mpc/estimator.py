@@ -177,7 +177,13 @@ class EkfSettings:
     (``dead_time_initial_s``, ``dead_time_prior_s``) is not moved by it. ASSUMPTION: the first ranked samples hold
     a response's onset only, on which a shorter dead time than the box's can rank clearly best (the box's sensor lag
     and gains shape an onset); measured with 15 s, about 2.6 of the model's thermocouple lag (10 s gives S1-8 the same
-    figure), not tuned (docs/robustness.md sec. 2.47).
+    figure), not tuned (docs/robustness.md sec. 2.47). ``dead_time_step_longest_temp_only``: that window opens only at a change of
+    the supply air's reference (degC), not at a step of the flow's alone (off, the default: at either; a flow step's
+    answer has a part without the transport delay, the duct's loss and the blower's own heat moving with the flow
+    now, and the ranking after it is flat: on S0-6's flow jump the longest tie took 6.0 s for a 1.34 s box,
+    sec. 2.48). ``dead_time_step_longest_reach_moves``: within that window a shorter tie within
+    ``dead_time_lead_reach_s`` of the estimate (its minimum's bottom) moves it as outside the window (off, the
+    default: no shorter tie moves it down there; on S0-8's cooling 3.0 s was held against 2.5 s, sec. 2.48).
 
     ``q_mix_offset_c``: random walk (degC per sample) of the mixed-air offset. 0.015 (0.03 before): with
     the faster valve and the reading-heavy tracked temperature (``OcpSpec``) the offset's sample-to-sample
@@ -465,6 +471,8 @@ class EkfSettings:
     dead_time_lead_tie_hold: bool = True
     dead_time_step_longest_s: float = 0.0
     dead_time_first_settle_s: float = 0.0
+    dead_time_step_longest_temp_only: bool = False
+    dead_time_step_longest_reach_moves: bool = False
     q_heater_outlet_offset_c: float = 0.01
     q_cooler_offset_c: float = 0.0
     q_heater_air_offset_c: float = 0.0
@@ -510,7 +518,8 @@ class EkfSettings:
                           "supply_heat_release_at_rest", "supply_heat_walk_at_rest",
                           "supply_heat_level_neutral_at_rest", "supply_heat_hold_correlated",
                           "bypass_flow_after_response", "bypass_flow_commit_at_rest", "bypass_flow_at_rest",
-                          "dead_time_lead_count_quiet", "dead_time_lead_tie_hold"):
+                          "dead_time_lead_count_quiet", "dead_time_lead_tie_hold",
+                          "dead_time_step_longest_temp_only", "dead_time_step_longest_reach_moves"):
                 check_flag(f"{prefix}.{f.name}", value)
                 continue
             if f.name in ("bypass_flow_exponent_prior", "bypass_flow_exponent_min", "bypass_flow_exponent_max"):
@@ -637,7 +646,8 @@ class DisturbanceEkf:
                                            lead_reach_steps=s.dead_time_lead_reach_s / self.dt_s,
                                            count_quiet=s.dead_time_lead_count_quiet,
                                            lead_tie_hold=s.dead_time_lead_tie_hold,
-                                           first_settle_steps=s.dead_time_first_settle_s / self.dt_s)
+                                           first_settle_steps=s.dead_time_first_settle_s / self.dt_s,
+                                           longest_reach_moves=s.dead_time_step_longest_reach_moves)
         self.R_diag = np.square([s.r_supply_c, s.r_flow_m3s, s.r_water_c, s.r_inlet_c, s.r_heater_outlet_c])
         # the supply reading's deviation at rest (EkfSettings.r_supply_rest_c): the rest gate and the variances there
         self.rest_gate = self._new_rest_gate() if s.r_supply_rest_c > 0.0 else None
@@ -712,6 +722,7 @@ class DisturbanceEkf:
         self._heat_taken_back = False  # a release taken back: the next waits for rest (supply_heat_release_hold_s)
         self._reference: tuple[float, ...] | None = None  # the reference last noted (note_reference)
         self._reference_moved_at_s = -math.inf  # when it last changed
+        self._temp_reference_moved_at_s = -math.inf  # when its first value (the supply air's degC) last changed
         self._honoured_lag: float | None = None  # the dead time (samples) honoured at the last re-anchor
         self._hold_until_s = 0.0  # the shadowed states are re-anchored every sample until then (reanchor_hold_s)
         self._seen_at_s: float | None = None  # when the dead-time estimate first saw a response
@@ -1116,6 +1127,8 @@ class DisturbanceEkf:
         now = tuple(values)
         if self._reference is not None and now != self._reference:
             self._reference_moved_at_s = self._age_s
+            if now[:1] != self._reference[:1]:
+                self._temp_reference_moved_at_s = self._age_s
         self._reference = now
 
     @property
@@ -1362,8 +1375,9 @@ class DisturbanceEkf:
         while no dead time of at least ``dead_time_min_s`` is found)."""
         if not (self.n_hist and used):
             return self.c_now
-        since_step_s = self._age_s - self._reference_moved_at_s
-        self.dead_time.prefer_longest = since_step_s < self.settings.dead_time_step_longest_s
+        s = self.settings
+        moved_at_s = self._temp_reference_moved_at_s if s.dead_time_step_longest_temp_only else self._reference_moved_at_s
+        self.dead_time.prefer_longest = self._age_s - moved_at_s < s.dead_time_step_longest_s
         lag = self.dead_time.observe(supply_c)
         if not self._honours(lag * self.dt_s):
             return self.c_now
