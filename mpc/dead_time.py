@@ -114,8 +114,8 @@ class DeadTimeEstimator:
         clearly better candidate, another lead, or a tie within ``lead_reach_steps`` (its minimum's bottom moving to
         the neighbour), not to a shorter tie farther away, another minimum (False: to any tie, the rule before): on a
         flat ranking the tie rule otherwise takes the estimate back to 0 within samples. ``first_settle_steps``
-        (samples; 0: off, the rule before): for this many ranked samples after the first one (the window's first
-        response), the least residual's minimum (of tied separate minima the shortest, as the tie rule) is taken
+        (samples; 0: off, the rule before): up to this many ranked samples, the first counted (the window's first
+        response; the 2nd to the N-th settle), and not while ``prefer_longest`` is set, the least residual's minimum (of tied separate minima the shortest, as the tie rule) is taken
         wherever it explains the reading better than the estimate, longer or shorter (:meth:`_settle`;
         docs/robustness.md sec. 2.47). ``longest_reach_moves``: while
         ``prefer_longest`` is set a shorter tie within ``lead_reach_steps`` (the same minimum's bottom) still moves the
@@ -260,14 +260,15 @@ class DeadTimeEstimator:
         return True
 
     def _settle(self, res: np.ndarray) -> bool:
-        """Within ``first_settle_steps`` ranked samples after the first (a starting value aside: it gives way only to a
-        clearly better candidate), move the estimate to the least residual's minimum (the tie rule's, of separate
+        """From the second to the ``first_settle_steps``-th ranked sample (a starting value aside: it gives way only to a
+        clearly better candidate; not while ``prefer_longest`` is set, whose window rule governs), move the estimate to the least residual's minimum (the tie rule's, of separate
         tied minima the shortest) where its residual is below the estimate's, longer or shorter; whether it did.
         ASSUMPTION: the window's first ranked samples hold the onset of the first response only, whose least residual
         moves over the next samples (a sensor lag or a valve gain the model's air lacks shapes an onset more than a
         whole response): the first switch is the clearly better rule's on the onset, and the lead rule's 20 samples
         would otherwise keep an onset's estimate through the next stroke (docs/robustness.md sec. 2.47)."""
-        if self._ranked > self.first_settle_steps + 1e-9 or self._ranked <= 1 or self._at_start:
+        settling = 1 < self._ranked <= self.first_settle_steps + 1e-9
+        if not settling or self._at_start or self.prefer_longest:
             return False
         best = shortest_tied_minimum(res)
         if best == self._best or not float(res[best]) < float(res[self._best]):

@@ -798,7 +798,9 @@ class TrackingProblem:
         while heating (:attr:`Weights.valve_a_heating_per_pct2`, and the reserve's in its place) is on the valve's
         opening as the model reads it, the command less the shift, as the trapped-air cap is
         (:func:`trap_cap_pct`); on the command itself a shifted curve's shut valve would be weighed as open by the
-        shift (docs/identification.md, "The variants that still lose, traced")."""
+        shift (docs/identification.md, "The variants that still lose, traced"). A negative shift puts the row below
+        valve a's lower bound (0 %): the weight then pulls towards the command the model reads as shut, which the bound
+        does not reach."""
         split = reference.split or (0.0, 0.0, 0.0)
         return np.array([reference.supply_temp_c, reference.volume_flow_m3s, *split, 0.0,
                          float(self.params.valve_a_shift_pct)])

@@ -4,7 +4,7 @@ a 4.34 s dead time the MPC is not told, the thermocouple 1.18 times the model's 
 (``hvac_mpc.mismatch``), the start's first stroke of valve a is the first response the heater outlet reading's filter
 ranks: on its onset 3.5 s is clearly better than 0 s and taken; 4.0 s, then 4.5 s explain the reading better from
 the next samples on, but never clearly (within ``switch_ratio``) and for 20 samples in a row only from 34 s, so 3.5 s
-is honoured to 55 s. Settling, the least residual's minimum is taken while the first response is still coming in.
+is honoured to 51 s (the estimator switches at 55 s; the other filter takes over at 52 s). Settling, the least residual's minimum is taken while the first response is still coming in.
 
 Budget: the rule on its own in milliseconds; the closed loops (slow) 2 runs of 20-40 s.
 """
@@ -61,7 +61,7 @@ def test_after_the_first_ranked_sample_the_least_residual_is_taken_while_it_sett
         est._rank(flat)
         assert est.steps == expected
     est._rank(ranking(13, 7, {8: 1.03}))
-    assert est.steps == 3.5  # shorter as well: the least residual's minimum, either way
+    assert est.steps == 3.5  # back down: the least residual's minimum (here the tie rule's move as well)
     for _ in range(13):
         est._rank(ranking(13, 7))
     est._rank(flat)  # the 16th ranked sample after the first: the settling over
@@ -71,10 +71,11 @@ def test_after_the_first_ranked_sample_the_least_residual_is_taken_while_it_sett
 def test_settling_keeps_the_tie_rule_and_leaves_a_starting_value():
     """Of separate tied minima the shortest is what settling takes (the tie rule's choice); an estimator with a
     starting value (``initial_steps``) gives way only to a clearly better candidate, settling or not."""
-    est = first_response(15.0)
     two_minima = ranking(13, 10, {4: 1.05, 3: 1.4, 5: 1.4})  # 5.0 s least, 2.0 s tied (a separate minimum)
-    est._rank(two_minima)
-    assert est.steps == 2.0
+    for settle in (0.0, 15.0):  # settling takes what the rules take without it, not the least (5.0 s)
+        est = first_response(settle)
+        est._rank(two_minima)
+        assert est.steps == 2.0
     started = DeadTimeEstimator(max_steps=6, sensor_tau_s=5.73, initial_steps=3.5, first_settle_steps=15.0)
     started._rank(ranking(13, 7))
     started._rank(ranking(13, 8, {7: 1.06}))
@@ -96,3 +97,30 @@ def test_settling_honours_s1_8s_dead_time_sooner_after_a_start_that_shuts_valve_
     assert np.all(honoured[15.0] >= 4.0)
     assert runs[15.0]["iae"]["mpc"] < 0.9 * runs[0.0]["iae"]["mpc"]
     assert runs[15.0]["iae"]["mpc"] < runs[15.0]["iae"]["baseline"]
+
+
+def test_the_count_includes_the_first_ranked_sample():
+    """``first_settle_steps`` 3 settles the 2nd and 3rd ranked samples, not the 4th (the count includes the first)."""
+    flat = ranking(13, 8, {7: 1.06})  # 4.0 s least, 3.5 s 6 % behind: only settling moves 3.5 s up
+    back = ranking(13, 7, {8: 1.06})
+    est = first_response(3.0)
+    est._rank(flat)
+    assert est.steps == 4.0  # the 2nd
+    est._rank(back)
+    assert est.steps == 3.5  # the 3rd (down: the tie rule's move too)
+    est._rank(flat)
+    assert est.steps == 3.5  # the 4th: over
+
+
+def test_settling_gives_way_to_the_longest_ties_window():
+    """While the longest tied dead time's window is open (``prefer_longest``) settling does not move the estimate:
+    the window's rule holds it against a shorter tie, and settling would otherwise flip it each sample between two
+    tied minima (1.0 s least, 4.0 s tied)."""
+    two = ranking(13, 2, {8: 1.05, 7: 1.4, 9: 1.4})  # 1.0 s least, 4.0 s a separate tied minimum
+    est = first_response(15.0)
+    est.prefer_longest = True
+    seen = set()
+    for _ in range(4):
+        est._rank(two)
+        seen.add(est.steps)
+    assert seen == {4.0}

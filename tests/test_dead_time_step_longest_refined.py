@@ -33,6 +33,14 @@ def test_the_settings_are_checked_and_off_by_default():
     assert not DeadTimeEstimator(max_steps=6, sensor_tau_s=5.73).longest_reach_moves
 
 
+@pytest.mark.parametrize("field", ("dead_time_step_longest_temp_only", "dead_time_step_longest_reach_moves"))
+def test_a_refinement_without_the_window_is_refused(field):
+    """Either refinement does nothing without ``dead_time_step_longest_s`` > 0: refused naming both fields."""
+    with pytest.raises(InvalidSettings, match=f"ekf.{field}.*ekf.dead_time_step_longest_s > 0"):
+        MpcSettings(ekf=EkfSettings(**{field: True}))
+    MpcSettings(ekf=EkfSettings(dead_time_step_longest_s=60.0, **{field: True}))
+
+
 def neighbour_ranking(n: int) -> np.ndarray:
     """Residuals with one minimum, at 2.5 s (index 5); 3.0 s (index 6) 10 % behind."""
     res = np.full(n, 2.0)
