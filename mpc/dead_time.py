@@ -115,11 +115,11 @@ class DeadTimeEstimator:
         the neighbour), not to a shorter tie farther away, another minimum (False: to any tie, the rule before): on a
         flat ranking the tie rule otherwise takes the estimate back to 0 within samples. ``first_settle_steps``
         (samples; 0: off, the rule before): up to this many ranked samples, the first counted (the window's first
-        response; the 2nd to the N-th settle), and not while ``prefer_longest`` is set, the least residual's minimum (of tied separate minima the shortest, as the tie rule) is taken
-        wherever it explains the reading better than the estimate, longer or shorter (:meth:`_settle`;
-        docs/robustness.md sec. 2.47). ``longest_reach_moves``: while
-        ``prefer_longest`` is set a shorter tie within ``lead_reach_steps`` (the same minimum's bottom) still moves the
-        estimate down (False: none does, sec. 2.46; docs/robustness.md sec. 2.48)."""
+        response; the 2nd to the N-th settle), and not while ``prefer_longest`` is set, the least residual's minimum
+        (of tied separate minima the shortest, as the tie rule) is taken wherever it explains the reading better than
+        the estimate, longer or shorter (:meth:`_settle`; docs/robustness.md sec. 2.47). ``longest_reach_moves``:
+        while ``prefer_longest`` is set a shorter tie within ``lead_reach_steps`` (the same minimum's bottom) still
+        moves the estimate down (False: none does, sec. 2.46; docs/robustness.md sec. 2.48)."""
         self.first_settle_steps = float(first_settle_steps)
         self.lead_reach_steps = float(lead_reach_steps)
         self.count_quiet = bool(count_quiet)
@@ -255,26 +255,32 @@ class DeadTimeEstimator:
         longest = longest_tied_minimum(res)
         if longest <= self._best:
             return False
-        self._best, self._by_lead, self._at_start = longest, True, False
-        self._lead, self._lead_samples = None, 0
+        self._at_start = False
+        self._move_to(longest, by_lead=True)
         return True
 
+    def _move_to(self, best: int, by_lead: bool) -> None:
+        """Make candidate ``best`` the estimate (``by_lead``: as the lead rule's, held against a shorter tie with
+        ``lead_tie_hold``) and start the lead's count afresh."""
+        self._best, self._by_lead = best, by_lead
+        self._lead, self._lead_samples = None, 0
+
     def _settle(self, res: np.ndarray) -> bool:
-        """From the second to the ``first_settle_steps``-th ranked sample (a starting value aside: it gives way only to a
-        clearly better candidate; not while ``prefer_longest`` is set, whose window rule governs), move the estimate to the least residual's minimum (the tie rule's, of separate
-        tied minima the shortest) where its residual is below the estimate's, longer or shorter; whether it did.
-        ASSUMPTION: the window's first ranked samples hold the onset of the first response only, whose least residual
-        moves over the next samples (a sensor lag or a valve gain the model's air lacks shapes an onset more than a
-        whole response): the first switch is the clearly better rule's on the onset, and the lead rule's 20 samples
-        would otherwise keep an onset's estimate through the next stroke (docs/robustness.md sec. 2.47)."""
+        """From the second to the ``first_settle_steps``-th ranked sample (a starting value aside: it gives way only
+        to a clearly better candidate; not while ``prefer_longest`` is set, whose window rule governs), move the
+        estimate to the least residual's minimum (the tie rule's, of separate tied minima the shortest) where its
+        residual is below the estimate's, longer or shorter; whether it did. ASSUMPTION: the window's first ranked
+        samples hold the onset of the first response only, whose least residual moves over the next samples (a sensor
+        lag or a valve gain the model's air lacks shapes an onset more than a whole response): the first switch is the
+        clearly better rule's on the onset, and the lead rule's 20 samples would otherwise keep an onset's estimate
+        through the next stroke (docs/robustness.md sec. 2.47)."""
         settling = 1 < self._ranked <= self.first_settle_steps + 1e-9
         if not settling or self._at_start or self.prefer_longest:
             return False
         best = shortest_tied_minimum(res)
         if best == self._best or not float(res[best]) < float(res[self._best]):
             return False
-        self._best, self._by_lead = best, False
-        self._lead, self._lead_samples = None, 0
+        self._move_to(best, by_lead=False)
         return True
 
     def _rank(self, res: np.ndarray) -> float:
@@ -304,7 +310,5 @@ class DeadTimeEstimator:
             self._at_start = self._at_start and best == cur
             # a lead-made estimate stays one across a tie within reach (its minimum's bottom moving to the neighbour)
             kept = self._by_lead and tie_moves and not clearly and self._within_reach(best, cur)
-            self._by_lead = (held and not clearly) or kept
-            self._best = best
-            self._lead, self._lead_samples = None, 0
+            self._move_to(best, by_lead=(held and not clearly) or kept)
         return self.steps

@@ -104,11 +104,12 @@ OWN_RANGES = {"bypass_flow_after_s": (0.0, 3600.0), "motor_sd_after_response_c":
 BYPASS_FLOW_LEARNING_GATES = {"bypass_flow_anchored": False, "bypass_flow_after_response": False,
                               "bypass_flow_after_s": 0.0, "bypass_flow_commit_at_rest": False,
                               "bypass_flow_at_rest": False}
-#: Settings that shape the heat flow into the mixed air and do nothing without ``q_supply_heat_w`` (field -> its value
-#: that leaves the heat flow as it is).
 #: Refinements of the longest tied dead time after a change of the reference that do nothing without it
 #: (``dead_time_step_longest_s`` > 0; field -> its inert value).
-DEAD_TIME_STEP_LONGEST_SHAPES = {"dead_time_step_longest_temp_only": False, "dead_time_step_longest_reach_moves": False}
+DEAD_TIME_STEP_LONGEST_SHAPES = {"dead_time_step_longest_temp_only": False,
+                                 "dead_time_step_longest_reach_moves": False}
+#: Settings that shape the heat flow into the mixed air and do nothing without ``q_supply_heat_w`` (field -> its value
+#: that leaves the heat flow as it is).
 SUPPLY_HEAT_SHAPES = {"supply_heat_sd0_w": 5.0, "supply_heat_level_neutral": False, "supply_heat_flow_gate_s": 0.0,
                       "supply_heat_release_at_rest": False, "supply_heat_walk_flow_m3h": 0.0,
                       "supply_heat_walk_at_rest": False, "supply_heat_release_hold_s": 0.0,
@@ -178,19 +179,19 @@ class EkfSettings:
     default) of ranked samples after the estimate's first ranked one (the window's first response), the least
     residual's minimum (of separate tied minima the shortest, as the tie rule) is taken wherever its residual is below
     the estimate's, longer or shorter; then the switch, tie and lead rules as before. A starting value
-    (``dead_time_initial_s``, ``dead_time_prior_s``) is not moved by it. ASSUMPTION: the first ranked samples hold
-    a response's onset only, on which a shorter dead time than the box's can rank clearly best (the box's sensor lag
-    and gains shape an onset); measured with 15 s, about 2.6 of the model's thermocouple lag (10 s gives S1-8 the same
+    (``dead_time_initial_s``, ``dead_time_prior_s``) is not moved by it. ASSUMPTION: the first ranked samples hold a
+    response's onset only, on which a shorter dead time than the box's can rank clearly best (the box's sensor lag and
+    gains shape an onset); measured with 15 s, about 2.6 of the model's thermocouple lag (10 s gives S1-8 the same
     figure), not tuned (docs/robustness.md sec. 2.47). The count includes the first ranked sample: 15 s settles the
     2nd to the 15th. While the longest tied dead time's window is open (``dead_time_step_longest_s``) it does not
-    settle: that window's rule governs there. ``dead_time_step_longest_temp_only``: that window opens only at a change of
-    the supply air's reference (degC), not at a step of the flow's alone (off, the default: at either; a flow step's
-    answer has a part without the transport delay, the duct's loss and the blower's own heat moving with the flow
-    now, and the ranking after it is flat: on S0-6's flow jump the longest tie took 6.0 s for a 1.34 s box,
-    sec. 2.48). ``dead_time_step_longest_reach_moves``: within that window a shorter tie within
-    ``dead_time_lead_reach_s`` of the estimate (its minimum's bottom) moves it as outside the window (off, the
-    default: no shorter tie moves it down there; on S0-8's cooling 3.0 s was held against 2.5 s, sec. 2.48) Both
-    refinements are refused unless ``dead_time_step_longest_s`` > 0 (they do nothing without it).
+    settle: that window's rule governs there. ``dead_time_step_longest_temp_only``: that window opens only at a change
+    of the supply air's reference (degC), not at a step of the flow's alone (off, the default: at either; a flow
+    step's answer has a part without the transport delay, the duct's loss and the blower's own heat moving with the
+    flow now, and the ranking after it is flat: on S0-6's flow jump the longest tie took 6.0 s for a 1.34 s box, sec.
+    2.48). ``dead_time_step_longest_reach_moves``: within that window a shorter tie within ``dead_time_lead_reach_s``
+    of the estimate (its minimum's bottom) moves it as outside the window (off, the default: no shorter tie moves it
+    down there; on S0-8's cooling 3.0 s was held against 2.5 s, sec. 2.48). Both refinements are refused unless
+    ``dead_time_step_longest_s`` > 0 (they do nothing without it).
 
     ``q_mix_offset_c``: random walk (degC per sample) of the mixed-air offset. 0.015 (0.03 before): with
     the faster valve and the reading-heavy tracked temperature (``OcpSpec``) the offset's sample-to-sample
@@ -557,8 +558,9 @@ class EkfSettings:
         self._validate_bypass_flow(prefix)
         self._validate_supply_heat(prefix)
         if self.dead_time_step_longest_s <= 0.0:
-            self._refuse_inert(prefix, DEAD_TIME_STEP_LONGEST_SHAPES, "the longest tied dead time after a change of the "
-                               "reference", f"{prefix}.dead_time_step_longest_s > 0")
+            self._refuse_inert(prefix, DEAD_TIME_STEP_LONGEST_SHAPES,
+                               "the longest tied dead time after a change of the reference",
+                               f"{prefix}.dead_time_step_longest_s > 0")
 
     def _validate_supply_heat(self, prefix: str) -> None:
         """The heat flow's shape settings only with the heat flow on (``q_supply_heat_w`` > 0)."""
@@ -1404,7 +1406,8 @@ class DisturbanceEkf:
         if not (self.n_hist and used):
             return self.c_now
         s = self.settings
-        moved_at_s = self._temp_reference_moved_at_s if s.dead_time_step_longest_temp_only else self._reference_moved_at_s
+        moved_at_s = (self._temp_reference_moved_at_s if s.dead_time_step_longest_temp_only
+                      else self._reference_moved_at_s)
         self.dead_time.prefer_longest = self._age_s - moved_at_s < s.dead_time_step_longest_s
         lag = self.dead_time.observe(supply_c)
         if not self._honours(lag * self.dt_s):
