@@ -75,6 +75,13 @@ def shortest_tied_minimum(res: np.ndarray) -> int:
     return first
 
 
+def is_flat(res: np.ndarray) -> bool:
+    """Whether every candidate's residual is within TIE_RATIO of the least one: a ranking that tells no candidate from
+    another (its "separate minima" the reading's noise, the last candidate one for want of a right neighbour)."""
+    res = np.maximum(res, 0.0)
+    return bool(np.max(res) <= TIE_RATIO * min_reduce(res))
+
+
 def longest_tied_minimum(res: np.ndarray) -> int:
     """Index of the longest local minimum of the residuals within TIE_RATIO of the least one (of one minimum its
     bottom, as :func:`shortest_tied_minimum`): the rule while :attr:`DeadTimeEstimator.prefer_longest` is set."""
@@ -101,7 +108,7 @@ class DeadTimeEstimator:
                  min_excitation_c: float = 0.05, switch_ratio: float = 0.7, initial_steps: float = 0.0,
                  prior_steps: float = 0.0, lead_reach_steps: float = 0.0, count_quiet: bool = False,
                  lead_tie_hold: bool = False, first_settle_steps: float = 0.0,
-                 longest_reach_moves: bool = False):
+                 longest_reach_moves: bool = False, longest_not_flat: bool = False):
         """``initial_steps``: the estimate before the readings move it (samples; e.g. a delay identified from
         a log, docs/identification.md), rounded to the nearest candidate; it gives way only to a clearly
         better candidate, not to a tie. ``prior_steps``: the same for a dead time assumed, not identified,
@@ -119,12 +126,16 @@ class DeadTimeEstimator:
         (of tied separate minima the shortest, as the tie rule) is taken wherever it explains the reading better than
         the estimate, longer or shorter (:meth:`_settle`; docs/robustness.md sec. 2.47). ``longest_reach_moves``:
         while ``prefer_longest`` is set a shorter tie within ``lead_reach_steps`` (the same minimum's bottom) still
-        moves the estimate down (False: none does, sec. 2.46; docs/robustness.md sec. 2.48)."""
+        moves the estimate down (False: none does, sec. 2.46; docs/robustness.md sec. 2.48). ``longest_not_flat``: while
+        ``prefer_longest`` is set the longest tie is taken only from a ranking that is not flat (some candidate's
+        residual above ``TIE_RATIO`` times the least, :func:`is_flat`; False: from any ranking, sec. 2.46;
+        docs/robustness.md sec. 2.50)."""
         self.first_settle_steps = float(first_settle_steps)
         self.lead_reach_steps = float(lead_reach_steps)
         self.count_quiet = bool(count_quiet)
         self.lead_tie_hold = bool(lead_tie_hold)
         self.longest_reach_moves = bool(longest_reach_moves)
+        self.longest_not_flat = bool(longest_not_flat)
         self.initial_steps = float(initial_steps)
         self.prior_steps = float(prior_steps)
         self.max_steps = int(max_steps)
@@ -251,7 +262,12 @@ class DeadTimeEstimator:
         tie moves no estimate down, :meth:`_rank`); whether it moved. ASSUMPTION: right
         after a change of the reference the controller's own moves are the response; where separate minima explain
         it equally, the longer dead time is the loop's safe side (a plan on too short a one rings, docs/robustness.md
-        sec. 2.3-2.4; on too long a one it is slower). docs/robustness.md sec. 2.46."""
+        sec. 2.3-2.4; on too long a one it is slower). docs/robustness.md sec. 2.46. With ``longest_not_flat`` a flat
+        ranking (:func:`is_flat`) moves nothing here: it holds no response that tells the candidates apart (the built-in
+        chiller step's, made at rest before the step and taken on the step's own sample: 6.0 s, the last candidate;
+        docs/robustness.md sec. 2.50)."""
+        if self.longest_not_flat and is_flat(res):
+            return False
         longest = longest_tied_minimum(res)
         if longest <= self._best:
             return False

@@ -107,7 +107,8 @@ BYPASS_FLOW_LEARNING_GATES = {"bypass_flow_anchored": False, "bypass_flow_after_
 #: Refinements of the longest tied dead time after a change of the reference that do nothing without it
 #: (``dead_time_step_longest_s`` > 0; field -> its inert value).
 DEAD_TIME_STEP_LONGEST_SHAPES = {"dead_time_step_longest_temp_only": False,
-                                 "dead_time_step_longest_reach_moves": False}
+                                 "dead_time_step_longest_reach_moves": False,
+                                 "dead_time_step_longest_not_flat": False}
 #: Settings that shape the heat flow into the mixed air and do nothing without ``q_supply_heat_w`` (field -> its value
 #: that leaves the heat flow as it is).
 SUPPLY_HEAT_SHAPES = {"supply_heat_sd0_w": 5.0, "supply_heat_level_neutral": False, "supply_heat_flow_gate_s": 0.0,
@@ -190,8 +191,13 @@ class EkfSettings:
     flow now, and the ranking after it is flat: on S0-6's flow jump the longest tie took 6.0 s for a 1.34 s box, sec.
     2.48). ``dead_time_step_longest_reach_moves``: within that window a shorter tie within ``dead_time_lead_reach_s``
     of the estimate (its minimum's bottom) moves it as outside the window (off, the default: no shorter tie moves it
-    down there; on S0-8's cooling 3.0 s was held against 2.5 s, sec. 2.48). Both refinements are refused unless
-    ``dead_time_step_longest_s`` > 0 (they do nothing without it).
+    down there; on S0-8's cooling 3.0 s was held against 2.5 s, sec. 2.48). ``dead_time_step_longest_not_flat``: within
+    that window the longest tie is taken only from a ranking that is not flat, some candidate's residual above
+    :data:`~.dead_time.TIE_RATIO` times the least (off, the default: from any ranking). ASSUMPTION: where every
+    candidate explains the reading equally the ranking holds no response, and its separate minima are the reading's
+    noise (on the built-in chiller step the window's first ranking, made at rest before the step, put 6.0 s, the last
+    candidate, in use for one sample, every residual within 0.1 % of the least: chiller 0.4297 -> 0.4802, sec. 2.50).
+    The three refinements are refused unless ``dead_time_step_longest_s`` > 0 (they do nothing without it).
 
     ``q_mix_offset_c``: random walk (degC per sample) of the mixed-air offset. 0.015 (0.03 before): with
     the faster valve and the reading-heavy tracked temperature (``OcpSpec``) the offset's sample-to-sample
@@ -489,6 +495,7 @@ class EkfSettings:
     dead_time_first_settle_s: float = 0.0
     dead_time_step_longest_temp_only: bool = False
     dead_time_step_longest_reach_moves: bool = False
+    dead_time_step_longest_not_flat: bool = False
     q_heater_outlet_offset_c: float = 0.01
     q_cooler_offset_c: float = 0.0
     q_heater_air_offset_c: float = 0.0
@@ -536,7 +543,8 @@ class EkfSettings:
                           "supply_heat_level_neutral_at_rest", "supply_heat_hold_correlated",
                           "bypass_flow_after_response", "bypass_flow_commit_at_rest", "bypass_flow_at_rest",
                           "dead_time_lead_count_quiet", "dead_time_lead_tie_hold",
-                          "dead_time_step_longest_temp_only", "dead_time_step_longest_reach_moves"):
+                          "dead_time_step_longest_temp_only", "dead_time_step_longest_reach_moves",
+                          "dead_time_step_longest_not_flat"):
                 check_flag(f"{prefix}.{f.name}", value)
                 continue
             if f.name in ("bypass_flow_exponent_prior", "bypass_flow_exponent_min", "bypass_flow_exponent_max"):
@@ -668,7 +676,8 @@ class DisturbanceEkf:
                                            count_quiet=s.dead_time_lead_count_quiet,
                                            lead_tie_hold=s.dead_time_lead_tie_hold,
                                            first_settle_steps=s.dead_time_first_settle_s / self.dt_s,
-                                           longest_reach_moves=s.dead_time_step_longest_reach_moves)
+                                           longest_reach_moves=s.dead_time_step_longest_reach_moves,
+                                           longest_not_flat=s.dead_time_step_longest_not_flat)
         self.R_diag = np.square([s.r_supply_c, s.r_flow_m3s, s.r_water_c, s.r_inlet_c, s.r_heater_outlet_c])
         # the supply reading's deviation at rest (EkfSettings.r_supply_rest_c): the rest gate and the variances there
         self.rest_gate = self._new_rest_gate() if s.r_supply_rest_c > 0.0 else None
