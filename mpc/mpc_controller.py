@@ -296,6 +296,13 @@ class MpcSettings:
             interface (every run closes valve a at once, no fallback); S1-8's heating traced to the dead-time
             estimate (``EkfSettings.dead_time_first_settle_s``, which lowers it to 0.856 but raises S1-5's proband
             above 1.0): still not the default.
+        valve_a_weight_on_duty: valve a's heating weight (``Weights.valve_a_heating_per_pct2``, per %^2 per s) also
+            while the heater is off, where the supply-temperature reference is above the inlet air (the heating duty,
+            the readiness's condition, :mod:`.readiness`); False (the default) weighs valve a only while the heater is
+            commanded (above :data:`~.ocp.HEATING_CMD_W`). With the heater off the weight's switch leaves valve a
+            free, and at a heating rest held with the heater off the plan may open it to its cap: the core's air
+            then draws the heater body down, and the next step up finds no stored heat (S2-9's and S2-5's quick
+            winter heating, the body 18 C at the step against the baseline's 37 C; docs/robustness.md sec. 2.51).
         steady_start: the QPs of a reference change (``rti``/``sqp``) start from the plan toward the new
             reference's steady-state target on the model with the estimator's disturbances (the inputs that hold
             it at rest, ramped to at the rate limits; :mod:`hvac_mpc.mpc.steady_target`) instead of the plan
@@ -526,6 +533,7 @@ class MpcSettings:
     start_caution_s: float = 10.0
     start_caution_scope: str = "valve_a_opening"
     start_caution_in_qp: bool | str = True
+    valve_a_weight_on_duty: bool = False
     steady_start: bool = False
     choose_offset_placement: bool = True
     placement_q_heater_air_c: float = 0.01
@@ -734,6 +742,7 @@ class MpcSettings:
         check_number(f"{p}.valve_a_reversal_share", self.valve_a_reversal_share, 0.0, 1.0, lo_open=True)
         check_number(f"{p}.valve_a_reversal_min_pct", self.valve_a_reversal_min_pct, 0.0, 100.0)
         check_number(f"{p}.valve_a_hold_shortfall_c", self.valve_a_hold_shortfall_c, 0.0, 20.0)
+        check_flag(f"{p}.valve_a_weight_on_duty", self.valve_a_weight_on_duty)
         check_flag(f"{p}.choose_offset_placement", self.choose_offset_placement)
         check_number(f"{p}.placement_q_heater_air_c", self.placement_q_heater_air_c, 0.0, 1.0, lo_open=True)
         check_number(f"{p}.placement_window_s", self.placement_window_s, self.dt_s, 3600.0)
@@ -1161,7 +1170,7 @@ class MpcController:
             qp_bounds, u_hi_binding = self._start_caution_bounds(bounds, qp_bounds, cap, heater_c)
         u_lo, u_hi = pb.input_bounds(self.u_prev, cap, heater_c, command=qp_bounds)
         y_ref = self._tracked_reference(ref, d, cap)
-        w_y = pb.heating_weights(pb.output_weights(ref), heating=pb.heating(self.u_prev))
+        w_y = pb.heating_weights(pb.output_weights(ref), heating=self._valve_a_weighed(ref, d))
         self._flow_factor = self._flow_weight_factor(y_ref, d)
         w_y[1:5] *= self._flow_factor
         self._set_reserve(w_y, ref, measurement)
@@ -1541,6 +1550,14 @@ class MpcController:
         hi[i] = opening_bound(float(bounds[0][i]), float(hi[i]), float(self.u_prev[i]),
                               float(pb.rate_phys[i] * pb.dt_s * share))
         return bounds[0], hi
+
+    def _valve_a_weighed(self, ref: Reference, d: np.ndarray) -> bool:
+        """Whether valve a takes its heating weight this step: the heater commanded in the command in force, or with
+        ``valve_a_weight_on_duty`` the supply-temperature reference above the inlet air (``d[0]``)."""
+        if self.problem.heating(self.u_prev):
+            return True
+        supply_ref = finite_or(ref.supply_temp_c, float("nan"))
+        return bool(self.settings.valve_a_weight_on_duty and supply_ref > float(d[0]))
 
     def _set_reserve(self, w_y: np.ndarray, ref: Reference, measurement: Measurement) -> None:
         """Valve a's weight in ``w_y`` (in place) from the heater reserve's gate (:mod:`.reserve`; a setting, off by
