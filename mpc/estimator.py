@@ -196,7 +196,7 @@ class EkfSettings:
     :data:`~.dead_time.TIE_RATIO` times the least (off, the default: from any ranking). ASSUMPTION: where every
     candidate explains the reading equally the ranking holds no response, and its separate minima are the reading's
     noise (on the built-in chiller step the window's first ranking, made at rest before the step, put 6.0 s, the last
-    candidate, in use for one sample, every residual within 0.1 % of the least: chiller 0.4297 -> 0.4802, sec. 2.50).
+    candidate, in use for one sample, every residual within 0.1-0.2 % of the least: chiller 0.4297 -> 0.4802, sec. 2.50).
     The three refinements are refused unless ``dead_time_step_longest_s`` > 0 (they do nothing without it).
 
     ``q_mix_offset_c``: random walk (degC per sample) of the mixed-air offset. 0.015 (0.03 before): with

@@ -743,6 +743,10 @@ class MpcSettings:
         check_number(f"{p}.valve_a_reversal_min_pct", self.valve_a_reversal_min_pct, 0.0, 100.0)
         check_number(f"{p}.valve_a_hold_shortfall_c", self.valve_a_hold_shortfall_c, 0.0, 20.0)
         check_flag(f"{p}.valve_a_weight_on_duty", self.valve_a_weight_on_duty)
+        if self.valve_a_weight_on_duty and self.ocp.weights.valve_a_reserve_per_pct2 > 0:
+            raise InvalidSettings(f"{p}.valve_a_weight_on_duty = True with {p}.ocp.weights.valve_a_reserve_per_pct2 > 0: "
+                                  "the heater reserve sets valve a's weight from the heater command alone, so the "
+                                  "setting would do nothing; use one or the other")
         check_flag(f"{p}.choose_offset_placement", self.choose_offset_placement)
         check_number(f"{p}.placement_q_heater_air_c", self.placement_q_heater_air_c, 0.0, 1.0, lo_open=True)
         check_number(f"{p}.placement_window_s", self.placement_window_s, self.dt_s, 3600.0)

@@ -23,7 +23,7 @@ from hvac_mpc.contract import Reference
 from hvac_mpc.models import Parameters
 from hvac_mpc.models.box import INPUTS
 from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
-from hvac_mpc.mpc.ocp import InvalidSettings
+from hvac_mpc.mpc.ocp import InvalidSettings, OcpSpec, Weights
 
 HEATER, VALVE_A = INPUTS.index("heater_cmd_w"), INPUTS.index("valve_a_pct")
 
@@ -32,6 +32,14 @@ def test_the_setting_is_off_by_default_and_checked():
     assert MpcSettings().valve_a_weight_on_duty is False
     with pytest.raises(InvalidSettings, match="valve_a_weight_on_duty"):
         MpcSettings(valve_a_weight_on_duty="yes")
+
+
+def test_the_setting_is_refused_beside_the_heater_reserve():
+    """The reserve sets valve a's weight from the heater command alone, so the pair is refused, naming both fields."""
+    ocp = OcpSpec(weights=Weights(valve_a_reserve_per_pct2=3e-4))
+    MpcSettings(ocp=ocp)
+    with pytest.raises(InvalidSettings, match="valve_a_weight_on_duty.*valve_a_reserve_per_pct2"):
+        MpcSettings(ocp=ocp, valve_a_weight_on_duty=True)
 
 
 def _reference(supply_c: float) -> Reference:
