@@ -64,7 +64,7 @@ from .ocp import HEATING_CMD_W, STAGE_OUTPUTS, HeaterOffBound, InvalidSettings, 
 from hvac_mpc.contract import InvalidReference, Reference
 from .placement import PLACEMENTS, PlacementChoice
 from .sign_check import HeldAirChange, ValveSignCheck
-from .readiness import HeaterReadiness
+from .readiness import HeaterReadiness, heating_duty
 from .reserve import HeaterReserve
 from .reversal_damping import damped_move
 from .reversal_search import check_second_qp, check_second_qp_with, check_share, check_wait
@@ -1560,8 +1560,8 @@ class MpcController:
         ``valve_a_weight_on_duty`` the supply-temperature reference above the inlet air (``d[0]``)."""
         if self.problem.heating(self.u_prev):
             return True
-        supply_ref = finite_or(ref.supply_temp_c, float("nan"))
-        return bool(self.settings.valve_a_weight_on_duty and supply_ref > float(d[0]))
+        return self.settings.valve_a_weight_on_duty and heating_duty(finite_or(ref.supply_temp_c, float("nan")),
+                                                                     float(d[0]))
 
     def _set_reserve(self, w_y: np.ndarray, ref: Reference, measurement: Measurement) -> None:
         """Valve a's weight in ``w_y`` (in place) from the heater reserve's gate (:mod:`.reserve`; a setting, off by

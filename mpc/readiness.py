@@ -65,6 +65,12 @@ from hvac_mpc.models.box import INPUTS
 READY_BAND_C = 0.5
 
 
+def heating_duty(supply_ref_c: float | None, inlet_c: float) -> bool:
+    """Whether the reference asks the box for heat: a supply-temperature reference (degC) above the inlet air (degC);
+    no reference (None or NaN) asks none."""
+    return supply_ref_c is not None and supply_ref_c > inlet_c
+
+
 class HeaterReadiness:
     """The readiness floor of a :class:`~hvac_mpc.mpc.ocp.TrackingProblem` (its model, parameters, scaling)."""
 
@@ -98,7 +104,7 @@ class HeaterReadiness:
         from the reference: below it a step up is being served (the heater's heat goes to the air, not into the
         body; the floor readies the box at rest for the next one), above it the box already delivers more heat than
         the reference asks, and the floor's pull could only be paid in supply temperature."""
-        if supply_ref_c is None or not supply_ref_c > float(d[0]):
+        if not heating_duty(supply_ref_c, float(d[0])):
             return None
         if supply_now_c is not None and abs(supply_ref_c - float(supply_now_c)) > READY_BAND_C:
             return None
