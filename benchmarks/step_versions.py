@@ -2,6 +2,7 @@
 
     python -m hvac_mpc.benchmarks.step_versions --before REV [--after REV] [--steps 240] [--rounds 3]
                                                 [--seed 1] [--json FILE] [--after-settings JSON] [--idle]
+                                                [--after-python PATH]
 
 ``REV`` is a git revision of the repository this package is installed from (e.g. ``main``), laid
 out as installed in a temporary folder, or an import root holding a ``hvac_mpc`` package (its
@@ -105,12 +106,13 @@ def import_root(version: str, workdir: Path) -> Path:
 class Version:
     """One version's worker process (``root``: its import root, None for the installed version)."""
 
-    def __init__(self, root: Path | None, seed: int, settings: str | None = None, idle_s: float = 0.0):
+    def __init__(self, root: Path | None, seed: int, settings: str | None = None, idle_s: float = 0.0,
+                 python: str | None = None):
         env = dict(os.environ)
         if root is not None:
             env["PYTHONPATH"] = os.pathsep.join([str(root), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
         extra = [settings or "{}", repr(float(idle_s))] if idle_s else ([settings] if settings else [])
-        self.proc = subprocess.Popen([sys.executable, "-c", WORKER, str(seed), *extra],
+        self.proc = subprocess.Popen([python or sys.executable, "-c", WORKER, str(seed), *extra],
                                      stdin=subprocess.PIPE,
                                      stdout=subprocess.PIPE, text=True, env=env, cwd=root or None)
         if self.proc.stdout.readline().strip() != "ready":
@@ -127,11 +129,14 @@ class Version:
 
 
 def side_by_side(roots: dict[str, Path | None], steps: int, seed: int,
-                 after_settings: str | None = None, idle_s: float = 0.0, swap: bool = False) -> dict[str, Any]:
+                 after_settings: str | None = None, idle_s: float = 0.0, swap: bool = False,
+                 pythons: dict[str, str | None] | None = None) -> dict[str, Any]:
     """One round: both versions in lockstep; each one's summary, the ratios and the commands' difference
     (``after_settings``: JSON of MpcSettings fields of the version after; ``idle_s``: the idle time given to the
-    second thread after each step, :class:`.solve_time.Loop`; ``swap``: the other version first at even steps)."""
-    versions = {name: Version(root, seed, after_settings if name == "after" else None, idle_s)
+    second thread after each step, :class:`.solve_time.Loop`; ``swap``: the other version first at even steps;
+    ``pythons``: the interpreter of a version, by name, where it is not this one)."""
+    pythons = pythons or {}
+    versions = {name: Version(root, seed, after_settings if name == "after" else None, idle_s, pythons.get(name))
                 for name, root in roots.items()}
     times = {name: [] for name in versions}
     iterations = {name: [] for name in versions}
@@ -188,6 +193,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--idle", action="store_true",
                    help=f"give the second thread the sample's idle time ({solve_time.IDLE_S} s) between the steps, "
                         "as hvac-mpc solve-time does (default: back to back)")
+    p.add_argument("--after-python", default=None, metavar="PATH",
+                   help="the interpreter of the version after (e.g. another virtual environment's bin/python with "
+                        "this package and its dependencies installed): the step time of an interpreter build; "
+                        "default: this one")
     solve_time.side_by_side_arguments(p)
     args = p.parse_args(argv)
     if args.after_settings is not None:
@@ -204,7 +213,8 @@ def main(argv: list[str] | None = None) -> int:
         if roots is None:
             return 2
         idle_s = solve_time.IDLE_S if args.idle else 0.0
-        rounds = [side_by_side(roots, args.steps, args.seed, args.after_settings, idle_s, swap=bool(r % 2))
+        rounds = [side_by_side(roots, args.steps, args.seed, args.after_settings, idle_s, swap=bool(r % 2),
+                               pythons={"after": args.after_python})
                   for r in range(args.rounds)]
     for i, r in enumerate(rounds, 1):
         b, a = r["before"], r["after"]
@@ -215,7 +225,8 @@ def main(argv: list[str] | None = None) -> int:
               f"cost {b['cost']:.2f} -> {a['cost']:.2f}, largest command difference {r['command_difference']:.3g}")
     if args.json is not None:
         args.json.write_text(json.dumps({"versions": {"before": args.before, "after": args.after or "installed",
-                                                      "after_settings": args.after_settings},
+                                                      "after_settings": args.after_settings,
+                                                      "after_python": args.after_python},
                                          "steps": args.steps, "idle": bool(args.idle),
                                          "seed": args.seed, "rounds": rounds}, indent=2))
     return 0
