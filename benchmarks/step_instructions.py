@@ -14,9 +14,11 @@ Under valgrind a step takes some 50 times longer, so ``deadline_s`` is set to an
 the default 0.5 s the first QPs would miss it and the fallbacks would take another path. Every other setting is the
 default, so the commands are those of the loop run natively (the deadline never binds there).
 ``--version REV``: the code of a git revision or import root (:func:`.step_versions.import_root`) instead of the
-installed one. Instruction counts are the same from run to run on one machine and installation (OpenBLAS and the
-generated code pick their kernels by processor), so two versions compare without a side-by-side run; they are not
-times: a step's time per instruction differs between kinds (docs/architecture.md 'The step on a slower machine').
+installed one. Instruction counts repeat from run to run on one machine and installation to a few parts in a
+thousand per step and a few in ten thousand over the loop (the interpreter's hash seed and addresses change per
+process; OpenBLAS and the generated code pick their kernels by processor), whatever the load, so two versions
+compare without a side-by-side run; they are not times: a step's time per instruction differs between kinds
+(docs/architecture.md 'The step on a slower machine').
 """
 
 from __future__ import annotations
@@ -104,14 +106,15 @@ def self_costs(path: Path, names: dict[str, str]) -> Counter:
     return out
 
 
+#: The counted loop, run under valgrind (arguments: the client library, steps, seed, the rows' file, the deadline);
+#: it imports nothing of this module, so a revision without it (``--version``) runs it as well.
 WORKER = """
 import ctypes, json, sys
 from hvac_mpc.benchmarks import solve_time
-from hvac_mpc.benchmarks.step_instructions import DEADLINE_S
 from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
 lib = ctypes.CDLL(sys.argv[1])
 steps, seed = int(sys.argv[2]), int(sys.argv[3])
-ctrl = MpcController(settings=MpcSettings(deadline_s=DEADLINE_S))
+ctrl = MpcController(settings=MpcSettings(deadline_s=float(sys.argv[5])))
 loop = solve_time.Loop(ctrl, seed, idle_s=solve_time.IDLE_S)
 step = ctrl.step
 def counted(measurement, reference):
@@ -143,7 +146,7 @@ def count(steps: int, seed: int, root: Path | None, workdir: Path) -> dict[str, 
     rows_file = workdir / "rows.json"
     subprocess.run(["valgrind", "--tool=callgrind", "--instr-atstart=no", "--separate-threads=yes",
                     f"--callgrind-out-file={workdir}/cg.%p", sys.executable, "-c", WORKER, str(lib), str(steps),
-                    str(seed), str(rows_file)], check=True, env=env, cwd=root or workdir,
+                    str(seed), str(rows_file), repr(DEADLINE_S)], check=True, env=env, cwd=root or workdir,
                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     dumps = sorted(workdir.glob("cg.*.*-*"), key=lambda p: (int(re.search(r"\.(\d+)-\d+$", p.name).group(1)), p.name))
     names: dict[str, str] = {}

@@ -25,6 +25,9 @@ updated there and not in the step; without it the steps run back to back.
 ``--after-settings '{"rti_step_fractions": [0.5, 0.25]}'`` runs the version after with these
 :class:`~hvac_mpc.mpc.mpc_controller.MpcSettings` fields (JSON lists become tuples): the step time of a setting,
 e.g. ``--before HEAD`` with the installed version and a setting that is off by default.
+``--after-python PATH`` runs the version after on another interpreter (e.g. another virtual environment's
+``bin/python`` with this package installed): the step time of an interpreter build (docs/architecture.md 'The step
+on a slower machine').
 """
 
 from __future__ import annotations

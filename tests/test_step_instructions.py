@@ -75,14 +75,17 @@ def test_a_version_runs_on_the_interpreter_asked_for(monkeypatch):
 @pytest.mark.slow
 @pytest.mark.skipif(shutil.which("valgrind") is None or shutil.which("gcc") is None,
                     reason="needs valgrind and gcc")
-def test_the_counted_loop_takes_the_native_path(tmp_path):
+def test_the_counted_loop_takes_the_native_path(tmp_path, monkeypatch):
     """Under callgrind with the long deadline the loop gives the commands of the loop run natively with the
     default settings (the deadline never binds there), and the step runs OSQP's and CasADi's generated code."""
+    from hvac_mpc.mpc import codegen
     from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
+    monkeypatch.setenv(codegen.SWITCH_ENV, "1")  # the suite runs the interpreter (conftest); the loop is compiled
     steps = 4
-    counted = step_instructions.count(steps, 1, None, tmp_path)
+    # natively first: the generated code is built (or loaded) here, so the run under valgrind only loads it
     loop = solve_time.Loop(MpcController(settings=MpcSettings()), 1, idle_s=solve_time.IDLE_S)
     native = [list(loop.step(k).command.vector()) for k in range(steps)]
+    counted = step_instructions.count(steps, 1, None, tmp_path)
     assert [s["command"] for s in counted["steps"]] == native
     kinds = Counter()
     for obj, n in counted["steps"][-1]["objects"].items():
