@@ -45,7 +45,7 @@ def test_which_version_steps_first_alternates_with_the_step_and_the_round(monkey
     calls = []
 
     class Fake:
-        def __init__(self, root, seed, settings=None, idle_s=0.0):
+        def __init__(self, root, seed, settings=None, idle_s=0.0, python=None):
             self.name, self.idle_s = root, idle_s
 
         def ask(self, line):
