@@ -60,6 +60,8 @@ class SimulatedDevice:
         self.calibration = calibration  # None: engineering values; else the device takes raw signals
         self.heartbeat_tripped = False
         self.heartbeat_trips: list[float] = []  # wall time (time.monotonic) of each trip
+        #: per trip: (writes received before it, the command held when it tripped)
+        self.heartbeat_trip_held: list[tuple[int, Command]] = []
         self._heartbeat_wall: float | None = None  # wall time the heartbeat last changed
         self._heater_on_wall: float | None = None  # wall time a command last had the heater on
         #: ASSUMPTION: a heater on within this many wall seconds before a heartbeat trip may still be
@@ -143,6 +145,7 @@ class SimulatedDevice:
             self.heartbeat_tripped = True
             now = time.monotonic()
             self.heartbeat_trips.append(now)
+            self.heartbeat_trip_held.append((self.writes, self.command))
             if self._heater_on_wall is not None and now - self._heater_on_wall <= self.cooldown_hold_s:
                 self.command = replace(self.command, heater_cmd_w=0.0,
                                        blower_power_w=max(self.command.blower_power_w, self.cooldown_blower_w),

@@ -168,6 +168,40 @@ def test_systemd_opcua_and_calibration_sections_name_the_key():
     assert cfg.backend.opcua.signals == "raw" and not cfg.systemd.enabled
 
 
+def test_heartbeat_trip_is_checked_against_the_command_held_at_the_trip():
+    """The fault campaign's check of the device's command after its heartbeat trip. A loaded machine
+    once showed the daemon's last write (blower 118.9 W) reaching the device after the test had read
+    the blower (126.3 W) and after SIGKILL: the trip then rightly gave max(118.9, 120) = 120 W, below
+    the blower read earlier. The check compares with the command held at the trip and still names a
+    blower below it, a heater left on, a valve not open and a write after the trip."""
+    from dataclasses import replace
+
+    from hvac_mpc.benchmarks.daemon_campaign import heartbeat_trip_violations
+    from hvac_mpc.daemon.device_sim import SimulatedDevice
+
+    dev = SimulatedDevice(SimulatedPlant(seed=5), heartbeat_timeout_s=0.1)
+    dev._on_command(Command(blower_power_w=126.3, heater_cmd_w=200.0, valve_a_pct=20.0), 1)
+    read_before_kill = dev.command.blower_power_w
+    dev._on_command(Command(blower_power_w=118.9, heater_cmd_w=200.0, valve_a_pct=20.0), 2)  # in flight at the kill
+    time.sleep(0.15)
+    assert dev.check_heartbeat()
+    assert dev.command.blower_power_w == 120.0 < read_before_kill
+    assert dev.heartbeat_trip_held[-1] == (2, Command(blower_power_w=118.9, heater_cmd_w=200.0, valve_a_pct=20.0))
+    assert heartbeat_trip_violations(dev, dev.command) == []
+    for broken in (replace(dev.command, blower_power_w=119.0), replace(dev.command, heater_cmd_w=1.0),
+                   replace(dev.command, valve_w_pct=0.0)):
+        (msg,) = heartbeat_trip_violations(dev, broken)
+        assert msg.startswith("device command after the trip") and "held at the trip" in msg
+    high = SimulatedDevice(SimulatedPlant(seed=5), heartbeat_timeout_s=0.1)
+    high._on_command(Command(blower_power_w=150.0, heater_cmd_w=200.0, valve_a_pct=20.0), 1)
+    time.sleep(0.15)
+    assert high.check_heartbeat() and high.command.blower_power_w == 150.0
+    assert heartbeat_trip_violations(high, high.command) == []
+    assert heartbeat_trip_violations(high, replace(high.command, blower_power_w=120.0)) != []
+    dev._on_command(Command(blower_power_w=118.9, heater_cmd_w=200.0, valve_a_pct=20.0), 2)  # after the trip
+    assert heartbeat_trip_violations(dev, dev.command) == ["1 writes reached the device after the trip"]
+
+
 def test_device_heartbeat_watchdog_cools_a_heater_that_was_on_and_holds_otherwise():
     from hvac_mpc.daemon.device_sim import SimulatedDevice
 
