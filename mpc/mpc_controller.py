@@ -303,6 +303,20 @@ class MpcSettings:
             free, and at a heating rest held with the heater off the plan may open it to its cap: the core's air
             then draws the heater body down, and the next step up finds no stored heat (S2-9's and S2-5's quick
             winter heating, the body 18 C at the step against the baseline's 37 C; docs/robustness.md sec. 2.51).
+        valve_a_weight_on_duty_open_pct: with ``valve_a_weight_on_duty``, the weight while the heater is off counts
+            only once valve a in the command in force has opened beyond this share of its travel (%) with the heater
+            off, and from then on until the reference stops asking for heat; 0.0 (the default) weighs it from
+            the duty's first step. At a rest with valve a at its lower bound the weight changes no optimum, only
+            OSQP's stopping points, and a path parted there may fall differently into valve a's two-cycle at the
+            heater's bound later (S1-13's quick winter heating, the 9 C warm-up with the heater off and valve a
+            at 0 %: 0.947 -> 1.029 with the plain setting; docs/robustness.md sec. 2.52). Refused above 0 without
+            ``valve_a_weight_on_duty`` (it would do nothing).
+        valve_a_weight_on_duty_scale: with ``valve_a_weight_on_duty``, valve a's weight while the heater is off on the
+            duty is ``Weights.valve_a_heating_per_pct2`` times this factor (dimensionless); 1.0 (the default) the same
+            weight as with the heater on. At the weight's own size a rest above the reference with the heater off
+            still opens valve a to its cap to cool the supply (S2-5's quick 12 C rest with the opening gate: 84-90 %,
+            the body 17.4 C at the step); ten times holds it shut (docs/robustness.md sec. 2.52). Refused other than
+            1.0 without ``valve_a_weight_on_duty``.
         steady_start: the QPs of a reference change (``rti``/``sqp``) start from the plan toward the new
             reference's steady-state target on the model with the estimator's disturbances (the inputs that hold
             it at rest, ramped to at the rate limits; :mod:`hvac_mpc.mpc.steady_target`) instead of the plan
@@ -534,6 +548,8 @@ class MpcSettings:
     start_caution_scope: str = "valve_a_opening"
     start_caution_in_qp: bool | str = True
     valve_a_weight_on_duty: bool = False
+    valve_a_weight_on_duty_open_pct: float = 0.0
+    valve_a_weight_on_duty_scale: float = 1.0
     steady_start: bool = False
     choose_offset_placement: bool = True
     placement_q_heater_air_c: float = 0.01
@@ -747,6 +763,16 @@ class MpcSettings:
             raise InvalidSettings(f"{p}.valve_a_weight_on_duty = True with {p}.ocp.weights.valve_a_reserve_per_pct2 > 0: "
                                   "the heater reserve sets valve a's weight from the heater command alone, so the "
                                   "setting would do nothing; use one or the other")
+        check_number(f"{p}.valve_a_weight_on_duty_open_pct", self.valve_a_weight_on_duty_open_pct, 0.0, 100.0)
+        if self.valve_a_weight_on_duty_open_pct > 0 and not self.valve_a_weight_on_duty:
+            raise InvalidSettings(f"{p}.valve_a_weight_on_duty_open_pct = {self.valve_a_weight_on_duty_open_pct} > 0 "
+                                  f"with {p}.valve_a_weight_on_duty = False: the opening gates the setting's weight, "
+                                  "so alone it would do nothing")
+        check_number(f"{p}.valve_a_weight_on_duty_scale", self.valve_a_weight_on_duty_scale, 0.0, 1000.0, lo_open=True)
+        if self.valve_a_weight_on_duty_scale != 1.0 and not self.valve_a_weight_on_duty:
+            raise InvalidSettings(f"{p}.valve_a_weight_on_duty_scale = {self.valve_a_weight_on_duty_scale} with "
+                                  f"{p}.valve_a_weight_on_duty = False: it scales the setting's weight, so alone it "
+                                  "would do nothing")
         check_flag(f"{p}.choose_offset_placement", self.choose_offset_placement)
         check_number(f"{p}.placement_q_heater_air_c", self.placement_q_heater_air_c, 0.0, 1.0, lo_open=True)
         check_number(f"{p}.placement_window_s", self.placement_window_s, self.dt_s, 3600.0)
@@ -1036,6 +1062,7 @@ class MpcController:
         self._out_of_reach: dict = {}
         self._flow_factor = 1.0
         self._valve_a_held = False
+        self._duty_weight_on = False  # valve_a_weight_on_duty_open_pct: valve a opened on the duty, weighed since
         if self.reach is not None:
             self.reach.reset()
         self.temp_reach.reset()
@@ -1175,6 +1202,8 @@ class MpcController:
         u_lo, u_hi = pb.input_bounds(self.u_prev, cap, heater_c, command=qp_bounds)
         y_ref = self._tracked_reference(ref, d, cap)
         w_y = pb.heating_weights(pb.output_weights(ref), heating=self._valve_a_weighed(ref, d))
+        if s.valve_a_weight_on_duty_scale != 1.0 and not pb.heating(self.u_prev):
+            w_y[STAGE_OUTPUTS.index("valve_a_pct")] *= s.valve_a_weight_on_duty_scale
         self._flow_factor = self._flow_weight_factor(y_ref, d)
         w_y[1:5] *= self._flow_factor
         self._set_reserve(w_y, ref, measurement)
@@ -1557,11 +1586,17 @@ class MpcController:
 
     def _valve_a_weighed(self, ref: Reference, d: np.ndarray) -> bool:
         """Whether valve a takes its heating weight this step: the heater commanded in the command in force, or with
-        ``valve_a_weight_on_duty`` the supply-temperature reference above the inlet air (``d[0]``)."""
-        if self.problem.heating(self.u_prev):
-            return True
-        return self.settings.valve_a_weight_on_duty and heating_duty(finite_or(ref.supply_temp_c, float("nan")),
-                                                                     float(d[0]))
+        ``valve_a_weight_on_duty`` the supply-temperature reference above the inlet air (``d[0]``); with
+        ``valve_a_weight_on_duty_open_pct`` > 0 the latter only once valve a in force has opened beyond it on the
+        duty with the heater off (then held until the duty ends)."""
+        s = self.settings
+        duty = s.valve_a_weight_on_duty and heating_duty(finite_or(ref.supply_temp_c, float("nan")), float(d[0]))
+        heating = self.problem.heating(self.u_prev)
+        if not duty:
+            self._duty_weight_on = False
+        elif not heating and float(self.u_prev[self.problem.i_valve_a]) > s.valve_a_weight_on_duty_open_pct:
+            self._duty_weight_on = True
+        return heating or (duty and (self._duty_weight_on or s.valve_a_weight_on_duty_open_pct <= 0.0))
 
     def _set_reserve(self, w_y: np.ndarray, ref: Reference, measurement: Measurement) -> None:
         """Valve a's weight in ``w_y`` (in place) from the heater reserve's gate (:mod:`.reserve`; a setting, off by
