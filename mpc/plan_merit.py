@@ -63,29 +63,34 @@ class PlanMerit:
         self.fractions = tuple(float(a) for a in fractions)
         if not self.fractions or any(not 0.0 < a < 1.0 for a in self.fractions):
             raise ValueError(f"step fractions {fractions!r} must be a non-empty sequence of numbers in (0, 1)")
-        one = self.cost_function()
-        key = expression_key(one)  # the merit's structure (the model parameters an input)
-        self._pair = BufferedFunction(wrap(_mapped(one, 2, "hvac_plan_merit2", key)))
+        # the move weights an input, filled once: one build serves every set of them (docs/architecture.md 'A default
+        # controller's keys after other tests')
+        one = self.cost_function(move_weights_input=True)
+        key = expression_key(one)  # the merit's structure (the model parameters and the move weights inputs)
+        move = {len(ARGUMENTS): problem.w_du}
+        self._pair = BufferedFunction(wrap(_mapped(one, 2, "hvac_plan_merit2", key)), fixed=move)
         self._damped = BufferedFunction(wrap(_mapped(one, len(self.fractions), f"hvac_plan_merit{len(fractions)}d",
-                                                     key)))
+                                                     key)), fixed=move)
         # ``several`` plans priced in one call (:meth:`costs`; 0: none), built here, not in a control step
-        self._several = BufferedFunction(wrap(_mapped(one, several, f"hvac_plan_merit{several}s", key))) \
-            if several else None
+        self._several = BufferedFunction(wrap(_mapped(one, several, f"hvac_plan_merit{several}s", key)),
+                                         fixed=move) if several else None
         self.several = int(several)
 
-    def cost_function(self) -> ca.Function:
+    def cost_function(self, move_weights_input: bool = False) -> ca.Function:
         """``(x0, U, d, SW, ref, u_prev, p, ready_floor, ready_w) -> cost``: the merit of one plan, scaled
         ``x0`` (nx) and ``U`` (nu x N), the stage weights ``SW`` ((ny + 1) x (N + 1),
         :meth:`.rti_osqp.RtiOsqpSolver._stage_weights` order: the outputs' weights and the energy weight per
         stage), the reference of the stage outputs, the command in force (scaled), the model parameters, and the
         heater readiness's scaled floor and weights of stages 1..N (:meth:`.readiness.HeaterReadiness.scaled`;
-        zero weights: out)."""
+        zero weights: out). ``move_weights_input``: the scaled move weights (``TrackingProblem.w_du``, nu) a last
+        input ``w_du`` instead of constants, so that problems differing only in them share one function."""
         pb = self.pb
         N, nx, nu, ny = pb.N, pb.nx, pb.nu, pb.ny
         x0, U = ca.SX.sym("x0", nx), ca.SX.sym("U", nu, N)
         d, SW, ref = ca.SX.sym("d", pb.nd), ca.SX.sym("SW", ny + 1, N + 1), ca.SX.sym("ref", ny)
         u_prev, p = ca.SX.sym("u_prev", nu), ca.SX.sym("p", len(pb.model.p_default))
         ready_floor, ready_w = ca.SX.sym("ready_floor"), ca.SX.sym("ready_w", N)
+        w_du = ca.SX.sym("w_du", nu) if move_weights_input else ca.DM(pb.w_du)
         values = {n: pb.stage_values_function(n) for n in sorted(set(pb.stage_substeps.tolist()))}
         dt = np.append(pb.dt, pb.dt[-1])
         ib, ip = INPUTS.index("blower_power_w"), STAGE_OUTPUTS.index("heater_power_w")
@@ -107,15 +112,17 @@ class PlanMerit:
                 cost += ready_w[k - 1] * short * short
             if k < N:
                 du = u - prev
-                cost += ca.dot(ca.DM(pb.w_du), du * du) + pb.flap_closure_cost(u, k, flap_target)
+                cost += ca.dot(w_du, du * du) + pb.flap_closure_cost(u, k, flap_target)
                 if pb.floor:
                     ih = pb.i_heater_cmd
                     row = pb.floor_row(y[i_flow], pb.u_off[ih] + pb.u_sc[ih] * u[ih])
                     cost += FLOOR_PENALTY_PER_LS * pb.slack_l1 * pb.dt[k] * ca.fmax(0.0, -row)
                 prev, x = u, x_next
         cost += pb.body_heat_cost(x0, x, u_prev, rows.body_heat_coef)  # x: the last node's state
-        return ca.Function("hvac_plan_merit", [x0, U, d, SW, ref, u_prev, p, ready_floor, ready_w], [cost],
-                           list(ARGUMENTS), ["cost"])
+        args, names = [x0, U, d, SW, ref, u_prev, p, ready_floor, ready_w], list(ARGUMENTS)
+        if move_weights_input:
+            args, names = [*args, w_du], [*names, "w_du"]
+        return ca.Function("hvac_plan_merit", args, [cost], names, ["cost"])
 
     def _slack_cost(self, k: int, x, u, rows):
         """The soft rows' price at stage k (1..N): the least slack that holds the heater row (and the PTC
@@ -169,9 +176,10 @@ def _mapped(fn: ca.Function, n: int, name: str, key: str) -> ca.Function:
     """``fn`` over ``n`` plans side by side (their inputs stacked along the columns of ``U``; the other
     arguments shared), the costs in a row.
 
-    ``key``: :func:`.codegen.expression_key` of ``fn`` (its structure; the model parameters are an argument): the
-    function built for a key, ``n`` and ``name`` is kept (:func:`.codegen.kept`) and returned as it is to the next
-    call with the same ones, since the common subexpressions of a merit of the default horizon take 2-7 s to find."""
+    ``key``: :func:`.codegen.expression_key` of ``fn`` (its structure; the model parameters and the move weights are
+    arguments): the function built for a key, ``n`` and ``name`` is kept (:func:`.codegen.kept`) and returned as it
+    is to the next call with the same ones, since the common subexpressions of a merit of the default horizon take
+    2-7 s to find."""
     return kept(f"plan merit {key} {n} {name}", lambda: _mapped_afresh(fn, n, name))
 
 
@@ -183,4 +191,4 @@ def _mapped_afresh(fn: ca.Function, n: int, name: str) -> ca.Function:
     Us = ca.SX.sym("Us", nu, N * n)
     costs = [fn(x0, Us[:, i * N:(i + 1) * N], *rest) for i in range(n)]
     # common subexpressions computed once (the plans share the start and the parameters' terms)
-    return ca.Function(name, [x0, Us, *rest], [ca.cse(ca.horzcat(*costs))], list(ARGUMENTS), ["cost"])
+    return ca.Function(name, [x0, Us, *rest], [ca.cse(ca.horzcat(*costs))], fn.name_in(), ["cost"])

@@ -216,3 +216,33 @@ def test_a_second_merit_of_the_same_structure_shares_the_first_ones_functions_an
             pb.model.p_default, 0.0, np.zeros(pb.N))
     kept = np.asarray(second._pair(*args)[0]).ravel()
     assert np.array_equal(kept, np.asarray(afresh(*args)[0]).ravel()) and kept[0] != kept[1]
+
+
+def test_other_move_weights_share_the_merits_functions_and_price_with_their_own(controller):
+    """The move weights are an input of the mapped merits, filled once (``TrackingProblem.w_du``): a problem with
+    three times the valve move weight (tests/test_small_code.py's second controller) takes the default structure's
+    functions (one build, one code cache key), and prices plans to the bit as its own merit with the weights as
+    constants does (the form before), not as the default's."""
+    import dataclasses
+
+    from hvac_mpc.mpc import codegen, plan_merit
+    from hvac_mpc.mpc.casadi_eval import BufferedFunction
+    from hvac_mpc.mpc.ocp import TrackingProblem
+
+    pb, first = controller.problem, controller.solver._merit
+    weights = dataclasses.replace(pb.spec.weights, move_valve_per_pct2=3 * pb.spec.weights.move_valve_per_pct2)
+    moved = TrackingProblem(Parameters(), dataclasses.replace(pb.spec, weights=weights))
+    other = PlanMerit(moved, first.fractions)
+    assert other._pair.fn is first._pair.fn and other._damped.fn is first._damped.fn
+    assert codegen.structure_key(other._pair.fn) == codegen.structure_key(first._pair.fn)
+    U = _plan(pb, 100.0, 30.0)
+    U[3:] = _plan(pb, 160.0, 60.0)[3:]  # valve a moves within the horizon: the move weights count
+    sw = controller.solver._stage_weights(pb.heating_weights(pb.w_y_full.copy(), heating=True))
+    args = (pb.scale_x(pb.placeholder_state()), np.concatenate([U, _plan(pb, 160.0, 60.0)]),
+            np.array([5.0, 5.0, 0.3, 0.0]), sw, pb.reference_vector(_reference()),
+            pb.scale_u(np.array([120.0, 80.0, 20.0, 50.0, 50.0, 50.0])), pb.model.p_default, 0.0, np.zeros(pb.N))
+    for merit, problem in ((other, moved), (first, pb)):
+        constants = BufferedFunction(plan_merit._mapped_afresh(PlanMerit.cost_function(merit), 2, "constants"))
+        assert np.array_equal(merit._pair(*args)[0], constants(*args)[0]), problem.w_du
+    priced = [np.asarray(merit._pair(*args)[0]).ravel() for merit in (other, first)]
+    assert priced[0][0] > priced[1][0]  # the plan that moves valve a costs more with its move weight tripled
