@@ -53,21 +53,15 @@ def test_the_retry_settings_are_checked():
     assert MpcSettings(solver="ipopt").osqp_cap_retry_rho == 3e-3
 
 
-@pytest.fixture(scope="module")
-def cache(tmp_path_factory):
-    """A cache folder of this module's own (the generated OSQP built once in it)."""
-    return tmp_path_factory.mktemp("cache")
-
-
 @pytest.mark.parametrize("generated", [False, True])
-def test_a_retry_not_taken_leaves_osqps_workspace_as_the_capped_qp_left_it(generated, cache, monkeypatch):
+def test_a_retry_not_taken_leaves_osqps_workspace_as_the_capped_qp_left_it(generated, code_cache, monkeypatch):
     """OSQP capped at 10 iterations: the cold first steps' QP ends at the cap without an answer, the retry at
     rho 1e-3 (from OSQP's 0.1) too; the capped solve's status is the step's, and OSQP's step size is the one before
     the retry again (the generated solver's whole workspace, multipliers and factorisation included, to the bit), so
     the next step does not start from the retry's. Each step's retries in ``extra["cap_retries"]``. Both
     steps fail, so both are cold starts: the retry is set on them (``osqp_cap_retry_on_cold_start`` True)."""
     if generated:
-        monkeypatch.setenv(codegen.CACHE_ENV, str(cache))
+        monkeypatch.setenv(codegen.CACHE_ENV, str(code_cache))
         monkeypatch.setenv(codegen.SWITCH_ENV, "1")
     ctrl = MpcController(settings=MpcSettings(codegen=False, osqp_codegen=generated, osqp_max_iter=10,
                                               osqp_cap_retry_rho=1e-3, osqp_cap_retry_on_cold_start=True))

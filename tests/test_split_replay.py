@@ -21,19 +21,13 @@ REPLAY = dataclasses.replace(UNSPLIT, change_split_iter=CAP, split_replays_chang
 ROUTES = pytest.mark.parametrize("generated", [True, False], ids=["generated OSQP", "OSQP's Python interface"])
 
 
-@pytest.fixture(scope="module")
-def cache(tmp_path_factory):
-    """A cache folder of this module's own (the generated OSQP built once in it)."""
-    return tmp_path_factory.mktemp("cache")
-
-
 @pytest.fixture
-def switch(cache, monkeypatch):
+def switch(code_cache, monkeypatch):
     """Code generation switched on for OSQP where a test asks for the generated solver (the suite runs with it off);
     the QP data stay interpreted (``codegen=False``)."""
     def on(generated: bool) -> None:
         if generated:
-            monkeypatch.setenv(codegen.CACHE_ENV, str(cache))
+            monkeypatch.setenv(codegen.CACHE_ENV, str(code_cache))
             monkeypatch.setenv(codegen.SWITCH_ENV, "1")
     return on
 

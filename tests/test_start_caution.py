@@ -311,15 +311,9 @@ def test_a_caution_in_the_qp_only_where_it_binds_leaves_a_start_it_does_not_bind
     assert [st["qp_solves"] for st in stats] == [st["qp_solves"] for st in plain_stats]
 
 
-@pytest.fixture(scope="module")
-def osqp_cache(tmp_path_factory):
-    """A cache folder of this module's own (the generated OSQP built once in it)."""
-    return tmp_path_factory.mktemp("cache")
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("generated", [True, False], ids=["generated OSQP", "OSQP's Python interface"])
-def test_a_caution_in_the_qp_only_where_it_binds_is_the_qps_bound_in_the_steps_it_binds(generated, osqp_cache,
+def test_a_caution_in_the_qp_only_where_it_binds_is_the_qps_bound_in_the_steps_it_binds(generated, code_cache,
                                                                                          monkeypatch):
     """S0-3's quick flow out of reach (as :func:`test_the_caution_caps_valve_as_first_opening_on_another_boxs_flow_jump`):
     the plain start strokes valve a 55 -> 93 % in the first sample, beyond the caution's 75 %. With
@@ -329,7 +323,7 @@ def test_a_caution_in_the_qp_only_where_it_binds_is_the_qps_bound_in_the_steps_i
     its QP count the plain step's and the bound step's together; valve a opens by at most the share of its rate, and
     the scored IAE is below half the plain start's. The QP data interpreted (``codegen`` False) as in the suite."""
     if generated:  # the suite runs with code generation off (tests/conftest.py); OSQP's generated for this case
-        monkeypatch.setenv(codegen.CACHE_ENV, str(osqp_cache))
+        monkeypatch.setenv(codegen.CACHE_ENV, str(code_cache))
         monkeypatch.setenv(codegen.SWITCH_ENV, "1")
     sc = scenarios.flow_out_of_reach().quick()
     route = {"codegen": False, "osqp_codegen": generated}

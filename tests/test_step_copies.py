@@ -21,19 +21,13 @@ def _bits(a) -> np.ndarray:
     return np.asarray(a, np.float64).view(np.int64)
 
 
-@pytest.fixture(scope="module")
-def cache(tmp_path_factory):
-    """A cache folder of this module's own (the generated OSQP built once in it)."""
-    return tmp_path_factory.mktemp("cache")
-
-
 @pytest.fixture
-def route(cache, monkeypatch):
+def route(code_cache, monkeypatch):
     """OSQP's generated solver switched on where a test asks for it (the suite runs with code generation off; the QP
     data stay interpreted, ``codegen=False``), else OSQP's Python interface."""
     def on(generated: bool) -> None:
         if generated:
-            monkeypatch.setenv(codegen.CACHE_ENV, str(cache))
+            monkeypatch.setenv(codegen.CACHE_ENV, str(code_cache))
             monkeypatch.setenv(codegen.SWITCH_ENV, "1")
     return on
 

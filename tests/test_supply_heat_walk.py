@@ -8,6 +8,7 @@ in 107 s with the heat released at rest, sec. 2.33).
 Budget: the open loop about 1 s a filter, the closed loop about 3 s a run.
 """
 
+import functools
 import math
 
 import numpy as np
@@ -191,7 +192,14 @@ def test_the_ptc_line_step_down_settles_within_the_bound_with_the_shaped_walk(sh
 
 def _ptc_steps(ekf: dict, search: bool = True, **fields) -> dict:
     """Settle time (s) and IAE (C s) of each step of ``test_mpc``'s PTC-line test with EkfSettings ``ekf`` (``search``
-    False: ``rti_reversal_search`` 0, else the default; ``fields``: other MpcSettings fields)."""
+    False: ``rti_reversal_search`` 0, else the default; ``fields``: other MpcSettings fields). The runs are
+    deterministic (no deadline reached): each is run once per process and kept (the shapes' tests share two)."""
+    return dict(_ptc_steps_run(tuple(sorted(ekf.items())), search, tuple(sorted(fields.items()))))
+
+
+@functools.lru_cache(maxsize=None)
+def _ptc_steps_run(ekf_items: tuple, search: bool, field_items: tuple) -> dict:
+    ekf, fields = dict(ekf_items), dict(field_items)
     from test_mpc import PARAMS, closed_loop
 
     from hvac_mpc.contract import Command, Reference
