@@ -35,12 +35,14 @@ def test_controllers(monkeypatch):
 
 
 @pytest.fixture(scope="session")
-def code_cache(tmp_path_factory):
+def code_cache(request, tmp_path_factory):
     """A code cache of this test run, shared by its modules and by pytest-xdist's workers (the folder above each
-    worker's own temporary folder): the generated solvers the tests switch on are built once per run, not once per
-    module. Builds are atomic (a shared object moved into place), so two workers building one structure at once both
-    load a whole one. Tests that count builds or need an empty cache keep a folder of their own."""
+    local worker's own temporary folder, which the run's controller made for this run): the generated solvers the
+    tests switch on are built once per run, not once per module. Builds are atomic (a shared object moved into
+    place), so two workers building one structure at once both load a whole one. Tests that count builds or need an
+    empty cache keep a folder of their own."""
     base = tmp_path_factory.getbasetemp()
-    folder = (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "shared-code-cache"
+    worker = getattr(request.config, "workerinput", None) is not None  # a pytest-xdist worker of this run
+    folder = (base.parent if worker else base) / "shared-code-cache"
     folder.mkdir(parents=True, exist_ok=True)
     return folder

@@ -18,6 +18,7 @@ from hvac_mpc.mpc.estimator import EkfSettings
 from hvac_mpc.mpc.mpc_controller import MpcSettings
 from hvac_mpc.mpc.ocp import InvalidSettings
 from hvac_mpc.mpc.start_caution import START_CAUTION_WHEN_BINDING
+from duty_weight_helpers import DUTY_WEIGHT_OFF
 
 #: Box S1-8 as ``python -m hvac_mpc.benchmarks.box_sweep --seed 1 --count 14 --list`` prints it.
 S1_8 = ("S1-8:transport_delay_s=4.34,duct_loss_ua_w_per_k=2.26,cooler_literal_fit=true,thermocouple_tau_scale=1.18,"
@@ -91,8 +92,8 @@ def test_settling_honours_s1_8s_dead_time_sooner_after_a_start_that_shuts_valve_
     runs = {s: box_trace.run_trace(S1_8, "winter_heating_steps", quick=True,
                                    settings={"start_caution_in_qp": START_CAUTION_WHEN_BINDING,
                                              # the path this setting was measured on (sec. 2.47): valve a's
-                                             # duty weight off, as before it became the default (sec. 2.52)
-                                             "valve_a_weight_on_duty": False,
+                                             # duty weight off, whatever the default (sec. 2.53)
+                                             **DUTY_WEIGHT_OFF,
                                              "ekf": {"dead_time_first_settle_s": s}})
             for s in (0.0, 15.0)}
     honoured = {s: np.array([row["dead_time_s"] for row in run["stats"][26:50]]) for s, run in runs.items()}

@@ -17,6 +17,7 @@ from hvac_mpc.mpc.dead_time import DeadTimeEstimator, longest_tied_minimum, shor
 from hvac_mpc.mpc.estimator import EkfSettings
 from hvac_mpc.mpc.mpc_controller import MpcSettings
 from hvac_mpc.mpc.ocp import InvalidSettings
+from duty_weight_helpers import DUTY_WEIGHT_OFF
 
 #: Box S1-11 as ``python -m hvac_mpc.benchmarks.box_sweep --seed 1 --count 14 --list`` prints it.
 S1_11 = ("S1-11:transport_delay_s=2.5,duct_loss_ua_w_per_k=2.53,thermocouple_tau_scale=0.76,blower_gain_scale=0.97,"
@@ -90,8 +91,8 @@ def test_the_longest_tie_after_a_step_finds_a_dead_time_on_s1_11_with_the_proxim
     runs = {s: box_trace.run_trace(S1_11, "winter_heating_steps", quick=True,
                                    settings={"rti_valve_a_prox": 30.0, "ekf": {"dead_time_step_longest_s": s},
                                              # the path this was measured on (sec. 2.46): valve a's duty
-                                             # weight off, as before it became the default (sec. 2.53)
-                                             "valve_a_weight_on_duty": False})
+                                             # weight off, whatever the default (sec. 2.53)
+                                             **DUTY_WEIGHT_OFF})
             for s in (0.0, 60.0)}
     after = {s: np.array([row["dead_time_s"] for row in run["stats"][95:]]) for s, run in runs.items()}
     assert np.all(after[0.0] < 1.5)  # no dead time honoured after the step to 15 C

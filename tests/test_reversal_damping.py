@@ -12,6 +12,7 @@ from hvac_mpc.models.model_file import RefinedModel
 from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
 from hvac_mpc.mpc.ocp import InvalidSettings
 from hvac_mpc.mpc.reversal_damping import damped_move
+from duty_weight_helpers import DUTY_WEIGHT_OFF
 
 
 def test_a_reversing_move_is_taken_in_part_and_a_move_onward_whole():
@@ -59,7 +60,7 @@ def _valve_a_reversals(share: float | None) -> tuple[int, float]:
     """Valve a's reversals (a move of at least MOVE_PCT against the last such move) within WINDOW_S, and the
     thermocouple IAE (C s) up to its end, of the MPC with the recirculation term on the recirculating box
     (``share``: ``valve_a_reversal_share``, None the default)."""
-    sc, mpc, plant = on_recirculating_box(valve_a_weight_on_duty=False,  # valve a's duty weight off
+    sc, mpc, plant = on_recirculating_box(**DUTY_WEIGHT_OFF,  # the path this was measured on (sec. 2.53)
                                           **({} if share is None else {"valve_a_reversal_share": share}))
     i_a = mpc.problem.i_valve_a
     a_prev, last_move, reversals, iae = None, 0.0, 0, 0.0
@@ -83,8 +84,8 @@ def test_reversal_share_damps_valve_a_two_cycle_on_the_recirculating_box():
     shut and valve a open (docs/identification.md, "The recirculation traced again"): without the damping
     (``valve_a_reversal_share=1``) valve a reverses nearly every second; with the default share it reverses far less
     often (measured 16 -> 7 reversals), and the thermocouple IAE up to 20 s after the step is lower (163.7 -> 141.5
-    C s). Both runs with valve a's duty weight off, the path this was measured on before it became the default
-    (docs/robustness.md sec. 2.52, 2.53); with it on, the default share gives 10 reversals against 19."""
+    C s). Both runs with valve a's duty weight off (``DUTY_WEIGHT_OFF``), the path this was measured on, whatever the
+    default (docs/robustness.md sec. 2.53); with it on, the default share gives 10 reversals against 19."""
     assert MpcSettings().valve_a_reversal_share < 1.0
     flips_off, iae_off = _valve_a_reversals(1.0)
     flips_on, iae_on = _valve_a_reversals(None)

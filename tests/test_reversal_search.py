@@ -11,6 +11,7 @@ import pytest
 
 from hvac_mpc.mpc.mpc_controller import MpcSettings
 from hvac_mpc.mpc.ocp import InvalidSettings, check_flag
+from duty_weight_helpers import DUTY_WEIGHT_OFF
 from hvac_mpc.mpc.reversal_search import (at_bound, candidates, check_share, check_wait, eligible_inputs,
                                           last_moves, turned_inputs)
 
@@ -268,10 +269,10 @@ def test_bound_only_keeps_valve_a_from_being_held_mid_stroke_in_winter_heating()
     step the same (measured, noise seed 0, thesis parameters with the term: 13 takes at 146-161 s -> none;
     300-345 s 37.3 -> 30.0 C s; 120-300 s 91.50 -> 91.58 C s; with the seed-5 file of ``refined_variants`` the
     whole winter 295.1 -> 261.0 C s, docs/identification.md, "Recirculation's refined winter, traced"). Both runs
-    with valve a's duty weight off, the path this was measured on before it became the default (docs/robustness.md
-    sec. 2.52, 2.53): with it on, the default search takes one candidate (149 s) and the
-    first 45 s of the step to 15 C cost 12.6 C s."""
-    previous = {"valve_a_weight_on_duty": False}  # the path this was measured on (sec. 2.52, 2.53)
+    with valve a's duty weight off (``DUTY_WEIGHT_OFF``), the path this was measured on, whatever the default
+    (docs/robustness.md sec. 2.53): with it on, the default search takes one candidate (149 s) and the first 45 s of
+    the step to 15 C cost 12.6 C s."""
+    previous = DUTY_WEIGHT_OFF  # the path this was measured on (sec. 2.53)
     default = _winter_on_recirculating_box(345, **previous)
     bound = _winter_on_recirculating_box(345, rti_reversal_bound_only=True, **previous)
     rise = [k for k in default["taken"] if 140 <= k < 170]

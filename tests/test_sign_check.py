@@ -22,11 +22,12 @@ from hvac_mpc.mpc.mpc_controller import MpcController, MpcSettings
 from hvac_mpc.mpc.ocp import InvalidSettings
 from hvac_mpc.mpc.sign_check import ValveSignCheck
 from recording_helpers import recording_mpc_factory
+from duty_weight_helpers import DUTY_WEIGHT_OFF
 
 ON = {"placement_sign_move_pct": 20.0}  # the default (docs/robustness.md sec. 2.34), pinned
 OFF = {"placement_sign_move_pct": math.inf}
-#: Valve a's duty weight off: the S2-7 runs' path as measured, before it became the default (robustness sec. 2.53).
-PREVIOUS_DUTY = {"valve_a_weight_on_duty": False}
+#: Valve a's duty weight off: the S2-7 runs' path as measured, whatever the default (robustness sec. 2.53).
+PREVIOUS_DUTY = DUTY_WEIGHT_OFF
 #: The filter without the heat flow into the mixed air, S2-7's figures were measured with (docs/robustness.md sec. 2.33:
 #: with the heat released at rest, ``HEAT``, the run without the check loses less, 367.0 C s against the baseline's
 #: 266.8).

@@ -23,6 +23,7 @@ from hvac_mpc.contract import Command
 from hvac_mpc.mismatch import make_plant
 from test_supply_heat import DUCT_BOX, HOLD_S, MOVES, error_after_flow_steps
 from test_supply_heat_gate import WALK_W, open_loop
+from duty_weight_helpers import DUTY_WEIGHT_OFF
 
 AT_REST = {"q_supply_heat_w": WALK_W, "supply_heat_release_at_rest": True}  # sec. 2.31's candidate, C1
 
@@ -179,9 +180,9 @@ def test_the_ptc_line_step_down_settles_within_the_bound_with_the_shaped_walk(sh
     undershoot at the heater's restart 0.57 C against 0.49 C; docs/identification.md, "The guarded search as the
     default").
 
-    All these runs with valve a's duty weight off, the path they were measured on before it became the default
-    (docs/robustness.md sec. 2.52, 2.53); with it on, C1's step down settles in 58 s."""
-    previous = {"valve_a_weight_on_duty": False}  # the path this was measured on (sec. 2.52, 2.53)
+    All these runs with valve a's duty weight off (``DUTY_WEIGHT_OFF``), the path they were measured on, whatever
+    the default (docs/robustness.md sec. 2.53); with it on, C1's step down settles in 58 s."""
+    previous = DUTY_WEIGHT_OFF  # the path this was measured on (sec. 2.53)
     c1, shaped, off = (_ptc_steps(AT_REST, search=False, **previous),
                        _ptc_steps({**AT_REST, **shape}, search=False, **previous),
                        _ptc_steps({}, search=False, **previous))
