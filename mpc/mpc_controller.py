@@ -1201,12 +1201,7 @@ class MpcController:
             qp_bounds, u_hi_binding = self._start_caution_bounds(bounds, qp_bounds, cap, heater_c)
         u_lo, u_hi = pb.input_bounds(self.u_prev, cap, heater_c, command=qp_bounds)
         y_ref = self._tracked_reference(ref, d, cap)
-        w_y = pb.heating_weights(pb.output_weights(ref), heating=self._valve_a_weighed(ref, d))
-        if s.valve_a_weight_on_duty_scale != 1.0 and not pb.heating(self.u_prev):
-            w_y[STAGE_OUTPUTS.index("valve_a_pct")] *= s.valve_a_weight_on_duty_scale
-        self._flow_factor = self._flow_weight_factor(y_ref, d)
-        w_y[1:5] *= self._flow_factor
-        self._set_reserve(w_y, ref, measurement)
+        w_y = self._output_weights(ref, d, y_ref, measurement)
         self._set_readiness(ref, d, cap, measurement)
         # --- feedback
         if not self._prepared_for_next:
@@ -1583,6 +1578,19 @@ class MpcController:
         hi[i] = opening_bound(float(bounds[0][i]), float(hi[i]), float(self.u_prev[i]),
                               float(pb.rate_phys[i] * pb.dt_s * share))
         return bounds[0], hi
+
+    def _output_weights(self, ref: Reference, d: np.ndarray, y_ref: np.ndarray, measurement: Measurement) -> np.ndarray:
+        """The tracked outputs' weights of this step: valve a's heating weight (:meth:`_valve_a_weighed`, scaled by
+        ``valve_a_weight_on_duty_scale`` while the heater is off), the flows' factor, then the heater reserve's
+        valve-a weight in place of both where the reserve is on."""
+        pb = self.problem
+        w_y = pb.heating_weights(pb.output_weights(ref), heating=self._valve_a_weighed(ref, d))
+        if self.settings.valve_a_weight_on_duty_scale != 1.0 and not pb.heating(self.u_prev):
+            w_y[STAGE_OUTPUTS.index("valve_a_pct")] *= self.settings.valve_a_weight_on_duty_scale
+        self._flow_factor = self._flow_weight_factor(y_ref, d)
+        w_y[1:5] *= self._flow_factor
+        self._set_reserve(w_y, ref, measurement)
+        return w_y
 
     def _valve_a_weighed(self, ref: Reference, d: np.ndarray) -> bool:
         """Whether valve a takes its heating weight this step: the heater commanded in the command in force, or with
