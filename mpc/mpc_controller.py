@@ -60,7 +60,8 @@ from hvac_mpc.contract import StepResult
 from .codegen import CodegenReport, compiled, shared, structure_key
 from .estimator import DisturbanceEkf, EkfSettings, finite_or
 from .priorities import ReachableFlow, flow_weight_factor
-from .ocp import HEATING_CMD_W, STAGE_OUTPUTS, HeaterOffBound, InvalidSettings, OcpSpec, TrackingProblem, check_flag, check_number, trap_cap_pct
+from .ocp import (FLOW_OUTPUTS, HEATING_CMD_W, STAGE_OUTPUTS, HeaterOffBound, InvalidSettings, OcpSpec, TrackingProblem,
+                  check_flag, check_number, trap_cap_pct)
 from hvac_mpc.contract import InvalidReference, Reference
 from .placement import PLACEMENTS, PlacementChoice
 from .sign_check import HeldAirChange, ValveSignCheck
@@ -1481,7 +1482,7 @@ class MpcController:
                                  self.settings.dt_s, flows=self._reach_flows)
         self._out_of_reach = dict(reach.out_of_reach)
         if reach.flow_m3s is not None and reach.flow_m3s < ref.volume_flow_m3s:
-            y_ref[1:5] *= reach.flow_m3s / ref.volume_flow_m3s
+            y_ref[FLOW_OUTPUTS] *= reach.flow_m3s / ref.volume_flow_m3s
         return y_ref
 
     def _note_temperature_reach(self, measurement: Measurement, ref: Reference, u_cmd: np.ndarray,
@@ -1588,7 +1589,7 @@ class MpcController:
         if self.settings.valve_a_weight_on_duty_scale != 1.0 and not pb.heating(self.u_prev):
             w_y[STAGE_OUTPUTS.index("valve_a_pct")] *= self.settings.valve_a_weight_on_duty_scale
         self._flow_factor = self._flow_weight_factor(y_ref, d)
-        w_y[1:5] *= self._flow_factor
+        w_y[FLOW_OUTPUTS] *= self._flow_factor
         self._set_reserve(w_y, ref, measurement)
         return w_y
 

@@ -75,6 +75,8 @@ TRACKED = ("supply_air_temp_c", "volume_flow_m3s", "flow_m_m3s", "flow_f_m3s", "
 #: Stage-function outputs: the tracked ones plus the electric heater power for the energy term and valve a's
 #: opening, penalised while heating (:attr:`Weights.valve_a_heating_per_pct2`).
 STAGE_OUTPUTS = TRACKED + ("heater_power_w", "valve_a_pct")
+#: The tracked flows among the stage outputs (the total and the three outlets' volume flows, m3/s), as a slice.
+FLOW_OUTPUTS = slice(TRACKED.index("volume_flow_m3s"), TRACKED.index("flow_w_m3s") + 1)
 #: Valve a's row of the stage outputs.
 _Y_VALVE_A = STAGE_OUTPUTS.index("valve_a_pct")
 #: Outlet m's row of the stage outputs: its weight is on where the reference's split is tracked.
