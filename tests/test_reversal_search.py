@@ -272,9 +272,8 @@ def test_bound_only_keeps_valve_a_from_being_held_mid_stroke_in_winter_heating()
     with valve a's duty weight off (``DUTY_WEIGHT_OFF``), the path this was measured on, whatever the default
     (docs/robustness.md sec. 2.53): with it on, the default search takes one candidate (149 s) and the first 45 s of
     the step to 15 C cost 12.6 C s."""
-    previous = DUTY_WEIGHT_OFF  # the path this was measured on (sec. 2.53)
-    default = _winter_on_recirculating_box(345, **previous)
-    bound = _winter_on_recirculating_box(345, rti_reversal_bound_only=True, **previous)
+    default = _winter_on_recirculating_box(345, **DUTY_WEIGHT_OFF)
+    bound = _winter_on_recirculating_box(345, rti_reversal_bound_only=True, **DUTY_WEIGHT_OFF)
     rise = [k for k in default["taken"] if 140 <= k < 170]
     assert len(rise) >= 5, default
     assert not [k for k in bound["taken"] if 140 <= k < 170], bound

@@ -26,8 +26,6 @@ from duty_weight_helpers import DUTY_WEIGHT_OFF
 
 ON = {"placement_sign_move_pct": 20.0}  # the default (docs/robustness.md sec. 2.34), pinned
 OFF = {"placement_sign_move_pct": math.inf}
-#: Valve a's duty weight off: the S2-7 runs' path as measured, whatever the default (robustness sec. 2.53).
-PREVIOUS_DUTY = DUTY_WEIGHT_OFF
 #: The filter without the heat flow into the mixed air, S2-7's figures were measured with (docs/robustness.md sec. 2.33:
 #: with the heat released at rest, ``HEAT``, the run without the check loses less, 367.0 C s against the baseline's
 #: 266.8).
@@ -225,8 +223,8 @@ def test_s2_7_valve_a_answered_the_other_way_round_switches_the_filter_and_close
     2.29, 2.33)."""
     full = scenarios.mismatch_scenarios()["winter_heating_steps"]
     cut = dataclasses.replace(full, segments=full.segments[:1])  # the 120 s warm-up at 9 C, then 180 s at 12 C
-    pinned = _run(S2_7, cut, {**ON, **HEAT_OFF, **PREVIOUS_DUTY})
-    heat = _run(S2_7, cut, {**ON, **HEAT, **PREVIOUS_DUTY})
+    pinned = _run(S2_7, cut, {**ON, **HEAT_OFF, **DUTY_WEIGHT_OFF})
+    heat = _run(S2_7, cut, {**ON, **HEAT, **DUTY_WEIGHT_OFF})
     for iae, base, verdicts, placements, valve_a in (heat, pinned):
         assert verdicts[-1] == 1
         first = verdicts.index(1)
@@ -234,7 +232,7 @@ def test_s2_7_valve_a_answered_the_other_way_round_switches_the_filter_and_close
         assert set(placements[first + 1:]) == {"heater_air"}  # the trial's sums do not take the switch back
         assert valve_a[-60:].max() < 30.0  # back towards the bypass, the box's coldest path
         assert iae < base
-    off_iae, off_base, _, off_placements, off_valve_a = _run(S2_7, cut, {**OFF, **HEAT_OFF, **PREVIOUS_DUTY})
+    off_iae, off_base, _, off_placements, off_valve_a = _run(S2_7, cut, {**OFF, **HEAT_OFF, **DUTY_WEIGHT_OFF})
     assert off_base == pytest.approx(base)  # the same baseline run
     assert "heater_air" not in off_placements[:first + 10] and off_valve_a[-60:].min() > 80.0
     assert off_iae > 1.5 * base > 1.5 * iae
@@ -254,13 +252,13 @@ def test_s2_7_with_the_heat_shaped_valve_a_creeps_and_the_held_rest_starts_the_d
     160 s, the heater air's filter takes over and valve a closes: 199.5 C s (the heat off's run 200.2)."""
     full = scenarios.mismatch_scenarios()["winter_heating_steps"]
     cut = dataclasses.replace(full, segments=full.segments[:1])
-    held = {**ON, **HEAT_F, "placement_sign_rest_hold_s": 10.0, **PREVIOUS_DUTY}
+    held = {**ON, **HEAT_F, "placement_sign_rest_hold_s": 10.0, **DUTY_WEIGHT_OFF}
     iae, base, verdicts, placements, valve_a = _run(S2_7, cut, held)
     assert verdicts[-1] == 1
     first = verdicts.index(1)
     assert 155 <= first <= 175 and set(placements[first + 1:]) == {"heater_air"}
     assert valve_a[-60:].max() < 30.0 and iae < 0.8 * base
-    plain_iae, plain_base, plain_verdicts, _, plain_valve_a = _run(S2_7, cut, {**ON, **HEAT_F, **PREVIOUS_DUTY})
+    plain_iae, plain_base, plain_verdicts, _, plain_valve_a = _run(S2_7, cut, {**ON, **HEAT_F, **DUTY_WEIGHT_OFF})
     assert plain_base == pytest.approx(base) and plain_verdicts[-1] == 0 and plain_valve_a[-60:].min() > 80.0
     assert plain_iae > base > iae
 

@@ -182,13 +182,12 @@ def test_the_ptc_line_step_down_settles_within_the_bound_with_the_shaped_walk(sh
 
     All these runs with valve a's duty weight off (``DUTY_WEIGHT_OFF``), the path they were measured on, whatever
     the default (docs/robustness.md sec. 2.53); with it on, C1's step down settles in 58 s."""
-    previous = DUTY_WEIGHT_OFF  # the path this was measured on (sec. 2.53)
-    c1, shaped, off = (_ptc_steps(AT_REST, search=False, **previous),
-                       _ptc_steps({**AT_REST, **shape}, search=False, **previous),
-                       _ptc_steps({}, search=False, **previous))
+    c1, shaped, off = (_ptc_steps(AT_REST, search=False, **DUTY_WEIGHT_OFF),
+                       _ptc_steps({**AT_REST, **shape}, search=False, **DUTY_WEIGHT_OFF),
+                       _ptc_steps({}, search=False, **DUTY_WEIGHT_OFF))
     assert c1["down"][0] > 90 and shaped["down"][0] <= 90 and shaped["up"][0] <= 110
     assert shaped["down"][1] < off["down"][1]
-    assert _ptc_steps({**AT_REST, **shape}, **previous)["down"][1] < off["down"][1]  # with the search too
+    assert _ptc_steps({**AT_REST, **shape}, **DUTY_WEIGHT_OFF)["down"][1] < off["down"][1]  # with the search too
 
 
 def _ptc_steps(ekf: dict, search: bool = True, **fields) -> dict:
