@@ -60,7 +60,7 @@ from hvac_mpc.contract import StepResult
 from .codegen import CodegenReport, compiled, shared, structure_key
 from .estimator import DisturbanceEkf, EkfSettings, finite_or
 from .priorities import ReachableFlow, flow_weight_factor
-from .ocp import (FLOW_OUTPUTS, HEATING_CMD_W, STAGE_OUTPUTS, HeaterOffBound, InvalidSettings, OcpSpec, TrackingProblem,
+from .ocp import (FLOW_OUTPUTS, HEATING_CMD_W, Y_VALVE_A, HeaterOffBound, InvalidSettings, OcpSpec, TrackingProblem,
                   check_flag, check_number, trap_cap_pct)
 from hvac_mpc.contract import InvalidReference, Reference
 from .placement import PLACEMENTS, PlacementChoice
@@ -1587,7 +1587,7 @@ class MpcController:
         pb = self.problem
         w_y = pb.heating_weights(pb.output_weights(ref), heating=self._valve_a_weighed(ref, d))
         if self.settings.valve_a_weight_on_duty_scale != 1.0 and not pb.heating(self.u_prev):
-            w_y[STAGE_OUTPUTS.index("valve_a_pct")] *= self.settings.valve_a_weight_on_duty_scale
+            w_y[Y_VALVE_A] *= self.settings.valve_a_weight_on_duty_scale
         self._flow_factor = self._flow_weight_factor(y_ref, d)
         w_y[FLOW_OUTPUTS] *= self._flow_factor
         self._set_reserve(w_y, ref, measurement)
@@ -1615,7 +1615,7 @@ class MpcController:
         pb = self.problem
         reading = finite_or(getattr(measurement, "supply_temp_c", None), float("nan"))
         body_c = float(self.ekf.x[pb.i_heater])
-        w_y[STAGE_OUTPUTS.index("valve_a_pct")] = self.reserve.weight(
+        w_y[Y_VALVE_A] = self.reserve.weight(
             supply_ref_c=finite_or(ref.supply_temp_c, float("nan")),
             flow_ref_m3s=finite_or(ref.volume_flow_m3s, float("nan")), reading_c=reading,
             heating=pb.heating(self.u_prev), heater_cmd_w=float(self.u_prev[pb.i_heater_cmd]),

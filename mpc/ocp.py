@@ -78,7 +78,7 @@ STAGE_OUTPUTS = TRACKED + ("heater_power_w", "valve_a_pct")
 #: The tracked flows among the stage outputs (the total and the three outlets' volume flows, m3/s), as a slice.
 FLOW_OUTPUTS = slice(TRACKED.index("volume_flow_m3s"), TRACKED.index("flow_w_m3s") + 1)
 #: Valve a's row of the stage outputs.
-_Y_VALVE_A = STAGE_OUTPUTS.index("valve_a_pct")
+Y_VALVE_A = STAGE_OUTPUTS.index("valve_a_pct")
 #: Outlet m's row of the stage outputs: its weight is on where the reference's split is tracked.
 _Y_OUTLET_M = STAGE_OUTPUTS.index("flow_m_m3s")
 
@@ -814,7 +814,7 @@ class TrackingProblem:
     def heating_weights(self, w_y: np.ndarray, heating: bool) -> np.ndarray:
         """``w_y`` with valve a's weight (:attr:`Weights.valve_a_heating_per_pct2`) on while ``heating`` (the heater
         commanded), off otherwise."""
-        w_y[_Y_VALVE_A] = self.valve_a_heating_weight if heating else 0.0
+        w_y[Y_VALVE_A] = self.valve_a_heating_weight if heating else 0.0
         return w_y
 
     # ------------------------------------------------------------------ CasADi
