@@ -104,7 +104,10 @@ def time_case(name: str, case: LogCase, duration_s: float, seed: int, folder: Pa
             "moved": {c["name"]: round(c["change"], 4) for c in res.parameter_confidence if c["moved"]},
             "timings_s": dict(res.timings, load_s=load_wall, load_cpu_s=load_cpu),
             "terms_in_words": [t.description for t in res.terms], "pairs": res.pairs, "joint": res.joint,
-            "notes": list(res.notes)}
+            "notes": list(res.notes),
+            # the main process's whole-log runs: found built in the code cache, built during this run, or not
+            # (docs/identification.md "Runs as generated C")
+            "runs_as_c": res.fitter.builds.summary()}
 
 
 PARTS = ("load", "nominal_fit", "diagnostics", "candidates", "discovery", "pairs", "joint", "final_diagnostics")

@@ -17,6 +17,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from hvac_mpc.models.parameters import Parameters
+from hvac_mpc.mpc.codegen_background import BackgroundBuilds
 
 from . import statistics as st
 from .pairs import gauss_newton_step
@@ -99,6 +100,8 @@ class Fitter:
                                for o in self.outputs])
         self.names = Parameters.scalar_names()
         self._sims: dict[frozenset, Simulator] = {}
+        #: the simulators' step functions as generated C once built (docs/identification.md "Runs as generated C")
+        self.builds = BackgroundBuilds()
         #: Rows up to the last training row: a fit's residual and Jacobian, a screening step and a training cost
         #: use these alone (the held-out rows are the log's last part, log_data.prepare), so runs stop there.
         self.train_rows = int(np.flatnonzero(log.train)[-1]) + 1 if np.any(log.train) else log.n
@@ -106,7 +109,7 @@ class Fitter:
     def simulator(self, effects: Iterable[str], terms: tuple = ()) -> Simulator:
         key = (frozenset(effects), tuple(terms))
         if key not in self._sims:
-            self._sims[key] = Simulator(self.log, self.base, key[0], self.outputs, key[1])
+            self._sims[key] = Simulator(self.log, self.base, key[0], self.outputs, key[1], builds=self.builds)
         return self._sims[key]
 
     # ------------------------------------------------------------------ costs

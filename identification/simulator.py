@@ -21,6 +21,7 @@ temperature").
 
 from __future__ import annotations
 
+import zlib
 from types import SimpleNamespace
 from typing import Iterable, Sequence
 
@@ -28,6 +29,7 @@ import casadi as ca
 import numpy as np
 
 from hvac_mpc.models import chiller, valves
+from hvac_mpc.mpc.codegen_background import BackgroundBuilds
 from hvac_mpc.models.box import INPUTS, HvacModel
 from hvac_mpc.models.parameters import Parameters
 
@@ -62,10 +64,13 @@ class Simulator:
     """One model structure (effects) over one log; ``outputs`` are the logged outputs to predict."""
 
     def __init__(self, log: LogData, params: Parameters, effects: Iterable[str], outputs: Sequence[str],
-                 terms: tuple = (), two_point: bool = True):
+                 terms: tuple = (), two_point: bool = True, builds: BackgroundBuilds | None = None):
         """``two_point``: without a logged water temperature, the model's water follows the chiller's two-point
-        control (module docstring); False: it ramps to the logged set point and stays there."""
+        control (module docstring); False: it ramps to the logged set point and stays there. ``builds``: the step
+        functions run as generated C once built (:mod:`hvac_mpc.mpc.codegen_background`; the same values to the
+        bit); None: always in CasADi's interpreter."""
         self.log = log
+        self.builds = builds
         self.params = params
         self.two_point = bool(two_point and log.water_temp_c is None)
         # the two-point control as the plant has it (models/plant.py): the relay and the thesis's two water slopes
@@ -252,11 +257,13 @@ class Simulator:
         self._runs = ([(key, run)] + [(k, r) for k, r in self._runs if k != key])[:RUNS_KEPT]
         return run
 
-    def _mapped(self, fn: ca.Function, rows: int) -> ca.Function:
-        """``fn`` (a step: state, row inputs, constants -> next state, row outputs) mapped over ``rows`` rows."""
-        key = (fn.name(), rows)
+    def _mapped(self, fn: ca.Function, rows: int, step: ca.Function | None = None) -> ca.Function:
+        """``fn`` (a step: state, row inputs, constants -> next state, row outputs) mapped over ``rows`` rows;
+        ``step``: the form of ``fn`` to map (its generated C, :attr:`builds`), ``fn`` itself by default."""
+        step = fn if step is None else step
+        key = (fn.name(), rows, step is not fn)
         if key not in self._maps:
-            self._maps[key] = fn.mapaccum(f"{fn.name()}_{rows}", rows, [0], [0])
+            self._maps[key] = step.mapaccum(f"{fn.name()}_{rows}", rows, [0], [0])
         return self._maps[key]
 
     def _chain(self, fn: ca.Function, x0: np.ndarray, z: np.ndarray, *const, per_row: tuple = ()
@@ -266,9 +273,10 @@ class Simulator:
         outputs of each row (one column per row)."""
         xs, ys = [], []
         x = x0
+        step = fn if self.builds is None else self.builds.function(fn)  # one run: one call asked for
         for k in range(0, z.shape[1], CHUNK_ROWS):
             zk = z[:, k:k + CHUNK_ROWS]
-            x_k, y_k = self._mapped(fn, zk.shape[1])(x, zk, *const, *(a[:, k:k + CHUNK_ROWS] for a in per_row))
+            x_k, y_k = self._mapped(fn, zk.shape[1], step)(x, zk, *const, *(a[:, k:k + CHUNK_ROWS] for a in per_row))
             xs.append(np.asarray(x_k))
             ys.append(np.asarray(y_k))
             x = xs[-1][:, -1]
@@ -302,7 +310,8 @@ class Simulator:
         cy, dp = ca.jacobian(y, x), ca.jacobian(y, p_sel)
         s_next = ca.mtimes(a, s) + ca.mtimes(bp, ca.diag(c))
         dy = ca.mtimes(cy, s) + ca.mtimes(dp, ca.diag(c))
-        f = ca.Function(f"f_aug_{len(self._aug_cache)}", [ca.vertcat(x, ca.vec(s)), z, p, c],
+        # named by the parameters (not by the order they were asked for), so one structure has one name everywhere
+        f = ca.Function(f"f_aug_{zlib.crc32(repr(idx).encode()):08x}", [ca.vertcat(x, ca.vec(s)), z, p, c],
                         [ca.vertcat(x_next, ca.vec(s_next)), ca.vertcat(y, ca.vec(dy))])
         self._aug_cache[idx] = f
         return f

@@ -8,6 +8,9 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 # The suite builds many structures (horizons, effects, delays), so it runs CasADi's interpreter on
 # the same functions; tests/test_codegen.py switches the compiler on and checks both agree.
 os.environ.setdefault("HVAC_MPC_CODEGEN", "0")
+# Identification's whole-log runs stay interpreted too (mpc/codegen_background.py follows the switch above): from an
+# empty cache their builds, beside two busy test workers, cost more than they save (27:18 against 22:48 for the
+# whole suite, docs/identification.md "Runs as generated C"); tests/test_codegen_background.py switches them on.
 
 
 import pytest  # noqa: E402
