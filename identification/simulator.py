@@ -261,7 +261,7 @@ class Simulator:
         """``fn`` (a step: state, row inputs, constants -> next state, row outputs) mapped over ``rows`` rows;
         ``step``: the form of ``fn`` to map (its generated C, :attr:`builds`), ``fn`` itself by default."""
         step = fn if step is None else step
-        key = (fn.name(), rows, step is not fn)
+        key = (id(fn), rows, step is not fn)  # the functions live as long as the simulator: their ids stay theirs
         if key not in self._maps:
             self._maps[key] = step.mapaccum(f"{fn.name()}_{rows}", rows, [0], [0])
         return self._maps[key]

@@ -36,17 +36,27 @@ from .codegen import CFLAGS, SWITCH_ENV, cache_dir, compiler, structure_key
 #: generated C").
 AFTER_CALLS = 0
 #: Environment variable switching these builds on (``1``) or off (``0``) whatever ``HVAC_MPC_CODEGEN`` says
-#: (the suite turns the MPC's builds off, 5-30 s each, and keeps these, about a second each).
+#: (a lab may keep the MPC's off, 5-30 s each, and want these, about a second each; the suite keeps both off).
 RUN_BUILDS_ENV = "HVAC_MPC_RUN_BUILDS"
-#: A build folder older than this, s, is taken to be a build that was killed, and is started again.
+#: A build slot without a process id (a build the caller waits for) older than this, s, is taken to be a build that
+#: was killed; so is a failed build's note, after which the structure is built again.
 STALE_S = 900.0
-#: Builds under way in one cache folder at most (each compiler takes 60-80 MB; on a machine whose cores are busy the
-#: lowest priority does not stop dozens of them from sharing a quarter of the cores): a function asked for while
-#: this many are under way stays interpreted until a later call finds a place.
+#: Builds under way in one cache folder at most, one slot folder each (``.slot_0``, ``.slot_1``, claimed by making
+#: it; each compiler takes 60-80 MB, and on a machine whose cores are busy the lowest priority does not stop dozens of
+#: them from sharing a quarter of the cores): a function asked for while every slot is taken stays interpreted until
+#: a later call finds one free.
 MAX_BUILDS = 2
-#: The detached build: compile (at the lowest priority, where ``nice`` exists), move the shared object into place,
-#: remove the build folder whatever happened. Arguments after the script: the compiler's whole command line.
-_SCRIPT = '"$@" >/dev/null 2>&1 && mv -f "$HVAC_OUT" "$HVAC_LIB"; rm -rf "$HVAC_DIR"'
+#: The build: compile (at the lowest priority where ``nice`` exists), move the shared object into place, or keep the
+#: compiler's last messages in the failure note; then free the slot. Arguments after the script: the compiler's
+#: whole command line.
+_BUILD = ('"$@" >/dev/null 2>"$HVAC_DIR/stderr" && mv -f "$HVAC_OUT" "$HVAC_LIB" '
+          '|| tail -c 2000 "$HVAC_DIR/stderr" >"$HVAC_FAILED"; rm -rf "$HVAC_DIR"')
+#: The same detached from the caller (a process group of its own, so a signal to the caller's group, as a time limit or
+#: a cancelled job sends it, does not end it half-way; in the caller's session, because with the kernel's automatic
+#: grouping by session a session of its own would share the cores with the caller as an equal whatever its
+#: niceness: an identification from an empty cache took 66 s instead of 47-54), its process id in the slot for
+#: :func:`_stale`.
+_DETACHED = f'({_BUILD}) </dev/null >/dev/null 2>&1 & {{ echo $! >"$HVAC_DIR/pid"; }} 2>/dev/null'
 
 
 def enabled() -> bool:
@@ -59,12 +69,14 @@ def enabled() -> bool:
 
 @dataclass
 class _Entry:
-    """One function's state: its shared object's path, the calls counted, the loaded C form once there is one."""
+    """One function's state: its shared object's path, the calls counted, the loaded C form once there is one,
+    ``done`` once nothing more is to be tried (loaded, or its build failed)."""
 
     fn: ca.Function
     lib: Path
     calls: int = 0
     started: bool = False
+    done: bool = False
     compiled: ca.Function | None = None
 
 
@@ -72,9 +84,11 @@ class BackgroundBuilds:
     """The builds of one piece of work (an identification's :class:`~hvac_mpc.identification.fitting.Fitter`).
 
     :meth:`function` gives a function's C form where it is built, else the function itself. ``after``: calls run
-    interpreted before a build starts (0: it starts at the first). ``wait``: the caller waits for each build (tests compare both forms with it).
-    ``outcomes`` says, per function name and key, ``"cached"`` (found), ``"built"`` (started here and loaded),
-    ``"building"`` or ``"counted"`` (not built yet)."""
+    interpreted before a build starts (0: it starts at the first). ``wait``: the caller waits for each build (tests
+    compare both forms with it). ``outcomes`` says, per shared object's name: ``"cached"`` (found), ``"built"``
+    (started here and loaded), ``"building"``, ``"counted"`` (not started: too early or no free slot), ``"failed:
+    NOTE"`` (the compiler failed; its messages in the note beside the cache's shared objects) or ``"interpreted:
+    why"`` (the shared object did not load)."""
 
     def __init__(self, after: int = AFTER_CALLS, wait: bool = False, on: bool | None = None):
         self.after = int(after)
@@ -91,7 +105,7 @@ class BackgroundBuilds:
         entry = self._entries.get(id(fn))
         if entry is None:
             entry = self._entries[id(fn)] = _Entry(fn, cache_dir() / f"{fn.name()}_{structure_key(fn)}.so")
-        if entry.compiled is None:
+        if not entry.done:
             self._advance(entry)
         return entry.compiled if entry.compiled is not None else fn
 
@@ -104,68 +118,123 @@ class BackgroundBuilds:
         tag = entry.lib.stem
         if not entry.lib.exists():
             entry.calls += 1
-            if entry.started or entry.calls <= self.after:
+            if entry.calls <= self.after or (entry.started and not self.wait):
                 self.outcomes.setdefault(tag, "counted")
+                if entry.started and _failed(entry.lib):
+                    self._fail(entry)
                 return
-            entry.started = _start(entry.fn, entry.lib, self.wait)
+            if _failed(entry.lib):
+                return self._fail(entry)
+            entry.started = entry.started or _start(entry.fn, entry.lib, self.wait)
             self.outcomes[tag] = "building" if entry.started else "counted"
             if not entry.lib.exists():
+                if self.wait and entry.started:
+                    self._fail(entry)
                 return
+        entry.done = True
         try:
             entry.compiled = ca.external(entry.fn.name(), str(entry.lib))
         except Exception as exc:  # noqa: BLE001 - a broken file: the interpreter gives the same values
-            self.outcomes[tag] = f"interpreted: {type(exc).__name__}"
-            entry.started = True
+            self.outcomes[tag] = f"interpreted: {type(exc).__name__}: {str(exc)[:200]}"
             return
         self.outcomes[tag] = "built" if entry.started else "cached"
 
+    def _fail(self, entry: _Entry) -> None:
+        """``entry``'s build failed: nothing more is tried in this piece of work."""
+        entry.done = True
+        self.outcomes[entry.lib.stem] = f"failed: {_note(entry.lib)}"
 
-def _start(fn: ca.Function, lib: Path, wait: bool) -> bool:
-    """Generate ``fn``'s C in a build folder claimed beside ``lib`` and start its detached build (``wait``: run it to
-    the end). False when another process's build of ``lib`` is under way or the folder cannot be made."""
-    folder = lib.parent / f".build_{lib.stem}"
+
+def _note(lib: Path) -> Path:
+    """The failure note of ``lib``'s build (the compiler's last messages), beside it."""
+    return lib.with_name(f"{lib.stem}.failed")
+
+
+def _failed(lib: Path) -> bool:
+    """True while a note says ``lib``'s last build failed (for :data:`STALE_S`; then it is built again)."""
     try:
-        lib.parent.mkdir(parents=True, exist_ok=True)
-        if _under_way(lib.parent) >= MAX_BUILDS:
-            return False
-        _claim(folder)
+        return time.time() - _note(lib).stat().st_mtime < STALE_S
     except OSError:
         return False
+
+
+def _start(fn: ca.Function, lib: Path, wait: bool) -> bool:
+    """Generate ``fn``'s C in a free build slot of ``lib``'s cache folder and start its build, detached (``wait``: run
+    it to the end). False when ``lib`` is being built in another slot, when no slot is free, or on an error."""
+    cache = lib.parent
     try:
+        cache.mkdir(parents=True, exist_ok=True)
+        if any(_target(slot) == lib.name and not _stale(slot) for slot in _slots(cache)):
+            return False
+        slot = _claim(cache)
+    except OSError:
+        return False
+    if slot is None:
+        return False
+    try:
+        (slot / "target").write_text(lib.name)
         generator = ca.CodeGenerator(f"{lib.stem}.c", {"with_header": False})
         generator.add(fn)
-        source = Path(generator.generate(f"{folder}{os.sep}"))  # into the folder, the working directory left alone
+        source = Path(generator.generate(f"{slot}{os.sep}"))  # into the slot, the working directory left alone
     except Exception:  # noqa: BLE001 - nothing built: the interpreter goes on
-        shutil.rmtree(folder, ignore_errors=True)
+        shutil.rmtree(slot, ignore_errors=True)
         return False
-    out = folder / lib.name
+    out = slot / lib.name
     nice = ["nice", "-n", "19"] if shutil.which("nice") and not wait else []
     command = [*nice, compiler(), *CFLAGS, str(source), "-o", str(out), "-lm"]
-    env = {**os.environ, "HVAC_OUT": str(out), "HVAC_LIB": str(lib), "HVAC_DIR": str(folder)}
-    script = _SCRIPT if wait else f"({_SCRIPT}) </dev/null >/dev/null 2>&1 &"
-    subprocess.run(["sh", "-c", script, "sh", *command], env=env, check=False, stdin=subprocess.DEVNULL)
+    env = {**os.environ, "HVAC_OUT": str(out), "HVAC_LIB": str(lib), "HVAC_DIR": str(slot),
+           "HVAC_FAILED": str(_note(lib))}
+    subprocess.run(["sh", "-c", _BUILD if wait else _DETACHED, "sh", *command], env=env, check=False,
+                   stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                   process_group=None if wait else 0)
     return True
 
 
-def _under_way(cache: Path) -> int:
-    """Builds under way in ``cache``: its build folders younger than :data:`STALE_S`."""
-    now = time.time()
-    count = 0
-    for folder in cache.glob(".build_*"):
-        try:
-            count += now - folder.stat().st_mtime < STALE_S
-        except OSError:  # finished meanwhile
-            pass
-    return count
+def _slots(cache: Path) -> list[Path]:
+    return [cache / f".slot_{k}" for k in range(MAX_BUILDS)]
 
 
-def _claim(folder: Path) -> None:
-    """Make ``folder`` (this process's claim on a build); one left by a build killed :data:`STALE_S` ago is taken
-    over. Raises FileExistsError while another build holds it."""
+def _target(slot: Path) -> str | None:
+    """The shared object a slot is building (None: a free slot, or one being set up or cleared)."""
     try:
-        folder.mkdir()
-    except FileExistsError:
-        if time.time() - folder.stat().st_mtime < STALE_S:
-            raise
-        shutil.rmtree(folder, ignore_errors=True)
-        folder.mkdir()
+        return (slot / "target").read_text()
+    except OSError:
+        return None
+
+
+def _claim(cache: Path) -> Path | None:
+    """A free slot of ``cache``, made (atomically: this process's claim); a stale one (:func:`_stale`) is cleared and
+    taken. None when every slot holds a live build."""
+    for slot in _slots(cache):
+        try:
+            slot.mkdir()
+            return slot
+        except FileExistsError:
+            if not _stale(slot):
+                continue
+            shutil.rmtree(slot, ignore_errors=True)
+            try:
+                slot.mkdir()
+                return slot
+            except FileExistsError:  # another process took it first
+                continue
+    return None
+
+
+def _stale(slot: Path) -> bool:
+    """True for a slot whose build is gone: its process has ended (its id in ``pid``), or, without one, the slot is
+    older than :data:`STALE_S` (a build waited for and killed)."""
+    try:
+        pid = int((slot / "pid").read_text())
+    except (OSError, ValueError):
+        try:
+            return time.time() - slot.stat().st_mtime > STALE_S
+        except OSError:
+            return False  # cleared meanwhile: the next claim makes it
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except OSError:  # alive, another user's
+        return False
+    return False

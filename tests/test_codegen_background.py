@@ -3,7 +3,9 @@ values to the bit as CasADi's interpreter, built once per structure, found in th
 
 import os
 import shutil
+import subprocess
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -28,7 +30,12 @@ def log(tmp_path_factory):
 
 def _runs(log, builds):
     """A free run and the sensitivities of four parameters on ``log``, with ``builds`` (None: interpreted)."""
-    sim = Simulator(log, Parameters(), DOCUMENTED_EFFECTS, tuple(log.outputs), builds=builds)
+    return _runs_on(Simulator(log, Parameters(), DOCUMENTED_EFFECTS, tuple(log.outputs), builds=builds))
+
+
+def _runs_on(sim):
+    """A free run and the sensitivities of four parameters by ``sim`` (its kept runs forgotten first)."""
+    sim._runs = []
     p = np.asarray(Parameters().vector())
     e = np.zeros((len(p), 4))
     for j, i in enumerate((0, 3, 7, 11)):
@@ -66,21 +73,90 @@ def test_a_function_is_built_only_after_the_calls_asked_for(log, tmp_path, monke
     assert builds.function(sim.f_step_y) is third  # loaded once
 
 
-def test_a_build_under_way_elsewhere_is_not_started_again_and_a_stale_one_is_taken_over(log, tmp_path, monkeypatch):
-    monkeypatch.setenv("HVAC_MPC_CACHE_DIR", str(tmp_path))
-    sim = Simulator(log, Parameters(), DOCUMENTED_EFFECTS, tuple(log.outputs))
+def _dead_pid() -> int:
+    """The id of a process that has ended."""
+    proc = subprocess.Popen(["true"])
+    proc.wait()
+    return proc.pid
+
+
+def _slot(cache, k: int, target: str, pid: int | None):
+    """Build slot ``k`` of ``cache`` as another process leaves it: building ``target``, its process ``pid``."""
+    slot = cache / f".slot_{k}"
+    slot.mkdir()
+    (slot / "target").write_text(target)
+    if pid is not None:
+        (slot / "pid").write_text(str(pid))
+    return slot
+
+
+def _stem(sim, cache) -> str:
     probe = cb.BackgroundBuilds(after=10, on=True)  # counts, starts nothing
     probe.function(sim.f_y)
     (stem,) = probe.outcomes
-    claim = tmp_path / f".build_{stem}"
-    claim.mkdir()
+    return stem
+
+
+def test_a_build_under_way_elsewhere_is_not_started_again_and_a_dead_ones_slot_is_taken_over(log, tmp_path,
+                                                                                            monkeypatch):
+    monkeypatch.setenv("HVAC_MPC_CACHE_DIR", str(tmp_path))
+    sim = Simulator(log, Parameters(), DOCUMENTED_EFFECTS, tuple(log.outputs))
+    slot = _slot(tmp_path, 0, f"{_stem(sim, tmp_path)}.so", os.getpid())  # a live process builds it
     held = cb.BackgroundBuilds(after=0, wait=True, on=True)
     assert held.function(sim.f_y) is sim.f_y and held.summary() == {"counted": 1}
+    assert not (tmp_path / ".slot_1").exists()
+    (slot / "pid").write_text(str(_dead_pid()))  # its process ended without finishing
+    assert held.function(sim.f_y) is not sim.f_y and held.summary() == {"built": 1}
+    assert not any(p.name.startswith(".slot") for p in tmp_path.iterdir())
+
+
+def test_no_build_starts_while_every_slot_is_taken_and_a_slot_waited_for_is_stale_only_late(log, tmp_path,
+                                                                                             monkeypatch):
+    monkeypatch.setenv("HVAC_MPC_CACHE_DIR", str(tmp_path))
+    sim = Simulator(log, Parameters(), DOCUMENTED_EFFECTS, tuple(log.outputs))
+    others = [_slot(tmp_path, k, f"other_{k}.so", os.getpid()) for k in range(cb.MAX_BUILDS - 1)]
+    others.append(_slot(tmp_path, cb.MAX_BUILDS - 1, "waited.so", None))  # a build its caller waits for: no pid
+    builds = cb.BackgroundBuilds(after=0, wait=True, on=True)
+    assert builds.function(sim.f_y) is sim.f_y and builds.summary() == {"counted": 1}
+    assert sorted(tmp_path.iterdir()) == sorted(others)  # nothing of its own started
     old = time.time() - cb.STALE_S - 10
-    os.utime(claim, (old, old))
-    taken = cb.BackgroundBuilds(after=0, wait=True, on=True)
-    assert taken.function(sim.f_y) is not sim.f_y and taken.summary() == {"built": 1}
-    assert not claim.exists()
+    os.utime(others[-1], (old, old))  # killed long ago
+    assert builds.function(sim.f_y) is not sim.f_y and builds.summary() == {"built": 1}  # its slot taken
+
+
+def test_a_detached_build_is_loaded_once_it_is_there_with_the_same_values(log, tmp_path, monkeypatch):
+    """The mode an identification runs in: the caller goes on interpreted, the build ends on its own."""
+    monkeypatch.setenv("HVAC_MPC_CACHE_DIR", str(tmp_path))
+    reference = _runs(log, None)
+    builds = cb.BackgroundBuilds(after=0, on=True)
+    sim = Simulator(log, Parameters(), DOCUMENTED_EFFECTS, tuple(log.outputs), builds=builds)
+    first = _runs_on(sim)
+    assert set(builds.outcomes.values()) <= {"building", "built"}, builds.outcomes  # not waited for
+    deadline = time.monotonic() + 120.0
+    while len(list(tmp_path.glob("*.so"))) < 2 and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert len(list(tmp_path.glob("*.so"))) == 2, list(tmp_path.iterdir())
+    deadline = time.monotonic() + 10.0  # the slot is freed just after the move
+    while any(p.name.startswith(".slot") for p in tmp_path.iterdir()) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not any(p.name.startswith(".slot") for p in tmp_path.iterdir())
+    second = _runs_on(sim)
+    assert builds.summary() == {"built": 2}, builds.outcomes  # the same simulator switched to the C form
+    for a, b, c in zip(reference, first, second):
+        assert np.array_equal(a, b, equal_nan=True) and np.array_equal(a, c, equal_nan=True)
+
+
+def test_a_failed_build_leaves_a_note_and_is_not_tried_again_until_the_note_is_old(log, tmp_path, monkeypatch):
+    monkeypatch.setenv("HVAC_MPC_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(cb, "CFLAGS", ("-no-such-flag",))
+    sim = Simulator(log, Parameters(), DOCUMENTED_EFFECTS, tuple(log.outputs))
+    builds = cb.BackgroundBuilds(after=0, wait=True, on=True)
+    assert builds.function(sim.f_y) is sim.f_y
+    (outcome,) = builds.outcomes.values()
+    assert outcome.startswith("failed: ") and "no-such-flag" in Path(outcome[8:]).read_text()
+    again = cb.BackgroundBuilds(after=0, wait=True, on=True)
+    assert again.function(sim.f_y) is sim.f_y and again.summary() == {"failed": 1}
+    assert not any(p.name.startswith(".slot") for p in tmp_path.iterdir())  # no build started
 
 
 def test_switched_off_the_runs_stay_interpreted_and_nothing_is_written(log, tmp_path, monkeypatch):
@@ -97,15 +173,3 @@ def test_switched_off_the_runs_stay_interpreted_and_nothing_is_written(log, tmp_
     monkeypatch.delenv(cb.RUN_BUILDS_ENV)
     assert not cb.BackgroundBuilds().on  # the MPC's switch alone turns them off too
 
-
-def test_no_build_starts_while_the_cap_of_builds_is_under_way(log, tmp_path, monkeypatch):
-    monkeypatch.setenv("HVAC_MPC_CACHE_DIR", str(tmp_path))
-    sim = Simulator(log, Parameters(), DOCUMENTED_EFFECTS, tuple(log.outputs))
-    others = [tmp_path / f".build_other_{k}" for k in range(cb.MAX_BUILDS)]
-    for folder in others:
-        folder.mkdir()
-    builds = cb.BackgroundBuilds(after=0, wait=True, on=True)
-    assert builds.function(sim.f_y) is sim.f_y and builds.summary() == {"counted": 1}
-    assert sorted(tmp_path.iterdir()) == sorted(others)  # nothing of its own started
-    others[0].rmdir()
-    assert builds.function(sim.f_y) is not sim.f_y and builds.summary() == {"built": 1}  # a place found
