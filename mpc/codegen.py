@@ -200,13 +200,16 @@ def _build(fn: ca.Function, folder: Path, lib: Path, libs: tuple[str, ...] = ("-
     """Generate C for ``fn``, compile it (linked with ``libs``) and move the shared object into place atomically."""
     folder.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=folder) as tmp:
-        cwd = os.getcwd()
-        try:
-            os.chdir(tmp)  # Function.generate writes into the working directory
-            source = fn.generate(f"{lib.stem}.c", {"with_header": False})
-        finally:
-            os.chdir(cwd)
-        compile_shared(Path(tmp) / source, lib, CFLAGS, libs, timeout_s=600)
+        source = generate_into(fn, f"{lib.stem}.c", Path(tmp))
+        compile_shared(source, lib, CFLAGS, libs, timeout_s=600)
+
+
+def generate_into(fn: ca.Function, name: str, folder: Path) -> Path:
+    """``fn``'s C source (``Function.generate``'s code, without a header) written as ``folder / name``, the working
+    directory left alone (a daemon builds controllers on its API threads while its loop runs)."""
+    generator = ca.CodeGenerator(name, {"with_header": False})
+    generator.add(fn)
+    return Path(generator.generate(f"{folder}{os.sep}"))
 
 
 def compiled_nlpsol(name: str, plugin: str, nlp: dict, opts: dict, report: CodegenReport | None = None,

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import casadi as ca
 
-from .codegen import CFLAGS, SWITCH_ENV, cache_dir, compiler, structure_key
+from .codegen import CFLAGS, SWITCH_ENV, cache_dir, compiler, generate_into, structure_key
 
 #: Calls of one function run interpreted before its build starts, at the next one. 0: a structure is built at its
 #: first use, for the next process above all (an identification runs most structures once to three times; the
@@ -173,9 +173,7 @@ def _start(fn: ca.Function, lib: Path, wait: bool) -> bool:
         return False
     try:
         (slot / "target").write_text(lib.name)
-        generator = ca.CodeGenerator(f"{lib.stem}.c", {"with_header": False})
-        generator.add(fn)
-        source = Path(generator.generate(f"{slot}{os.sep}"))  # into the slot, the working directory left alone
+        source = generate_into(fn, f"{lib.stem}.c", slot)
     except Exception:  # noqa: BLE001 - nothing built: the interpreter goes on
         shutil.rmtree(slot, ignore_errors=True)
         return False
