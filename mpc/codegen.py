@@ -15,6 +15,7 @@ floating-point round-off. :class:`CodegenReport` says which happened and how lon
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import platform
@@ -187,13 +188,37 @@ def _link_flags(link: tuple[Path, ...]) -> tuple[str, ...]:
 
 
 def _ensure(lib: Path, build, report: CodegenReport) -> str:
-    """``"cached"`` if ``lib`` exists, else build it (time into ``report``) and say ``"built"``."""
+    """``"cached"`` if ``lib`` exists, else build it (time into ``report``) and say ``"built"``. A process that finds
+    another building ``lib`` (the lock ``lib.lock``, held while it builds) waits for it and loads its result:
+    ``"cached"``."""
     if lib.exists():
         return "cached"
-    t0 = time.perf_counter()
-    build()
-    report.build_time_s += time.perf_counter() - t0
+    with _build_lock(lib):
+        if lib.exists():  # built by the process this one waited for
+            return "cached"
+        t0 = time.perf_counter()
+        build()
+        report.build_time_s += time.perf_counter() - t0
     return "built"
+
+
+@contextlib.contextmanager
+def _build_lock(lib: Path):
+    """An exclusive lock on ``lib``'s lock file while it is built (``flock``: released when the holder ends, whatever
+    ends it), so two processes or threads asking for one structure at once build it once (the suite's two workers,
+    a daemon's API threads). Where there is no ``fcntl`` or the folder is not writable, no lock: both build, and the
+    atomic move leaves one whole file."""
+    try:
+        import fcntl
+
+        lib.parent.mkdir(parents=True, exist_ok=True)
+        handle = open(lib.with_name(f"{lib.stem}.lock"), "a")  # noqa: SIM115 - held until the build ends
+    except (ImportError, OSError):
+        yield
+        return
+    with handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        yield
 
 
 def _build(fn: ca.Function, folder: Path, lib: Path, libs: tuple[str, ...] = ("-lm",)) -> None:

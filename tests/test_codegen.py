@@ -193,3 +193,32 @@ def test_two_controllers_of_one_structure_share_their_stages_qp_data_and_another
         assert one._stage_qp_function(stage) is two._stage_qp_function(two.pb.stages_p[n])
         assert one._stage_qp_function(stage) is not other._stage_qp_function(other.pb.stages_p[n])
     assert codegen.structure_key(one.qp_data) == codegen.structure_key(two.qp_data)
+
+
+def test_two_threads_asking_for_one_structure_at_once_build_it_once(tmp_path):
+    """The build lock (``codegen._ensure``): the second asker waits for the first's build and loads it."""
+    import threading
+    import time
+
+    lib = tmp_path / "f_demo_0123.so"
+    calls, started = [], threading.Event()
+
+    def build():
+        calls.append(threading.get_ident())
+        started.set()
+        time.sleep(0.5)  # the other thread asks meanwhile
+        lib.write_bytes(b"built")
+
+    outcomes = {}
+
+    def ask(name):
+        outcomes[name] = codegen._ensure(lib, build, codegen.CodegenReport())
+
+    first = threading.Thread(target=ask, args=("first",))
+    first.start()
+    assert started.wait(10.0)
+    second = threading.Thread(target=ask, args=("second",))
+    second.start()
+    first.join()
+    second.join()
+    assert len(calls) == 1 and outcomes == {"first": "built", "second": "cached"}
