@@ -20,13 +20,18 @@ from __future__ import annotations
 
 import os
 import shutil
-from collections import Counter
 import subprocess
 import time
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
 import casadi as ca
+
+try:
+    import fcntl
+except ImportError:  # pragma: no cover - no file locks (Windows): no builds
+    fcntl = None
 
 from .codegen import CFLAGS, SWITCH_ENV, cache_dir, compiler, generate_into, structure_key
 
@@ -38,33 +43,34 @@ AFTER_CALLS = 0
 #: Environment variable switching these builds on (``1``) or off (``0``) whatever ``HVAC_MPC_CODEGEN`` says
 #: (a lab may keep the MPC's off, 5-30 s each, and want these, about a second each; the suite keeps both off).
 RUN_BUILDS_ENV = "HVAC_MPC_RUN_BUILDS"
-#: A build slot without a process id (a build the caller waits for) older than this, s, is taken to be a build that
-#: was killed; so is a failed build's note, after which the structure is built again.
+#: A failed build's note (``NAME.failed``) older than this, s, no longer stops the structure being built again.
 STALE_S = 900.0
-#: Builds under way in one cache folder at most, one slot folder each (``.slot_0``, ``.slot_1``, claimed by making
-#: it; each compiler takes 60-80 MB, and on a machine whose cores are busy the lowest priority does not stop dozens of
-#: them from sharing a quarter of the cores): a function asked for while every slot is taken stays interpreted until
-#: a later call finds one free.
+#: Builds under way in one cache folder at most, one slot each (each compiler takes 60-80 MB, and on a machine whose
+#: cores are busy the lowest priority does not stop dozens of them from sharing a quarter of the cores): a function
+#: asked for while every slot is taken stays interpreted until a later call finds one free. Slot ``k`` is the lock
+#: file ``.slot_k.lock``, held (``flock``) by the build for as long as it runs, whatever ends it, and the folder
+#: ``.slot_k`` it builds in.
 MAX_BUILDS = 2
-#: The build: compile (at the lowest priority where ``nice`` exists), move the shared object into place, or keep the
-#: compiler's last messages in the failure note; then free the slot. Arguments after the script: the compiler's
-#: whole command line.
-_BUILD = ('"$@" >/dev/null 2>"$HVAC_DIR/stderr" && mv -f "$HVAC_OUT" "$HVAC_LIB" '
+#: Niceness of a detached compiler (0: none).
+NICENESS = 19
+#: The build: compile, move the shared object into place, or keep the last messages in the failure note; then clear
+#: the slot's folder. Arguments after the script: the compiler's whole command line.
+_BUILD = ('"$@" >/dev/null 2>"$HVAC_DIR/stderr" && mv -f "$HVAC_OUT" "$HVAC_LIB" 2>>"$HVAC_DIR/stderr" '
           '|| tail -c 2000 "$HVAC_DIR/stderr" >"$HVAC_FAILED"; rm -rf "$HVAC_DIR"')
-#: The same detached from the caller (a process group of its own, so a signal to the caller's group, as a time limit or
-#: a cancelled job sends it, does not end it half-way; in the caller's session, because with the kernel's automatic
-#: grouping by session a session of its own would share the cores with the caller as an equal whatever its
-#: niceness: an identification from an empty cache took 66 s instead of 47-54), its process id in the slot for
-#: :func:`_stale`.
-_DETACHED = f'({_BUILD}) </dev/null >/dev/null 2>&1 & {{ echo $! >"$HVAC_DIR/pid"; }} 2>/dev/null'
+#: The same detached from the caller, holding the slot's lock (inherited) until it ends: a process group of its own, so
+#: a signal to the caller's group, as a time limit or a cancelled job sends it, does not end it half-way; in the
+#: caller's session, because with the kernel's automatic grouping by session a session of its own would share the
+#: cores with the caller as an equal whatever its niceness (an identification from an empty cache took 66 s instead
+#: of 47-54).
+_DETACHED = f"({_BUILD}) </dev/null >/dev/null 2>&1 &"
 
 
 def enabled() -> bool:
-    """True when builds may run: ``HVAC_MPC_RUN_BUILDS`` if set, else not ``HVAC_MPC_CODEGEN=0``; and a C compiler and
-    ``sh`` are found."""
+    """True when builds may run: ``HVAC_MPC_RUN_BUILDS`` if set, else not ``HVAC_MPC_CODEGEN=0``; and a C compiler,
+    ``sh`` and file locks (``fcntl``) are there."""
     switch = os.environ.get(RUN_BUILDS_ENV)
     on = switch != "0" if switch is not None else os.environ.get(SWITCH_ENV, "1") != "0"
-    return on and compiler() is not None and shutil.which("sh") is not None
+    return on and fcntl is not None and compiler() is not None and shutil.which("sh") is not None
 
 
 @dataclass
@@ -122,6 +128,9 @@ class BackgroundBuilds:
                 self.outcomes.setdefault(tag, "counted")
                 if entry.started and _failed(entry.lib):
                     self._fail(entry)
+                elif entry.started and not _building(entry.lib):  # ended without a result (killed): again later
+                    entry.started = False
+                    self.outcomes[tag] = "counted"
                 return
             if _failed(entry.lib):
                 return self._fail(entry)
@@ -164,75 +173,84 @@ def _start(fn: ca.Function, lib: Path, wait: bool) -> bool:
     cache = lib.parent
     try:
         cache.mkdir(parents=True, exist_ok=True)
-        if any(_target(slot) == lib.name and not _stale(slot) for slot in _slots(cache)):
+        if _building(lib):
             return False
-        slot = _claim(cache)
+        claimed = _claim(cache)
     except OSError:
         return False
-    if slot is None:
+    if claimed is None:
         return False
+    slot, lock = claimed
     try:
         (slot / "target").write_text(lib.name)
         source = generate_into(fn, f"{lib.stem}.c", slot)
-    except Exception:  # noqa: BLE001 - nothing built: the interpreter goes on
+        out = slot / lib.name
+        nice = ["nice", "-n", str(NICENESS)] if NICENESS and shutil.which("nice") and not wait else []
+        command = [*nice, compiler(), *CFLAGS, str(source), "-o", str(out), "-lm"]
+        env = {**os.environ, "HVAC_OUT": str(out), "HVAC_LIB": str(lib), "HVAC_DIR": str(slot),
+               "HVAC_FAILED": str(_note(lib))}
+        subprocess.run(["sh", "-c", _BUILD if wait else _DETACHED, "sh", *command], env=env, check=False,
+                       stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                       pass_fds=() if wait else (lock,), process_group=None if wait else 0)
+    except Exception:  # noqa: BLE001 - nothing built (no compiler, no process): the interpreter goes on
         shutil.rmtree(slot, ignore_errors=True)
         return False
-    out = slot / lib.name
-    nice = ["nice", "-n", "19"] if shutil.which("nice") and not wait else []
-    command = [*nice, compiler(), *CFLAGS, str(source), "-o", str(out), "-lm"]
-    env = {**os.environ, "HVAC_OUT": str(out), "HVAC_LIB": str(lib), "HVAC_DIR": str(slot),
-           "HVAC_FAILED": str(_note(lib))}
-    subprocess.run(["sh", "-c", _BUILD if wait else _DETACHED, "sh", *command], env=env, check=False,
-                   stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                   process_group=None if wait else 0)
+    finally:
+        os.close(lock)  # a detached build holds its own copy until it ends
     return True
 
 
-def _slots(cache: Path) -> list[Path]:
-    return [cache / f".slot_{k}" for k in range(MAX_BUILDS)]
+def _building(lib: Path) -> bool:
+    """True while a slot of ``lib``'s cache folder holds a build of ``lib``."""
+    return any(_target(k, lib.parent) == lib.name and _held(k, lib.parent) for k in range(MAX_BUILDS))
 
 
-def _target(slot: Path) -> str | None:
-    """The shared object a slot is building (None: a free slot, or one being set up or cleared)."""
+def _slot(k: int, cache: Path) -> tuple[Path, Path]:
+    """Slot ``k``'s folder and lock file."""
+    return cache / f".slot_{k}", cache / f".slot_{k}.lock"
+
+
+def _target(k: int, cache: Path) -> str | None:
+    """The shared object slot ``k`` builds or last built (None: none, or being set up or cleared)."""
     try:
-        return (slot / "target").read_text()
+        return (_slot(k, cache)[0] / "target").read_text()
     except OSError:
         return None
 
 
-def _claim(cache: Path) -> Path | None:
-    """A free slot of ``cache``, made (atomically: this process's claim); a stale one (:func:`_stale`) is cleared and
-    taken. None when every slot holds a live build."""
-    for slot in _slots(cache):
-        try:
-            slot.mkdir()
-            return slot
-        except FileExistsError:
-            if not _stale(slot):
-                continue
-            shutil.rmtree(slot, ignore_errors=True)
-            try:
-                slot.mkdir()
-                return slot
-            except FileExistsError:  # another process took it first
-                continue
-    return None
+def _lock(k: int, cache: Path) -> int | None:
+    """Slot ``k``'s lock, taken (a file descriptor holding it), or None while a build holds it."""
+    fd = os.open(_slot(k, cache)[1], os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        return None
+    return fd
 
 
-def _stale(slot: Path) -> bool:
-    """True for a slot whose build is gone: its process has ended (its id in ``pid``), or, without one, the slot is
-    older than :data:`STALE_S` (a build waited for and killed)."""
-    try:
-        pid = int((slot / "pid").read_text())
-    except (OSError, ValueError):
-        try:
-            return time.time() - slot.stat().st_mtime > STALE_S
-        except OSError:
-            return False  # cleared meanwhile: the next claim makes it
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
+def _held(k: int, cache: Path) -> bool:
+    """True while a build holds slot ``k``."""
+    fd = _lock(k, cache)
+    if fd is None:
         return True
-    except OSError:  # alive, another user's
-        return False
+    os.close(fd)
     return False
+
+
+def _claim(cache: Path) -> tuple[Path, int] | None:
+    """A free slot of ``cache`` (its folder made empty, what a killed build left removed) and its lock's descriptor,
+    or None while every slot holds a build."""
+    for k in range(MAX_BUILDS):
+        fd = _lock(k, cache)
+        if fd is None:
+            continue
+        folder = _slot(k, cache)[0]
+        try:
+            shutil.rmtree(folder, ignore_errors=True)
+            folder.mkdir()
+        except OSError:
+            os.close(fd)
+            continue
+        return folder, fd
+    return None

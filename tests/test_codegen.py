@@ -195,18 +195,30 @@ def test_two_controllers_of_one_structure_share_their_stages_qp_data_and_another
     assert codegen.structure_key(one.qp_data) == codegen.structure_key(two.qp_data)
 
 
-def test_two_threads_asking_for_one_structure_at_once_build_it_once(tmp_path):
+def test_two_threads_asking_for_one_structure_at_once_build_it_once(tmp_path, monkeypatch):
     """The build lock (``codegen._ensure``): the second asker waits for the first's build and loads it."""
+    import contextlib
     import threading
     import time
 
     lib = tmp_path / "f_demo_0123.so"
-    calls, started = [], threading.Event()
+    calls, asked, at_lock = [], [], threading.Event()
+    real = codegen._build_lock
+
+    @contextlib.contextmanager
+    def lock(path):
+        asked.append(path)
+        if len(asked) == 2:
+            at_lock.set()  # the second asker has found no file and is at the lock
+        with real(path):
+            yield
+
+    monkeypatch.setattr(codegen, "_build_lock", lock)
 
     def build():
         calls.append(threading.get_ident())
-        started.set()
-        time.sleep(0.5)  # the other thread asks meanwhile
+        assert at_lock.wait(10.0)
+        time.sleep(0.2)  # without a lock the second asker would be building by now
         lib.write_bytes(b"built")
 
     outcomes = {}
@@ -214,11 +226,11 @@ def test_two_threads_asking_for_one_structure_at_once_build_it_once(tmp_path):
     def ask(name):
         outcomes[name] = codegen._ensure(lib, build, codegen.CodegenReport())
 
-    first = threading.Thread(target=ask, args=("first",))
-    first.start()
-    assert started.wait(10.0)
-    second = threading.Thread(target=ask, args=("second",))
-    second.start()
-    first.join()
-    second.join()
+    threads = [threading.Thread(target=ask, args=(name,)) for name in ("first", "second")]
+    threads[0].start()
+    while not calls:
+        time.sleep(0.01)
+    threads[1].start()
+    for thread in threads:
+        thread.join(30.0)
     assert len(calls) == 1 and outcomes == {"first": "built", "second": "cached"}
