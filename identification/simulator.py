@@ -29,9 +29,9 @@ import casadi as ca
 import numpy as np
 
 from hvac_mpc.models import chiller, valves
-from hvac_mpc.mpc.codegen_background import BackgroundBuilds
 from hvac_mpc.models.box import INPUTS, HvacModel
 from hvac_mpc.models.parameters import Parameters
+from hvac_mpc.mpc.codegen_background import BackgroundBuilds
 
 from .log_data import LogData
 
@@ -257,10 +257,9 @@ class Simulator:
         self._runs = ([(key, run)] + [(k, r) for k, r in self._runs if k != key])[:RUNS_KEPT]
         return run
 
-    def _mapped(self, fn: ca.Function, rows: int, step: ca.Function | None = None) -> ca.Function:
-        """``fn`` (a step: state, row inputs, constants -> next state, row outputs) mapped over ``rows`` rows;
-        ``step``: the form of ``fn`` to map (its generated C, :attr:`builds`), ``fn`` itself by default."""
-        step = fn if step is None else step
+    def _mapped(self, fn: ca.Function, step: ca.Function, rows: int) -> ca.Function:
+        """``fn`` (a step: state, row inputs, constants -> next state, row outputs) mapped over ``rows`` rows, in the
+        form ``step`` (``fn`` itself or its generated C, :attr:`builds`)."""
         key = (id(fn), rows, step is not fn)  # the functions live as long as the simulator: their ids stay theirs
         if key not in self._maps:
             self._maps[key] = step.mapaccum(f"{fn.name()}_{rows}", rows, [0], [0])
@@ -276,7 +275,7 @@ class Simulator:
         step = fn if self.builds is None else self.builds.function(fn)  # one run: one call asked for
         for k in range(0, z.shape[1], CHUNK_ROWS):
             zk = z[:, k:k + CHUNK_ROWS]
-            x_k, y_k = self._mapped(fn, zk.shape[1], step)(x, zk, *const, *(a[:, k:k + CHUNK_ROWS] for a in per_row))
+            x_k, y_k = self._mapped(fn, step, zk.shape[1])(x, zk, *const, *(a[:, k:k + CHUNK_ROWS] for a in per_row))
             xs.append(np.asarray(x_k))
             ys.append(np.asarray(y_k))
             x = xs[-1][:, -1]

@@ -30,6 +30,11 @@ from pathlib import Path
 
 import casadi as ca
 
+try:
+    import fcntl
+except ImportError:  # pragma: no cover - no file locks (Windows)
+    fcntl = None
+
 #: Compiler flags of the generated code (no fast-math and no fused multiply-adds, where a processor has them:
 #: results stay those of the interpreter). Built for this machine's processor (``-march=native``, the processor in
 #: the cache key) at ``-O3``: the QP data's generated call 0.89x and the estimator's update 0.78x the time at ``-O2``
@@ -157,9 +162,8 @@ def compiled(fn: ca.Function, report: CodegenReport | None = None, link: tuple[P
         report.outcomes[name] = f"interpreted: {SWITCH_ENV}=0"
         return fn
     try:
-        folder = cache_dir()
-        lib = folder / f"{name}_{_linked_key(fn, link)}.so"
-        outcome = _ensure(lib, lambda: _build(fn, folder, lib, _link_flags(link)), report)
+        lib = library(fn, link)
+        outcome = _ensure(lib, lambda: _build(fn, lib.parent, lib, _link_flags(link)), report)
         ext = ca.external(name, str(lib))
         report.outcomes[name] = outcome
         report.libraries[name] = lib
@@ -167,6 +171,11 @@ def compiled(fn: ca.Function, report: CodegenReport | None = None, link: tuple[P
     except Exception as exc:  # noqa: BLE001 - no compiler, read-only cache, ...: the interpreter works
         report.outcomes[name] = f"interpreted: {type(exc).__name__}: {str(exc)[:200]}"
         return fn
+
+
+def library(fn: ca.Function, link: tuple[Path, ...] = ()) -> Path:
+    """The shared object ``fn``'s generated C is cached as (``link``: as in :func:`compiled`)."""
+    return cache_dir() / f"{fn.name()}_{_linked_key(fn, link)}.so"
 
 
 def _linked_key(fn: ca.Function, link: tuple[Path, ...]) -> str:
@@ -209,11 +218,11 @@ def _build_lock(lib: Path):
     a daemon's API threads). Where there is no ``fcntl`` or the folder is not writable, no lock: both build, and the
     atomic move leaves one whole file."""
     try:
-        import fcntl
-
+        if fcntl is None:
+            raise OSError("no file locks")
         lib.parent.mkdir(parents=True, exist_ok=True)
         handle = open(lib.with_name(f"{lib.stem}.lock"), "a")  # noqa: SIM115 - held until the build ends
-    except (ImportError, OSError):
+    except OSError:
         yield
         return
     with handle:

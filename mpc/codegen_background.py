@@ -28,12 +28,7 @@ from pathlib import Path
 
 import casadi as ca
 
-try:
-    import fcntl
-except ImportError:  # pragma: no cover - no file locks (Windows): no builds
-    fcntl = None
-
-from .codegen import CFLAGS, SWITCH_ENV, cache_dir, compiler, generate_into, structure_key
+from .codegen import CFLAGS, SWITCH_ENV, compiler, fcntl, generate_into, library
 
 #: Calls of one function run interpreted before its build starts, at the next one. 0: a structure is built at its
 #: first use, for the next process above all (an identification runs most structures once to three times; the
@@ -110,7 +105,7 @@ class BackgroundBuilds:
             return fn
         entry = self._entries.get(id(fn))
         if entry is None:
-            entry = self._entries[id(fn)] = _Entry(fn, cache_dir() / f"{fn.name()}_{structure_key(fn)}.so")
+            entry = self._entries[id(fn)] = _Entry(fn, library(fn))
         if not entry.done:
             self._advance(entry)
         return entry.compiled if entry.compiled is not None else fn
@@ -122,31 +117,35 @@ class BackgroundBuilds:
     def _advance(self, entry: _Entry) -> None:
         """Load ``entry``'s shared object if it exists, else count the call and start its build when due."""
         tag = entry.lib.stem
-        if not entry.lib.exists():
-            entry.calls += 1
-            if entry.calls <= self.after or (entry.started and not self.wait):
-                self.outcomes.setdefault(tag, "counted")
-                if entry.started and _failed(entry.lib):
-                    self._fail(entry)
-                elif entry.started and not _building(entry.lib):  # ended without a result (killed): again later
-                    entry.started = False
-                    self.outcomes[tag] = "counted"
-                return
-            if _failed(entry.lib):
-                return self._fail(entry)
-            entry.started = entry.started or _start(entry.fn, entry.lib, self.wait)
-            self.outcomes[tag] = "building" if entry.started else "counted"
-            if not entry.lib.exists():
-                if self.wait and entry.started:
-                    self._fail(entry)
-                return
+        if entry.lib.exists():
+            return self._load(entry)
+        entry.calls += 1
+        if entry.calls <= self.after:
+            self.outcomes.setdefault(tag, "counted")
+            return
+        if _failed(entry.lib):
+            return self._fail(entry)
+        if entry.started and not self.wait:  # under way, unless it ended without a result (killed): again later
+            if not _building(entry.lib):
+                entry.started = False
+                self.outcomes[tag] = "counted"
+            return
+        entry.started = _start(entry.fn, entry.lib, self.wait)
+        self.outcomes[tag] = "building" if entry.started else "counted"
+        if entry.lib.exists():
+            self._load(entry)
+        elif self.wait and entry.started:
+            self._fail(entry)
+
+    def _load(self, entry: _Entry) -> None:
+        """Load ``entry``'s shared object: nothing more is tried for it, whether it loads or not."""
         entry.done = True
         try:
             entry.compiled = ca.external(entry.fn.name(), str(entry.lib))
         except Exception as exc:  # noqa: BLE001 - a broken file: the interpreter gives the same values
-            self.outcomes[tag] = f"interpreted: {type(exc).__name__}: {str(exc)[:200]}"
+            self.outcomes[entry.lib.stem] = f"interpreted: {type(exc).__name__}: {str(exc)[:200]}"
             return
-        self.outcomes[tag] = "built" if entry.started else "cached"
+        self.outcomes[entry.lib.stem] = "built" if entry.started else "cached"
 
     def _fail(self, entry: _Entry) -> None:
         """``entry``'s build failed: nothing more is tried in this piece of work."""

@@ -28,9 +28,14 @@ def log(tmp_path_factory):
     return load(path)
 
 
+def _sim(log, builds=None):
+    """The documented model's simulator on ``log``, its step functions with ``builds`` (None: interpreted)."""
+    return Simulator(log, Parameters(), DOCUMENTED_EFFECTS, tuple(log.outputs), builds=builds)
+
+
 def _runs(log, builds):
     """A free run and the sensitivities of four parameters on ``log``, with ``builds`` (None: interpreted)."""
-    return _runs_on(Simulator(log, Parameters(), DOCUMENTED_EFFECTS, tuple(log.outputs), builds=builds))
+    return _runs_on(_sim(log, builds))
 
 
 def _runs_on(sim):
@@ -63,7 +68,7 @@ def test_the_generated_runs_give_the_interpreters_values_to_the_bit_and_the_next
 
 def test_a_function_is_built_only_after_the_calls_asked_for(log, tmp_path, monkeypatch):
     monkeypatch.setenv("HVAC_MPC_CACHE_DIR", str(tmp_path))
-    sim = Simulator(log, Parameters(), DOCUMENTED_EFFECTS, tuple(log.outputs))
+    sim = _sim(log)
     builds = cb.BackgroundBuilds(after=2, wait=True, on=True)
     assert builds.function(sim.f_step_y) is sim.f_step_y
     assert builds.function(sim.f_step_y) is sim.f_step_y
@@ -97,7 +102,7 @@ def _slot_folders(cache):
 def test_a_build_under_way_elsewhere_is_not_started_again_and_a_killed_ones_slot_is_taken_over(log, tmp_path,
                                                                                               monkeypatch):
     monkeypatch.setenv("HVAC_MPC_CACHE_DIR", str(tmp_path))
-    sim = Simulator(log, Parameters(), DOCUMENTED_EFFECTS, tuple(log.outputs))
+    sim = _sim(log)
     fd = _hold(tmp_path, 0, f"{_stem(sim)}.so")  # another process builds it
     held = cb.BackgroundBuilds(after=0, wait=True, on=True)
     assert held.function(sim.f_y) is sim.f_y and held.summary() == {"counted": 1}
@@ -109,7 +114,7 @@ def test_a_build_under_way_elsewhere_is_not_started_again_and_a_killed_ones_slot
 
 def test_no_build_starts_while_every_slot_is_taken(log, tmp_path, monkeypatch):
     monkeypatch.setenv("HVAC_MPC_CACHE_DIR", str(tmp_path))
-    sim = Simulator(log, Parameters(), DOCUMENTED_EFFECTS, tuple(log.outputs))
+    sim = _sim(log)
     fds = [_hold(tmp_path, k, f"other_{k}.so") for k in range(cb.MAX_BUILDS)]
     builds = cb.BackgroundBuilds(after=0, wait=True, on=True)
     assert builds.function(sim.f_y) is sim.f_y and builds.summary() == {"counted": 1}
@@ -128,7 +133,7 @@ def test_a_detached_build_is_loaded_once_it_is_there_with_the_same_values(log, t
     monkeypatch.setattr(cb, "NICENESS", 0)
     reference = _runs(log, None)
     builds = cb.BackgroundBuilds(after=0, on=True)
-    sim = Simulator(log, Parameters(), DOCUMENTED_EFFECTS, tuple(log.outputs), builds=builds)
+    sim = _sim(log, builds)
     first = _runs_on(sim)
     assert set(builds.outcomes.values()) <= {"building", "built"}, builds.outcomes  # not waited for
     deadline = time.monotonic() + 120.0
@@ -148,7 +153,7 @@ def test_a_detached_build_is_loaded_once_it_is_there_with_the_same_values(log, t
 def test_a_failed_build_leaves_a_note_and_is_not_tried_again_until_the_note_is_old(log, tmp_path, monkeypatch):
     monkeypatch.setenv("HVAC_MPC_CACHE_DIR", str(tmp_path))
     monkeypatch.setattr(cb, "CFLAGS", ("-no-such-flag",))
-    sim = Simulator(log, Parameters(), DOCUMENTED_EFFECTS, tuple(log.outputs))
+    sim = _sim(log)
     builds = cb.BackgroundBuilds(after=0, wait=True, on=True)
     assert builds.function(sim.f_y) is sim.f_y
     (outcome,) = builds.outcomes.values()
@@ -163,7 +168,7 @@ def test_switched_off_the_runs_stay_interpreted_and_nothing_is_written(log, tmp_
     monkeypatch.setenv(cb.RUN_BUILDS_ENV, "0")
     builds = cb.BackgroundBuilds(after=0, wait=True)
     assert not builds.on
-    sim = Simulator(log, Parameters(), DOCUMENTED_EFFECTS, tuple(log.outputs), builds=builds)
+    sim = _sim(log, builds)
     sim.simulate(np.asarray(Parameters().vector()))
     assert builds.outcomes == {} and not any(tmp_path.iterdir())
     monkeypatch.setenv(cb.RUN_BUILDS_ENV, "1")
